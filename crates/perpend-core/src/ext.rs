@@ -1,0 +1,190 @@
+//! Model extensions: corrections of a reading for effects the paper's
+//! zero-point + beam-direction model (Chen §3.1) does not contain.
+//!
+//! Each coefficient belongs to the stored calibration of one sensor and is
+//! zero (no correction) by default. The correction is written as the excess
+//! `δ` of the reading over the true distance, evaluated on **measured**
+//! quantities, so that it is linear in the coefficients and the same
+//! expression is fitted on the host and applied on the board:
+//!
+//! ```text
+//! d_true = d − δ
+//! δ = gain·(d − d_ref)                         analog-chain scale error
+//!   + nl2·(d − d_ref)² + nl3·(d − d_ref)³      polynomial linearity error
+//!   + incidence·(1/cos γ − 1)                  γ: angle beam ↔ surface normal
+//!   + crosstalk·(d_prev − d)                   S&H carry-over from the channel
+//!                                              converted just before
+//!   + thermal·(T − T_ref)                      head temperature [°C]
+//!   + drift·t                                  time since start of run [s]
+//! ```
+//!
+//! `d_prev` is the reading of the previous channel in the ADC scan; for the
+//! first channel it is the last channel of the same scan (the scan repeats
+//! every period, so at steady state that is the conversion just before). A
+//! missing `d_prev`, temperature or time contributes no correction.
+//!
+//! Limits: first-order corrections; a gain of `g` is inverted as `d − g·(d −
+//! d_ref)` rather than `d_ref + (d − d_ref)/(1 + g)`, an error of `g²·|d −
+//! d_ref|` (5 nm for `g = 10⁻³` over ±5 mm), far below any sensor's noise.
+
+use crate::Real;
+
+/// Per-sensor correction coefficients (all zero = the paper's model).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Extension<T: Real> {
+    /// Reference distance [mm] about which gain and non-linearity act
+    /// (mid-range of the sensor; an offset at `d_ref` is the zero point's job).
+    pub d_ref: T,
+    /// Relative scale error of the analog chain [-].
+    pub gain: T,
+    /// Quadratic and cubic linearity error [mm⁻¹, mm⁻²].
+    pub nonlinearity: [T; 2],
+    /// Incidence bias [mm] per unit of `(1/cos γ − 1)`.
+    pub incidence: T,
+    /// Fraction [-] of the previous channel's reading that leaks into this one.
+    pub crosstalk: T,
+    /// Thermal drift [mm/°C] about `temp_ref`.
+    pub thermal: T,
+    /// Reference temperature [°C] of `thermal`.
+    pub temp_ref: T,
+    /// Drift with time [mm/s].
+    pub drift: T,
+}
+
+/// What the corrections need besides the reading itself.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Context<T: Real> {
+    /// Head temperature [°C], if measured.
+    pub temp_c: Option<T>,
+    /// Time since the start of the run [s], if known.
+    pub t_s: Option<T>,
+}
+
+impl<T: Real> Default for Extension<T> {
+    fn default() -> Self {
+        Self::identity()
+    }
+}
+
+impl<T: Real> Extension<T> {
+    /// No correction.
+    pub fn identity() -> Self {
+        Self {
+            d_ref: T::zero(),
+            gain: T::zero(),
+            nonlinearity: [T::zero(); 2],
+            incidence: T::zero(),
+            crosstalk: T::zero(),
+            thermal: T::zero(),
+            temp_ref: T::lit(20.0),
+            drift: T::zero(),
+        }
+    }
+
+    /// Whether the incidence term is active (then the normal is computed in
+    /// two passes: the angle γ needs a first plane).
+    #[inline]
+    pub fn needs_incidence(&self) -> bool {
+        self.incidence != T::zero()
+    }
+
+    /// The excess `δ` of reading `d` over the true distance (module docs).
+    ///
+    /// `d_prev`: reading of the previously converted channel;
+    /// `cos_gamma`: `|n·u|` of the beam on the surface (1 if unknown).
+    pub fn excess(&self, d: T, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
+        let x = d - self.d_ref;
+        let mut delta = self.gain * x
+            + self.nonlinearity[0] * x * x
+            + self.nonlinearity[1] * x * x * x;
+        if self.incidence != T::zero() && cos_gamma > T::zero() {
+            delta += self.incidence * (T::one() / cos_gamma - T::one());
+        }
+        if let Some(p) = d_prev {
+            delta += self.crosstalk * (p - d);
+        }
+        if let Some(t) = ctx.temp_c {
+            delta += self.thermal * (t - self.temp_ref);
+        }
+        if let Some(t) = ctx.t_s {
+            delta += self.drift * t;
+        }
+        delta
+    }
+
+    /// The corrected reading `d − δ`.
+    #[inline]
+    pub fn correct(&self, d: T, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
+        d - self.excess(d, d_prev, cos_gamma, ctx)
+    }
+
+    /// Whether every coefficient is finite.
+    pub fn is_finite(&self) -> bool {
+        [
+            self.d_ref,
+            self.gain,
+            self.nonlinearity[0],
+            self.nonlinearity[1],
+            self.incidence,
+            self.crosstalk,
+            self.thermal,
+            self.temp_ref,
+            self.drift,
+        ]
+        .iter()
+        .all(|x| x.is_finite_real())
+    }
+
+    /// Converts to another float type.
+    pub fn cast<U: Real>(&self) -> Extension<U> {
+        let c = |x: T| U::lit(x.to_f64());
+        Extension {
+            d_ref: c(self.d_ref),
+            gain: c(self.gain),
+            nonlinearity: [c(self.nonlinearity[0]), c(self.nonlinearity[1])],
+            incidence: c(self.incidence),
+            crosstalk: c(self.crosstalk),
+            thermal: c(self.thermal),
+            temp_ref: c(self.temp_ref),
+            drift: c(self.drift),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+
+    #[test]
+    fn identity_changes_nothing() {
+        let e = Extension::<f64>::identity();
+        let ctx = Context {
+            temp_c: Some(35.0),
+            t_s: Some(100.0),
+        };
+        assert_eq!(e.correct(42.5, Some(40.0), 0.8, &ctx), 42.5);
+    }
+
+    #[test]
+    fn each_term_hand_computed() {
+        let ctx = Context {
+            temp_c: Some(30.0),
+            t_s: Some(10.0),
+        };
+        let e = Extension {
+            d_ref: 40.0,
+            gain: 1e-3,
+            nonlinearity: [1e-4, 1e-5],
+            incidence: 0.01,
+            crosstalk: 0.002,
+            thermal: 0.001,
+            temp_ref: 20.0,
+            drift: 1e-4,
+        };
+        // x = 2: gain 0.002, nl 0.0004 + 0.00008, inc 0.01*(1/0.8-1) = 0.0025,
+        // xt 0.002*(40-42) = -0.004, th 0.01, drift 0.001
+        let want = 0.002 + 0.0004 + 0.00008 + 0.0025 - 0.004 + 0.01 + 0.001;
+        assert_relative_eq!(e.excess(42.0, Some(40.0), 0.8, &ctx), want, epsilon = 1e-12);
+    }
+}

@@ -1,0 +1,448 @@
+//! Spot points and the micro-plane normal.
+//!
+//! Readings become spot points `S_i = E_i + d_i·u_i` (Chen eq. 17, with unit
+//! directions and the sensor's [`crate::ext`] corrections applied to `d_i`).
+//! The micro-plane normal is computed one of two ways ([`Method`]):
+//!
+//! * **Chen** — the average of the four unit cross products of eq. 18,
+//!   `n = ¼ Σ n_i` (eq. 19), normalised (the paper leaves the average
+//!   unnormalised, which is not a unit vector when the `n_i` differ);
+//! * **least squares** — the plane through the spots' centroid whose normal
+//!   is the eigenvector of the smallest eigenvalue of the 3×3 scatter matrix
+//!   (total least squares: orthogonal distances), with the RMS orthogonal
+//!   residual (`sqrt(λ_min / k)` in exact arithmetic).
+//!
+//! The normal is oriented **towards the head** (from the surface to the
+//! sensors' zero points): Tian's "outer normal" `TH`.
+//!
+//! Three-sensor operation: any readings that are missing (`None`) are
+//! skipped; with three left the plane is exact (residual 0, Chen's average
+//! reduces to the single cross product) and the fit is flagged `degraded`.
+//! Fewer than three is [`Error::TooFewReadings`], never a NaN.
+//!
+//! Limits: the spots must not be collinear (relative tolerance
+//! `sqrt(ε)` of the float type on the sine of the angle between edges, or
+//! on the eigenvalue ratio). Chen's eq. 18 assumes the four sensors are
+//! numbered in order around the spindle; with more than four valid sensors
+//! the Chen method falls back to least squares.
+
+use nalgebra::{Matrix3, Vector3};
+
+use crate::angles::{Attitude, Deviation};
+use crate::ext::Context;
+use crate::head::Head;
+use crate::{finite, Error, Real, Result};
+
+/// How the micro-plane normal is computed from the spots.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Method {
+    /// Chen eq. 18-19: averaged unit cross products (4 spots) or the single
+    /// cross product (3 spots).
+    Chen,
+    /// Total least-squares plane (3×3 symmetric eigenproblem).
+    #[default]
+    LeastSquares,
+}
+
+/// A plane fitted to the spot points.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlaneFit<T: Real> {
+    /// Unit normal, oriented towards the head.
+    pub normal: Vector3<T>,
+    /// Centroid of the spots used [mm, TCS].
+    pub centroid: Vector3<T>,
+    /// RMS orthogonal distance of the used spots from the fitted plane [mm].
+    pub rms: T,
+    /// Bit mask of the sensors used (bit `i` = sensor `i`, 0-based).
+    pub used: u32,
+    /// True when fewer sensors than the head has were used.
+    pub degraded: bool,
+}
+
+/// A complete measurement: plane, deviation and attitude correction.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measurement<T: Real> {
+    /// The micro-plane.
+    pub plane: PlaneFit<T>,
+    /// Tian's deviation angles of the spindle from the normal.
+    pub deviation: Deviation<T>,
+    /// Chen's attitude correction (pitch/yaw) that aligns the spindle.
+    pub attitude: Attitude<T>,
+}
+
+/// Relative tolerance for collinearity tests.
+fn degenerate_tol<T: Real>() -> T {
+    T::default_epsilon().sqrt()
+}
+
+/// Validates readings: `Some` values must be finite and non-negative.
+fn check_readings<T: Real, const N: usize>(readings: &[Option<T>; N]) -> Result<u32> {
+    let mut mask = 0u32;
+    for (i, r) in readings.iter().enumerate() {
+        if let Some(d) = r {
+            finite(*d, "reading")?;
+            if *d < T::zero() {
+                return Err(Error::NegativeDistance(i));
+            }
+            mask |= 1 << i;
+        }
+    }
+    Ok(mask)
+}
+
+/// Spot points of the valid readings (Chen eq. 17), after the sensors'
+/// extension corrections. `cos_gamma[i]` is `|n·u_i|` for the incidence
+/// correction (use 1 when no plane is known yet).
+///
+/// Returns the spots (`None` where the reading is missing) and the mask of
+/// valid sensors.
+///
+/// # Errors
+/// [`Error::NonFinite`] for a NaN/infinite reading, [`Error::NegativeDistance`].
+pub fn spots<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    cos_gamma: &[T; N],
+) -> Result<([Option<Vector3<T>>; N], u32)> {
+    let mask = check_readings(readings)?;
+    let mut out = [None; N];
+    for (i, r) in readings.iter().enumerate() {
+        if let Some(d) = r {
+            let prev = readings[(i + N - 1) % N];
+            let s = &head.sensors[i];
+            let dc = s.ext.correct(*d, prev, cos_gamma[i], ctx);
+            out[i] = Some(s.spot(dc));
+        }
+    }
+    Ok((out, mask))
+}
+
+fn unit_cross<T: Real>(a: &Vector3<T>, b: &Vector3<T>) -> Result<Vector3<T>> {
+    let c = a.cross(b);
+    let scale = a.norm() * b.norm();
+    let len = c.norm();
+    if !(len > degenerate_tol::<T>() * scale) {
+        return Err(Error::DegenerateSpots);
+    }
+    Ok(c / len)
+}
+
+/// Chen eq. 18-19 on four spots (in order around the spindle).
+fn chen4<T: Real>(s: &[Vector3<T>; 4]) -> Result<Vector3<T>> {
+    let s12 = s[1] - s[0];
+    let s14 = s[3] - s[0];
+    let s23 = s[2] - s[1];
+    let s34 = s[3] - s[2];
+    let n1 = unit_cross(&s12, &s14)?;
+    let n2 = unit_cross(&s12, &s23)?;
+    let n3 = unit_cross(&s23, &s34)?;
+    let n4 = unit_cross(&s14, &s34)?;
+    let n = (n1 + n2 + n3 + n4) * T::lit(0.25);
+    // Opposite n_i (a self-intersecting quadrilateral) could cancel.
+    crate::geometry::unit(n, "averaged normal").map_err(|_| Error::DegenerateSpots)
+}
+
+/// Eigenvalues of a symmetric 3×3 matrix in ascending order, closed form
+/// (trigonometric solution of the characteristic cubic, O. K. Smith 1961).
+/// Non-iterative: a fixed, small instruction count on the board.
+pub fn sym3_eigenvalues<T: Real>(m: &Matrix3<T>) -> [T; 3] {
+    let p1 = m[(0, 1)] * m[(0, 1)] + m[(0, 2)] * m[(0, 2)] + m[(1, 2)] * m[(1, 2)];
+    let q = m.trace() / T::lit(3.0);
+    let (d0, d1, d2) = (m[(0, 0)] - q, m[(1, 1)] - q, m[(2, 2)] - q);
+    let p2 = d0 * d0 + d1 * d1 + d2 * d2 + T::lit(2.0) * p1;
+    if !(p2 > T::zero()) {
+        return [q, q, q];
+    }
+    let p = (p2 / T::lit(6.0)).sqrt();
+    let b = (m - Matrix3::identity() * q) / p;
+    let r = (b.determinant() / T::lit(2.0)).max(-T::one()).min(T::one());
+    let phi = r.acos() / T::lit(3.0);
+    let l1 = q + T::lit(2.0) * p * phi.cos();
+    let l3 = q + T::lit(2.0) * p * (phi + T::two_pi() / T::lit(3.0)).cos();
+    let l2 = T::lit(3.0) * q - l1 - l3;
+    [l3, l2, l1]
+}
+
+/// Total least-squares normal of `k` points: the eigenvector of the
+/// smallest eigenvalue of the scatter matrix `M = Σ (p−c)(p−c)ᵀ`.
+///
+/// The eigenvalues come from [`sym3_eigenvalues`]; the eigenvector is the
+/// longest cross product of two rows of `M − λ_min·I` (those rows span the
+/// plane orthogonal to it). This is accurate to `ε·λ_max/λ_mid` even in
+/// `f32`, where an iterative eigen-solver with its own stopping tolerance
+/// lost ~0.015° on a 60 mm spot pattern. Returns (normal, rms) with the RMS
+/// computed from the residuals themselves, not from `λ_min`, which carries
+/// an absolute rounding error of `ε·λ_max`.
+fn tls<T: Real>(pts: &[Vector3<T>], centroid: &Vector3<T>) -> Result<(Vector3<T>, T)> {
+    let mut m = Matrix3::zeros();
+    for p in pts {
+        let q = p - centroid;
+        m += q * q.transpose();
+    }
+    let [lmin, lmid, lmax] = sym3_eigenvalues(&m);
+    // The two in-plane spreads must both be non-zero: sqrt(lmid/lmax) is the
+    // aspect ratio of the spot pattern.
+    let tol = degenerate_tol::<T>();
+    if !(lmax > T::zero()) || !(lmid > tol * lmax) {
+        return Err(Error::DegenerateSpots);
+    }
+    let a = m - Matrix3::identity() * lmin;
+    let r0 = a.row(0).transpose();
+    let r1 = a.row(1).transpose();
+    let r2 = a.row(2).transpose();
+    let c01 = r0.cross(&r1);
+    let c02 = r0.cross(&r2);
+    let c12 = r1.cross(&r2);
+    let (n01, n02, n12) = (c01.norm_squared(), c02.norm_squared(), c12.norm_squared());
+    let best = if n01 >= n02 && n01 >= n12 {
+        c01
+    } else if n02 >= n12 {
+        c02
+    } else {
+        c12
+    };
+    let n = crate::geometry::unit(best, "plane normal").map_err(|_| Error::DegenerateSpots)?;
+    Ok((n, rms_about(pts, centroid, &n)))
+}
+
+/// RMS orthogonal distance of `pts` from the plane through `c` with unit
+/// normal `n`.
+fn rms_about<T: Real>(pts: &[Vector3<T>], c: &Vector3<T>, n: &Vector3<T>) -> T {
+    let ss = pts.iter().fold(T::zero(), |a, p| {
+        let r = n.dot(&(p - c));
+        a + r * r
+    });
+    (ss / T::lit(pts.len() as f64)).sqrt()
+}
+
+/// Fits the micro-plane to the spots selected by `mask`.
+///
+/// # Errors
+/// [`Error::TooFewReadings`] with fewer than three spots,
+/// [`Error::DegenerateSpots`] when they do not span a plane.
+pub fn fit<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    spots: &[Option<Vector3<T>>; N],
+    method: Method,
+) -> Result<PlaneFit<T>> {
+    // Gather the used spots in scan order into a fixed buffer.
+    let mut buf = [Vector3::<T>::zeros(); 32];
+    let mut k = 0usize;
+    let mut used = 0u32;
+    let mut zero_centroid = Vector3::zeros();
+    for (i, s) in spots.iter().enumerate() {
+        if let Some(p) = s {
+            if k < buf.len() {
+                buf[k] = *p;
+                k += 1;
+                used |= 1 << i;
+                zero_centroid += head.sensors[i].zero;
+            }
+        }
+    }
+    if k < 3 {
+        return Err(Error::TooFewReadings(k));
+    }
+    let pts = &buf[..k];
+    let kk = T::lit(k as f64);
+    let centroid = pts.iter().fold(Vector3::zeros(), |a, p| a + p) / kk;
+    zero_centroid /= kk;
+    let (mut n, rms) = match (method, k) {
+        (Method::Chen, 3) => {
+            let n = unit_cross(&(pts[1] - pts[0]), &(pts[2] - pts[0]))?;
+            (n, T::zero())
+        }
+        (Method::Chen, 4) => {
+            let n = chen4(&[pts[0], pts[1], pts[2], pts[3]])?;
+            (n, rms_about(pts, &centroid, &n))
+        }
+        _ => tls(pts, &centroid)?,
+    };
+    // Orient towards the head (Tian's outer normal TH).
+    if n.dot(&(zero_centroid - centroid)) < T::zero() {
+        n = -n;
+    }
+    Ok(PlaneFit {
+        normal: n,
+        centroid,
+        rms,
+        used,
+        degraded: k < N,
+    })
+}
+
+/// Readings to plane: spots (eq. 17) with corrections, then the fit. When a
+/// sensor has an incidence correction, the plane is fitted twice (the angle
+/// γ needs the first plane).
+///
+/// # Errors
+/// Those of [`spots`] and [`fit`].
+pub fn plane<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    method: Method,
+) -> Result<PlaneFit<T>> {
+    let ones = [T::one(); N];
+    let (s, _) = spots(head, readings, ctx, &ones)?;
+    let first = fit(head, &s, method)?;
+    if !head.sensors.iter().any(|s| s.ext.needs_incidence()) {
+        return Ok(first);
+    }
+    let cg: [T; N] = core::array::from_fn(|i| first.normal.dot(&head.sensors[i].dir).abs());
+    let (s, _) = spots(head, readings, ctx, &cg)?;
+    fit(head, &s, method)
+}
+
+/// The whole per-sample computation: plane, deviation (Tian eq. 1-5) and
+/// attitude correction (Chen eq. 22).
+///
+/// # Errors
+/// Those of [`plane`], and [`Error::SurfaceFacesAway`].
+pub fn measure<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    method: Method,
+) -> Result<Measurement<T>> {
+    let plane = plane(head, readings, ctx, method)?;
+    let deviation = Deviation::from_normal(&plane.normal)?;
+    let attitude = Attitude::from_normal(&plane.normal)?;
+    Ok(Measurement {
+        plane,
+        deviation,
+        attitude,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Plane;
+    use crate::head::Head4;
+    use crate::model::distance;
+    use approx::assert_relative_eq;
+
+    fn readings_for(head: &Head4<f64>, p: &Plane<f64>) -> [Option<f64>; 4] {
+        core::array::from_fn(|i| Some(distance(&head.sensors[i], p, i).unwrap()))
+    }
+
+    fn table1_plane_feed_z() -> Plane<f64> {
+        // Chen Table 1 plane, in a head whose feed is +z (surface at z > 0).
+        Plane::from_abcd(0.0173, -0.3071, 0.9515, -40.0).unwrap()
+    }
+
+    #[test]
+    fn exact_recovery_both_methods() {
+        let head = Head4::cone(50.0, 30f64.to_radians(), 0.0, 0.3).unwrap();
+        let p = table1_plane_feed_z();
+        let r = readings_for(&head, &p);
+        for m in [Method::Chen, Method::LeastSquares] {
+            let f = plane(&head, &r, &Context::default(), m).unwrap();
+            // towards the head: the head sits at z = 0 < surface
+            assert_relative_eq!(f.normal, -p.n, epsilon = 1e-12);
+            assert_relative_eq!(f.rms, 0.0, epsilon = 1e-9);
+            assert!(!f.degraded);
+            assert_eq!(f.used, 0b1111);
+        }
+    }
+
+    #[test]
+    fn three_sensor_fallback_is_flagged_and_exact() {
+        let head = Head4::cone(50.0, 30f64.to_radians(), 0.0, 0.0).unwrap();
+        let p = table1_plane_feed_z();
+        let full = readings_for(&head, &p);
+        for missing in 0..4 {
+            let mut r = full;
+            r[missing] = None;
+            for m in [Method::Chen, Method::LeastSquares] {
+                let f = plane(&head, &r, &Context::default(), m).unwrap();
+                assert!(f.degraded);
+                assert_eq!(f.used, 0b1111 & !(1 << missing));
+                assert_relative_eq!(f.normal, -p.n, epsilon = 1e-12);
+            }
+        }
+        let mut r = full;
+        r[0] = None;
+        r[2] = None;
+        assert_eq!(
+            plane(&head, &r, &Context::default(), Method::LeastSquares),
+            Err(Error::TooFewReadings(2))
+        );
+    }
+
+    #[test]
+    fn bad_readings_are_errors() {
+        let head = Head4::cone(50.0, 0.5, 0.0, 0.0).unwrap();
+        let ctx = Context::default();
+        let r = [Some(40.0), Some(f64::NAN), Some(40.0), Some(40.0)];
+        assert_eq!(
+            plane(&head, &r, &ctx, Method::Chen),
+            Err(Error::NonFinite("reading"))
+        );
+        let r = [Some(40.0), Some(40.0), Some(f64::INFINITY), Some(40.0)];
+        assert_eq!(
+            plane(&head, &r, &ctx, Method::Chen),
+            Err(Error::NonFinite("reading"))
+        );
+        let r = [Some(40.0), Some(40.0), Some(40.0), Some(-1.0)];
+        assert_eq!(
+            plane(&head, &r, &ctx, Method::LeastSquares),
+            Err(Error::NegativeDistance(3))
+        );
+    }
+
+    #[test]
+    fn collinear_spots_are_degenerate() {
+        // Three sensors in a row looking along z: spots collinear.
+        let s = |x: f64| {
+            crate::head::Sensor::new(Vector3::new(x, 0.0, 0.0), Vector3::new(0.0, 0.0, 1.0))
+                .unwrap()
+        };
+        let head = Head::new([s(-1.0), s(0.0), s(1.0)]);
+        let r = [Some(10.0), Some(11.0), Some(12.0)];
+        for m in [Method::Chen, Method::LeastSquares] {
+            assert_eq!(
+                plane(&head, &r, &Context::default(), m),
+                Err(Error::DegenerateSpots)
+            );
+        }
+    }
+
+    #[test]
+    fn least_squares_residual_golden() {
+        // Four coplanar-but-one spots: z = 0 except one at z = h. Beams
+        // along z from z = -10 at (±1, ±1).
+        let s = |x: f64, y: f64| {
+            crate::head::Sensor::new(Vector3::new(x, y, -10.0), Vector3::new(0.0, 0.0, 1.0))
+                .unwrap()
+        };
+        let head = Head::new([s(1.0, 1.0), s(-1.0, 1.0), s(-1.0, -1.0), s(1.0, -1.0)]);
+        let h = 0.04;
+        let r = [Some(10.0 + h), Some(10.0), Some(10.0), Some(10.0)];
+        let f = plane(&head, &r, &Context::default(), Method::LeastSquares).unwrap();
+        // Best plane leaves residuals ±h/4 on all four corners (the
+        // "twist" mode), rms = h/4 to first order in h.
+        assert_relative_eq!(f.rms, h / 4.0, max_relative = 1e-3);
+        assert!(f.normal.z < 0.0);
+    }
+
+    #[test]
+    fn f32_matches_f64() {
+        let head = Head4::cone(50.0, 30f64.to_radians(), 0.0, 0.0).unwrap();
+        let p = table1_plane_feed_z();
+        let r = readings_for(&head, &p);
+        let h32 = head.cast::<f32>();
+        let r32 = r.map(|x| x.map(|v| v as f32));
+        for m in [Method::Chen, Method::LeastSquares] {
+            let f = plane(&h32, &r32, &Context::default(), m).unwrap();
+            let n64 = -p.n;
+            let ang = (f.normal.x as f64 * n64.x + f.normal.y as f64 * n64.y
+                + f.normal.z as f64 * n64.z)
+                .min(1.0)
+                .acos();
+            assert!(ang.to_degrees() < 1e-3, "{m:?}: {ang}");
+        }
+    }
+}
