@@ -360,7 +360,11 @@ mod tests {
         // both: θ from eq. 4
         let d = Deviation::from_normal(&n_from_slopes(0.1, -0.2)).unwrap();
         assert_relative_eq!(d.theta, (0.01f64 + 0.04).sqrt().atan(), epsilon = 1e-14);
-        assert_relative_eq!(d.t1, (d.theta2.cos() * d.theta1.tan()).atan(), epsilon = 1e-14);
+        assert_relative_eq!(
+            d.t1,
+            (d.theta2.cos() * d.theta1.tan()).atan(),
+            epsilon = 1e-14
+        );
     }
 
     #[test]
@@ -420,7 +424,10 @@ mod tests {
 
     #[test]
     fn euler_degenerate_cases() {
-        for (b, sign) in [(core::f64::consts::FRAC_PI_2, 1.0), (-core::f64::consts::FRAC_PI_2, -1.0)] {
+        for (b, sign) in [
+            (core::f64::consts::FRAC_PI_2, 1.0),
+            (-core::f64::consts::FRAC_PI_2, -1.0),
+        ] {
             let e = Euler { a: 0.4, b, c: -0.2 };
             match euler_solutions(&e.matrix()).unwrap() {
                 EulerSolutions::Degenerate {
@@ -436,7 +443,7 @@ mod tests {
                     let other = Euler {
                         a: -1.0,
                         b,
-                        c: sign * -1.0 + offset,
+                        c: -sign + offset,
                     };
                     assert_relative_eq!(other.matrix(), e.matrix(), epsilon = 1e-9);
                 }

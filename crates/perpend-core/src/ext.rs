@@ -94,9 +94,8 @@ impl<T: Real> Extension<T> {
     /// `cos_gamma`: `|n·u|` of the beam on the surface (1 if unknown).
     pub fn excess(&self, d: T, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
         let x = d - self.d_ref;
-        let mut delta = self.gain * x
-            + self.nonlinearity[0] * x * x
-            + self.nonlinearity[1] * x * x * x;
+        let mut delta =
+            self.gain * x + self.nonlinearity[0] * x * x + self.nonlinearity[1] * x * x * x;
         if self.incidence != T::zero() && cos_gamma > T::zero() {
             delta += self.incidence * (T::one() / cos_gamma - T::one());
         }

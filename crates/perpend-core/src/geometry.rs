@@ -71,7 +71,10 @@ impl<T: Real> Plane<T> {
             finite(*x, "plane point")?;
         }
         let n = unit(normal, "plane normal")?;
-        Ok(Self { n, d: -n.dot(&point) })
+        Ok(Self {
+            n,
+            d: -n.dot(&point),
+        })
     }
 
     /// Signed distance of `p` from the plane (positive on the side `n`

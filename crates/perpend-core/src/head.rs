@@ -74,7 +74,10 @@ impl<T: Real> Sensor<T> {
     pub fn retract(&self, delta: &SVector<T, DOF>) -> Result<Self> {
         let (e1, e2) = self.basis();
         let zero = self.zero + Vector3::new(delta[0], delta[1], delta[2]);
-        let dir = unit(self.dir + e1 * delta[3] + e2 * delta[4], "updated direction")?;
+        let dir = unit(
+            self.dir + e1 * delta[3] + e2 * delta[4],
+            "updated direction",
+        )?;
         for c in zero.iter() {
             finite(*c, "updated zero point")?;
         }
@@ -191,7 +194,11 @@ mod tests {
 
     #[test]
     fn retract_then_delta_round_trips() {
-        let s = Sensor::new(Vector3::new(50.0, 0.0, 0.0), Vector3::new(-0.5, 0.0, -0.866)).unwrap();
+        let s = Sensor::new(
+            Vector3::new(50.0, 0.0, 0.0),
+            Vector3::new(-0.5, 0.0, -0.866),
+        )
+        .unwrap();
         let d = SVector::<f64, 5>::from([0.3, -0.2, 0.1, 0.02, -0.03]);
         let t = s.retract(&d).unwrap();
         assert_relative_eq!(t.delta_from(&s), d, epsilon = 1e-12);
@@ -201,7 +208,11 @@ mod tests {
     #[test]
     fn cone_head_geometry() {
         let h = Head4::<f64>::cone(50.0, 30f64.to_radians(), 0.0, 0.0).unwrap();
-        assert_relative_eq!(h.sensors[1].zero, Vector3::new(0.0, 50.0, 0.0), epsilon = 1e-12);
+        assert_relative_eq!(
+            h.sensors[1].zero,
+            Vector3::new(0.0, 50.0, 0.0),
+            epsilon = 1e-12
+        );
         assert_relative_eq!(
             h.sensors[0].dir,
             Vector3::new(-0.5, 0.0, 3f64.sqrt() / 2.0),

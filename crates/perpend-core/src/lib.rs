@@ -36,16 +36,20 @@
 //! * [`ext`] — model extensions: corrections of the reading beyond the paper.
 //! * [`normal`] — spots, micro-plane normal (two methods), three-sensor mode.
 //! * [`angles`] — deviation and attitude angles, Euler solutions.
+//! * [`calib`] — calibration: the paper's EKF and batch least squares.
+//! * [`params`] — the stored-parameter record (versioned, checksummed).
 #![cfg_attr(not(any(test, feature = "std")), no_std)]
 #![deny(missing_docs)]
 
 pub mod angles;
+pub mod calib;
 pub mod error;
 pub mod ext;
 pub mod geometry;
 pub mod head;
 pub mod model;
 pub mod normal;
+pub mod params;
 
 pub use error::Error;
 

@@ -107,7 +107,10 @@ pub fn chen_jacobian<T: Real>(
     }
     let ge = plane.n * (-wlen / nw);
     let gw = (w / w2 - plane.n / nw) * d;
-    Ok((d, SVector::<T, 6>::from([ge.x, ge.y, ge.z, gw.x, gw.y, gw.z])))
+    Ok((
+        d,
+        SVector::<T, 6>::from([ge.x, ge.y, ge.z, gw.x, gw.y, gw.z]),
+    ))
 }
 
 #[cfg(test)]
@@ -116,7 +119,11 @@ mod tests {
     use approx::assert_relative_eq;
 
     fn sensor() -> Sensor<f64> {
-        Sensor::new(Vector3::new(51.3, 0.9, 1.1), Vector3::new(-0.4555, 0.0506, -0.8888)).unwrap()
+        Sensor::new(
+            Vector3::new(51.3, 0.9, 1.1),
+            Vector3::new(-0.4555, 0.0506, -0.8888),
+        )
+        .unwrap()
     }
 
     fn plane() -> Plane<f64> {

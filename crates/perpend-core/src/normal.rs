@@ -438,10 +438,10 @@ mod tests {
         for m in [Method::Chen, Method::LeastSquares] {
             let f = plane(&h32, &r32, &Context::default(), m).unwrap();
             let n64 = -p.n;
-            let ang = (f.normal.x as f64 * n64.x + f.normal.y as f64 * n64.y
-                + f.normal.z as f64 * n64.z)
-                .min(1.0)
-                .acos();
+            let ang =
+                (f.normal.x as f64 * n64.x + f.normal.y as f64 * n64.y + f.normal.z as f64 * n64.z)
+                    .min(1.0)
+                    .acos();
             assert!(ang.to_degrees() < 1e-3, "{m:?}: {ang}");
         }
     }

@@ -1,0 +1,1 @@
+//! Board logic (filled in by the firmware work).

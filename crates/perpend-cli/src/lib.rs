@@ -1,0 +1,7 @@
+//! The `perpend` host tool as a library, so that host tests drive the same
+//! code as the command line.
+//!
+//! Each subcommand lives in its own module with its `Args` (clap) and `run`.
+#![deny(missing_docs)]
+
+pub mod demo;

@@ -1,0 +1,1 @@
+//! Stored-parameter format of the sensor head's calibration and configuration.
