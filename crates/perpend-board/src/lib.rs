@@ -1,1 +1,29 @@
-//! Board logic (filled in by the firmware work).
+//! # perpend-board
+//!
+//! The board logic of the perpend sensor board, free of any HAL so that the
+//! firmware and the host (tests, the virtual board of `perpend-cli`) run the
+//! same code:
+//!
+//! * [`acq`] — ADC counts → mA/V → mm, NAMUR NE43 classes, stuck and jump
+//!   detectors;
+//! * [`pipeline`] — four ADC results → status, normal, θ1/θ2/θ, pitch/yaw,
+//!   residual (through `perpend_core::normal::measure` in `f32`);
+//! * [`storage`] — the parameter record in flash through `sequential-storage`,
+//!   boot-time loading with factory fallback, a fault-injecting flash;
+//! * [`status`] — the status-word bits;
+//! * [`app`] — [`app::App`]: pipeline + storage + the CANopen device of
+//!   `perpend-can`, frames in / frames out, time passed in.
+//!
+//! `no_std`, no allocator; every buffer is sized in its type.
+#![cfg_attr(not(any(test, feature = "std")), no_std)]
+#![deny(missing_docs)]
+
+pub mod acq;
+pub mod app;
+pub mod pipeline;
+pub mod status;
+pub mod storage;
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod fault_matrix;

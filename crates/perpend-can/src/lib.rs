@@ -1,1 +1,165 @@
-//! placeholder until the CANopen issue
+//! # perpend-can
+//!
+//! The CANopen (CiA 301) device of the perpend sensor board: `no_std`, no
+//! allocator, transport-agnostic. Frames in, frames out, time passed in as
+//! microseconds (`u64`). The firmware feeds it from FDCAN; the host's
+//! virtual board (`perpend board`) from slcan over TCP; the tests directly.
+//!
+//! ## Why not an existing stack
+//!
+//! Two `no_std` crates were read before writing this one:
+//! `canopen-rs` 0.6 keeps the dictionary in a dynamic map of typed values
+//! with static access rights only (no state- or lock-dependent writes, no
+//! value ranges), has no 0x1010/0x1011, no SDO server timeout, and leaves
+//! heartbeat and PDO timing to the application; `zencan-node` 0.0.5
+//! generates the dictionary from TOML in a build script into global
+//! statics, is MPL-2.0 (the workspace is MIT/Apache-2.0) and costs ~32 KB
+//! flash. Both are pre-1.0. The subset the board needs (below) is small
+//! enough that one table-driven implementation, whose every rule is ours to
+//! test, is simpler to make fully correct than adapting either.
+//!
+//! ## Use
+//!
+//! ```
+//! use perpend_can::{Defaults, Device, Frame, Measurement, NmtState};
+//!
+//! let mut dev = Device::new(0x10, &Defaults::nominal());
+//! // dev.load_image(&stored)?;         // parameters from flash, if any
+//! let mut sent = Vec::new();
+//! dev.poll(0, &mut |f| sent.push(f));                 // boot-up 0x710 [00]
+//! dev.handle(&Frame::new(0x000, &[0x01, 0x10]), 10, &mut |f| sent.push(f)); // NMT start
+//! assert_eq!(dev.nmt_state(), NmtState::Operational);
+//! dev.set_measurement(&Measurement::invalid(perpend_can::status::NO_PLANE));
+//! dev.handle(&Frame::new(0x080, &[]), 20, &mut |f| sent.push(f));            // SYNC
+//! assert_eq!(sent.len(), 1 + 4);                       // boot-up + 4 TPDOs
+//! ```
+//!
+//! The application loop:
+//! 1. `Device::new(Params::factory().can.node_id, &Defaults::nominal())`
+//!    (factory values: what 0x1011 restores), then `load_params` with the stored
+//!    `perpend_core::params::Params` and `load_image` with the stored
+//!    image (communication parameters), if valid; then `poll` regularly
+//!    (≤ 1 ms period) and `handle` every received frame;
+//! 2. per sample: `set_measurement` (increments 0x2007, triggers
+//!    event-driven TPDOs); `signal_emcy` / `clear_emcy` on fault changes;
+//! 3. `take_events`: on [`Events::CONFIG_CHANGED`] re-read
+//!    [`Device::calibration`], [`Device::transfer`], [`Device::acquisition`];
+//!    on [`Events::RESET_COMM`] apply [`Device::communication`] (bit rate);
+//!    on [`Events::REQUEST`] carry out [`Device::pending_request`] — a
+//!    [`Request::Store`] writes `params(&current)` and
+//!    [`Device::persistent_image`] to flash (one record), a
+//!    [`Request::Restore`] erases it — and call [`Device::finish_request`]
+//!    with the outcome (the SDO confirmation is sent then).
+//!
+//! ## Public API summary
+//!
+//! * [`Frame`] `{ id: u16, rtr: bool, len: u8, data: [u8; 8] }`,
+//!   `Frame::new(id, &payload)`, `payload()`.
+//! * [`Device`]: `new(node_id, &Defaults)`, `handle(&Frame, now_us, out)`,
+//!   `poll(now_us, out)` with `out: &mut impl FnMut(Frame)`;
+//!   `nmt_state()`, `node_id()`, `take_events()`, `config_generation()`;
+//!   `set_measurement(&Measurement)`, `measurement()`, `status()`,
+//!   `sample_counter()`; `calibration(i)`, `transfer(i)`, `acquisition()`,
+//!   `communication()`, `heartbeat_ms()`, `calibration_is_default()`,
+//!   `read_u32/read_f32/read_str(index, sub)`;
+//!   `signal_emcy(code, reg, mfr)`, `clear_emcy(code)`, `emcy_active(code)`,
+//!   `error_register()`; `pending_request()`, `finish_request(ok, out)`,
+//!   `persistent_image(&mut [u8; IMAGE_LEN])`, `load_image(&[u8])`;
+//!   bridge to the stored record of `perpend_core::params`:
+//!   `load_params(&Params)`, `params(&base) -> Params`.
+//! * [`Defaults`] (`nominal()`, `from_params(&Params)`, `with_head(&Head4)`), [`Identity`],
+//!   [`SensorCalibration`] (`to_sensor`, `from_sensor`), [`TransferFunction`],
+//!   [`Acquisition`], [`Communication`], [`Measurement`] (`invalid`,
+//!   `from_core`).
+//! * [`status`]: status-word bits and EMCY codes; [`od`]: the dictionary
+//!   table and signatures; [`sdo::SdoAbort`]: abort codes; [`eds`]: the EDS
+//!   writer.
+//!
+//! ## Behaviour (CiA 301 subset)
+//!
+//! * **NMT slave**: boot-up `0x700+id [00]` at the first `poll` after
+//!   power-on or a reset; commands on COB-ID 0 (`[cs, node|0]`): start
+//!   (0x01), stop (0x02), enter pre-operational (0x80), reset node (0x81:
+//!   every object back to its power-on value, i.e. defaults overlaid with
+//!   the last stored/loaded image; errors cleared), reset communication
+//!   (0x82: 0x1000..0x1FFF parameters only). A node-id written to 0x2400
+//!   sub 1 becomes active at the next reset; TPDO COB-IDs that were the
+//!   default for the old node-id follow it. Every state change clears the
+//!   calibration unlock.
+//! * **Heartbeat** `0x700+id [state]` every 0x1017 ms (0 = off): 0x7F
+//!   pre-operational, 0x05 operational, 0x04 stopped.
+//! * **SDO server** on 0x600+id → 0x580+id, pre-operational and operational
+//!   only: expedited and segmented upload/download, toggle check, server
+//!   timeout (`Defaults::sdo_timeout_us`, abort 0x05040000), block transfer
+//!   refused (0x05040001). See [`sdo`] for the codes. Order of checks:
+//!   object (0x06020000) → sub-index (0x06090011) → access (0x06010002) →
+//!   length (0x06070010) → state (0x08000022) → lock (0x08000021) → value
+//!   (0x06090030/31/32, PDO mapping 0x06040041/42/43).
+//! * **SYNC** (COB-ID 0x80) in operational: TPDOs with transmission type
+//!   1..240 are sent every n-th SYNC, type 0 on the SYNC after an
+//!   application event.
+//! * **TPDO 1..4** (0x1800+k / 0x1A00+k): COB-ID (bit 31 = not valid; the
+//!   11-bit id may change only while not valid, restricted ids refused),
+//!   transmission type 0, 1..240, 254, 255 (others 0x06090030), inhibit time
+//!   (100 µs) and event timer (ms) for 254/255; mapping of up to 8 objects
+//!   / 64 bits, changeable only while the PDO is not valid and (entries)
+//!   while sub 0 is 0 (0x08000022 otherwise).
+//! * **EMCY** on 0x1014 (0x80+id): `[code lo, code hi, 0x1001, mfr[5]]`;
+//!   0x1003 holds the last 8 codes (write 0 to sub 0 clears it); an "error
+//!   reset" (code 0) is sent when the last active error clears.
+//! * **Store/restore** 0x1010/0x1011 sub 1 with "save" 0x65766173 / "load"
+//!   0x64616F6C (other values: 0x08000020); read as 1 (on command).
+//!   Persisted: 0x1017, 0x1800..0x1803, 0x1A00..0x1A03, 0x2101..0x2104,
+//!   0x2201..0x2204, 0x2300, 0x2400. "load" makes the defaults effective at
+//!   the next reset node.
+//!
+//! ## Object dictionary (manufacturer part; REAL32 unless noted)
+//!
+//! | index | sub | name | access |
+//! |---|---|---|---|
+//! | 0x2001 | 1..3 | surface normal x, y, z (unit, towards the head, TCS) | ro, PDO |
+//! | 0x2002 | 1, 2, 3 | θ1, θ2, θ [deg] (Tian eq. 1-5) | ro, PDO |
+//! | 0x2003 | 1, 2 | pitch, yaw [deg] (Chen eq. 22) | ro, PDO |
+//! | 0x2004 | 1..4 | distances [mm] | ro, PDO |
+//! | 0x2005 | 0 | status, UNSIGNED32 ([`status`]) | ro, PDO |
+//! | 0x2006 | 0 | plane RMS residual [mm] | ro, PDO |
+//! | 0x2007 | 0 | sample counter, UNSIGNED32 | ro, PDO |
+//! | 0x2010 | 0 | calibration unlock, UNSIGNED32: write "ucal" 0x6C616375 to unlock, 0 to lock; reads 1/0 | rw, pre-op |
+//! | 0x2101..4 | 1..15 | sensor calibration: zero x,y,z [mm], direction x,y,z, d_ref [mm], gain, nl2, nl3, incidence [mm], crosstalk, thermal [mm/°C], temp_ref [°C], drift [mm/s] | rw, pre-op + unlock |
+//! | 0x2201..4 | 1..4 | transfer function: kind U8 (0 = 4-20 mA shunt, 1 = 0-10 V divider), shunt [Ω] / divider ratio, mm at 4 mA / 0 V, mm at 20 mA / 10 V | rw, pre-op + unlock |
+//! | 0x2300 | 1..4 | period [µs] U32 100..100000, oversampling U16 1..256 power of 2, method U8 (0 Chen, 1 LS), residual limit [mm] | rw, pre-op |
+//! | 0x2400 | 1, 2 | node-id U8 1..127, bit rate [kbit/s] U16 125/250/500/1000 | rw, pre-op |
+//!
+//! Default TPDOs, all transmission type 1 (every SYNC), 8 bytes each:
+//!
+//! | TPDO | COB-ID | content |
+//! |---|---|---|
+//! | 1 | 0x180+id | θ1, θ2 (0x2002 sub 1, 2) |
+//! | 2 | 0x280+id | status (0x2005), sample counter (0x2007) |
+//! | 3 | 0x380+id | normal x, y (0x2001 sub 1, 2) |
+//! | 4 | 0x480+id | normal z (0x2001 sub 3), RMS residual (0x2006) |
+//!
+//! The sample counter in TPDO 2 lets the controller detect a stale sample;
+//! the normal, angles and residual of a sample without a valid plane
+//! (status bit 19) are 0 — never NaN; a zero normal is not a unit vector,
+//! so it cannot be mistaken for a measurement.
+#![cfg_attr(not(any(test, feature = "std")), no_std)]
+#![deny(missing_docs)]
+
+pub mod config;
+pub mod device;
+pub mod eds;
+pub mod error;
+pub mod frame;
+pub mod od;
+pub mod sdo;
+pub mod status;
+
+pub use config::{
+    Acquisition, Communication, Defaults, Identity, Measurement, SensorCalibration,
+    TransferFunction,
+};
+pub use device::{Device, Events, NmtState, Request, IMAGE_LEN};
+pub use error::Error;
+pub use frame::Frame;
+pub use sdo::SdoAbort;

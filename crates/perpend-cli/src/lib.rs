@@ -4,4 +4,9 @@
 //! Each subcommand lives in its own module with its `Args` (clap) and `run`.
 #![deny(missing_docs)]
 
+pub mod bench;
+pub mod calibrate;
 pub mod demo;
+pub mod exchange;
+pub mod paramfile;
+pub mod sim;

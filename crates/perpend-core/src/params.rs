@@ -1,1 +1,945 @@
 //! Stored-parameter format of the sensor head's calibration and configuration.
+//!
+//! [`Params`] is everything the board keeps across power cycles: the
+//! calibrated sensor head (zero points, beam directions and the
+//! [`crate::ext::Extension`] coefficients of each sensor), the analog
+//! transfer function of each channel, the acquisition settings and the CAN
+//! settings. It is stored in `f32` (the board computes in `f32`; the host
+//! casts its `f64` calibration with [`crate::head::Head::cast`]).
+//!
+//! ## Record layout (version 1, little endian)
+//!
+//! ```text
+//! offset  size  field
+//!      0     4  magic "PPND"
+//!      4     2  version (u16) = 1
+//!      6     2  payload length (u16) = PAYLOAD_LEN = 353
+//!      8   353  payload: stamp u32; 4 × sensor (zero xyz, dir xyz, the nine
+//!               extension coefficients in declaration order: 15 × f32);
+//!               4 × transfer (front end u8 0 = shunt / 1 = divider, its
+//!               f32, sig_lo, sig_hi, mm_lo, mm_hi: f32); acquisition
+//!               (period_us u32, os_log2 u8, os_shift u8, vref_mv u16,
+//!               method u8 0 = least squares / 1 = Chen, stuck_samples u16,
+//!               stuck_counts u16, jump_mm f32, jump_hold u16,
+//!               max_rms_mm f32); CAN (node_id u8, bit-rate code u8)
+//!    361     4  CRC-32 (IEEE 802.3, reflected, as zlib) of bytes 0..361
+//! ```
+//!
+//! [`Params::decode`] rejects, in this order: a short buffer, a wrong magic,
+//! an unknown version, a wrong payload length, a checksum mismatch, an
+//! unknown enum code, and then any value that [`Params::validate`] refuses.
+//! A decoded record is therefore always usable as it is; the board falls
+//! back to [`Params::factory`] on any error. [`Params::encode`] validates
+//! first, so an invalid record is never written.
+//!
+//! Versioning: a later layout gets a new version number; the decoder keeps
+//! reading every older version it knows (none before 1) and the board
+//! writes the newest layout on the next store (0x1010).
+//!
+//! Limits: exactly four sensors (the product's head); the CRC detects every
+//! error burst up to 32 bits and any odd number of bit errors; it is not a
+//! MAC.
+
+use nalgebra::Vector3;
+
+use crate::ext::Extension;
+use crate::head::{Head4, Sensor};
+use crate::normal::Method;
+use crate::{Error, Result};
+
+/// Magic bytes at the start of a record.
+pub const MAGIC: [u8; 4] = *b"PPND";
+/// The layout version this code writes.
+pub const VERSION: u16 = 1;
+/// Number of sensors in a record.
+pub const SENSORS: usize = 4;
+/// Header length: magic, version, payload length.
+pub const HEADER_LEN: usize = 8;
+/// Payload length of version 1.
+pub const PAYLOAD_LEN: usize = 4 + SENSORS * SENSOR_LEN + SENSORS * TRANSFER_LEN + ACQ_LEN + 2;
+/// Total length of an encoded version-1 record.
+pub const RECORD_LEN: usize = HEADER_LEN + PAYLOAD_LEN + 4;
+
+const SENSOR_LEN: usize = 15 * 4;
+const TRANSFER_LEN: usize = 1 + 5 * 4;
+const ACQ_LEN: usize = 4 + 1 + 1 + 2 + 1 + 2 + 2 + 4 + 2 + 4;
+
+/// The analog front end between a sensor's output and the ADC pin.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Frontend {
+    /// Current output into a shunt resistor of `ohm` Ω to ground: the pin
+    /// sees `V = I·R`.
+    Shunt {
+        /// Shunt resistance [Ω], 10..=1000.
+        ohm: f32,
+    },
+    /// Voltage output through a resistive divider: the pin sees
+    /// `V = ratio · V_out`.
+    Divider {
+        /// Divider ratio `R_low / (R_high + R_low)`, in (0, 1].
+        ratio: f32,
+    },
+}
+
+/// Per-channel transfer function: ADC pin voltage → sensor signal (mA or V)
+/// → distance [mm].
+///
+/// The sensor maps its measuring range `[mm_lo, mm_hi]` linearly onto the
+/// signal span `[sig_lo, sig_hi]` (mA for [`Frontend::Shunt`], V for
+/// [`Frontend::Divider`]); `mm_hi < mm_lo` describes a sensor whose signal
+/// falls with distance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Transfer {
+    /// Front end.
+    pub frontend: Frontend,
+    /// Signal at the start of the measuring range (4 mA, or 0 V).
+    pub sig_lo: f32,
+    /// Signal at the end of the measuring range (20 mA, or 10 V).
+    pub sig_hi: f32,
+    /// Distance at `sig_lo` [mm].
+    pub mm_lo: f32,
+    /// Distance at `sig_hi` [mm].
+    pub mm_hi: f32,
+}
+
+impl Transfer {
+    /// The NAMUR 4-20 mA transfer over a shunt of `ohm` Ω for a measuring
+    /// range `mm_lo..mm_hi`.
+    pub const fn current(ohm: f32, mm_lo: f32, mm_hi: f32) -> Self {
+        Self {
+            frontend: Frontend::Shunt { ohm },
+            sig_lo: 4.0,
+            sig_hi: 20.0,
+            mm_lo,
+            mm_hi,
+        }
+    }
+
+    /// The 0-10 V transfer through a divider of `ratio` for a measuring range
+    /// `mm_lo..mm_hi`.
+    pub const fn voltage(ratio: f32, mm_lo: f32, mm_hi: f32) -> Self {
+        Self {
+            frontend: Frontend::Divider { ratio },
+            sig_lo: 0.0,
+            sig_hi: 10.0,
+            mm_lo,
+            mm_hi,
+        }
+    }
+
+    /// Checks the ranges: shunt 10..=1000 Ω, divider ratio in (0, 1],
+    /// signal span at least 1 (mA or V) within 0..=25 mA or 0..=12 V,
+    /// measuring range ends within 0..=10 000 mm and at least 0.01 mm
+    /// apart.
+    ///
+    /// # Errors
+    /// [`Error::NonFinite`] / [`Error::OutOfRange`] naming the field.
+    pub fn validate(&self) -> Result<()> {
+        let hi_max = match self.frontend {
+            Frontend::Shunt { ohm } => {
+                fin(ohm, "shunt")?;
+                if !(10.0..=1000.0).contains(&ohm) {
+                    return Err(Error::OutOfRange("shunt"));
+                }
+                25.0
+            }
+            Frontend::Divider { ratio } => {
+                fin(ratio, "divider ratio")?;
+                if !(ratio > 0.0 && ratio <= 1.0) {
+                    return Err(Error::OutOfRange("divider ratio"));
+                }
+                12.0
+            }
+        };
+        fin(self.sig_lo, "signal low")?;
+        fin(self.sig_hi, "signal high")?;
+        fin(self.mm_lo, "range low")?;
+        fin(self.mm_hi, "range high")?;
+        if !(self.sig_lo >= 0.0 && self.sig_hi <= hi_max && self.sig_hi - self.sig_lo >= 1.0) {
+            return Err(Error::OutOfRange("signal span"));
+        }
+        let in_range = |x: f32| (0.0..=10_000.0).contains(&x);
+        let span_ok = (self.mm_hi - self.mm_lo).abs() >= 0.01;
+        if !(in_range(self.mm_lo) && in_range(self.mm_hi) && span_ok) {
+            return Err(Error::OutOfRange("measuring range"));
+        }
+        Ok(())
+    }
+}
+
+/// CAN bit rate (classic CAN).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Bitrate {
+    /// 125 kbit/s.
+    K125,
+    /// 250 kbit/s.
+    K250,
+    /// 500 kbit/s.
+    K500,
+    /// 1 Mbit/s (default).
+    M1,
+}
+
+impl Bitrate {
+    /// Bit rate in bit/s.
+    pub const fn bps(self) -> u32 {
+        match self {
+            Bitrate::K125 => 125_000,
+            Bitrate::K250 => 250_000,
+            Bitrate::K500 => 500_000,
+            Bitrate::M1 => 1_000_000,
+        }
+    }
+
+    /// Stored code: 0 = 1 M, 1 = 500 k, 2 = 250 k, 3 = 125 k (also the
+    /// value of the bit-rate object).
+    pub const fn code(self) -> u8 {
+        match self {
+            Bitrate::M1 => 0,
+            Bitrate::K500 => 1,
+            Bitrate::K250 => 2,
+            Bitrate::K125 => 3,
+        }
+    }
+
+    /// Inverse of [`Bitrate::code`].
+    ///
+    /// # Errors
+    /// [`Error::OutOfRange`] for an unknown code.
+    pub const fn from_code(c: u8) -> Result<Self> {
+        match c {
+            0 => Ok(Bitrate::M1),
+            1 => Ok(Bitrate::K500),
+            2 => Ok(Bitrate::K250),
+            3 => Ok(Bitrate::K125),
+            _ => Err(Error::OutOfRange("bit rate")),
+        }
+    }
+}
+
+/// CAN settings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CanConfig {
+    /// CANopen node id, 1..=127.
+    pub node_id: u8,
+    /// Bit rate.
+    pub bitrate: Bitrate,
+}
+
+/// Acquisition and plausibility settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Acquisition {
+    /// Scan period [µs], 100..=100_000 (1000 = 1 kHz).
+    pub period_us: u32,
+    /// Hardware oversampling: log2 of the ratio, 0..=8 (0 = off, 4 = 16×).
+    pub os_log2: u8,
+    /// Oversampling right shift, 0..=8, with `os_log2 − os_shift ≤ 4` so the
+    /// result fits 16 bits.
+    pub os_shift: u8,
+    /// ADC reference voltage [mV], 1800..=3600.
+    pub vref_mv: u16,
+    /// Plane method.
+    pub method: Method,
+    /// Stuck detection: samples without change before a channel is declared
+    /// stuck (0 = off), ≤ 60000.
+    pub stuck_samples: u16,
+    /// Stuck detection: largest change [ADC counts of the oversampled
+    /// result] still counted as "no change".
+    pub stuck_counts: u16,
+    /// Jump detection: largest plausible change of a reading between two
+    /// samples beyond the common change of the others [mm] (0 = off),
+    /// ≤ 1000.
+    pub jump_mm: f32,
+    /// Samples a channel stays out after a jump, ≤ 60000.
+    pub jump_hold: u16,
+    /// Largest plane RMS residual [mm] for a valid four-sensor normal,
+    /// in (0, 100].
+    pub max_rms_mm: f32,
+}
+
+/// The complete stored parameter set.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Params {
+    /// Record stamp: the board increments it on every store (0 = never
+    /// stored); a host tool that writes a record may put e.g. the Unix time
+    /// of the calibration here.
+    pub stamp: u32,
+    /// The calibrated head (sensor `i` = ADC channel `i`).
+    pub head: Head4<f32>,
+    /// Transfer function of each channel.
+    pub transfer: [Transfer; SENSORS],
+    /// Acquisition settings.
+    pub acq: Acquisition,
+    /// CAN settings.
+    pub can: CanConfig,
+}
+
+fn fin(x: f32, what: &'static str) -> Result<f32> {
+    if x.is_finite() {
+        Ok(x)
+    } else {
+        Err(Error::NonFinite(what))
+    }
+}
+
+impl Acquisition {
+    /// Factory acquisition settings: 1 kHz, 16× oversampling without shift
+    /// (16-bit result, full scale 65520), 3.3 V reference, least squares, stuck after
+    /// 2000 unchanged samples (2 s), jump 0.5 mm held 20 samples, RMS limit
+    /// 0.05 mm.
+    pub const fn factory() -> Self {
+        Self {
+            period_us: 1000,
+            os_log2: 4,
+            os_shift: 0,
+            vref_mv: 3300,
+            method: Method::LeastSquares,
+            stuck_samples: 2000,
+            stuck_counts: 0,
+            jump_mm: 0.5,
+            jump_hold: 20,
+            max_rms_mm: 0.05,
+        }
+    }
+
+    /// Checks every field (see the field docs for ranges).
+    ///
+    /// # Errors
+    /// [`Error::OutOfRange`] / [`Error::NonFinite`] naming the field.
+    pub fn validate(&self) -> Result<()> {
+        if !(100..=100_000).contains(&self.period_us) {
+            return Err(Error::OutOfRange("period"));
+        }
+        if self.os_log2 > 8 {
+            return Err(Error::OutOfRange("oversampling ratio"));
+        }
+        if self.os_shift > 8 || self.os_log2 > self.os_shift + 4 {
+            return Err(Error::OutOfRange("oversampling shift"));
+        }
+        if !(1800..=3600).contains(&self.vref_mv) {
+            return Err(Error::OutOfRange("vref"));
+        }
+        if self.stuck_samples > 60_000 {
+            return Err(Error::OutOfRange("stuck samples"));
+        }
+        if self.jump_hold > 60_000 {
+            return Err(Error::OutOfRange("jump hold"));
+        }
+        fin(self.jump_mm, "jump threshold")?;
+        if !(0.0..=1000.0).contains(&self.jump_mm) {
+            return Err(Error::OutOfRange("jump threshold"));
+        }
+        fin(self.max_rms_mm, "residual limit")?;
+        if !(self.max_rms_mm > 0.0 && self.max_rms_mm <= 100.0) {
+            return Err(Error::OutOfRange("residual limit"));
+        }
+        Ok(())
+    }
+}
+
+impl CanConfig {
+    /// Factory CAN settings: node 0x20, 1 Mbit/s.
+    pub const fn factory() -> Self {
+        Self {
+            node_id: 0x20,
+            bitrate: Bitrate::M1,
+        }
+    }
+
+    /// Checks the node id.
+    ///
+    /// # Errors
+    /// [`Error::OutOfRange`] for a node id outside 1..=127.
+    pub fn validate(&self) -> Result<()> {
+        if !(1..=127).contains(&self.node_id) {
+            return Err(Error::OutOfRange("node id"));
+        }
+        Ok(())
+    }
+}
+
+/// Checks one sensor's calibration: finite, zero point within ±10 m, unit
+/// beam direction (±1e-3), finite extension.
+///
+/// # Errors
+/// [`Error::NonFinite`] / [`Error::OutOfRange`] naming the field.
+pub fn validate_sensor(s: &Sensor<f32>) -> Result<()> {
+    for c in s.zero.iter() {
+        fin(*c, "zero point")?;
+        if !(c.abs() <= 10_000.0) {
+            return Err(Error::OutOfRange("zero point"));
+        }
+    }
+    for c in s.dir.iter() {
+        fin(*c, "beam direction")?;
+    }
+    if !((s.dir.norm() - 1.0).abs() <= 1e-3) {
+        return Err(Error::OutOfRange("beam direction"));
+    }
+    if !s.ext.is_finite() {
+        return Err(Error::NonFinite("extension"));
+    }
+    Ok(())
+}
+
+impl Params {
+    /// Factory defaults, used when no valid record is stored: the design
+    /// head (four sensors on a 50 mm circle at z = 0, beams tilted 30°
+    /// towards the axis, sensor 1 on +x, numbered counter-clockwise, as
+    /// `perpend demo`), no extension corrections (reference distance 50 mm,
+    /// mid-range), 4-20 mA sensors over
+    /// 150 Ω shunts with a 20..80 mm measuring range,
+    /// [`Acquisition::factory`] and [`CanConfig::factory`]. The board flags
+    /// them "uncalibrated".
+    pub fn factory() -> Self {
+        let fallback = Sensor {
+            zero: Vector3::zeros(),
+            dir: Vector3::z(),
+            ext: Extension::identity(),
+        };
+        // cone() fails only on non-finite arguments; these are literals.
+        let mut head = Head4::<f32>::cone(50.0, core::f32::consts::FRAC_PI_6, 0.0, 0.0)
+            .unwrap_or(Head4::new([fallback; SENSORS]));
+        for s in head.sensors.iter_mut() {
+            s.ext.d_ref = 50.0;
+        }
+        Self {
+            stamp: 0,
+            head,
+            transfer: [Transfer::current(150.0, 20.0, 80.0); SENSORS],
+            acq: Acquisition::factory(),
+            can: CanConfig::factory(),
+        }
+    }
+
+    /// Checks every value: [`validate_sensor`] for each sensor,
+    /// [`Transfer::validate`] for each channel, [`Acquisition::validate`],
+    /// [`CanConfig::validate`].
+    ///
+    /// # Errors
+    /// The first [`Error::NonFinite`] / [`Error::OutOfRange`] found.
+    pub fn validate(&self) -> Result<()> {
+        for s in &self.head.sensors {
+            validate_sensor(s)?;
+        }
+        for t in &self.transfer {
+            t.validate()?;
+        }
+        self.acq.validate()?;
+        self.can.validate()
+    }
+
+    /// Encodes into `out` (at least [`RECORD_LEN`] bytes); returns the number
+    /// of bytes written.
+    ///
+    /// # Errors
+    /// [`Error::BufferTooSmall`], or the error of [`Params::validate`].
+    pub fn encode(&self, out: &mut [u8]) -> Result<usize> {
+        self.validate()?;
+        let out = out.get_mut(..RECORD_LEN).ok_or(Error::BufferTooSmall)?;
+        let mut w = Writer { buf: out, pos: 0 };
+        w.bytes(&MAGIC);
+        w.u16(VERSION);
+        w.u16(PAYLOAD_LEN as u16);
+        w.u32(self.stamp);
+        for s in &self.head.sensors {
+            for v in [s.zero.x, s.zero.y, s.zero.z, s.dir.x, s.dir.y, s.dir.z] {
+                w.f32(v);
+            }
+            let e = &s.ext;
+            for v in [
+                e.d_ref,
+                e.gain,
+                e.nonlinearity[0],
+                e.nonlinearity[1],
+                e.incidence,
+                e.crosstalk,
+                e.thermal,
+                e.temp_ref,
+                e.drift,
+            ] {
+                w.f32(v);
+            }
+        }
+        for t in &self.transfer {
+            match t.frontend {
+                Frontend::Shunt { ohm } => {
+                    w.u8(0);
+                    w.f32(ohm);
+                }
+                Frontend::Divider { ratio } => {
+                    w.u8(1);
+                    w.f32(ratio);
+                }
+            }
+            for v in [t.sig_lo, t.sig_hi, t.mm_lo, t.mm_hi] {
+                w.f32(v);
+            }
+        }
+        let a = &self.acq;
+        w.u32(a.period_us);
+        w.u8(a.os_log2);
+        w.u8(a.os_shift);
+        w.u16(a.vref_mv);
+        w.u8(match a.method {
+            Method::LeastSquares => 0,
+            Method::Chen => 1,
+        });
+        w.u16(a.stuck_samples);
+        w.u16(a.stuck_counts);
+        w.f32(a.jump_mm);
+        w.u16(a.jump_hold);
+        w.f32(a.max_rms_mm);
+        w.u8(self.can.node_id);
+        w.u8(self.can.bitrate.code());
+        let crc = crc32(w.buf.get(..RECORD_LEN - 4).unwrap_or(&[]));
+        w.u32(crc);
+        Ok(w.pos)
+    }
+
+    /// Decodes and validates a record (the layout in the module docs).
+    /// Trailing bytes after the record are ignored (flash items are padded).
+    ///
+    /// # Errors
+    /// [`Error::Decode`] naming the reason (`"short record"`, `"bad magic"`,
+    /// `"unsupported version"`, `"bad length"`, `"checksum mismatch"`,
+    /// `"unknown front end"`, `"unknown method"`), [`Error::OutOfRange`] for
+    /// an unknown bit-rate code, or the error of [`Params::validate`] for a
+    /// well-formed record with bad values.
+    pub fn decode(buf: &[u8]) -> Result<Self> {
+        if buf.len() < HEADER_LEN {
+            return Err(Error::Decode("short record"));
+        }
+        let mut r = Reader { buf, pos: 0 };
+        if r.take::<4>()? != MAGIC {
+            return Err(Error::Decode("bad magic"));
+        }
+        if r.u16()? != VERSION {
+            return Err(Error::Decode("unsupported version"));
+        }
+        if r.u16()? as usize != PAYLOAD_LEN {
+            return Err(Error::Decode("bad length"));
+        }
+        let body = buf
+            .get(..RECORD_LEN - 4)
+            .ok_or(Error::Decode("short record"))?;
+        let stored = buf
+            .get(RECORD_LEN - 4..RECORD_LEN)
+            .ok_or(Error::Decode("short record"))?;
+        if crc32(body).to_le_bytes() != stored {
+            return Err(Error::Decode("checksum mismatch"));
+        }
+        let stamp = r.u32()?;
+        let mut sensors = [Sensor {
+            zero: Vector3::zeros(),
+            dir: Vector3::z(),
+            ext: Extension::identity(),
+        }; SENSORS];
+        for s in sensors.iter_mut() {
+            let zero = Vector3::new(r.f32()?, r.f32()?, r.f32()?);
+            let dir = Vector3::new(r.f32()?, r.f32()?, r.f32()?);
+            let ext = Extension {
+                d_ref: r.f32()?,
+                gain: r.f32()?,
+                nonlinearity: [r.f32()?, r.f32()?],
+                incidence: r.f32()?,
+                crosstalk: r.f32()?,
+                thermal: r.f32()?,
+                temp_ref: r.f32()?,
+                drift: r.f32()?,
+            };
+            *s = Sensor { zero, dir, ext };
+        }
+        let mut transfer = [Transfer::current(150.0, 0.0, 1.0); SENSORS];
+        for t in transfer.iter_mut() {
+            let kind = r.u8()?;
+            let v = r.f32()?;
+            let frontend = match kind {
+                0 => Frontend::Shunt { ohm: v },
+                1 => Frontend::Divider { ratio: v },
+                _ => return Err(Error::Decode("unknown front end")),
+            };
+            *t = Transfer {
+                frontend,
+                sig_lo: r.f32()?,
+                sig_hi: r.f32()?,
+                mm_lo: r.f32()?,
+                mm_hi: r.f32()?,
+            };
+        }
+        let period_us = r.u32()?;
+        let os_log2 = r.u8()?;
+        let os_shift = r.u8()?;
+        let vref_mv = r.u16()?;
+        let method = match r.u8()? {
+            0 => Method::LeastSquares,
+            1 => Method::Chen,
+            _ => return Err(Error::Decode("unknown method")),
+        };
+        let acq = Acquisition {
+            period_us,
+            os_log2,
+            os_shift,
+            vref_mv,
+            method,
+            stuck_samples: r.u16()?,
+            stuck_counts: r.u16()?,
+            jump_mm: r.f32()?,
+            jump_hold: r.u16()?,
+            max_rms_mm: r.f32()?,
+        };
+        let node_id = r.u8()?;
+        let bitrate = Bitrate::from_code(r.u8()?)?;
+        let p = Params {
+            stamp,
+            head: Head4::new(sensors),
+            transfer,
+            acq,
+            can: CanConfig { node_id, bitrate },
+        };
+        p.validate()?;
+        Ok(p)
+    }
+}
+
+/// CRC-32 (IEEE 802.3 polynomial 0x04C11DB7, reflected, init and final XOR
+/// 0xFFFFFFFF: the zlib/PNG CRC). Bitwise, no table: the record is read
+/// once at boot and written on a store.
+pub fn crc32(data: &[u8]) -> u32 {
+    let mut crc = 0xFFFF_FFFFu32;
+    for &b in data {
+        crc ^= b as u32;
+        for _ in 0..8 {
+            let mask = (crc & 1).wrapping_neg();
+            crc = (crc >> 1) ^ (0xEDB8_8320 & mask);
+        }
+    }
+    !crc
+}
+
+struct Writer<'a> {
+    buf: &'a mut [u8],
+    pos: usize,
+}
+
+impl Writer<'_> {
+    // The buffer is exactly RECORD_LEN long and the layout constants add up
+    // to it (checked by the tests), so `get_mut` never fails; it is used
+    // instead of indexing to keep the encoder panic-free.
+    fn bytes(&mut self, b: &[u8]) {
+        if let Some(dst) = self.buf.get_mut(self.pos..self.pos + b.len()) {
+            dst.copy_from_slice(b);
+        }
+        self.pos += b.len();
+    }
+    fn u8(&mut self, v: u8) {
+        self.bytes(&[v]);
+    }
+    fn u16(&mut self, v: u16) {
+        self.bytes(&v.to_le_bytes());
+    }
+    fn u32(&mut self, v: u32) {
+        self.bytes(&v.to_le_bytes());
+    }
+    fn f32(&mut self, v: f32) {
+        self.bytes(&v.to_le_bytes());
+    }
+}
+
+struct Reader<'a> {
+    buf: &'a [u8],
+    pos: usize,
+}
+
+impl Reader<'_> {
+    fn take<const K: usize>(&mut self) -> Result<[u8; K]> {
+        let s = self
+            .buf
+            .get(self.pos..self.pos + K)
+            .ok_or(Error::Decode("short record"))?;
+        let mut a = [0u8; K];
+        a.copy_from_slice(s);
+        self.pos += K;
+        Ok(a)
+    }
+    fn u8(&mut self) -> Result<u8> {
+        let [b] = self.take::<1>()?;
+        Ok(b)
+    }
+    fn u16(&mut self) -> Result<u16> {
+        Ok(u16::from_le_bytes(self.take()?))
+    }
+    fn u32(&mut self) -> Result<u32> {
+        Ok(u32::from_le_bytes(self.take()?))
+    }
+    fn f32(&mut self) -> Result<f32> {
+        Ok(f32::from_le_bytes(self.take()?))
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn crc32_check_value() {
+        // The standard check value of CRC-32/ISO-HDLC.
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+        assert_eq!(crc32(b""), 0);
+    }
+
+    #[test]
+    fn layout_constants_add_up() {
+        assert_eq!(PAYLOAD_LEN, 353);
+        assert_eq!(RECORD_LEN, 365);
+        let mut buf = [0u8; RECORD_LEN + 3];
+        assert_eq!(Params::factory().encode(&mut buf).unwrap(), RECORD_LEN);
+        // the padding after the record is untouched
+        assert_eq!(&buf[RECORD_LEN..], &[0, 0, 0]);
+    }
+
+    #[test]
+    fn factory_round_trips_and_is_valid() {
+        let p = Params::factory();
+        p.validate().unwrap();
+        assert!((p.head.sensors[1].zero - Vector3::new(0.0, 50.0, 0.0)).norm() < 1e-4);
+        let mut buf = [0u8; RECORD_LEN];
+        p.encode(&mut buf).unwrap();
+        assert_eq!(&buf[..4], b"PPND");
+        assert_eq!(Params::decode(&buf).unwrap(), p);
+    }
+
+    #[test]
+    fn structural_errors_each_reported() {
+        let mut buf = [0u8; RECORD_LEN];
+        Params::factory().encode(&mut buf).unwrap();
+        assert_eq!(
+            Params::decode(&buf[..5]),
+            Err(Error::Decode("short record"))
+        );
+        assert_eq!(
+            Params::decode(&buf[..100]),
+            Err(Error::Decode("short record"))
+        );
+        let mut b = buf;
+        b[0] = b'X';
+        assert_eq!(Params::decode(&b), Err(Error::Decode("bad magic")));
+        let mut b = buf;
+        b[4] = 2;
+        assert_eq!(
+            Params::decode(&b),
+            Err(Error::Decode("unsupported version"))
+        );
+        let mut b = buf;
+        b[6] = 0;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
+        let mut b = buf;
+        b[200] ^= 0x10;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("checksum mismatch")));
+        let mut b = buf;
+        b[RECORD_LEN - 1] ^= 0x80;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("checksum mismatch")));
+        // erased flash
+        assert_eq!(
+            Params::decode(&[0xFF; RECORD_LEN]),
+            Err(Error::Decode("bad magic"))
+        );
+    }
+
+    /// Rewrites bytes and fixes the CRC, to reach the value checks.
+    fn patch(buf: &mut [u8; RECORD_LEN], at: usize, bytes: &[u8]) {
+        buf[at..at + bytes.len()].copy_from_slice(bytes);
+        let crc = crc32(&buf[..RECORD_LEN - 4]);
+        buf[RECORD_LEN - 4..].copy_from_slice(&crc.to_le_bytes());
+    }
+
+    #[test]
+    fn value_errors_behind_a_good_crc() {
+        let mut buf = [0u8; RECORD_LEN];
+        Params::factory().encode(&mut buf).unwrap();
+        let sensors_end = HEADER_LEN + 4 + SENSORS * SENSOR_LEN;
+        let mut b = buf;
+        patch(&mut b, sensors_end, &[7]);
+        assert_eq!(Params::decode(&b), Err(Error::Decode("unknown front end")));
+        let acq = sensors_end + SENSORS * TRANSFER_LEN;
+        let mut b = buf;
+        patch(&mut b, acq + 8, &[9]);
+        assert_eq!(Params::decode(&b), Err(Error::Decode("unknown method")));
+        let mut b = buf;
+        patch(&mut b, acq, &50u32.to_le_bytes());
+        assert_eq!(Params::decode(&b), Err(Error::OutOfRange("period")));
+        let mut b = buf;
+        patch(&mut b, RECORD_LEN - 6, &[0]);
+        assert_eq!(Params::decode(&b), Err(Error::OutOfRange("node id")));
+        let mut b = buf;
+        patch(&mut b, RECORD_LEN - 5, &[4]);
+        assert_eq!(Params::decode(&b), Err(Error::OutOfRange("bit rate")));
+        let mut b = buf;
+        patch(&mut b, HEADER_LEN + 4, &f32::NAN.to_le_bytes());
+        assert_eq!(Params::decode(&b), Err(Error::NonFinite("zero point")));
+        let mut b = buf;
+        // dir.z of sensor 1 from cos 30° to 0.5: |dir| = 0.707
+        patch(&mut b, HEADER_LEN + 4 + 20, &0.5f32.to_le_bytes());
+        assert_eq!(Params::decode(&b), Err(Error::OutOfRange("beam direction")));
+        let mut b = buf;
+        patch(&mut b, HEADER_LEN + 4 + 28, &f32::INFINITY.to_le_bytes());
+        assert_eq!(Params::decode(&b), Err(Error::NonFinite("extension")));
+    }
+
+    #[test]
+    fn validate_rejects_bad_configuration() {
+        let mut p = Params::factory();
+        p.acq.os_log2 = 8;
+        p.acq.os_shift = 2;
+        assert_eq!(p.validate(), Err(Error::OutOfRange("oversampling shift")));
+        let mut p = Params::factory();
+        p.transfer[2] = Transfer::current(5.0, 20.0, 80.0);
+        assert_eq!(p.validate(), Err(Error::OutOfRange("shunt")));
+        let mut p = Params::factory();
+        p.transfer[1] = Transfer::voltage(0.0, 20.0, 80.0);
+        assert_eq!(p.validate(), Err(Error::OutOfRange("divider ratio")));
+        let mut p = Params::factory();
+        p.transfer[0].mm_hi = p.transfer[0].mm_lo;
+        assert_eq!(p.validate(), Err(Error::OutOfRange("measuring range")));
+        let mut p = Params::factory();
+        p.transfer[3].sig_hi = 4.5;
+        assert_eq!(p.validate(), Err(Error::OutOfRange("signal span")));
+        let mut p = Params::factory();
+        p.acq.max_rms_mm = 0.0;
+        assert_eq!(p.validate(), Err(Error::OutOfRange("residual limit")));
+        // encode refuses what validate refuses
+        let mut buf = [0u8; RECORD_LEN];
+        assert_eq!(p.encode(&mut buf), Err(Error::OutOfRange("residual limit")));
+        assert_eq!(
+            Params::factory().encode(&mut buf[..10]),
+            Err(Error::BufferTooSmall)
+        );
+    }
+
+    fn arb_ext() -> impl Strategy<Value = Extension<f32>> {
+        prop::array::uniform9(-1.0f32..1.0).prop_map(|a| Extension {
+            d_ref: a[0] * 50.0 + 50.0,
+            gain: a[1] * 1e-2,
+            nonlinearity: [a[2] * 1e-3, a[3] * 1e-4],
+            incidence: a[4] * 0.1,
+            crosstalk: a[5] * 0.01,
+            thermal: a[6] * 0.01,
+            temp_ref: a[7] * 10.0 + 20.0,
+            drift: a[8] * 1e-4,
+        })
+    }
+
+    fn arb_sensor() -> impl Strategy<Value = Sensor<f32>> {
+        (
+            prop::array::uniform3(-100.0f32..100.0),
+            prop::array::uniform3(-1.0f32..1.0),
+            arb_ext(),
+        )
+            .prop_filter_map("zero direction", |(z, d, ext)| {
+                let mut s = Sensor::new(Vector3::from(z), Vector3::from(d)).ok()?;
+                s.ext = ext;
+                Some(s)
+            })
+    }
+
+    fn arb_transfer() -> impl Strategy<Value = Transfer> {
+        (any::<bool>(), 0.0f32..1.0, 0.0f32..500.0, 0.1f32..500.0).prop_map(|(cur, k, lo, span)| {
+            if cur {
+                Transfer::current(10.0 + k * 990.0, lo, lo + span)
+            } else {
+                Transfer::voltage(0.01 + k * 0.99, lo + span, lo)
+            }
+        })
+    }
+
+    pub(crate) fn arb_params() -> impl Strategy<Value = Params> {
+        (
+            any::<u32>(),
+            prop::array::uniform4(arb_sensor()),
+            prop::array::uniform4(arb_transfer()),
+            (
+                100u32..=100_000,
+                0u8..=8,
+                0u8..=4,
+                1800u16..=3600,
+                any::<bool>(),
+            ),
+            (
+                0u16..=60_000,
+                any::<u16>(),
+                0.0f32..1000.0,
+                0u16..=60_000,
+                1e-4f32..100.0,
+            ),
+            (1u8..=127, 0u8..4),
+        )
+            .prop_map(|(stamp, sensors, transfer, a, b, c)| Params {
+                stamp,
+                head: Head4::new(sensors),
+                transfer,
+                acq: Acquisition {
+                    period_us: a.0,
+                    os_log2: a.1,
+                    os_shift: (a.1 + a.2).min(8),
+                    vref_mv: a.3,
+                    method: if a.4 {
+                        Method::Chen
+                    } else {
+                        Method::LeastSquares
+                    },
+                    stuck_samples: b.0,
+                    stuck_counts: b.1,
+                    jump_mm: b.2,
+                    jump_hold: b.3,
+                    max_rms_mm: b.4,
+                },
+                can: CanConfig {
+                    node_id: c.0,
+                    bitrate: Bitrate::from_code(c.1).unwrap(),
+                },
+            })
+    }
+
+    proptest! {
+        #[test]
+        fn round_trip(p in arb_params()) {
+            let mut buf = [0u8; RECORD_LEN];
+            prop_assert_eq!(p.encode(&mut buf), Ok(RECORD_LEN));
+            prop_assert_eq!(Params::decode(&buf), Ok(p));
+        }
+
+        #[test]
+        fn any_single_bit_flip_is_rejected(p in arb_params(), bit in 0usize..RECORD_LEN * 8) {
+            let mut buf = [0u8; RECORD_LEN];
+            p.encode(&mut buf).unwrap();
+            buf[bit / 8] ^= 1 << (bit % 8);
+            prop_assert!(Params::decode(&buf).is_err());
+        }
+
+        #[test]
+        fn arbitrary_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
+            // Either an error or a record that validates.
+            if let Ok(p) = Params::decode(&bytes) {
+                prop_assert!(p.validate().is_ok());
+            }
+        }
+
+        #[test]
+        fn valid_header_random_body_never_panics(body in prop::collection::vec(any::<u8>(), PAYLOAD_LEN)) {
+            // A header that passes, a random payload and a matching CRC: the
+            // value checks must reject or accept without panicking.
+            let mut buf = [0u8; RECORD_LEN];
+            buf[..4].copy_from_slice(&MAGIC);
+            buf[4..6].copy_from_slice(&VERSION.to_le_bytes());
+            buf[6..8].copy_from_slice(&(PAYLOAD_LEN as u16).to_le_bytes());
+            buf[HEADER_LEN..RECORD_LEN - 4].copy_from_slice(&body);
+            let crc = crc32(&buf[..RECORD_LEN - 4]);
+            buf[RECORD_LEN - 4..].copy_from_slice(&crc.to_le_bytes());
+            if let Ok(p) = Params::decode(&buf) {
+                prop_assert!(p.validate().is_ok());
+            }
+        }
+    }
+}

@@ -1,0 +1,505 @@
+//! The application: the glue between the pipeline, the parameter storage
+//! and the CANopen device (`perpend-can`). The firmware and the host's
+//! virtual board drive the same [`App`]: frames in, frames out, time passed
+//! in (µs), ADC samples in; no async, no HAL.
+//!
+//! ## Data flow
+//!
+//! * **boot** ([`App::new`]): the stored item is the [`Params`] record
+//!   followed by the device's persistence image
+//!   ([`perpend_can::Device::persistent_image`]: heartbeat, TPDO
+//!   parameters, and the calibration/configuration objects). Both load or
+//!   neither: a missing, rejected or unreadable item leaves the device on
+//!   the factory defaults ([`Params::factory`] turned into
+//!   [`perpend_can::Defaults`] by [`defaults_for`]); a rejected or
+//!   unreadable one also raises EMCY 0x6300 (data set) until the next
+//!   successful store.
+//! * **sample** ([`App::on_sample`]): the pipeline's [`Output`] goes to
+//!   0x2001..0x2007 (the device sends the TPDOs on SYNC or event) and its
+//!   faults to EMCY (below).
+//! * **configuration**: the object dictionary is the source of truth for
+//!   everything it holds (0x2101..0x2104 calibration, 0x2201..0x2204
+//!   transfer functions, 0x2300 acquisition, 0x2400 CAN); on every
+//!   configuration change the pipeline's parameters are rebuilt from it
+//!   ([`params_from_device`]). Settings the dictionary does not hold (ADC
+//!   reference, stuck and jump detectors, the live-zero signal span) come
+//!   from the stored record. A combination that fails [`Params::validate`]
+//!   sets status bit 21 and EMCY 0x6300; nothing invalid is ever stored.
+//! * **store** (0x1010 "save"): the record (stamp + 1) and the image are
+//!   stored as one item; the SDO confirmation follows the flash outcome.
+//!   **restore** (0x1011 "load") stores a tombstone: the next boot uses the
+//!   factory defaults.
+//!
+//! ## EMCY
+//!
+//! The mapping of `perpend_can::Device::publish` (the codes are defined in
+//! `perpend_can::status::emcy`), with hysteresis added:
+//!
+//! | condition (status word) | code | error register | data |
+//! |---|---|---|---|
+//! | sensor i open loop / overcurrent | 0x2111 + i | current | sensor 1..4, nibble |
+//! | sensor i not valid otherwise (out of range, stuck, jumped) | 0xFF11 + i | manufacturer | sensor 1..4, nibble, stuck 0/1 |
+//! | no valid plane (bit 19) | 0xFF02 | manufacturer | sensors used |
+//! | configuration invalid (bit 21), boot record rejected | 0x6300 | generic | 0 |
+//! | bus-off recovered ([`App::bus_off_recovered`]) | 0x8140 | communication | 0 |
+//! | receive overrun ([`App::rx_overrun`]) | 0x8110 | communication | 0 |
+//!
+//! A condition raises its EMCY on the first sample that shows it; it is
+//! cleared only after [`EMCY_CLEAR_SAMPLES`] samples without it, so a
+//! flickering fault does not flood the bus. Bus events are raised and
+//! cleared at once (one EMCY, then the "error reset" when nothing else is
+//! active).
+
+use perpend_can::status::{emcy, error_register};
+use perpend_can::{
+    Acquisition as OdAcquisition, Defaults, Device, Events, Frame, Measurement, Request,
+    SensorCalibration, TransferFunction, IMAGE_LEN,
+};
+use perpend_core::normal::Method;
+use perpend_core::params::{Bitrate, CanConfig, Frontend, Params, Transfer};
+use perpend_core::Error;
+
+use crate::pipeline::{Output, Pipeline, Sample};
+use crate::status::{
+    sensor_nibble, CONFIG_INVALID, NO_PLANE, SENSOR_OPEN_LOOP, SENSOR_OVERCURRENT, SENSOR_STUCK,
+    SENSOR_VALID,
+};
+use crate::storage::{clear, load_with_tail, save_with_tail, Boot, ParamStore};
+
+/// Samples without a condition before its EMCY is cleared (100 ms at
+/// 1 kHz).
+pub const EMCY_CLEAR_SAMPLES: u16 = 100;
+
+/// OD code of the least-squares method in 0x2300 sub 3.
+const OD_METHOD_CHEN: u8 = perpend_can::config::METHOD_CHEN;
+const OD_METHOD_LS: u8 = perpend_can::config::METHOD_LEAST_SQUARES;
+
+/// The device defaults for a parameter set (the factory defaults of the
+/// board are `defaults_for(&Params::factory())`).
+pub fn defaults_for(p: &Params) -> Defaults {
+    let mut d = Defaults::nominal();
+    d.calibration = core::array::from_fn(|i| SensorCalibration::from_sensor(&p.head.sensors[i]));
+    d.transfer = core::array::from_fn(|i| transfer_to_od(&p.transfer[i]));
+    d.acquisition = OdAcquisition {
+        period_us: p.acq.period_us,
+        oversampling: 1u16 << p.acq.os_log2.min(8),
+        method: match p.acq.method {
+            Method::Chen => OD_METHOD_CHEN,
+            Method::LeastSquares => OD_METHOD_LS,
+        },
+        residual_limit_mm: p.acq.max_rms_mm,
+    };
+    d.bit_rate_kbps = (p.can.bitrate.bps() / 1000) as u16;
+    d
+}
+
+fn transfer_to_od(t: &Transfer) -> TransferFunction {
+    let (kind, scale) = match t.frontend {
+        Frontend::Shunt { ohm } => (perpend_can::config::TF_CURRENT_4_20MA, ohm),
+        Frontend::Divider { ratio } => (perpend_can::config::TF_VOLTAGE_0_10V, ratio),
+    };
+    TransferFunction {
+        kind,
+        scale,
+        mm_at_low: t.mm_lo,
+        mm_at_high: t.mm_hi,
+    }
+}
+
+fn transfer_from_od(t: &TransferFunction, extra: &Transfer) -> Result<Transfer, Error> {
+    let (frontend, std_lo, std_hi) = match t.kind {
+        perpend_can::config::TF_CURRENT_4_20MA => (Frontend::Shunt { ohm: t.scale }, 4.0, 20.0),
+        perpend_can::config::TF_VOLTAGE_0_10V => (Frontend::Divider { ratio: t.scale }, 0.0, 10.0),
+        _ => return Err(Error::OutOfRange("transfer kind")),
+    };
+    // The signal span is not in the dictionary: keep the stored one when
+    // the front-end kind is unchanged, else the standard span of the kind.
+    let same_kind = core::mem::discriminant(&frontend) == core::mem::discriminant(&extra.frontend);
+    let (sig_lo, sig_hi) = if same_kind {
+        (extra.sig_lo, extra.sig_hi)
+    } else {
+        (std_lo, std_hi)
+    };
+    Ok(Transfer {
+        frontend,
+        sig_lo,
+        sig_hi,
+        mm_lo: t.mm_at_low,
+        mm_hi: t.mm_at_high,
+    })
+}
+
+/// The pipeline parameters the object dictionary of `dev` describes, with
+/// the settings it does not hold taken from `extra` (see the module docs).
+///
+/// # Errors
+/// A zero-length beam direction or non-finite value
+/// ([`perpend_core::Error`]), an unknown transfer kind, oversampling or bit
+/// rate, or any error of [`Params::validate`].
+pub fn params_from_device(dev: &Device, extra: &Params) -> Result<Params, Error> {
+    let mut p = *extra;
+    for i in 0..4 {
+        let c = dev
+            .calibration(i)
+            .ok_or(Error::OutOfRange("sensor index"))?;
+        p.head.sensors[i] = c.to_sensor::<f32>()?;
+        let t = dev.transfer(i).ok_or(Error::OutOfRange("sensor index"))?;
+        p.transfer[i] = transfer_from_od(&t, &extra.transfer[i])?;
+    }
+    let a = dev.acquisition();
+    if !a.oversampling.is_power_of_two() || a.oversampling > 256 {
+        return Err(Error::OutOfRange("oversampling ratio"));
+    }
+    let log2 = a.oversampling.trailing_zeros() as u8;
+    p.acq.period_us = a.period_us;
+    p.acq.os_log2 = log2;
+    // Result width 12 + min(log2, 4) bits: as much resolution as 16 bits hold.
+    p.acq.os_shift = log2.saturating_sub(4);
+    p.acq.method = if a.method == OD_METHOD_CHEN {
+        Method::Chen
+    } else {
+        Method::LeastSquares
+    };
+    p.acq.max_rms_mm = a.residual_limit_mm;
+    let c = dev.communication();
+    p.can = CanConfig {
+        node_id: c.node_id,
+        bitrate: match c.bit_rate_kbps {
+            1000 => Bitrate::M1,
+            500 => Bitrate::K500,
+            250 => Bitrate::K250,
+            125 => Bitrate::K125,
+            _ => return Err(Error::OutOfRange("bit rate")),
+        },
+    };
+    p.validate()?;
+    Ok(p)
+}
+
+/// The measurement objects for an output (NaN-free: see
+/// [`crate::pipeline`]).
+pub fn measurement_of(o: &Output) -> Measurement {
+    Measurement {
+        normal: o.normal,
+        theta1_deg: o.theta1_deg,
+        theta2_deg: o.theta2_deg,
+        theta_deg: o.theta_deg,
+        pitch_deg: o.pitch_deg,
+        yaw_deg: o.yaw_deg,
+        distances_mm: o.readings_mm,
+        status: o.status,
+        rms_mm: o.rms_mm,
+    }
+}
+
+/// Number of EMCY conditions tracked: per sensor "current" and
+/// "reading", no plane, data set.
+const CONDS: usize = 10;
+
+/// The EMCY conditions in `status` (the mapping of
+/// `perpend_can::Device::publish`): `(code, error register, data if
+/// active)`.
+fn conditions(status: u32, boot_bad: bool) -> [(u16, u8, Option<[u8; 5]>); CONDS] {
+    let stuck = u8::from(status & SENSOR_STUCK != 0);
+    let mut out = [(0u16, 0u8, None); CONDS];
+    let mut valid = 0u8;
+    for i in 0..4 {
+        let n = sensor_nibble(status, i);
+        let current = n & (SENSOR_OPEN_LOOP | SENSOR_OVERCURRENT) != 0;
+        let ok = n & SENSOR_VALID != 0;
+        valid += u8::from(ok);
+        out[2 * i] = (
+            emcy::sensor_current(i),
+            error_register::CURRENT,
+            current.then_some([i as u8 + 1, n as u8, 0, 0, 0]),
+        );
+        out[2 * i + 1] = (
+            emcy::sensor_reading(i),
+            error_register::MANUFACTURER,
+            (!current && !ok).then_some([i as u8 + 1, n as u8, stuck, 0, 0]),
+        );
+    }
+    out[8] = (
+        emcy::NO_PLANE,
+        error_register::MANUFACTURER,
+        (status & NO_PLANE != 0).then_some([valid, 0, 0, 0, 0]),
+    );
+    out[9] = (
+        emcy::DATA_SET,
+        error_register::GENERIC,
+        (status & CONFIG_INVALID != 0 || boot_bad).then_some([0; 5]),
+    );
+    out
+}
+
+/// The board application (see the module docs).
+pub struct App<S: ParamStore> {
+    dev: Device,
+    pipe: Pipeline,
+    store: S,
+    extra: Params,
+    boot: Boot,
+    boot_bad: bool,
+    cfg_gen: u32,
+    quiet: [u16; CONDS],
+    acq_changed: bool,
+    can_changed: bool,
+    start_us: Option<u64>,
+    last: Output,
+    stores: u32,
+}
+
+impl<S: ParamStore> App<S> {
+    /// Boots: loads the stored item from `store` (factory defaults if it is
+    /// missing or bad) and builds the device and the pipeline.
+    pub fn new(mut store: S) -> Self {
+        let factory = Params::factory();
+        let defaults = defaults_for(&factory);
+        let mut image = [0u8; IMAGE_LEN];
+        let (stored, mut boot, n) = load_with_tail(&mut store, &mut image);
+        let mut dev = Device::new(factory.can.node_id, &defaults);
+        let mut extra = factory;
+        if boot == Boot::Stored {
+            match image.get(..n).map(|img| dev.load_image(img)) {
+                Some(Ok(())) => extra = stored,
+                _ => {
+                    dev = Device::new(factory.can.node_id, &defaults);
+                    boot = Boot::Rejected(Error::Decode("device image"));
+                }
+            }
+        }
+        let boot_bad = matches!(boot, Boot::Rejected(_) | Boot::Unreadable(_));
+        let mut app = Self {
+            pipe: Pipeline::new(factory, false),
+            cfg_gen: dev.config_generation(),
+            dev,
+            store,
+            extra,
+            boot,
+            boot_bad,
+            quiet: [0; CONDS],
+            acq_changed: false,
+            can_changed: false,
+            start_us: None,
+            last: Output::default(),
+            stores: 0,
+        };
+        app.reload();
+        // Nothing to drain: the events of the boot itself are handled.
+        app.dev.take_events();
+        app.acq_changed = false;
+        if app.boot_bad {
+            app.dev
+                .signal_emcy(emcy::DATA_SET, error_register::GENERIC, [0; 5]);
+        }
+        app
+    }
+
+    /// Rebuilds the pipeline from the dictionary.
+    fn reload(&mut self) {
+        let calibrated = !self.dev.calibration_is_default();
+        let old = *self.pipe.params();
+        match params_from_device(&self.dev, &self.extra) {
+            Ok(p) => self.pipe.set_params(p, calibrated),
+            Err(_) => self.pipe.invalidate(calibrated),
+        }
+        let new = self.pipe.params();
+        if new.acq.period_us != old.acq.period_us
+            || new.acq.os_log2 != old.acq.os_log2
+            || new.acq.os_shift != old.acq.os_shift
+        {
+            self.acq_changed = true;
+        }
+        self.cfg_gen = self.dev.config_generation();
+    }
+
+    /// Where the boot parameters came from.
+    pub fn boot(&self) -> Boot {
+        self.boot
+    }
+
+    /// The CANopen device.
+    pub fn device(&self) -> &Device {
+        &self.dev
+    }
+
+    /// The CANopen device, mutable (tests, diagnostics).
+    pub fn device_mut(&mut self) -> &mut Device {
+        &mut self.dev
+    }
+
+    /// The pipeline.
+    pub fn pipeline(&self) -> &Pipeline {
+        &self.pipe
+    }
+
+    /// The storage (tests: inspect the fake flash).
+    pub fn store_mut(&mut self) -> &mut S {
+        &mut self.store
+    }
+
+    /// Gives the storage back (a simulated reboot builds a new `App` on it).
+    pub fn into_store(self) -> S {
+        self.store
+    }
+
+    /// The last output.
+    pub fn last_output(&self) -> &Output {
+        &self.last
+    }
+
+    /// Number of successful stores since boot.
+    pub fn stores(&self) -> u32 {
+        self.stores
+    }
+
+    /// The CAN settings to run the controller with: the active node-id and
+    /// the configured bit rate (0x2400, effective after a reset).
+    pub fn can_config(&self) -> CanConfig {
+        let bitrate = match self.dev.communication().bit_rate_kbps {
+            500 => Bitrate::K500,
+            250 => Bitrate::K250,
+            125 => Bitrate::K125,
+            _ => Bitrate::M1,
+        };
+        CanConfig {
+            node_id: self.dev.node_id(),
+            bitrate,
+        }
+    }
+
+    /// The acquisition settings the ADC and its timer must use.
+    pub fn acquisition(&self) -> perpend_core::params::Acquisition {
+        self.pipe.params().acq
+    }
+
+    /// `Some(settings)` once after the acquisition period or oversampling
+    /// changed: the firmware reprograms the timer and the ADC.
+    pub fn take_acq_change(&mut self) -> Option<perpend_core::params::Acquisition> {
+        core::mem::take(&mut self.acq_changed).then(|| self.acquisition())
+    }
+
+    /// `Some(settings)` once after an NMT reset (node or communication):
+    /// the firmware re-initialises the CAN controller with them.
+    pub fn take_can_change(&mut self) -> Option<CanConfig> {
+        core::mem::take(&mut self.can_changed).then(|| self.can_config())
+    }
+
+    /// Handles a received frame.
+    pub fn handle(&mut self, frame: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
+        self.dev.handle(frame, now_us, out);
+        self.service(out);
+    }
+
+    /// Runs the device's timers (heartbeat, event timers, SDO timeout,
+    /// queued EMCY); call at least every millisecond.
+    pub fn poll(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        self.dev.poll(now_us, out);
+        self.service(out);
+    }
+
+    /// Processes one ADC scan taken at `now_us`; publishes it to the
+    /// dictionary and updates the EMCY state. The drift extension's time is
+    /// the time since the first sample after boot.
+    pub fn on_sample(&mut self, sample: &Sample, now_us: u64) -> Output {
+        let start = *self.start_us.get_or_insert(now_us);
+        let mut s = *sample;
+        s.t_s = Some(now_us.saturating_sub(start) as f32 * 1e-6);
+        let o = self.pipe.process(&s);
+        self.dev.set_measurement(&measurement_of(&o));
+        self.update_emcy(o.status);
+        self.last = o;
+        o
+    }
+
+    /// The CAN controller recovered from bus-off: EMCY 0x8140.
+    pub fn bus_off_recovered(&mut self) {
+        self.pulse(emcy::BUS_OFF_RECOVERED);
+    }
+
+    /// Received frames were lost: EMCY 0x8110.
+    pub fn rx_overrun(&mut self) {
+        self.pulse(emcy::CAN_OVERRUN);
+    }
+
+    fn pulse(&mut self, code: u16) {
+        self.dev
+            .signal_emcy(code, error_register::COMMUNICATION, [0; 5]);
+        self.dev.clear_emcy(code);
+    }
+
+    fn update_emcy(&mut self, status: u32) {
+        for (k, (code, reg, data)) in conditions(status, self.boot_bad).into_iter().enumerate() {
+            match data {
+                Some(data) => {
+                    self.quiet[k] = 0;
+                    if !self.dev.emcy_active(code) {
+                        self.dev.signal_emcy(code, reg, data);
+                    }
+                }
+                None => {
+                    if self.dev.emcy_active(code) {
+                        self.quiet[k] = self.quiet[k].saturating_add(1);
+                        if self.quiet[k] >= EMCY_CLEAR_SAMPLES {
+                            self.dev.clear_emcy(code);
+                            self.quiet[k] = 0;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn service(&mut self, out: &mut impl FnMut(Frame)) {
+        let ev = self.dev.take_events();
+        if ev.contains(Events::REQUEST) {
+            match self.dev.pending_request() {
+                Some(Request::Store) => {
+                    let ok = self.store_now();
+                    // NoRequest cannot happen: a request is pending.
+                    let _ = self.dev.finish_request(ok, out);
+                }
+                Some(Request::Restore) => {
+                    let ok = clear(&mut self.store).is_ok();
+                    let _ = self.dev.finish_request(ok, out);
+                }
+                None => {}
+            }
+        }
+        if ev.contains(Events::CONFIG_CHANGED)
+            || ev.contains(Events::RESET_NODE)
+            || self.dev.config_generation() != self.cfg_gen
+        {
+            self.reload();
+        }
+        if ev.contains(Events::RESET_NODE) || ev.contains(Events::RESET_COMM) {
+            self.can_changed = true;
+        }
+    }
+
+    /// Stores the record and the image; true on success.
+    fn store_now(&mut self) -> bool {
+        let Ok(mut p) = params_from_device(&self.dev, &self.extra) else {
+            return false;
+        };
+        p.stamp = self.extra.stamp.wrapping_add(1).max(1);
+        let mut image = [0u8; IMAGE_LEN];
+        self.dev.persistent_image(&mut image);
+        match save_with_tail(&mut self.store, &p, &image) {
+            Ok(()) => {
+                self.extra.stamp = p.stamp;
+                self.stores += 1;
+                if self.boot_bad {
+                    self.boot_bad = false;
+                }
+                true
+            }
+            Err(_) => false,
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::panic)]
+#[path = "app_tests.rs"]
+mod tests;

@@ -1,0 +1,386 @@
+//! Tests of [`App`] through the CAN bus, as the robot controller sees it.
+
+use super::*;
+use crate::pipeline::testutil::{counts_for_ma, counts_for_plane, normal_error_deg, test_plane};
+use crate::status::{DEGRADED, SENSOR_VALID, UNCALIBRATED};
+use crate::storage::{host_store, HostFlash, SeqStore};
+use perpend_can::NmtState;
+
+type HostApp = App<SeqStore<HostFlash>>;
+
+const NODE: u16 = 0x20;
+const SAVE: u32 = 0x6576_6173;
+const LOAD: u32 = 0x6461_6F6C;
+const UNLOCK: u32 = 0x6C61_6375;
+
+/// A test bench: the app, a clock and the frames it sent.
+struct Bench {
+    app: HostApp,
+    t: u64,
+    sent: Vec<Frame>,
+}
+
+impl Bench {
+    fn new(flash: HostFlash) -> Self {
+        let mut b = Self {
+            app: App::new(host_store(flash)),
+            t: 0,
+            sent: Vec::new(),
+        };
+        b.poll();
+        b
+    }
+
+    fn reboot(self) -> Self {
+        let mut f = self.app.into_store().into_flash();
+        f.power_on();
+        Self::new(f)
+    }
+
+    fn poll(&mut self) {
+        self.t += 100;
+        let sent = &mut self.sent;
+        self.app.poll(self.t, &mut |f| sent.push(f));
+    }
+
+    fn send(&mut self, f: Frame) -> Vec<Frame> {
+        self.t += 100;
+        let mut got = Vec::new();
+        self.app.handle(&f, self.t, &mut |f| got.push(f));
+        self.sent.extend_from_slice(&got);
+        got
+    }
+
+    fn nmt(&mut self, cs: u8) {
+        self.send(Frame::new(0, &[cs, NODE as u8]));
+    }
+
+    /// Expedited SDO download; `Err(abort code)` on an abort.
+    fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), u32> {
+        let cmd = 0x23 | ((4 - data.len() as u8) << 2);
+        let mut p = [0u8; 8];
+        p[0] = cmd;
+        p[1..3].copy_from_slice(&index.to_le_bytes());
+        p[3] = sub;
+        p[4..4 + data.len()].copy_from_slice(data);
+        let got = self.send(Frame::new(0x600 + NODE, &p));
+        let r = got
+            .iter()
+            .find(|f| f.id == 0x580 + NODE)
+            .expect("SDO response");
+        match r.data[0] {
+            0x60 => Ok(()),
+            0x80 => Err(u32::from_le_bytes([
+                r.data[4], r.data[5], r.data[6], r.data[7],
+            ])),
+            other => panic!("unexpected SDO response {other:#x}"),
+        }
+    }
+
+    fn write_f32(&mut self, index: u16, sub: u8, v: f32) -> Result<(), u32> {
+        self.write(index, sub, &v.to_le_bytes())
+    }
+
+    fn sample(&mut self, counts: [u16; 4]) -> Output {
+        self.t += 1000;
+        let o = self.app.on_sample(
+            &Sample {
+                counts,
+                ..Sample::default()
+            },
+            self.t,
+        );
+        self.poll();
+        o
+    }
+
+    fn emcys(&self) -> Vec<(u16, [u8; 5])> {
+        self.sent
+            .iter()
+            .filter(|f| f.id == 0x80 + NODE)
+            .map(|f| {
+                (
+                    u16::from_le_bytes([f.data[0], f.data[1]]),
+                    [f.data[3], f.data[4], f.data[5], f.data[6], f.data[7]],
+                )
+            })
+            .collect()
+    }
+}
+
+fn good_counts(app: &HostApp) -> [u16; 4] {
+    counts_for_plane(app.pipeline().params(), &test_plane())
+}
+
+#[test]
+fn factory_boot_measures_and_sends_pdos() {
+    let mut b = Bench::new(HostFlash::new());
+    assert_eq!(b.app.boot(), Boot::Missing);
+    assert_eq!(b.app.device().nmt_state(), NmtState::PreOperational);
+    // boot-up message
+    assert!(b
+        .sent
+        .iter()
+        .any(|f| f.id == 0x700 + NODE && f.data[0] == 0));
+    b.nmt(0x01);
+    assert_eq!(b.app.device().nmt_state(), NmtState::Operational);
+    let c = good_counts(&b.app);
+    let o = b.sample(c);
+    assert!(o.valid());
+    assert_eq!(o.status, UNCALIBRATED | 0x1111);
+    assert!(normal_error_deg(&o, &test_plane()) < 0.05);
+    let pdos = b.send(Frame::new(0x80, &[]));
+    let t1 = pdos.iter().find(|f| f.id == 0x180 + NODE).expect("TPDO1");
+    let th1 = f32::from_le_bytes([t1.data[0], t1.data[1], t1.data[2], t1.data[3]]);
+    let th2 = f32::from_le_bytes([t1.data[4], t1.data[5], t1.data[6], t1.data[7]]);
+    assert_eq!((th1, th2), (o.theta1_deg, o.theta2_deg));
+    let t2 = pdos.iter().find(|f| f.id == 0x280 + NODE).expect("TPDO2");
+    assert_eq!(
+        u32::from_le_bytes([t2.data[0], t2.data[1], t2.data[2], t2.data[3]]),
+        o.status
+    );
+    assert_eq!(
+        u32::from_le_bytes([t2.data[4], t2.data[5], t2.data[6], t2.data[7]]),
+        1
+    );
+}
+
+#[test]
+fn calibration_write_store_reboot() {
+    let mut b = Bench::new(HostFlash::new());
+    // locked: refused
+    assert!(b.write_f32(0x2101, 1, 50.5).is_err());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 1, 50.5).unwrap();
+    assert_eq!(b.app.pipeline().params().head.sensors[0].zero.x, 50.5);
+    assert!(b.app.pipeline().calibrated());
+    // acquisition: 2 kHz, 64x oversampling
+    b.write(0x2300, 1, &500u32.to_le_bytes()).unwrap();
+    b.write(0x2300, 2, &64u16.to_le_bytes()).unwrap();
+    assert_eq!(
+        b.app
+            .take_acq_change()
+            .map(|a| (a.period_us, a.os_log2, a.os_shift)),
+        Some((500, 6, 2))
+    );
+    assert_eq!(b.app.take_acq_change(), None);
+    // store
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    assert_eq!(b.app.stores(), 1);
+    let before = *b.app.pipeline().params();
+    let b = b.reboot();
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert_eq!(b.app.pipeline().params().head, before.head);
+    assert_eq!(b.app.pipeline().params().acq.period_us, 500);
+    assert!(b.app.pipeline().calibrated());
+    assert_eq!(b.app.pipeline().params().stamp, 1);
+    let mut b = b;
+    let o = b.sample([30000; 4]);
+    assert_eq!(o.status & UNCALIBRATED, 0);
+    // restore: next boot is factory
+    b.write(0x1011, 1, &LOAD.to_le_bytes()).unwrap();
+    let b = b.reboot();
+    assert_eq!(b.app.boot(), Boot::Missing);
+    assert!(!b.app.pipeline().calibrated());
+    assert_eq!(*b.app.pipeline().params(), Params::factory());
+}
+
+#[test]
+fn power_loss_at_every_step_of_a_can_store() {
+    // An old calibration is stored; a new one is being stored when the
+    // power fails. After the reboot the dictionary holds all of the old or
+    // all of the new values.
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 1, 51.0).unwrap();
+    b.write_f32(0x2102, 2, 49.0).unwrap();
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    let old = *b.app.pipeline().params();
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 1, 52.0).unwrap();
+    b.write_f32(0x2104, 3, 1.5).unwrap();
+    b.write(0x2400, 2, &250u16.to_le_bytes()).unwrap();
+    let base = b.app.into_store().into_flash();
+    // Replay the writes on a rebooted board with the power cut after
+    // `cut` flash steps (booting and SDO writes do not write the flash:
+    // every step counted is one of the store), for every cut position
+    // until the store completes.
+    let mut kept_old = 0;
+    let mut cut = 0;
+    loop {
+        let mut f = base.clone();
+        f.cut_power_after(cut);
+        let mut b = Bench::new(f);
+        b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+        b.write_f32(0x2101, 1, 52.0).unwrap();
+        b.write_f32(0x2104, 3, 1.5).unwrap();
+        b.write(0x2400, 2, &250u16.to_le_bytes()).unwrap();
+        let want = *b.app.pipeline().params();
+        let r = b.write(0x1010, 1, &SAVE.to_le_bytes());
+        let completed = r.is_ok();
+        if !completed {
+            assert_eq!(r, Err(0x0800_0020), "cut {cut}");
+        }
+        let b = b.reboot();
+        let got = *b.app.pipeline().params();
+        assert_eq!(b.app.boot(), Boot::Stored, "cut {cut}");
+        if completed {
+            assert_eq!((got.head, got.can), (want.head, want.can));
+            break;
+        }
+        // an interrupted store: all old, or (cut on the very last step)
+        // all new; never a mix
+        if got.head == old.head {
+            assert_eq!(got.can, old.can, "cut {cut}: a mix");
+            kept_old += 1;
+        } else {
+            assert_eq!(
+                (got.head, got.can),
+                (want.head, want.can),
+                "cut {cut}: a mix"
+            );
+        }
+        cut += 1;
+        assert!(cut < 400, "store never completed");
+    }
+    // an item of ~900 bytes is > 100 double words: that many cut positions
+    assert!(kept_old >= 100, "{kept_old} cuts kept the old record");
+}
+
+#[test]
+fn invalid_configuration_sets_bit_21_and_refuses_store() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    // sensor 3's beam direction written to (0, 0, 0) one component at a
+    // time: each write is in range, the result is not a direction
+    for sub in 4..=6 {
+        b.write_f32(0x2103, sub, 0.0).unwrap();
+    }
+    assert!(!b.app.pipeline().config_ok());
+    let o = b.sample([30000; 4]);
+    assert_eq!(
+        o.status & (CONFIG_INVALID | NO_PLANE),
+        CONFIG_INVALID | NO_PLANE
+    );
+    assert!(b.emcys().iter().any(|(c, _)| *c == emcy::DATA_SET));
+    assert_eq!(b.write(0x1010, 1, &SAVE.to_le_bytes()), Err(0x0800_0020));
+    assert_eq!(b.app.stores(), 0);
+}
+
+#[test]
+fn out_of_range_configuration_is_an_sdo_abort() {
+    let mut b = Bench::new(HostFlash::new());
+    // period below 100 µs, oversampling not a power of two, node-id 0
+    assert!(b.write(0x2300, 1, &50u32.to_le_bytes()).is_err());
+    assert!(b.write(0x2300, 2, &3u16.to_le_bytes()).is_err());
+    assert!(b.write(0x2400, 1, &[0]).is_err());
+    assert_eq!(*b.app.pipeline().params(), Params::factory());
+    assert!(b.app.pipeline().config_ok());
+}
+
+#[test]
+fn sensor_faults_raise_and_clear_emcy() {
+    let mut b = Bench::new(HostFlash::new());
+    b.nmt(0x01);
+    let good = good_counts(&b.app);
+    let p = *b.app.pipeline().params();
+    let mut c = good;
+    c[1] = counts_for_ma(&p, 1, 2.0); // sensor 2 open loop
+    let o = b.sample(c);
+    assert!(o.valid());
+    assert_eq!(o.status & DEGRADED, DEGRADED);
+    let e = b.emcys();
+    assert_eq!(e.len(), 1);
+    assert_eq!(e[0].0, emcy::sensor_current(1));
+    assert_eq!(e[0].1[..2], [2, crate::status::SENSOR_OPEN_LOOP as u8]);
+    assert!(b.app.device().error_register() & error_register::CURRENT != 0);
+    // the fault goes away: cleared after EMCY_CLEAR_SAMPLES clean samples
+    for k in 0..EMCY_CLEAR_SAMPLES {
+        let o = b.sample(good);
+        assert_eq!(o.status & 0xFFFF, SENSOR_VALID * 0x1111);
+        let cleared = b.emcys().len() > 1;
+        assert_eq!(cleared, k + 1 == EMCY_CLEAR_SAMPLES, "sample {k}");
+    }
+    assert_eq!(b.emcys()[1].0, 0); // error reset
+    assert_eq!(b.app.device().error_register(), 0);
+    // two sensors lost: no plane
+    c[3] = counts_for_ma(&p, 3, 22.0);
+    let o = b.sample(c);
+    assert!(!o.valid());
+    let codes: Vec<u16> = b.emcys().iter().map(|e| e.0).collect();
+    assert!(codes.contains(&emcy::NO_PLANE));
+    assert_eq!(
+        b.app.device().measurement().normal,
+        [0.0; 3],
+        "no NaN on the bus"
+    );
+}
+
+#[test]
+fn bus_events_pulse_emcy() {
+    let mut b = Bench::new(HostFlash::new());
+    b.app.bus_off_recovered();
+    b.poll();
+    let e = b.emcys();
+    assert_eq!(
+        e.iter().map(|e| e.0).collect::<Vec<_>>(),
+        [emcy::BUS_OFF_RECOVERED, 0]
+    );
+    b.app.rx_overrun();
+    b.poll();
+    assert_eq!(b.emcys()[2].0, emcy::CAN_OVERRUN);
+}
+
+#[test]
+fn reset_communication_reports_the_new_bit_rate() {
+    let mut b = Bench::new(HostFlash::new());
+    assert_eq!(b.app.can_config().bitrate, Bitrate::M1);
+    b.write(0x2400, 2, &125u16.to_le_bytes()).unwrap();
+    assert_eq!(b.app.take_can_change(), None);
+    b.nmt(0x82);
+    let c = b.app.take_can_change().expect("change");
+    assert_eq!((c.node_id, c.bitrate), (NODE as u8, Bitrate::K125));
+}
+
+#[test]
+fn corrupted_newest_item_boots_the_previous_record() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 1, 51.0).unwrap();
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    let first = *b.app.pipeline().params();
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 1, 53.0).unwrap();
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    let mut f = b.app.into_store().into_flash();
+    // flip a bit in the middle of the newest item's data
+    let last = f.bytes().iter().rposition(|&x| x != 0xFF).unwrap_or(0);
+    f.flip(last - 200, 3);
+    let b = Bench::new(f);
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert_eq!(b.app.pipeline().params().head, first.head);
+}
+
+#[test]
+fn rejected_record_raises_data_set_emcy() {
+    // A record that passes the storage CRC but not the parameter checks
+    // (as after a firmware update that changed the layout): factory
+    // defaults, EMCY 0x6300 until a store succeeds.
+    let mut store = host_store(HostFlash::new());
+    let mut bad = [0u8; perpend_core::params::RECORD_LEN];
+    Params::factory().encode(&mut bad).unwrap();
+    bad[4] = 9; // version 9
+    store.store(&bad).unwrap();
+    let mut b = Bench::new(store.into_flash());
+    assert_eq!(
+        b.app.boot(),
+        Boot::Rejected(Error::Decode("unsupported version"))
+    );
+    assert!(b.app.device().emcy_active(emcy::DATA_SET));
+    assert!(b.emcys().iter().any(|e| e.0 == emcy::DATA_SET));
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    for _ in 0..EMCY_CLEAR_SAMPLES {
+        b.sample(good_counts(&b.app));
+    }
+    assert!(!b.app.device().emcy_active(emcy::DATA_SET));
+}

@@ -1,0 +1,494 @@
+//! Typed views of the application objects: the defaults a device starts
+//! from, the calibration and configuration records the application reads,
+//! and the measurement it publishes.
+//!
+//! Every value here is `f32`/integer because that is what the object
+//! dictionary holds (REAL32); conversions to the core's generic types
+//! ([`SensorCalibration::to_sensor`]) go through [`perpend_core::Real`].
+
+use perpend_core::ext::Extension;
+use perpend_core::head::{Head4, Sensor};
+use perpend_core::normal::Method;
+use perpend_core::params::{Bitrate, Frontend, Params, Transfer};
+use perpend_core::Real;
+
+/// Identity object 0x1018.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Identity {
+    /// Sub 1: vendor-ID assigned by CiA (0 = none assigned).
+    pub vendor_id: u32,
+    /// Sub 2: product code.
+    pub product_code: u32,
+    /// Sub 3: revision number (major << 16 | minor).
+    pub revision: u32,
+    /// Sub 4: serial number (unique per board, e.g. from the MCU UID).
+    pub serial: u32,
+}
+
+/// Calibration of one sensor: objects 0x2101..0x2104, one per sensor.
+/// Sub-index order is the field order below (sub 1 = `zero[0]` ...
+/// sub 15 = `drift`). Units: mm, mm/°C, °C, mm/s as in
+/// [`perpend_core::ext::Extension`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SensorCalibration {
+    /// Sub 1-3: zero point `E_i` x, y, z [mm, TCS].
+    pub zero: [f32; 3],
+    /// Sub 4-6: beam direction x, y, z (normalised by the application).
+    pub dir: [f32; 3],
+    /// Sub 7: reference distance of gain and non-linearity [mm].
+    pub d_ref: f32,
+    /// Sub 8: relative gain error [-].
+    pub gain: f32,
+    /// Sub 9: quadratic non-linearity [mm⁻¹].
+    pub nl2: f32,
+    /// Sub 10: cubic non-linearity [mm⁻²].
+    pub nl3: f32,
+    /// Sub 11: incidence bias [mm].
+    pub incidence: f32,
+    /// Sub 12: cross-talk from the previously converted channel [-].
+    pub crosstalk: f32,
+    /// Sub 13: thermal drift [mm/°C].
+    pub thermal: f32,
+    /// Sub 14: reference temperature of `thermal` [°C].
+    pub temp_ref: f32,
+    /// Sub 15: drift with time [mm/s].
+    pub drift: f32,
+}
+
+impl SensorCalibration {
+    /// The 15 values in sub-index order (sub 1 first).
+    pub fn to_array(&self) -> [f32; 15] {
+        [
+            self.zero[0],
+            self.zero[1],
+            self.zero[2],
+            self.dir[0],
+            self.dir[1],
+            self.dir[2],
+            self.d_ref,
+            self.gain,
+            self.nl2,
+            self.nl3,
+            self.incidence,
+            self.crosstalk,
+            self.thermal,
+            self.temp_ref,
+            self.drift,
+        ]
+    }
+
+    /// From the 15 values in sub-index order.
+    pub fn from_array(v: &[f32; 15]) -> Self {
+        Self {
+            zero: [v[0], v[1], v[2]],
+            dir: [v[3], v[4], v[5]],
+            d_ref: v[6],
+            gain: v[7],
+            nl2: v[8],
+            nl3: v[9],
+            incidence: v[10],
+            crosstalk: v[11],
+            thermal: v[12],
+            temp_ref: v[13],
+            drift: v[14],
+        }
+    }
+
+    /// From a core sensor (any float type; values are rounded to `f32`).
+    pub fn from_sensor<T: Real>(s: &Sensor<T>) -> Self {
+        let f = |x: T| x.to_f64() as f32;
+        Self {
+            zero: [f(s.zero.x), f(s.zero.y), f(s.zero.z)],
+            dir: [f(s.dir.x), f(s.dir.y), f(s.dir.z)],
+            d_ref: f(s.ext.d_ref),
+            gain: f(s.ext.gain),
+            nl2: f(s.ext.nonlinearity[0]),
+            nl3: f(s.ext.nonlinearity[1]),
+            incidence: f(s.ext.incidence),
+            crosstalk: f(s.ext.crosstalk),
+            thermal: f(s.ext.thermal),
+            temp_ref: f(s.ext.temp_ref),
+            drift: f(s.ext.drift),
+        }
+    }
+
+    /// The core sensor these values describe (direction normalised).
+    ///
+    /// # Errors
+    /// [`perpend_core::Error`] for a non-finite zero point or a zero-length
+    /// or non-finite direction.
+    pub fn to_sensor<T: Real>(&self) -> perpend_core::Result<Sensor<T>> {
+        let c = |x: f32| T::lit(x as f64);
+        let v3 = |a: [f32; 3]| nalgebra::Vector3::new(c(a[0]), c(a[1]), c(a[2]));
+        let mut s = Sensor::new(v3(self.zero), v3(self.dir))?;
+        s.ext = self.extension();
+        Ok(s)
+    }
+
+    /// The extension coefficients (sub 7..15) as the core's type.
+    pub fn extension<T: Real>(&self) -> Extension<T> {
+        let c = |x: f32| T::lit(x as f64);
+        Extension {
+            d_ref: c(self.d_ref),
+            gain: c(self.gain),
+            nonlinearity: [c(self.nl2), c(self.nl3)],
+            incidence: c(self.incidence),
+            crosstalk: c(self.crosstalk),
+            thermal: c(self.thermal),
+            temp_ref: c(self.temp_ref),
+            drift: c(self.drift),
+        }
+    }
+}
+
+/// How a sensor's analog output becomes millimetres: objects
+/// 0x2201..0x2204.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TransferFunction {
+    /// Sub 1: 0 = 4-20 mA on a shunt, 1 = 0-10 V on a divider.
+    pub kind: u8,
+    /// Sub 2: shunt resistance [Ω] (kind 0) or divider ratio
+    /// `V_pin / V_sensor` in (0, 1] (kind 1).
+    pub scale: f32,
+    /// Sub 3: distance at 4 mA / 0 V [mm].
+    pub mm_at_low: f32,
+    /// Sub 4: distance at 20 mA / 10 V [mm].
+    pub mm_at_high: f32,
+}
+
+/// Transfer-function kind: 4-20 mA current loop on a shunt.
+pub const TF_CURRENT_4_20MA: u8 = 0;
+/// Transfer-function kind: 0-10 V on a resistive divider.
+pub const TF_VOLTAGE_0_10V: u8 = 1;
+
+/// Acquisition settings: object 0x2300.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Acquisition {
+    /// Sub 1: sample period [µs], 100..=100000.
+    pub period_us: u32,
+    /// Sub 2: oversampling ratio, power of two in 1..=256.
+    pub oversampling: u16,
+    /// Sub 3: plane method, 0 = Chen (eq. 18-19), 1 = least squares.
+    pub method: u8,
+    /// Sub 4: largest acceptable plane RMS residual [mm].
+    pub residual_limit_mm: f32,
+}
+
+/// Plane method code: Chen eq. 18-19.
+pub const METHOD_CHEN: u8 = 0;
+/// Plane method code: total least squares.
+pub const METHOD_LEAST_SQUARES: u8 = 1;
+
+impl Acquisition {
+    /// The core's plane method for sub 3 (anything but 0 is least squares;
+    /// the object dictionary only accepts 0 and 1).
+    pub fn plane_method(&self) -> perpend_core::normal::Method {
+        if self.method == METHOD_CHEN {
+            perpend_core::normal::Method::Chen
+        } else {
+            perpend_core::normal::Method::LeastSquares
+        }
+    }
+}
+
+/// Communication settings: object 0x2400. Both take effect at the next
+/// reset (communication or node).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Communication {
+    /// Sub 1: node-id, 1..=127.
+    pub node_id: u8,
+    /// Sub 2: bit rate [kbit/s]: 125, 250, 500 or 1000.
+    pub bit_rate_kbps: u16,
+}
+
+/// Bit rates accepted by 0x2400 sub 2 [kbit/s].
+pub const BIT_RATES_KBPS: [u16; 4] = [125, 250, 500, 1000];
+
+/// Everything a device starts from: identity, strings, and the default
+/// (factory) values of every persisted object. 0x1011 "load" restores these.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Defaults {
+    /// 0x1000 device type (0: no standard device profile).
+    pub device_type: u32,
+    /// 0x1008 manufacturer device name.
+    pub device_name: &'static str,
+    /// 0x1009 manufacturer hardware version.
+    pub hardware_version: &'static str,
+    /// 0x100A manufacturer software version.
+    pub software_version: &'static str,
+    /// 0x1018 identity.
+    pub identity: Identity,
+    /// 0x1017 producer heartbeat time [ms] (0 = off).
+    pub heartbeat_ms: u16,
+    /// SDO server timeout of a segmented transfer [µs] (not an object).
+    pub sdo_timeout_us: u64,
+    /// 0x2101..0x2104 calibration of sensors 1..4.
+    pub calibration: [SensorCalibration; 4],
+    /// 0x2201..0x2204 transfer functions of sensors 1..4.
+    pub transfer: [TransferFunction; 4],
+    /// 0x2300 acquisition.
+    pub acquisition: Acquisition,
+    /// 0x2400 sub 2 bit rate [kbit/s] (sub 1 defaults to the node-id passed
+    /// to [`crate::Device::new`]).
+    pub bit_rate_kbps: u16,
+}
+
+impl TransferFunction {
+    /// From the core's stored transfer function (its signal span is implied
+    /// by the kind: 4-20 mA or 0-10 V).
+    pub fn from_transfer(t: &Transfer) -> Self {
+        let (kind, scale) = match t.frontend {
+            Frontend::Shunt { ohm } => (TF_CURRENT_4_20MA, ohm),
+            Frontend::Divider { ratio } => (TF_VOLTAGE_0_10V, ratio),
+        };
+        Self {
+            kind,
+            scale,
+            mm_at_low: t.mm_lo,
+            mm_at_high: t.mm_hi,
+        }
+    }
+
+    /// The core's transfer function. The signal span is 4-20 mA (kind 0) or
+    /// 0-10 V (kind 1), unless `base` has the same kind, whose span is kept
+    /// (e.g. a live-zero 1-10 V sensor configured in the stored record).
+    pub fn to_transfer(&self, base: &Transfer) -> Transfer {
+        let mut t = if self.kind == TF_VOLTAGE_0_10V {
+            Transfer::voltage(self.scale, self.mm_at_low, self.mm_at_high)
+        } else {
+            Transfer::current(self.scale, self.mm_at_low, self.mm_at_high)
+        };
+        if core::mem::discriminant(&t.frontend) == core::mem::discriminant(&base.frontend) {
+            t.sig_lo = base.sig_lo;
+            t.sig_hi = base.sig_hi;
+        }
+        t
+    }
+}
+
+/// The bit rate [kbit/s] of a core bit-rate setting.
+pub const fn kbps_of(b: Bitrate) -> u16 {
+    match b {
+        Bitrate::K125 => 125,
+        Bitrate::K250 => 250,
+        Bitrate::K500 => 500,
+        Bitrate::M1 => 1000,
+    }
+}
+
+/// The core bit-rate setting of `kbps` (`None` unless 125/250/500/1000).
+pub const fn bitrate_of(kbps: u16) -> Option<Bitrate> {
+    match kbps {
+        125 => Some(Bitrate::K125),
+        250 => Some(Bitrate::K250),
+        500 => Some(Bitrate::K500),
+        1000 => Some(Bitrate::M1),
+        _ => None,
+    }
+}
+
+impl Defaults {
+    /// The product's nominal defaults: [`Defaults::from_params`] of
+    /// [`Params::factory`] (the design head, 4-20 mA sensors, 1 kHz, least
+    /// squares; see there), heartbeat 1000 ms, SDO timeout 1 s, identity
+    /// with vendor-ID 0 (none assigned by CiA), product code "PERP" and
+    /// serial 0 (the firmware sets it from the MCU UID).
+    pub fn nominal() -> Self {
+        Self::from_params(&Params::factory())
+    }
+
+    /// Defaults whose calibration and configuration objects hold the
+    /// values of `p` (what 0x1011 "load" restores), with the nominal
+    /// identity, strings and timing. The node-id is passed to
+    /// [`crate::Device::new`] separately (usually `p.can.node_id`).
+    pub fn from_params(p: &Params) -> Self {
+        Self {
+            device_type: 0,
+            device_name: "perpend normal sensor",
+            hardware_version: "perpend board rev A",
+            software_version: concat!("perpend ", env!("CARGO_PKG_VERSION")),
+            identity: Identity {
+                vendor_id: 0,
+                product_code: 0x5045_5250,
+                revision: 0x0001_0000,
+                serial: 0,
+            },
+            heartbeat_ms: 1000,
+            sdo_timeout_us: 1_000_000,
+            calibration: p.head.sensors.map(|s| SensorCalibration::from_sensor(&s)),
+            transfer: p.transfer.map(|t| TransferFunction::from_transfer(&t)),
+            acquisition: Acquisition::from_params(&p.acq),
+            bit_rate_kbps: kbps_of(p.can.bitrate),
+        }
+    }
+
+    /// The defaults with the calibration replaced by `head` (e.g. the
+    /// virtual board's or a calibrated head).
+    pub fn with_head<T: Real>(mut self, head: &Head4<T>) -> Self {
+        for (c, s) in self.calibration.iter_mut().zip(head.sensors.iter()) {
+            *c = SensorCalibration::from_sensor(s);
+        }
+        self
+    }
+}
+
+impl Acquisition {
+    /// From the core's acquisition settings (oversampling ratio
+    /// `2^os_log2`).
+    pub fn from_params(a: &perpend_core::params::Acquisition) -> Self {
+        Self {
+            period_us: a.period_us,
+            oversampling: 1u16 << a.os_log2.min(8),
+            method: match a.method {
+                Method::Chen => METHOD_CHEN,
+                Method::LeastSquares => METHOD_LEAST_SQUARES,
+            },
+            residual_limit_mm: a.max_rms_mm,
+        }
+    }
+
+    /// Onto the core's acquisition settings `base` (fields without an
+    /// object are kept; the oversampling shift is raised if needed so that
+    /// `os_log2 − os_shift ≤ 4`).
+    pub fn to_params(
+        &self,
+        base: &perpend_core::params::Acquisition,
+    ) -> perpend_core::params::Acquisition {
+        let log2 = (self.oversampling.max(1).trailing_zeros() as u8).min(8);
+        let shift = if log2 > base.os_shift + 4 {
+            log2 - 4
+        } else {
+            base.os_shift
+        };
+        perpend_core::params::Acquisition {
+            period_us: self.period_us,
+            os_log2: log2,
+            os_shift: shift,
+            method: self.plane_method(),
+            max_rms_mm: self.residual_limit_mm,
+            ..*base
+        }
+    }
+}
+
+/// One sample of the measurement objects 0x2001..0x2006, as the application
+/// publishes it with [`crate::Device::set_measurement`]. Angles in degrees.
+/// Unavailable quantities are 0 (see [`crate::status`]): never NaN.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measurement {
+    /// 0x2001 sub 1-3: unit normal towards the head (TCS).
+    pub normal: [f32; 3],
+    /// 0x2002 sub 1: θ1 [deg].
+    pub theta1_deg: f32,
+    /// 0x2002 sub 2: θ2 [deg].
+    pub theta2_deg: f32,
+    /// 0x2002 sub 3: θ [deg].
+    pub theta_deg: f32,
+    /// 0x2003 sub 1: pitch [deg].
+    pub pitch_deg: f32,
+    /// 0x2003 sub 2: yaw [deg].
+    pub yaw_deg: f32,
+    /// 0x2004 sub 1-4: distances [mm] as converted from each channel.
+    pub distances_mm: [f32; 4],
+    /// 0x2005: status word ([`crate::status`]).
+    pub status: u32,
+    /// 0x2006: plane RMS residual [mm].
+    pub rms_mm: f32,
+}
+
+impl Measurement {
+    /// A sample with no data: every value 0, status `status`.
+    pub fn invalid(status: u32) -> Self {
+        Self {
+            normal: [0.0; 3],
+            theta1_deg: 0.0,
+            theta2_deg: 0.0,
+            theta_deg: 0.0,
+            pitch_deg: 0.0,
+            yaw_deg: 0.0,
+            distances_mm: [0.0; 4],
+            status,
+            rms_mm: 0.0,
+        }
+    }
+
+    /// From a core measurement (angles converted to degrees), the corrected
+    /// distances and the status word.
+    pub fn from_core<T: Real>(
+        m: &perpend_core::normal::Measurement<T>,
+        distances_mm: [f32; 4],
+        status: u32,
+    ) -> Self {
+        let f = |x: T| x.to_f64() as f32;
+        let deg = |x: T| x.to_f64().to_degrees() as f32;
+        Self {
+            normal: [
+                f(m.plane.normal.x),
+                f(m.plane.normal.y),
+                f(m.plane.normal.z),
+            ],
+            theta1_deg: deg(m.deviation.theta1),
+            theta2_deg: deg(m.deviation.theta2),
+            theta_deg: deg(m.deviation.theta),
+            pitch_deg: deg(m.attitude.pitch),
+            yaw_deg: deg(m.attitude.yaw),
+            distances_mm,
+            status,
+            rms_mm: f(m.plane.rms),
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+
+    #[test]
+    fn calibration_array_round_trip() {
+        let a: [f32; 15] = core::array::from_fn(|i| i as f32 * 1.5 - 3.0);
+        assert_eq!(SensorCalibration::from_array(&a).to_array(), a);
+    }
+
+    #[test]
+    fn nominal_head_matches_cone() {
+        let d = Defaults::nominal();
+        let s1 = d.calibration[1].to_sensor::<f64>().unwrap();
+        assert_relative_eq!(s1.zero.y, 50.0, epsilon = 1e-5);
+        assert_relative_eq!(s1.dir.z, 30f64.to_radians().cos(), epsilon = 1e-6);
+        assert_eq!(d.calibration[0].temp_ref, 20.0);
+    }
+
+    #[test]
+    fn params_round_trip_through_the_typed_views() {
+        let mut p = Params::factory();
+        p.transfer[2] = Transfer::voltage(0.25, 10.0, 60.0);
+        p.acq.os_log2 = 6;
+        p.acq.os_shift = 2;
+        p.acq.method = Method::Chen;
+        p.can.bitrate = Bitrate::K250;
+        let d = Defaults::from_params(&p);
+        assert_eq!(d.acquisition.oversampling, 64);
+        assert_eq!(d.acquisition.method, METHOD_CHEN);
+        assert_eq!(d.bit_rate_kbps, 250);
+        assert_eq!(d.transfer[2].kind, TF_VOLTAGE_0_10V);
+        let back: [Transfer; 4] =
+            core::array::from_fn(|i| d.transfer[i].to_transfer(&p.transfer[i]));
+        assert_eq!(back, p.transfer);
+        assert_eq!(d.acquisition.to_params(&p.acq), p.acq);
+        // oversampling beyond the shift window raises the shift
+        let a = Acquisition {
+            oversampling: 256,
+            ..d.acquisition
+        }
+        .to_params(&p.acq);
+        assert_eq!((a.os_log2, a.os_shift), (8, 4));
+        assert!(a.validate().is_ok());
+        for (c, s) in d.calibration.iter().zip(p.head.sensors.iter()) {
+            assert_eq!(c.to_sensor::<f32>().unwrap().zero, s.zero);
+        }
+        assert_eq!(bitrate_of(kbps_of(Bitrate::M1)), Some(Bitrate::M1));
+        assert_eq!(bitrate_of(300), None);
+    }
+}

@@ -1,0 +1,1352 @@
+//! The CANopen device: NMT slave, heartbeat producer, SDO server, SYNC
+//! consumer, TPDOs, EMCY producer and the parameter store, over the object
+//! dictionary of [`crate::od`].
+//!
+//! Sans-I/O: [`Device::handle`] consumes a received frame, [`Device::poll`]
+//! produces what is due at a given time; both push frames to the caller's
+//! `out` closure. Time is a monotonic `u64` in microseconds supplied by the
+//! caller; the device never reads a clock, so tests are deterministic.
+//!
+//! Limits: one SDO server, four TPDOs, no RPDOs, no node guarding / RTR, no
+//! LSS, no SYNC producer, no TIME, fixed SYNC COB-ID 0x80.
+
+use perpend_core::head::Sensor;
+use perpend_core::params::Params;
+
+use crate::config::{
+    bitrate_of, Acquisition, Communication, Defaults, Measurement, SensorCalibration,
+    TransferFunction,
+};
+use crate::frame::Frame;
+use crate::od::{
+    self, Access, Class, DataType, Init, Limits, Lookup, Text, ENTRIES, LOAD_SIGNATURE, MAX_MAPPED,
+    PERSISTENT, SAVE_SIGNATURE, TPDOS, UNLOCK_SIGNATURE,
+};
+use crate::sdo::{Dictionary, SdoAbort, SdoServer, Value, Written};
+use crate::status::{self, error_register};
+use crate::Error;
+
+/// NMT states (CiA 301 §7.3.2.2), with their heartbeat codes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NmtState {
+    /// After power-on or a reset, until the boot-up message is sent by the
+    /// next [`Device::poll`].
+    Initialising,
+    /// SDO, EMCY, NMT, heartbeat; no PDOs. Calibration/configuration
+    /// writable.
+    PreOperational,
+    /// Everything, PDOs included; calibration/configuration read-only.
+    Operational,
+    /// Only NMT and heartbeat.
+    Stopped,
+}
+
+impl NmtState {
+    /// The state byte of the heartbeat message.
+    pub const fn heartbeat_code(self) -> u8 {
+        match self {
+            NmtState::Initialising => 0x00,
+            NmtState::PreOperational => 0x7F,
+            NmtState::Operational => 0x05,
+            NmtState::Stopped => 0x04,
+        }
+    }
+}
+
+/// A request the application must carry out on its non-volatile storage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Request {
+    /// 0x1010 "save": write [`Device::persistent_image`] to storage.
+    Store,
+    /// 0x1011 "load": erase the stored record so that the defaults apply at
+    /// the next power-on (the device itself applies them at the next reset
+    /// node).
+    Restore,
+}
+
+/// Things that happened since the application last called
+/// [`Device::take_events`] (a bit set).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Events(pub u8);
+
+impl Events {
+    /// NMT reset node was executed: the application should restart its own
+    /// processing (re-read calibration and configuration).
+    pub const RESET_NODE: u8 = 1 << 0;
+    /// NMT reset communication was executed (node-id and bit rate of 0x2400
+    /// may have changed).
+    pub const RESET_COMM: u8 = 1 << 1;
+    /// A calibration or configuration value changed (SDO write, reset,
+    /// image load): re-read them.
+    pub const CONFIG_CHANGED: u8 = 1 << 2;
+    /// The NMT state changed.
+    pub const STATE_CHANGED: u8 = 1 << 3;
+    /// A [`Request`] is waiting ([`Device::pending_request`]).
+    pub const REQUEST: u8 = 1 << 4;
+
+    /// Whether `bit` is set.
+    pub const fn contains(self, bit: u8) -> bool {
+        self.0 & bit != 0
+    }
+
+    /// Whether nothing happened.
+    pub const fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+}
+
+/// Length of the persistence image [bytes]: layout signature (4), entry
+/// count (4), then one little-endian `u32` per persisted entry in
+/// dictionary order.
+pub const IMAGE_LEN: usize = 8 + 4 * PERSISTENT;
+
+/// Largest number of simultaneously active emergencies tracked.
+pub const MAX_ACTIVE_ERRORS: usize = 8;
+const EMCY_QUEUE: usize = 8;
+
+/// FNV-1a over (index, sub, type) of the persisted entries: changes when
+/// the persisted layout changes.
+fn layout_signature() -> u32 {
+    let mut h: u32 = 0x811C_9DC5;
+    for (_, index, e) in od::entries() {
+        if e.persist {
+            for b in index
+                .to_le_bytes()
+                .into_iter()
+                .chain([e.sub])
+                .chain(e.ty.code().to_le_bytes())
+            {
+                h ^= b as u32;
+                h = h.wrapping_mul(0x0100_0193);
+            }
+        }
+    }
+    h
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct TpdoRt {
+    sync_count: u8,
+    last_tx: Option<u64>,
+    event_pending: bool,
+    timer_due: Option<u64>,
+}
+
+#[derive(Debug, Clone)]
+struct Core {
+    defaults: Defaults,
+    /// Node-id given to [`Device::new`]: the default of 0x2400 sub 1.
+    base_node: u8,
+    node_id: u8,
+    values: [u32; ENTRIES],
+    /// Power-on values: what a reset restores (defaults overlaid with the
+    /// loaded / stored image).
+    boot: [u32; ENTRIES],
+    state: NmtState,
+    unlocked: bool,
+    hb_next: Option<u64>,
+    hb_restart: bool,
+    tpdo: [TpdoRt; TPDOS],
+    active: [(u16, u8); MAX_ACTIVE_ERRORS],
+    n_active: usize,
+    emcy_queue: [[u8; 8]; EMCY_QUEUE],
+    emcy_len: usize,
+    request: Option<Request>,
+    events: u8,
+    config_gen: u32,
+}
+
+/// A CANopen device (CiA 301 subset) holding the perpend object
+/// dictionary. See the crate documentation for the behaviour contract.
+#[derive(Debug, Clone)]
+pub struct Device {
+    core: Core,
+    sdo: SdoServer,
+}
+
+/// Whether an entry belongs to the stored parameter record (calibration
+/// and configuration objects).
+fn index_is_app(e: &od::Entry) -> bool {
+    matches!(e.class, Class::Calibration | Class::Config)
+}
+
+fn slot(index: u16, sub: u8) -> Option<usize> {
+    od::find(index, sub).ok().map(|(s, _)| s)
+}
+
+/// Whether an 11-bit COB-ID may be used by a TPDO (CiA 301 §7.3.5,
+/// restricted COB-IDs excluded).
+fn cob_allowed(id: u32) -> bool {
+    !matches!(id, 0x000..=0x07F | 0x101..=0x180 | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x7FF)
+        && id <= 0x7FF
+}
+
+fn decode(ty: DataType, data: &[u8]) -> u32 {
+    let mut b = [0u8; 4];
+    let n = data.len().min(4);
+    b[..n].copy_from_slice(&data[..n]);
+    match ty {
+        DataType::U8 => b[0] as u32,
+        DataType::U16 => u16::from_le_bytes([b[0], b[1]]) as u32,
+        _ => u32::from_le_bytes(b),
+    }
+}
+
+fn check_limits(limits: Limits, ty: DataType, v: u32) -> Result<(), SdoAbort> {
+    match limits {
+        Limits::Any => Ok(()),
+        Limits::Range(lo, hi) => {
+            if v < lo {
+                Err(SdoAbort::TooLow)
+            } else if v > hi {
+                Err(SdoAbort::TooHigh)
+            } else {
+                Ok(())
+            }
+        }
+        Limits::Real(lo, hi) => {
+            let f = f32::from_bits(v);
+            if ty != DataType::Real32 || !f.is_finite() {
+                Err(SdoAbort::Range)
+            } else if f < lo {
+                Err(SdoAbort::TooLow)
+            } else if f > hi {
+                Err(SdoAbort::TooHigh)
+            } else {
+                Ok(())
+            }
+        }
+        Limits::OneOf(set) => {
+            if set.contains(&v) {
+                Ok(())
+            } else {
+                Err(SdoAbort::Range)
+            }
+        }
+        Limits::PowerOfTwo(lo, hi) => {
+            if !v.is_power_of_two() {
+                Err(SdoAbort::Range)
+            } else if v < lo {
+                Err(SdoAbort::TooLow)
+            } else if v > hi {
+                Err(SdoAbort::TooHigh)
+            } else {
+                Ok(())
+            }
+        }
+    }
+}
+
+impl Core {
+    fn init_value(&self, e: &od::Entry, node: u8) -> u32 {
+        let d = &self.defaults;
+        match e.init {
+            Init::Fixed(v) => v,
+            Init::Node(base) => base + node as u32,
+            Init::DeviceType => d.device_type,
+            Init::Identity(k) => match k {
+                1 => d.identity.vendor_id,
+                2 => d.identity.product_code,
+                3 => d.identity.revision,
+                _ => d.identity.serial,
+            },
+            Init::Heartbeat => d.heartbeat_ms as u32,
+            Init::Calibration(s, k) => d
+                .calibration
+                .get(s as usize)
+                .and_then(|c| c.to_array().get(k as usize).copied())
+                .unwrap_or(0.0)
+                .to_bits(),
+            Init::Transfer(s, k) => d
+                .transfer
+                .get(s as usize)
+                .map(|t| match k {
+                    0 => t.kind as u32,
+                    1 => t.scale.to_bits(),
+                    2 => t.mm_at_low.to_bits(),
+                    _ => t.mm_at_high.to_bits(),
+                })
+                .unwrap_or(0),
+            Init::Acquisition(k) => {
+                let a = &d.acquisition;
+                match k {
+                    0 => a.period_us,
+                    1 => a.oversampling as u32,
+                    2 => a.method as u32,
+                    _ => a.residual_limit_mm.to_bits(),
+                }
+            }
+            Init::BitRate => d.bit_rate_kbps as u32,
+            Init::Text(_) => 0,
+        }
+    }
+
+    fn text(&self, t: Text) -> &'static str {
+        match t {
+            Text::DeviceName => self.defaults.device_name,
+            Text::HardwareVersion => self.defaults.hardware_version,
+            Text::SoftwareVersion => self.defaults.software_version,
+        }
+    }
+
+    fn get(&self, index: u16, sub: u8) -> u32 {
+        slot(index, sub).map_or(0, |s| self.values[s])
+    }
+
+    fn set(&mut self, index: u16, sub: u8, v: u32) {
+        if let Some(s) = slot(index, sub) {
+            self.values[s] = v;
+        }
+    }
+
+    fn get_f32(&self, index: u16, sub: u8) -> f32 {
+        f32::from_bits(self.get(index, sub))
+    }
+
+    fn event(&mut self, bits: u8) {
+        self.events |= bits;
+    }
+
+    fn config_changed(&mut self) {
+        self.config_gen = self.config_gen.wrapping_add(1);
+        self.event(Events::CONFIG_CHANGED);
+    }
+
+    fn set_state(&mut self, s: NmtState) {
+        if self.state != s {
+            self.state = s;
+            self.unlocked = false;
+            self.set(0x2010, 0, 0);
+            self.event(Events::STATE_CHANGED);
+            if s == NmtState::Operational {
+                self.tpdo = [TpdoRt::default(); TPDOS];
+                self.arm_event_timers(None);
+            }
+        }
+    }
+
+    /// Restarts event timers (all, or TPDO `only`), counted from the last
+    /// known time (they are armed lazily by `poll`).
+    fn arm_event_timers(&mut self, only: Option<usize>) {
+        for k in 0..TPDOS {
+            if only.is_none_or(|o| o == k) {
+                self.tpdo[k].timer_due = None;
+            }
+        }
+    }
+
+    fn tpdo_valid(&self, k: usize) -> bool {
+        self.get(0x1800 + k as u16, 1) & 0x8000_0000 == 0
+    }
+
+    /// Validates the mapping of TPDO `k` with `n` entries taken from `map`.
+    fn check_mapping(map: &[u32; MAX_MAPPED], n: usize) -> Result<(), SdoAbort> {
+        let mut bits = 0u32;
+        for &m in map.iter().take(n) {
+            bits += Self::check_map_entry(m)? as u32;
+        }
+        if bits > 64 {
+            return Err(SdoAbort::PdoLength);
+        }
+        Ok(())
+    }
+
+    /// Validates one mapping entry; returns its bit length.
+    fn check_map_entry(m: u32) -> Result<u8, SdoAbort> {
+        let index = (m >> 16) as u16;
+        let sub = (m >> 8) as u8;
+        let bits = m as u8;
+        let (_, e) = od::find(index, sub).map_err(|l| match l {
+            Lookup::NoObject => SdoAbort::NoObject,
+            Lookup::NoSub => SdoAbort::NoSub,
+        })?;
+        if !e.pdo {
+            return Err(SdoAbort::NotMappable);
+        }
+        if e.ty.bits() != bits {
+            return Err(SdoAbort::Incompatible);
+        }
+        Ok(bits)
+    }
+
+    fn mapping_of(&self, k: usize) -> ([u32; MAX_MAPPED], usize) {
+        let idx = 0x1A00 + k as u16;
+        let n = (self.get(idx, 0) as usize).min(MAX_MAPPED);
+        let map = core::array::from_fn(|i| self.get(idx, i as u8 + 1));
+        (map, n)
+    }
+
+    /// The payload of TPDO `k`, or `None` if its mapping is unusable.
+    fn tpdo_frame(&self, k: usize) -> Option<Frame> {
+        let (map, n) = self.mapping_of(k);
+        let mut data = [0u8; 8];
+        let mut len = 0usize;
+        for &m in map.iter().take(n) {
+            let bits = Self::check_map_entry(m).ok()?;
+            let bytes = bits as usize / 8;
+            if len + bytes > 8 {
+                return None;
+            }
+            let v = self.get((m >> 16) as u16, (m >> 8) as u8).to_le_bytes();
+            data[len..len + bytes].copy_from_slice(&v[..bytes]);
+            len += bytes;
+        }
+        let id = (self.get(0x1800 + k as u16, 1) & 0x7FF) as u16;
+        Some(Frame::new(id, &data[..len]))
+    }
+
+    fn maps_measurement(&self, k: usize) -> bool {
+        let (map, n) = self.mapping_of(k);
+        map.iter()
+            .take(n)
+            .any(|&m| matches!((m >> 16) as u16, 0x2001..=0x2007))
+    }
+
+    /// Applies a node-id change at a reset: node-relative values follow.
+    fn apply_node_id(&mut self) {
+        let configured = self.get(0x2400, 1);
+        let new = if (1..=127).contains(&configured) {
+            configured as u8
+        } else {
+            self.node_id
+        };
+        let old = self.node_id;
+        if new == old {
+            return;
+        }
+        for (s, _, e) in od::entries() {
+            if let Init::Node(base) = e.init {
+                if base == 0 {
+                    continue; // 0x2400 sub 1 is the source, not a follower
+                }
+                if !e.persist {
+                    self.values[s] = base + new as u32;
+                    self.boot[s] = base + new as u32;
+                } else {
+                    let old_id = (base & 0x7FF) + old as u32;
+                    let new_id = (base & 0x7FF) + new as u32;
+                    for arr in [&mut self.values, &mut self.boot] {
+                        if arr[s] & 0x7FF == old_id {
+                            arr[s] = (arr[s] & !0x7FF) | new_id;
+                        }
+                    }
+                }
+            }
+        }
+        self.node_id = new;
+    }
+
+    fn reset_node(&mut self) {
+        self.values = self.boot;
+        self.n_active = 0;
+        self.emcy_len = 0;
+        self.apply_node_id();
+        self.reset_common();
+        self.config_changed();
+        self.event(Events::RESET_NODE);
+    }
+
+    fn reset_comm(&mut self) {
+        for (s, index, e) in od::entries() {
+            if index < 0x2000 && (e.persist || matches!(e.init, Init::Node(_))) {
+                self.values[s] = self.boot[s];
+            }
+        }
+        self.apply_node_id();
+        self.reset_common();
+        self.event(Events::RESET_COMM);
+    }
+
+    fn reset_common(&mut self) {
+        self.unlocked = false;
+        self.set(0x2010, 0, 0);
+        self.tpdo = [TpdoRt::default(); TPDOS];
+        self.hb_next = None;
+        self.hb_restart = true;
+        if self.state != NmtState::Initialising {
+            self.state = NmtState::Initialising;
+            self.event(Events::STATE_CHANGED);
+        }
+    }
+
+    fn update_error_register(&mut self) {
+        let mut reg = 0u8;
+        for &(_, r) in &self.active[..self.n_active] {
+            reg |= r | error_register::GENERIC;
+        }
+        self.set(0x1001, 0, reg as u32);
+    }
+
+    fn queue_emcy(&mut self, payload: [u8; 8]) {
+        if self.emcy_len == EMCY_QUEUE {
+            // Drop the oldest: the newest state matters most.
+            self.emcy_queue.copy_within(1.., 0);
+            self.emcy_len -= 1;
+        }
+        self.emcy_queue[self.emcy_len] = payload;
+        self.emcy_len += 1;
+    }
+
+    /// Write rules common to SDO downloads and segmented-download checks.
+    fn write_allowed(&self, index: u16, e: &od::Entry) -> Result<(), SdoAbort> {
+        if e.access != Access::Rw {
+            return Err(SdoAbort::ReadOnly);
+        }
+        match e.class {
+            Class::Calibration => {
+                if self.state != NmtState::PreOperational {
+                    return Err(SdoAbort::State);
+                }
+                if !self.unlocked {
+                    return Err(SdoAbort::Locked);
+                }
+            }
+            Class::Config | Class::Command
+                if (e.class == Class::Config || index == 0x2010)
+                    && self.state != NmtState::PreOperational =>
+            {
+                return Err(SdoAbort::State);
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// Object-specific semantics of a write of `v` to `(index, sub)` that
+    /// passed the generic checks. Returns the value to store.
+    fn special_write(&mut self, index: u16, sub: u8, v: u32) -> Result<Option<Written>, SdoAbort> {
+        match index {
+            0x1003 => {
+                // Only 0 is accepted (limits): clears the history.
+                for s in 1..=8 {
+                    self.set(0x1003, s, 0);
+                }
+                self.set(0x1003, 0, 0);
+                Ok(Some(Written::Done))
+            }
+            0x1010 | 0x1011 => {
+                let (sig, req) = if index == 0x1010 {
+                    (SAVE_SIGNATURE, Request::Store)
+                } else {
+                    (LOAD_SIGNATURE, Request::Restore)
+                };
+                if v != sig || self.request.is_some() {
+                    return Err(SdoAbort::Store);
+                }
+                self.request = Some(req);
+                self.event(Events::REQUEST);
+                Ok(Some(Written::Deferred))
+            }
+            0x1017 => {
+                self.set(0x1017, 0, v);
+                self.hb_restart = true;
+                Ok(Some(Written::Done))
+            }
+            0x1800..=0x1803 => {
+                let k = (index - 0x1800) as usize;
+                match sub {
+                    1 => {
+                        let old = self.get(index, 1);
+                        if v & 0x2000_0000 != 0 || v & 0x1FFF_F800 != 0 {
+                            return Err(SdoAbort::Range);
+                        }
+                        let valid = v & 0x8000_0000 == 0;
+                        if valid {
+                            if !cob_allowed(v & 0x7FF) {
+                                return Err(SdoAbort::Range);
+                            }
+                            if old & 0x8000_0000 == 0 && old & 0x7FF != v & 0x7FF {
+                                return Err(SdoAbort::Range);
+                            }
+                        }
+                        self.set(index, 1, v);
+                        self.tpdo[k] = TpdoRt::default();
+                        Ok(Some(Written::Done))
+                    }
+                    2 => {
+                        if !(v <= 240 || v >= 254) {
+                            return Err(SdoAbort::Range);
+                        }
+                        self.set(index, 2, v);
+                        self.tpdo[k].sync_count = 0;
+                        self.arm_event_timers(Some(k));
+                        Ok(Some(Written::Done))
+                    }
+                    5 => {
+                        self.set(index, 5, v);
+                        self.arm_event_timers(Some(k));
+                        Ok(Some(Written::Done))
+                    }
+                    _ => Ok(None),
+                }
+            }
+            0x1A00..=0x1A03 => {
+                let k = (index - 0x1A00) as usize;
+                if self.tpdo_valid(k) {
+                    return Err(SdoAbort::State);
+                }
+                if sub == 0 {
+                    let (map, _) = self.mapping_of(k);
+                    Self::check_mapping(&map, v as usize)?;
+                } else {
+                    if self.get(index, 0) != 0 {
+                        return Err(SdoAbort::State);
+                    }
+                    if v != 0 {
+                        Self::check_map_entry(v)?;
+                    }
+                }
+                Ok(None)
+            }
+            0x2010 => {
+                if v == UNLOCK_SIGNATURE {
+                    self.unlocked = true;
+                    self.set(0x2010, 0, 1);
+                } else if v == 0 {
+                    self.unlocked = false;
+                    self.set(0x2010, 0, 0);
+                } else {
+                    return Err(SdoAbort::Range);
+                }
+                Ok(Some(Written::Done))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    /// Whether a persisted value would be accepted (image load).
+    fn valid_persisted(&self, index: u16, sub: u8, e: &od::Entry, v: u32) -> bool {
+        if check_limits(e.limits, e.ty, v).is_err() {
+            return false;
+        }
+        let max = match e.ty {
+            DataType::U8 => 0xFF,
+            DataType::U16 => 0xFFFF,
+            _ => u32::MAX,
+        };
+        if v > max {
+            return false;
+        }
+        match (index, sub) {
+            (0x1800..=0x1803, 1) => {
+                v & 0x3FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF))
+            }
+            (0x1800..=0x1803, 2) => v <= 240 || v >= 254,
+            (0x1A00..=0x1A03, s) if s > 0 => v == 0 || Self::check_map_entry(v).is_ok(),
+            _ => true,
+        }
+    }
+}
+
+impl Dictionary for Core {
+    fn read(&self, index: u16, sub: u8) -> Result<Value, SdoAbort> {
+        let (s, e) = od::find(index, sub).map_err(|l| match l {
+            Lookup::NoObject => SdoAbort::NoObject,
+            Lookup::NoSub => SdoAbort::NoSub,
+        })?;
+        Ok(match e.init {
+            Init::Text(t) => Value::Str(self.text(t).as_bytes()),
+            _ => Value::Num(self.values[s].to_le_bytes(), e.ty.size()),
+        })
+    }
+
+    fn check_write(&self, index: u16, sub: u8, len: Option<usize>) -> Result<(), SdoAbort> {
+        let (_, e) = od::find(index, sub).map_err(|l| match l {
+            Lookup::NoObject => SdoAbort::NoObject,
+            Lookup::NoSub => SdoAbort::NoSub,
+        })?;
+        if e.access != Access::Rw {
+            return Err(SdoAbort::ReadOnly);
+        }
+        if len.is_some_and(|l| l != e.ty.size()) {
+            return Err(SdoAbort::Length);
+        }
+        self.write_allowed(index, e)
+    }
+
+    fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<Written, SdoAbort> {
+        self.check_write(index, sub, Some(data.len()))?;
+        let (s, e) = od::find(index, sub).map_err(|_| SdoAbort::NoObject)?;
+        let v = decode(e.ty, data);
+        check_limits(e.limits, e.ty, v)?;
+        if let Some(w) = self.special_write(index, sub, v)? {
+            return Ok(w);
+        }
+        self.values[s] = v;
+        if matches!(e.class, Class::Calibration | Class::Config) {
+            self.config_changed();
+        }
+        Ok(Written::Done)
+    }
+}
+
+impl Device {
+    /// A device with node-id `node_id` (1..=127; other values are taken
+    /// as 1) and the given defaults, in state [`NmtState::Initialising`]. The
+    /// application may call [`Device::load_image`] before the first
+    /// [`Device::poll`], which sends the boot-up message.
+    pub fn new(node_id: u8, defaults: &Defaults) -> Self {
+        let node_id = if (1..=127).contains(&node_id) {
+            node_id
+        } else {
+            1
+        };
+        let mut core = Core {
+            defaults: *defaults,
+            base_node: node_id,
+            node_id,
+            values: [0; ENTRIES],
+            boot: [0; ENTRIES],
+            state: NmtState::Initialising,
+            unlocked: false,
+            hb_next: None,
+            hb_restart: true,
+            tpdo: [TpdoRt::default(); TPDOS],
+            active: [(0, 0); MAX_ACTIVE_ERRORS],
+            n_active: 0,
+            emcy_queue: [[0; 8]; EMCY_QUEUE],
+            emcy_len: 0,
+            request: None,
+            events: 0,
+            config_gen: 0,
+        };
+        for (s, _, e) in od::entries() {
+            core.values[s] = core.init_value(e, node_id);
+        }
+        core.boot = core.values;
+        Self {
+            sdo: SdoServer::new(defaults.sdo_timeout_us),
+            core,
+        }
+    }
+
+    // ------------------------------------------------------------------
+    // Bus side
+
+    /// Handles a received frame at time `now_us`; responses (SDO answers,
+    /// TPDOs on SYNC) go to `out`. Malformed frames, remote frames and
+    /// frames not addressed to this node are ignored; so is everything
+    /// until the boot-up message has been sent.
+    pub fn handle(&mut self, frame: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
+        if !frame.is_well_formed() || frame.rtr || self.core.state == NmtState::Initialising {
+            return;
+        }
+        let node = self.core.node_id as u16;
+        let p = frame.payload();
+        match frame.id {
+            0x000 => self.nmt(p),
+            0x080 => self.sync(now_us, out),
+            id if id == 0x600 + node => {
+                if matches!(
+                    self.core.state,
+                    NmtState::PreOperational | NmtState::Operational
+                ) {
+                    if let Some(r) = self.sdo.handle(&mut self.core, p, now_us) {
+                        out(Frame::new(0x580 + node, &r));
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn nmt(&mut self, p: &[u8]) {
+        let (Some(&cs), Some(&target)) = (p.first(), p.get(1)) else {
+            return;
+        };
+        if target != 0 && target != self.core.node_id {
+            return;
+        }
+        match cs {
+            0x01 => self.core.set_state(NmtState::Operational),
+            0x02 => {
+                self.sdo.reset();
+                self.core.set_state(NmtState::Stopped);
+            }
+            0x80 => self.core.set_state(NmtState::PreOperational),
+            0x81 => {
+                self.sdo.reset();
+                self.core.reset_node();
+            }
+            0x82 => {
+                self.sdo.reset();
+                self.core.reset_comm();
+            }
+            _ => {}
+        }
+    }
+
+    fn sync(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        if self.core.state != NmtState::Operational {
+            return;
+        }
+        for k in 0..TPDOS {
+            if !self.core.tpdo_valid(k) {
+                continue;
+            }
+            let tt = self.core.get(0x1800 + k as u16, 2);
+            let send = match tt {
+                0 => core::mem::take(&mut self.core.tpdo[k].event_pending),
+                1..=240 => {
+                    let rt = &mut self.core.tpdo[k];
+                    rt.sync_count = rt.sync_count.saturating_add(1);
+                    if rt.sync_count as u32 >= tt {
+                        rt.sync_count = 0;
+                        true
+                    } else {
+                        false
+                    }
+                }
+                _ => false,
+            };
+            if send {
+                if let Some(f) = self.core.tpdo_frame(k) {
+                    self.core.tpdo[k].last_tx = Some(now_us);
+                    out(f);
+                }
+            }
+        }
+    }
+
+    /// Produces what is due at `now_us`: the boot-up message after a
+    /// power-on or reset, heartbeats, queued emergencies, event-driven
+    /// TPDOs (event timer, application events after the inhibit time) and
+    /// SDO timeout aborts. Call it at least every millisecond.
+    pub fn poll(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        let c = &mut self.core;
+        let node = c.node_id as u16;
+        if c.state == NmtState::Initialising {
+            out(Frame::new(0x700 + node, &[0]));
+            c.set_state(NmtState::PreOperational);
+            c.hb_restart = true;
+        }
+        if let Some(r) = self.sdo.check_timeout(now_us) {
+            out(Frame::new(0x580 + node, &r));
+        }
+        // Heartbeat.
+        let hb = c.get(0x1017, 0) as u64 * 1000;
+        if c.hb_restart {
+            c.hb_restart = false;
+            c.hb_next = (hb > 0).then(|| now_us + hb);
+        }
+        if let Some(t) = c.hb_next {
+            if now_us >= t {
+                out(Frame::new(0x700 + node, &[c.state.heartbeat_code()]));
+                // Keep the cadence; if far behind, restart from now.
+                let next = t + hb;
+                c.hb_next = Some(if next > now_us { next } else { now_us + hb });
+            }
+        }
+        // Emergencies (not in stopped).
+        if c.state != NmtState::Stopped {
+            let id = (c.get(0x1014, 0) & 0x7FF) as u16;
+            for p in &c.emcy_queue[..c.emcy_len] {
+                out(Frame::new(id, p));
+            }
+            c.emcy_len = 0;
+        }
+        // Event-driven TPDOs.
+        if c.state == NmtState::Operational {
+            for k in 0..TPDOS {
+                let idx = 0x1800 + k as u16;
+                if !c.tpdo_valid(k) || !matches!(c.get(idx, 2), 254 | 255) {
+                    continue;
+                }
+                let timer = c.get(idx, 5) as u64 * 1000;
+                let inhibit = c.get(idx, 3) as u64 * 100;
+                let rt = c.tpdo[k];
+                if timer > 0 && rt.timer_due.is_none() {
+                    c.tpdo[k].timer_due = Some(now_us + timer);
+                }
+                let timer_fired = c.tpdo[k].timer_due.is_some_and(|t| now_us >= t);
+                let inhibit_ok = rt.last_tx.is_none_or(|l| now_us >= l + inhibit);
+                if timer_fired || (rt.event_pending && inhibit_ok) {
+                    if let Some(f) = c.tpdo_frame(k) {
+                        out(f);
+                    }
+                    let rt = &mut c.tpdo[k];
+                    rt.last_tx = Some(now_us);
+                    rt.event_pending = false;
+                    rt.timer_due = (timer > 0).then(|| now_us + timer);
+                }
+            }
+        }
+    }
+
+    // ------------------------------------------------------------------
+    // Application side: state and identity
+
+    /// Current NMT state.
+    pub fn nmt_state(&self) -> NmtState {
+        self.core.state
+    }
+
+    /// Active node-id.
+    pub fn node_id(&self) -> u8 {
+        self.core.node_id
+    }
+
+    /// The defaults the device was created with.
+    pub fn defaults(&self) -> &Defaults {
+        &self.core.defaults
+    }
+
+    /// Whether calibration writes are unlocked (0x2010).
+    pub fn calibration_unlocked(&self) -> bool {
+        self.core.unlocked
+    }
+
+    /// Returns and clears the events since the last call.
+    pub fn take_events(&mut self) -> Events {
+        Events(core::mem::take(&mut self.core.events))
+    }
+
+    /// Counter incremented whenever calibration or configuration values
+    /// change (compare with a saved value to know when to re-read them).
+    pub fn config_generation(&self) -> u32 {
+        self.core.config_gen
+    }
+
+    // ------------------------------------------------------------------
+    // Application side: measurement
+
+    /// Publishes one sample: writes 0x2001..0x2006, increments the sample
+    /// counter 0x2007 and triggers the event-driven TPDOs (types 0, 254,
+    /// 255) that map a measurement object.
+    pub fn set_measurement(&mut self, m: &Measurement) {
+        let c = &mut self.core;
+        for (i, v) in m.normal.iter().enumerate() {
+            c.set(0x2001, i as u8 + 1, v.to_bits());
+        }
+        c.set(0x2002, 1, m.theta1_deg.to_bits());
+        c.set(0x2002, 2, m.theta2_deg.to_bits());
+        c.set(0x2002, 3, m.theta_deg.to_bits());
+        c.set(0x2003, 1, m.pitch_deg.to_bits());
+        c.set(0x2003, 2, m.yaw_deg.to_bits());
+        for (i, v) in m.distances_mm.iter().enumerate() {
+            c.set(0x2004, i as u8 + 1, v.to_bits());
+        }
+        c.set(0x2005, 0, m.status);
+        c.set(0x2006, 0, m.rms_mm.to_bits());
+        let n = c.get(0x2007, 0).wrapping_add(1);
+        c.set(0x2007, 0, n);
+        for k in 0..TPDOS {
+            let tt = c.get(0x1800 + k as u16, 2);
+            if matches!(tt, 0 | 254 | 255) && c.maps_measurement(k) {
+                c.tpdo[k].event_pending = true;
+            }
+        }
+    }
+
+    /// Publishes one sample like [`Device::set_measurement`] and keeps the
+    /// emergencies in step with its status word: per sensor
+    /// [`status::emcy::sensor_current`] while its nibble has open loop or
+    /// overcurrent, else [`status::emcy::sensor_reading`] while it is not
+    /// valid; [`status::emcy::NO_PLANE`] while bit 19 is set;
+    /// [`status::emcy::DATA_SET`] while bit 21 is set. Each is raised on the
+    /// sample where its condition starts and cleared where it ends (EMCY
+    /// frames only on changes).
+    pub fn publish(&mut self, m: &Measurement) {
+        self.set_measurement(m);
+        let st = m.status;
+        let stuck = u8::from(st & status::SENSOR_STUCK != 0);
+        let mut valid = 0u8;
+        for i in 0..status::SENSORS {
+            let nib = status::sensor_nibble(st, i);
+            let current = nib & (status::SENSOR_OPEN_LOOP | status::SENSOR_OVERCURRENT) != 0;
+            let ok = nib & status::SENSOR_VALID != 0;
+            valid += u8::from(ok);
+            let data = [i as u8 + 1, nib as u8, 0, 0, 0];
+            self.set_emcy(
+                status::emcy::sensor_current(i),
+                current,
+                error_register::CURRENT,
+                data,
+            );
+            self.set_emcy(
+                status::emcy::sensor_reading(i),
+                !current && !ok,
+                error_register::MANUFACTURER,
+                [i as u8 + 1, nib as u8, stuck, 0, 0],
+            );
+        }
+        self.set_emcy(
+            status::emcy::NO_PLANE,
+            st & status::NO_PLANE != 0,
+            error_register::MANUFACTURER,
+            [valid, 0, 0, 0, 0],
+        );
+        self.set_emcy(
+            status::emcy::DATA_SET,
+            st & status::CONFIG_INVALID != 0,
+            error_register::GENERIC,
+            [0; 5],
+        );
+    }
+
+    fn set_emcy(&mut self, code: u16, on: bool, reg: u8, mfr: [u8; 5]) {
+        if on {
+            self.signal_emcy(code, reg, mfr);
+        } else {
+            self.clear_emcy(code);
+        }
+    }
+
+    /// The published measurement (0x2001..0x2006).
+    pub fn measurement(&self) -> Measurement {
+        let c = &self.core;
+        Measurement {
+            normal: [
+                c.get_f32(0x2001, 1),
+                c.get_f32(0x2001, 2),
+                c.get_f32(0x2001, 3),
+            ],
+            theta1_deg: c.get_f32(0x2002, 1),
+            theta2_deg: c.get_f32(0x2002, 2),
+            theta_deg: c.get_f32(0x2002, 3),
+            pitch_deg: c.get_f32(0x2003, 1),
+            yaw_deg: c.get_f32(0x2003, 2),
+            distances_mm: core::array::from_fn(|i| c.get_f32(0x2004, i as u8 + 1)),
+            status: c.get(0x2005, 0),
+            rms_mm: c.get_f32(0x2006, 0),
+        }
+    }
+
+    /// The status word 0x2005.
+    pub fn status(&self) -> u32 {
+        self.core.get(0x2005, 0)
+    }
+
+    /// The sample counter 0x2007.
+    pub fn sample_counter(&self) -> u32 {
+        self.core.get(0x2007, 0)
+    }
+
+    // ------------------------------------------------------------------
+    // Application side: calibration and configuration
+
+    /// Calibration of sensor `i` (0-based; `None` beyond 3): 0x2101 + i.
+    pub fn calibration(&self, i: usize) -> Option<SensorCalibration> {
+        if i >= 4 {
+            return None;
+        }
+        let idx = 0x2101 + i as u16;
+        let a: [f32; 15] = core::array::from_fn(|k| self.core.get_f32(idx, k as u8 + 1));
+        Some(SensorCalibration::from_array(&a))
+    }
+
+    /// Transfer function of sensor `i` (0-based): 0x2201 + i.
+    pub fn transfer(&self, i: usize) -> Option<TransferFunction> {
+        if i >= 4 {
+            return None;
+        }
+        let idx = 0x2201 + i as u16;
+        Some(TransferFunction {
+            kind: self.core.get(idx, 1) as u8,
+            scale: self.core.get_f32(idx, 2),
+            mm_at_low: self.core.get_f32(idx, 3),
+            mm_at_high: self.core.get_f32(idx, 4),
+        })
+    }
+
+    /// Acquisition settings 0x2300.
+    pub fn acquisition(&self) -> Acquisition {
+        Acquisition {
+            period_us: self.core.get(0x2300, 1),
+            oversampling: self.core.get(0x2300, 2) as u16,
+            method: self.core.get(0x2300, 3) as u8,
+            residual_limit_mm: self.core.get_f32(0x2300, 4),
+        }
+    }
+
+    /// Communication settings 0x2400 as configured (they become active at
+    /// the next reset; the active node-id is [`Device::node_id`]).
+    pub fn communication(&self) -> Communication {
+        Communication {
+            node_id: self.core.get(0x2400, 1) as u8,
+            bit_rate_kbps: self.core.get(0x2400, 2) as u16,
+        }
+    }
+
+    /// Whether the calibration objects still hold the defaults' head
+    /// (status bit [`crate::status::UNCALIBRATED`]).
+    pub fn calibration_is_default(&self) -> bool {
+        (0..4).all(|i| self.calibration(i) == self.core.defaults.calibration.get(i).copied())
+    }
+
+    /// Heartbeat period 0x1017 [ms].
+    pub fn heartbeat_ms(&self) -> u16 {
+        self.core.get(0x1017, 0) as u16
+    }
+
+    /// Raw value of a numeric entry (`u32`; REAL32 as its bits). `None` for
+    /// unknown entries and strings.
+    pub fn read_u32(&self, index: u16, sub: u8) -> Option<u32> {
+        let (s, e) = od::find(index, sub).ok()?;
+        (e.ty != DataType::VisibleString).then(|| self.core.values[s])
+    }
+
+    /// Value of a REAL32 entry. `None` for unknown or non-REAL32 entries.
+    pub fn read_f32(&self, index: u16, sub: u8) -> Option<f32> {
+        let (s, e) = od::find(index, sub).ok()?;
+        (e.ty == DataType::Real32).then(|| f32::from_bits(self.core.values[s]))
+    }
+
+    /// Value of a VISIBLE_STRING entry.
+    pub fn read_str(&self, index: u16, sub: u8) -> Option<&'static str> {
+        match od::find(index, sub).ok()?.1.init {
+            Init::Text(t) => Some(self.core.text(t)),
+            _ => None,
+        }
+    }
+
+    // ------------------------------------------------------------------
+    // Application side: emergencies
+
+    /// Raises emergency `code` with error-register bits `reg` and 5 bytes of
+    /// manufacturer data: sends an EMCY (at the next poll, not in stopped),
+    /// sets 0x1001 and records the code in 0x1003 (newest at sub 1; bits
+    /// 16-31 = `mfr[0..2]`). Returns `false` (and sends nothing) if `code`
+    /// is already active.
+    pub fn signal_emcy(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
+        let c = &mut self.core;
+        if c.active[..c.n_active].iter().any(|&(k, _)| k == code) {
+            return false;
+        }
+        if c.n_active < MAX_ACTIVE_ERRORS {
+            c.active[c.n_active] = (code, reg);
+            c.n_active += 1;
+        }
+        c.update_error_register();
+        // History: shift down, newest at sub 1.
+        for s in (2..=8u8).rev() {
+            let prev = c.get(0x1003, s - 1);
+            c.set(0x1003, s, prev);
+        }
+        let info = u16::from_le_bytes([mfr[0], mfr[1]]) as u32;
+        c.set(0x1003, 1, (info << 16) | code as u32);
+        let n = (c.get(0x1003, 0) + 1).min(8);
+        c.set(0x1003, 0, n);
+        let reg_now = c.get(0x1001, 0) as u8;
+        let cb = code.to_le_bytes();
+        c.queue_emcy([
+            cb[0], cb[1], reg_now, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4],
+        ]);
+        true
+    }
+
+    /// Clears emergency `code`. When the last active error is cleared, an
+    /// "error reset" EMCY (code 0x0000) is sent. Returns whether `code`
+    /// was active.
+    pub fn clear_emcy(&mut self, code: u16) -> bool {
+        let c = &mut self.core;
+        let Some(pos) = c.active[..c.n_active].iter().position(|&(k, _)| k == code) else {
+            return false;
+        };
+        c.active.copy_within(pos + 1..c.n_active, pos);
+        c.n_active -= 1;
+        c.update_error_register();
+        if c.n_active == 0 {
+            c.queue_emcy([0; 8]);
+        }
+        true
+    }
+
+    /// Whether emergency `code` is active.
+    pub fn emcy_active(&self, code: u16) -> bool {
+        self.core.active[..self.core.n_active]
+            .iter()
+            .any(|&(k, _)| k == code)
+    }
+
+    /// Error register 0x1001.
+    pub fn error_register(&self) -> u8 {
+        self.core.get(0x1001, 0) as u8
+    }
+
+    // ------------------------------------------------------------------
+    // Application side: persistence
+
+    /// The store/restore request waiting for the application, if any.
+    pub fn pending_request(&self) -> Option<Request> {
+        self.core.request
+    }
+
+    /// Completes the pending request: `ok` tells whether the storage
+    /// operation succeeded. The SDO confirmation (or abort 0x08000020) goes
+    /// to `out`. On success a store makes the current persisted values the
+    /// power-on values; a restore makes the defaults the power-on values
+    /// (applied at the next reset node).
+    ///
+    /// # Errors
+    /// [`Error::NoRequest`] when nothing is pending.
+    pub fn finish_request(&mut self, ok: bool, out: &mut impl FnMut(Frame)) -> Result<(), Error> {
+        let req = self.core.request.take().ok_or(Error::NoRequest)?;
+        if ok {
+            let base = self.core.base_node;
+            for (s, _, e) in od::entries() {
+                if e.persist {
+                    self.core.boot[s] = match req {
+                        Request::Store => self.core.values[s],
+                        Request::Restore => self.core.init_value(e, base),
+                    };
+                }
+            }
+        }
+        let err = (!ok).then_some(SdoAbort::Store);
+        if let Some(r) = self.sdo.complete(err) {
+            out(Frame::new(0x580 + self.core.node_id as u16, &r));
+        }
+        Ok(())
+    }
+
+    /// Loads the calibration and configuration objects (0x2101..0x2104,
+    /// 0x2201..0x2204, 0x2300, 0x2400) from a stored parameter record, as
+    /// current and power-on values (normally before the first poll). Every
+    /// value is checked against its object's limits first; a node-id in
+    /// `p.can` different from the active one becomes active now.
+    ///
+    /// # Errors
+    /// [`Error::Value`] naming the first refused object; the device is
+    /// unchanged.
+    pub fn load_params(&mut self, p: &Params) -> Result<(), Error> {
+        let src = Core {
+            defaults: Defaults::from_params(p),
+            ..self.core.clone()
+        };
+        let mut next = self.core.values;
+        for (s, index, e) in od::entries() {
+            let v = match e.init {
+                Init::Calibration(..)
+                | Init::Transfer(..)
+                | Init::Acquisition(_)
+                | Init::BitRate => src.init_value(e, p.can.node_id),
+                Init::Node(0) => p.can.node_id as u32,
+                _ => continue,
+            };
+            if !self.core.valid_persisted(index, e.sub, e, v) {
+                return Err(Error::Value { index, sub: e.sub });
+            }
+            next[s] = v;
+        }
+        self.core.values = next;
+        for (s, _, e) in od::entries() {
+            if e.persist && index_is_app(e) {
+                self.core.boot[s] = next[s];
+            }
+        }
+        self.core.apply_node_id();
+        self.core.config_changed();
+        Ok(())
+    }
+
+    /// The stored-parameter record the objects describe, on top of `base`
+    /// (fields without an object, such as the ADC reference, detector
+    /// thresholds, stamp and signal spans of the same kind, are kept).
+    /// Beam directions are normalised (a zero direction stays zero, which
+    /// `Params::validate` refuses).
+    pub fn params(&self, base: &Params) -> Params {
+        let mut p = *base;
+        for (i, s) in p.head.sensors.iter_mut().enumerate() {
+            if let Some(c) = self.calibration(i) {
+                *s = c.to_sensor::<f32>().unwrap_or(Sensor {
+                    zero: nalgebra::Vector3::from(c.zero),
+                    dir: nalgebra::Vector3::from(c.dir),
+                    ext: c.extension(),
+                });
+            }
+        }
+        for (i, t) in p.transfer.iter_mut().enumerate() {
+            if let Some(tf) = self.transfer(i) {
+                *t = tf.to_transfer(t);
+            }
+        }
+        p.acq = self.acquisition().to_params(&base.acq);
+        let c = self.communication();
+        p.can.node_id = c.node_id;
+        if let Some(b) = bitrate_of(c.bit_rate_kbps) {
+            p.can.bitrate = b;
+        }
+        p
+    }
+
+    /// Writes the current persisted values (what 0x1010 stores) as an image
+    /// of [`IMAGE_LEN`] bytes.
+    pub fn persistent_image(&self, buf: &mut [u8; IMAGE_LEN]) {
+        buf[0..4].copy_from_slice(&layout_signature().to_le_bytes());
+        buf[4..8].copy_from_slice(&(PERSISTENT as u32).to_le_bytes());
+        let mut p = 8;
+        for (s, _, e) in od::entries() {
+            if e.persist {
+                buf[p..p + 4].copy_from_slice(&self.core.values[s].to_le_bytes());
+                p += 4;
+            }
+        }
+    }
+
+    /// Loads a stored image (normally before the first poll): every value
+    /// is checked against its object's rules first; on success the values
+    /// become both current and power-on values and a node-id stored in
+    /// 0x2400 becomes active.
+    ///
+    /// # Errors
+    /// [`Error::ImageLength`], [`Error::ImageLayout`], [`Error::Value`];
+    /// the device is unchanged.
+    pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
+        if img.len() != IMAGE_LEN {
+            return Err(Error::ImageLength {
+                expected: IMAGE_LEN,
+                got: img.len(),
+            });
+        }
+        let word = |p: usize| u32::from_le_bytes([img[p], img[p + 1], img[p + 2], img[p + 3]]);
+        if word(0) != layout_signature() || word(4) != PERSISTENT as u32 {
+            return Err(Error::ImageLayout);
+        }
+        // Validate everything first (mappings against the image's own
+        // counts).
+        let mut p = 8;
+        for (_, index, e) in od::entries() {
+            if e.persist {
+                let v = word(p);
+                if !self.core.valid_persisted(index, e.sub, e, v) {
+                    return Err(Error::Value { index, sub: e.sub });
+                }
+                p += 4;
+            }
+        }
+        let mut next = self.core.values;
+        let mut p = 8;
+        for (s, _, e) in od::entries() {
+            if e.persist {
+                next[s] = word(p);
+                p += 4;
+            }
+        }
+        for k in 0..TPDOS {
+            let base = od::find(0x1A00 + k as u16, 0).map(|(s, _)| s).unwrap_or(0);
+            let n = next[base] as usize;
+            let map: [u32; MAX_MAPPED] = core::array::from_fn(|i| next[base + 1 + i]);
+            if Core::check_mapping(&map, n).is_err() {
+                return Err(Error::Value {
+                    index: 0x1A00 + k as u16,
+                    sub: 0,
+                });
+            }
+        }
+        for (s, _, e) in od::entries() {
+            if e.persist {
+                self.core.values[s] = next[s];
+                self.core.boot[s] = next[s];
+            }
+        }
+        self.core.apply_node_id();
+        self.core.hb_restart = true;
+        self.core.config_changed();
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+#[path = "device_tests.rs"]
+mod tests;

@@ -1,0 +1,934 @@
+//! Behaviour tests of [`Device`]: one test per CiA 301 service and rule,
+//! and property tests over arbitrary frame sequences.
+#![allow(clippy::unwrap_used, clippy::panic)]
+
+use super::*;
+use crate::status;
+use proptest::prelude::*;
+
+const NODE: u8 = 0x10;
+
+struct Bus {
+    dev: Device,
+    now: u64,
+    out: Vec<Frame>,
+}
+
+impl Bus {
+    fn new() -> Self {
+        let mut b = Bus {
+            dev: Device::new(NODE, &Defaults::nominal()),
+            now: 0,
+            out: Vec::new(),
+        };
+        b.poll();
+        b
+    }
+    fn poll(&mut self) {
+        let out = &mut self.out;
+        self.dev.poll(self.now, &mut |f| out.push(f));
+    }
+    fn advance(&mut self, us: u64) {
+        self.now += us;
+        self.poll();
+    }
+    fn send(&mut self, f: Frame) -> Vec<Frame> {
+        let mut v = Vec::new();
+        self.dev.handle(&f, self.now, &mut |f| v.push(f));
+        self.out.extend_from_slice(&v);
+        v
+    }
+    fn take(&mut self) -> Vec<Frame> {
+        core::mem::take(&mut self.out)
+    }
+    fn nmt(&mut self, cs: u8, node: u8) {
+        self.send(Frame::new(0, &[cs, node]));
+    }
+    fn sync(&mut self) -> Vec<Frame> {
+        self.send(Frame::new(0x80, &[]))
+    }
+    fn sdo(&mut self, req: [u8; 8]) -> Option<[u8; 8]> {
+        let id = 0x600 + self.dev.node_id() as u16;
+        let r = self.send(Frame::new(id, &req));
+        assert!(r.len() <= 1);
+        r.first().map(|f| {
+            assert_eq!(f.id, 0x580 + self.dev.node_id() as u16);
+            assert_eq!(f.len, 8);
+            f.data
+        })
+    }
+    /// Upload (expedited or segmented) -> bytes or abort code.
+    fn upload(&mut self, index: u16, sub: u8) -> Result<Vec<u8>, u32> {
+        let i = index.to_le_bytes();
+        let r = self.sdo([0x40, i[0], i[1], sub, 0, 0, 0, 0]).unwrap();
+        if r[0] == 0x80 {
+            return Err(u32::from_le_bytes([r[4], r[5], r[6], r[7]]));
+        }
+        assert_eq!(&r[1..4], &[i[0], i[1], sub]);
+        if r[0] & 0x02 != 0 {
+            let n = 4 - ((r[0] >> 2) & 3) as usize;
+            return Ok(r[4..4 + n].to_vec());
+        }
+        let size = u32::from_le_bytes([r[4], r[5], r[6], r[7]]) as usize;
+        let mut v = Vec::new();
+        let mut t = 0u8;
+        loop {
+            let r = self.sdo([0x60 | t, 0, 0, 0, 0, 0, 0, 0]).unwrap();
+            if r[0] == 0x80 {
+                return Err(u32::from_le_bytes([r[4], r[5], r[6], r[7]]));
+            }
+            let n = 7 - ((r[0] >> 1) & 7) as usize;
+            v.extend_from_slice(&r[1..1 + n]);
+            t ^= 0x10;
+            if r[0] & 1 != 0 {
+                break;
+            }
+        }
+        assert_eq!(v.len(), size);
+        Ok(v)
+    }
+    fn read32(&mut self, index: u16, sub: u8) -> u32 {
+        let v = self.upload(index, sub).unwrap();
+        let mut b = [0u8; 4];
+        b[..v.len()].copy_from_slice(&v);
+        u32::from_le_bytes(b)
+    }
+    /// Expedited download -> abort code or Ok.
+    fn download(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), u32> {
+        let i = index.to_le_bytes();
+        let n = data.len().min(4);
+        let mut req = [0x23 | (((4 - n) as u8) << 2), i[0], i[1], sub, 0, 0, 0, 0];
+        req[4..4 + n].copy_from_slice(&data[..n]);
+        match self.sdo(req) {
+            Some(r) if r[0] == 0x60 => Ok(()),
+            Some(r) if r[0] == 0x80 => Err(u32::from_le_bytes([r[4], r[5], r[6], r[7]])),
+            Some(r) => panic!("bad response {r:02x?}"),
+            None => Err(0),
+        }
+    }
+    fn write_u32(&mut self, index: u16, sub: u8, v: u32) -> Result<(), u32> {
+        self.download(index, sub, &v.to_le_bytes())
+    }
+    fn write_f32(&mut self, index: u16, sub: u8, v: f32) -> Result<(), u32> {
+        self.download(index, sub, &v.to_le_bytes())
+    }
+    /// Completes a pending store/restore with `ok`; returns the response.
+    fn finish(&mut self, ok: bool) -> Vec<Frame> {
+        let mut v = Vec::new();
+        self.dev.finish_request(ok, &mut |f| v.push(f)).unwrap();
+        v
+    }
+}
+
+fn sample() -> Measurement {
+    Measurement {
+        normal: [0.1, -0.2, -0.97],
+        theta1_deg: 1.5,
+        theta2_deg: -2.25,
+        theta_deg: 2.7,
+        pitch_deg: 0.5,
+        yaw_deg: -0.75,
+        distances_mm: [40.0, 41.0, 42.0, 43.0],
+        status: 0x1111,
+        rms_mm: 0.003,
+    }
+}
+
+#[test]
+fn boot_up_then_heartbeat_with_state_codes() {
+    let mut b = Bus::new();
+    assert_eq!(b.take(), vec![Frame::new(0x710, &[0])]);
+    assert_eq!(b.dev.nmt_state(), NmtState::PreOperational);
+    b.advance(999_000);
+    assert!(b.take().is_empty());
+    b.advance(1_000);
+    assert_eq!(b.take(), vec![Frame::new(0x710, &[0x7F])]);
+    b.nmt(0x01, NODE);
+    b.advance(1_000_000);
+    assert_eq!(b.take(), vec![Frame::new(0x710, &[0x05])]);
+    b.nmt(0x02, 0);
+    b.advance(1_000_000);
+    assert_eq!(b.take(), vec![Frame::new(0x710, &[0x04])]);
+    // heartbeat off: nothing after pre-op
+    b.nmt(0x80, 0);
+    b.download(0x1017, 0, &[0, 0]).unwrap();
+    b.take();
+    b.advance(5_000_000);
+    assert!(b.take().is_empty());
+    b.download(0x1017, 0, &[100, 0]).unwrap();
+    b.advance(1); // the new period starts at this poll
+    b.take();
+    b.advance(99_999);
+    assert!(b.take().is_empty());
+    b.advance(1);
+    assert_eq!(b.take(), vec![Frame::new(0x710, &[0x7F])]);
+}
+
+#[test]
+fn nmt_commands_and_addressing() {
+    let mut b = Bus::new();
+    b.nmt(0x01, NODE + 1);
+    assert_eq!(b.dev.nmt_state(), NmtState::PreOperational);
+    b.nmt(0x01, 0);
+    assert_eq!(b.dev.nmt_state(), NmtState::Operational);
+    b.nmt(0x80, NODE);
+    assert_eq!(b.dev.nmt_state(), NmtState::PreOperational);
+    b.nmt(0x02, NODE);
+    assert_eq!(b.dev.nmt_state(), NmtState::Stopped);
+    // SDO silent in stopped
+    assert_eq!(b.sdo([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]), None);
+    // unknown command and short frame ignored
+    b.nmt(0x55, NODE);
+    b.send(Frame::new(0, &[0x01]));
+    assert_eq!(b.dev.nmt_state(), NmtState::Stopped);
+    b.nmt(0x01, NODE);
+    assert_eq!(b.dev.nmt_state(), NmtState::Operational);
+    assert!(b.dev.take_events().contains(Events::STATE_CHANGED));
+}
+
+#[test]
+fn frames_before_boot_up_are_ignored() {
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    let mut out = Vec::new();
+    d.handle(&Frame::new(0, &[1, 0]), 0, &mut |f| out.push(f));
+    d.handle(
+        &Frame::new(0x610, &[0x40, 0, 0x10, 0, 0, 0, 0, 0]),
+        0,
+        &mut |f| out.push(f),
+    );
+    assert!(out.is_empty());
+    assert_eq!(d.nmt_state(), NmtState::Initialising);
+}
+
+#[test]
+fn identity_device_type_and_strings() {
+    let mut b = Bus::new();
+    let d = Defaults::nominal();
+    assert_eq!(b.read32(0x1000, 0), d.device_type);
+    assert_eq!(b.read32(0x1018, 0), 4);
+    assert_eq!(b.read32(0x1018, 2), d.identity.product_code);
+    assert_eq!(b.read32(0x1018, 3), d.identity.revision);
+    assert_eq!(b.upload(0x1008, 0).unwrap(), d.device_name.as_bytes());
+    assert_eq!(b.upload(0x100A, 0).unwrap(), d.software_version.as_bytes());
+    assert_eq!(b.read32(0x1014, 0), 0x80 + NODE as u32);
+    assert_eq!(b.read32(0x1200, 1), 0x600 + NODE as u32);
+    assert_eq!(b.read32(0x1010, 1), 1);
+    assert_eq!(b.dev.read_str(0x1009, 0), Some(d.hardware_version));
+}
+
+#[test]
+fn sdo_abort_codes() {
+    let mut b = Bus::new();
+    assert_eq!(b.upload(0x3000, 0), Err(0x0602_0000));
+    assert_eq!(b.upload(0x1018, 9), Err(0x0609_0011));
+    assert_eq!(b.write_u32(0x1000, 0, 5), Err(0x0601_0002));
+    assert_eq!(b.write_u32(0x2001, 1, 5), Err(0x0601_0002));
+    assert_eq!(b.write_u32(0x1017, 0, 5), Err(0x0607_0010)); // U16 written as 4 bytes
+    assert_eq!(b.write_u32(0x1800, 2, 0), Err(0x0607_0010));
+    assert_eq!(b.download(0x1800, 2, &[245]), Err(0x0609_0030));
+    assert_eq!(b.write_u32(0x2300, 1, 200_000), Err(0x0609_0031));
+    assert_eq!(b.write_u32(0x2300, 1, 50), Err(0x0609_0032));
+    assert_eq!(b.download(0x2300, 2, &[3, 0]), Err(0x0609_0030));
+    assert_eq!(b.download(0x2400, 2, &[0x2C, 0x01]), Err(0x0609_0030)); // 300 kbit/s
+    assert_eq!(b.write_u32(0x1010, 1, 0x1234), Err(0x0800_0020));
+    assert_eq!(b.write_f32(0x2101, 1, 1.0), Err(0x0800_0021)); // locked
+    assert_eq!(b.write_u32(0x2010, 0, 0x1234), Err(0x0609_0030));
+    b.nmt(0x01, 0);
+    assert_eq!(b.write_u32(0x2300, 1, 500), Err(0x0800_0022));
+    assert_eq!(
+        b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE),
+        Err(0x0800_0022)
+    );
+    // block upload request
+    let r = b.sdo([0xA0, 0x08, 0x10, 0, 0, 0, 0, 0]).unwrap();
+    assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 0x0504_0001);
+    // nothing changed
+    assert_eq!(b.dev.acquisition(), Defaults::nominal().acquisition);
+}
+
+#[test]
+fn calibration_write_needs_preop_and_unlock() {
+    let mut b = Bus::new();
+    assert_eq!(b.write_f32(0x2102, 8, 0.01), Err(0x0800_0021));
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    assert_eq!(b.read32(0x2010, 0), 1);
+    assert!(b.dev.calibration_unlocked());
+    b.write_f32(0x2102, 8, 0.01).unwrap();
+    assert_eq!(b.dev.calibration(1).unwrap().gain, 0.01);
+    assert_eq!(b.write_f32(0x2102, 8, f32::NAN), Err(0x0609_0030));
+    assert_eq!(b.write_f32(0x2102, 8, 0.9), Err(0x0609_0031));
+    assert_eq!(b.write_f32(0x2102, 4, -1.5), Err(0x0609_0032));
+    b.download(0x2202, 1, &[1]).unwrap();
+    assert_eq!(b.download(0x2202, 1, &[2]), Err(0x0609_0030));
+    assert_eq!(b.dev.transfer(1).unwrap().kind, 1);
+    // any state change locks again
+    b.nmt(0x01, 0);
+    b.nmt(0x80, 0);
+    assert!(!b.dev.calibration_unlocked());
+    assert_eq!(b.read32(0x2010, 0), 0);
+    assert_eq!(b.write_f32(0x2102, 8, 0.02), Err(0x0800_0021));
+    // explicit lock
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_u32(0x2010, 0, 0).unwrap();
+    assert_eq!(b.write_f32(0x2102, 8, 0.02), Err(0x0800_0021));
+    assert!(!b.dev.calibration_is_default());
+}
+
+#[test]
+fn config_write_bumps_generation_and_event() {
+    let mut b = Bus::new();
+    b.dev.take_events();
+    let g = b.dev.config_generation();
+    b.write_u32(0x2300, 1, 2000).unwrap();
+    assert_eq!(b.dev.acquisition().period_us, 2000);
+    assert_ne!(b.dev.config_generation(), g);
+    assert!(b.dev.take_events().contains(Events::CONFIG_CHANGED));
+    b.download(0x2300, 2, &[64, 0]).unwrap();
+    b.download(0x2300, 3, &[0]).unwrap();
+    assert_eq!(
+        b.dev.acquisition().plane_method(),
+        perpend_core::normal::Method::Chen
+    );
+}
+
+#[test]
+fn store_reset_and_restore() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2103, 1, 12.5).unwrap();
+    b.write_u32(0x2300, 1, 5000).unwrap();
+    // store: deferred until the application finishes
+    assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
+    assert_eq!(b.dev.pending_request(), Some(Request::Store));
+    assert!(b.dev.take_events().contains(Events::REQUEST));
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let r = b.finish(true);
+    assert_eq!(
+        r,
+        vec![Frame::new(0x590, &[0x60, 0x10, 0x10, 1, 0, 0, 0, 0])]
+    );
+    // unsaved change, then reset node: the stored values come back
+    b.write_f32(0x2103, 1, 99.0).unwrap();
+    b.take();
+    b.nmt(0x81, NODE);
+    assert_eq!(b.dev.nmt_state(), NmtState::Initialising);
+    b.poll();
+    assert_eq!(b.take(), vec![Frame::new(0x710, &[0])]);
+    assert_eq!(b.dev.calibration(2).unwrap().zero[0], 12.5);
+    assert_eq!(b.dev.acquisition().period_us, 5000);
+    assert!(b.dev.take_events().contains(Events::RESET_NODE));
+    // a fresh device with the image has the same values
+    let mut d2 = Device::new(NODE, &Defaults::nominal());
+    d2.load_image(&img).unwrap();
+    assert_eq!(d2.calibration(2), b.dev.calibration(2));
+    // restore defaults: effective at the next reset
+    assert_eq!(b.write_u32(0x1011, 1, od::LOAD_SIGNATURE), Err(0));
+    assert_eq!(b.dev.pending_request(), Some(Request::Restore));
+    b.finish(true);
+    assert_eq!(b.dev.calibration(2).unwrap().zero[0], 12.5);
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(
+        b.dev.calibration(2),
+        Some(Defaults::nominal().calibration[2])
+    );
+    assert_eq!(b.dev.acquisition(), Defaults::nominal().acquisition);
+    assert!(b.dev.calibration_is_default());
+}
+
+#[test]
+fn failed_store_aborts_and_keeps_boot_values() {
+    let mut b = Bus::new();
+    b.write_u32(0x2300, 1, 7000).unwrap();
+    assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
+    // second request while pending is refused
+    let r = b.sdo([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]).unwrap();
+    assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 0x0800_0020);
+    let r = b.finish(false);
+    assert_eq!(r.len(), 1);
+    assert_eq!(&r[0].data[..4], &[0x80, 0x10, 0x10, 1]);
+    assert_eq!(
+        u32::from_le_bytes([r[0].data[4], r[0].data[5], r[0].data[6], r[0].data[7]]),
+        0x0800_0020
+    );
+    assert_eq!(
+        b.dev.finish_request(true, &mut |_| {}),
+        Err(Error::NoRequest)
+    );
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(b.dev.acquisition().period_us, 1000);
+}
+
+#[test]
+fn image_validation() {
+    let d = Device::new(NODE, &Defaults::nominal());
+    let mut img = [0u8; IMAGE_LEN];
+    d.persistent_image(&mut img);
+    let mut d2 = Device::new(NODE, &Defaults::nominal());
+    assert_eq!(
+        d2.load_image(&img[..10]),
+        Err(Error::ImageLength {
+            expected: IMAGE_LEN,
+            got: 10
+        })
+    );
+    let mut bad = img;
+    bad[0] ^= 1;
+    assert_eq!(d2.load_image(&bad), Err(Error::ImageLayout));
+    // find the slot of 0x2101 sub 1 in the image and put NaN there
+    let pos = od::entries()
+        .filter(|(_, _, e)| e.persist)
+        .position(|(_, i, e)| i == 0x2101 && e.sub == 1)
+        .unwrap();
+    let mut bad = img;
+    bad[8 + 4 * pos..12 + 4 * pos].copy_from_slice(&f32::NAN.to_bits().to_le_bytes());
+    assert_eq!(
+        d2.load_image(&bad),
+        Err(Error::Value {
+            index: 0x2101,
+            sub: 1
+        })
+    );
+    // a mapping count pointing at empty entries
+    let pos = od::entries()
+        .filter(|(_, _, e)| e.persist)
+        .position(|(_, i, e)| i == 0x1A00 && e.sub == 0)
+        .unwrap();
+    let mut bad = img;
+    bad[8 + 4 * pos] = 5;
+    assert_eq!(
+        d2.load_image(&bad),
+        Err(Error::Value {
+            index: 0x1A00,
+            sub: 0
+        })
+    );
+    assert_eq!(d2.calibration(0), d.calibration(0));
+    assert_eq!(d2.load_image(&img), Ok(()));
+}
+
+#[test]
+fn default_tpdos_on_every_sync() {
+    let mut b = Bus::new();
+    b.dev.set_measurement(&sample());
+    assert!(b.sync().is_empty(), "no PDOs in pre-operational");
+    b.nmt(0x01, 0);
+    let f = b.sync();
+    let m = sample();
+    let cat = |a: f32, c: f32| {
+        let mut v = a.to_le_bytes().to_vec();
+        v.extend_from_slice(&c.to_le_bytes());
+        v
+    };
+    assert_eq!(f.len(), 4);
+    assert_eq!(f[0].id, 0x190);
+    assert_eq!(f[0].payload(), cat(m.theta1_deg, m.theta2_deg));
+    assert_eq!(f[1].id, 0x290);
+    let mut st = m.status.to_le_bytes().to_vec();
+    st.extend_from_slice(&1u32.to_le_bytes());
+    assert_eq!(f[1].payload(), st);
+    assert_eq!(f[2].id, 0x390);
+    assert_eq!(f[2].payload(), cat(m.normal[0], m.normal[1]));
+    assert_eq!(f[3].id, 0x490);
+    assert_eq!(f[3].payload(), cat(m.normal[2], m.rms_mm));
+    assert_eq!(b.dev.sample_counter(), 1);
+    assert_eq!(b.dev.measurement(), m);
+    // SYNC with counter byte works too
+    assert_eq!(b.send(Frame::new(0x80, &[7])).len(), 4);
+    b.nmt(0x02, 0);
+    assert!(b.sync().is_empty());
+}
+
+#[test]
+fn tpdo_remap_and_cyclic_type() {
+    let mut b = Bus::new();
+    // mapping can't change while valid
+    assert_eq!(b.download(0x1A00, 0, &[0]), Err(0x0800_0022));
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    // entries need sub0 = 0 first
+    assert_eq!(
+        b.write_u32(0x1A00, 1, od::mapping(0x2005, 0, 32)),
+        Err(0x0800_0022)
+    );
+    b.download(0x1A00, 0, &[0]).unwrap();
+    assert_eq!(
+        b.write_u32(0x1A00, 1, od::mapping(0x2101, 1, 32)),
+        Err(0x0604_0041)
+    );
+    assert_eq!(
+        b.write_u32(0x1A00, 1, od::mapping(0x2005, 0, 16)),
+        Err(0x0604_0043)
+    );
+    assert_eq!(
+        b.write_u32(0x1A00, 1, od::mapping(0x2099, 0, 32)),
+        Err(0x0602_0000)
+    );
+    b.write_u32(0x1A00, 1, od::mapping(0x2004, 1, 32)).unwrap();
+    b.write_u32(0x1A00, 2, od::mapping(0x2004, 2, 32)).unwrap();
+    b.write_u32(0x1A00, 3, od::mapping(0x1001, 0, 8)).unwrap();
+    assert_eq!(b.download(0x1A00, 0, &[3]), Err(0x0604_0042));
+    assert_eq!(b.download(0x1A00, 0, &[9]), Err(0x0609_0031));
+    b.download(0x1A00, 0, &[2]).unwrap();
+    b.download(0x1800, 2, &[2]).unwrap(); // every 2nd SYNC
+                                          // changing the id while valid is refused; setting it valid works
+    b.write_u32(0x1800, 1, 0x0000_01A0).unwrap();
+    assert_eq!(b.write_u32(0x1800, 1, 0x0000_01A1), Err(0x0609_0030));
+    assert_eq!(
+        b.write_u32(0x1801, 1, 0x8000_0000 | 0x2000_0000),
+        Err(0x0609_0030)
+    );
+    b.write_u32(0x1801, 1, 0x8000_0290).unwrap();
+    assert_eq!(b.write_u32(0x1801, 1, 0x0000_0601), Err(0x0609_0030));
+    b.nmt(0x01, 0);
+    b.dev.set_measurement(&sample());
+    let ids = |v: Vec<Frame>| v.iter().map(|f| f.id).collect::<Vec<_>>();
+    assert_eq!(ids(b.sync()), vec![0x390, 0x490]);
+    let f = b.sync();
+    assert_eq!(ids(f.clone()), vec![0x1A0, 0x390, 0x490]);
+    assert_eq!(f[0].payload()[..4], 40.0f32.to_le_bytes());
+    assert_eq!(f[0].len, 8);
+}
+
+#[test]
+fn event_driven_tpdo_with_inhibit_and_timer() {
+    let mut b = Bus::new();
+    b.download(0x1801, 2, &[255]).unwrap();
+    b.download(0x1801, 3, &[0x10, 0x27]).unwrap(); // 10000 × 100 µs = 1 s
+    b.download(0x1801, 5, &[0xD0, 0x07]).unwrap(); // 2000 ms
+    b.download(0x1017, 0, &[0, 0]).unwrap();
+    b.nmt(0x01, 0);
+    b.take();
+    b.poll();
+    assert!(b.take().is_empty());
+    // application event: sent at the next poll
+    b.dev.set_measurement(&sample());
+    b.advance(10);
+    let f = b.take();
+    assert_eq!(f.len(), 1);
+    assert_eq!(f[0].id, 0x290);
+    // second event inside the inhibit time: delayed until it elapses
+    b.dev.set_measurement(&sample());
+    b.advance(500_000);
+    assert!(b.take().is_empty());
+    b.advance(500_010);
+    let f = b.take();
+    assert_eq!(f.len(), 1);
+    assert_eq!(&f[0].payload()[4..], &2u32.to_le_bytes());
+    // no event: the event timer fires 2 s after the last transmission
+    b.advance(1_999_000);
+    assert!(b.take().is_empty());
+    b.advance(1_000);
+    assert_eq!(b.take().len(), 1);
+    // SYNC does not send type 255
+    assert!(b.sync().iter().all(|f| f.id != 0x290));
+}
+
+#[test]
+fn acyclic_sync_type_zero() {
+    let mut b = Bus::new();
+    b.download(0x1800, 2, &[0]).unwrap();
+    b.nmt(0x01, 0);
+    assert!(b.sync().iter().all(|f| f.id != 0x190));
+    b.dev.set_measurement(&sample());
+    assert!(b.sync().iter().any(|f| f.id == 0x190));
+    assert!(b.sync().iter().all(|f| f.id != 0x190));
+}
+
+#[test]
+fn emergency_producer_and_error_history() {
+    let mut b = Bus::new();
+    b.take();
+    assert!(b.dev.signal_emcy(
+        status::emcy::sensor_current(1),
+        status::error_register::CURRENT,
+        [2, 0x04, 0, 0, 0]
+    ));
+    assert!(!b
+        .dev
+        .signal_emcy(status::emcy::sensor_current(1), 0, [0; 5]));
+    b.poll();
+    assert_eq!(
+        b.take(),
+        vec![Frame::new(0x90, &[0x12, 0x21, 0x03, 2, 4, 0, 0, 0])]
+    );
+    assert_eq!(b.dev.error_register(), 0x03);
+    assert_eq!(b.read32(0x1001, 0), 3);
+    assert_eq!(b.read32(0x1003, 0), 1);
+    assert_eq!(b.read32(0x1003, 1), 0x0402_2112);
+    b.dev.signal_emcy(
+        status::emcy::NO_PLANE,
+        status::error_register::MANUFACTURER,
+        [2, 0, 0, 0, 0],
+    );
+    assert_eq!(b.read32(0x1003, 0), 2);
+    assert_eq!(b.read32(0x1003, 1) & 0xFFFF, 0xFF02);
+    assert_eq!(b.read32(0x1003, 2) & 0xFFFF, 0x2112);
+    // clear one: no reset message yet; clear the last: error reset
+    assert!(b.dev.clear_emcy(status::emcy::sensor_current(1)));
+    assert!(!b.dev.clear_emcy(status::emcy::sensor_current(1)));
+    assert_eq!(b.dev.error_register(), 0x81);
+    b.take();
+    b.poll();
+    assert_eq!(b.take().len(), 1); // the NO_PLANE EMCY only
+    b.dev.clear_emcy(status::emcy::NO_PLANE);
+    b.poll();
+    assert_eq!(b.take(), vec![Frame::new(0x90, &[0; 8])]);
+    assert_eq!(b.dev.error_register(), 0);
+    // history clear: only 0 accepted
+    assert_eq!(b.download(0x1003, 0, &[1]), Err(0x0609_0030));
+    b.download(0x1003, 0, &[0]).unwrap();
+    assert_eq!(b.read32(0x1003, 0), 0);
+    assert_eq!(b.read32(0x1003, 1), 0);
+    // not sent while stopped, sent after
+    b.nmt(0x02, 0);
+    b.take();
+    b.dev.signal_emcy(status::emcy::DATA_SET, 1, [0; 5]);
+    b.poll();
+    assert!(b.take().is_empty());
+    b.nmt(0x80, 0);
+    b.poll();
+    assert_eq!(b.take().len(), 1);
+    assert!(b.dev.emcy_active(status::emcy::DATA_SET));
+    // reset node clears errors
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(b.dev.error_register(), 0);
+    assert!(!b.dev.emcy_active(status::emcy::DATA_SET));
+}
+
+#[test]
+fn node_id_change_at_reset_communication() {
+    let mut b = Bus::new();
+    b.download(0x2400, 1, &[0x20]).unwrap();
+    assert_eq!(b.download(0x2400, 1, &[0]), Err(0x0609_0032));
+    assert_eq!(b.download(0x2400, 1, &[128]), Err(0x0609_0031));
+    assert_eq!(b.dev.node_id(), NODE);
+    b.write_u32(0x1802, 1, 0x8000_0390).unwrap(); // disabled TPDO3 keeps flags
+    b.take();
+    b.nmt(0x82, NODE);
+    b.poll();
+    assert_eq!(b.take(), vec![Frame::new(0x720, &[0])]);
+    assert_eq!(b.dev.node_id(), 0x20);
+    assert!(b.dev.take_events().contains(Events::RESET_COMM));
+    assert_eq!(b.read32(0x1014, 0), 0xA0);
+    assert_eq!(b.read32(0x1200, 2), 0x5A0);
+    assert_eq!(b.read32(0x1800, 1), 0x4000_01A0);
+    // reset comm restored TPDO3 to its power-on value, then followed the id
+    assert_eq!(b.read32(0x1802, 1), 0x4000_03A0);
+    // reset node without a store: back to the old id
+    b.nmt(0x81, 0x20);
+    b.poll();
+    assert_eq!(b.dev.node_id(), NODE);
+    assert_eq!(b.read32(0x1800, 1), 0x4000_0190);
+}
+
+#[test]
+fn reset_comm_keeps_application_parameters() {
+    let mut b = Bus::new();
+    b.write_u32(0x2300, 1, 3000).unwrap();
+    b.download(0x1017, 0, &[50, 0]).unwrap();
+    b.nmt(0x82, 0);
+    b.poll();
+    assert_eq!(b.dev.acquisition().period_us, 3000);
+    assert_eq!(b.dev.heartbeat_ms(), 1000);
+}
+
+#[test]
+fn sdo_segmented_download_and_timeout_in_device() {
+    let mut b = Bus::new();
+    let r = b.sdo([0x21, 0x00, 0x23, 1, 4, 0, 0, 0]).unwrap();
+    assert_eq!(r[0], 0x60);
+    let r = b.sdo([0x07, 0xB8, 0x0B, 0, 0, 0, 0, 0]).unwrap();
+    assert_eq!(r[0], 0x20);
+    assert_eq!(b.dev.acquisition().period_us, 3000);
+    // segmented upload left hanging times out
+    b.sdo([0x40, 0x08, 0x10, 0, 0, 0, 0, 0]).unwrap();
+    b.take();
+    b.advance(999_999);
+    assert!(b.take().iter().all(|f| f.id != 0x590));
+    b.advance(1);
+    let f: Vec<_> = b.take().into_iter().filter(|f| f.id == 0x590).collect();
+    assert_eq!(f.len(), 1);
+    assert_eq!(&f[0].data[..4], &[0x80, 0x08, 0x10, 0]);
+    assert_eq!(&f[0].data[4..], &0x0504_0000u32.to_le_bytes());
+}
+
+#[test]
+fn stored_params_bridge() {
+    use perpend_core::params::Params;
+    let mut p = Params::factory();
+    p.head.sensors[1].zero.x += 0.5;
+    p.head.sensors[2].ext.gain = 2e-3;
+    p.acq.period_us = 2000;
+    p.can.node_id = 0x30;
+    let mut b = Bus::new();
+    b.dev.take_events();
+    b.dev.load_params(&p).unwrap();
+    assert!(b.dev.take_events().contains(Events::CONFIG_CHANGED));
+    assert_eq!(b.dev.node_id(), 0x30);
+    assert_eq!(b.dev.acquisition().period_us, 2000);
+    let q = b.dev.params(&Params::factory());
+    assert!(q.validate().is_ok());
+    for (a, c) in q.head.sensors.iter().zip(p.head.sensors.iter()) {
+        assert!((a.zero - c.zero).norm() < 1e-6);
+        assert!((a.dir - c.dir).norm() < 1e-6);
+        assert_eq!(a.ext, c.ext);
+    }
+    assert_eq!((q.transfer, q.acq, q.can), (p.transfer, p.acq, p.can));
+    // SDO writes show up in params(); a zero direction stays invalid
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    for sub in 4..=6 {
+        b.write_f32(0x2101, sub, 0.0).unwrap();
+    }
+    assert!(b.dev.params(&p).validate().is_err());
+    // out-of-range record: refused as a whole
+    let mut bad = p;
+    bad.head.sensors[3].zero.z = 5000.0;
+    let before = b.dev.calibration(0);
+    assert_eq!(
+        b.dev.load_params(&bad),
+        Err(Error::Value {
+            index: 0x2104,
+            sub: 3
+        })
+    );
+    assert_eq!(b.dev.calibration(0), before);
+    // the loaded record is the power-on value; restore brings the factory back
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(b.dev.calibration(2).unwrap().gain, 2e-3);
+    assert_eq!(b.write_u32(0x1011, 1, od::LOAD_SIGNATURE), Err(0));
+    b.finish(true);
+    b.nmt(0x81, 0);
+    b.poll();
+    assert!(b.dev.calibration_is_default());
+    assert_eq!(b.dev.node_id(), NODE);
+}
+
+#[test]
+fn publish_follows_the_status_word() {
+    use status::*;
+    let mut b = Bus::new();
+    b.take();
+    let ok = sensor_bits(0, SENSOR_VALID)
+        | sensor_bits(1, SENSOR_VALID)
+        | sensor_bits(2, SENSOR_VALID)
+        | sensor_bits(3, SENSOR_VALID);
+    let mut m = sample();
+    m.status = ok;
+    b.dev.publish(&m);
+    b.poll();
+    assert!(b.take().is_empty());
+    assert_eq!(b.dev.error_register(), 0);
+    // sensor 3 open loop: one EMCY, degraded plane
+    m.status = (ok & !sensor_bits(2, SENSOR_MASK)) | sensor_bits(2, SENSOR_OPEN_LOOP) | DEGRADED;
+    b.dev.publish(&m);
+    b.dev.publish(&m);
+    b.poll();
+    assert_eq!(
+        b.take(),
+        vec![Frame::new(0x90, &[0x13, 0x21, 0x03, 3, 0x04, 0, 0, 0])]
+    );
+    // two sensors lost: no plane as well
+    m.status = sensor_bits(0, SENSOR_VALID)
+        | sensor_bits(1, SENSOR_VALID)
+        | sensor_bits(2, SENSOR_OPEN_LOOP)
+        | NO_PLANE
+        | SENSOR_STUCK;
+    b.dev.publish(&m);
+    b.poll();
+    let f = b.take();
+    assert_eq!(f.len(), 2);
+    assert_eq!(f[0].data[..3], [0x14, 0xFF, 0x83]); // current bit of sensor 3 still set
+    assert_eq!(f[0].data[3..6], [4, 0, 1]);
+    assert_eq!(f[1].data[..4], [0x02, 0xFF, 0x83, 2]);
+    // all good again: a single error reset
+    m.status = ok;
+    b.dev.publish(&m);
+    b.poll();
+    assert_eq!(b.take(), vec![Frame::new(0x90, &[0; 8])]);
+    m.status = ok | CONFIG_INVALID;
+    b.dev.publish(&m);
+    assert!(b.dev.emcy_active(emcy::DATA_SET));
+}
+
+// ---------------------------------------------------------------------
+// Property tests
+
+/// Frames a fuzzing client might send: mostly SDO requests to our node
+/// built from a pool of relevant objects, some NMT/SYNC, some noise.
+fn arb_frame() -> impl Strategy<Value = Frame> {
+    let indices = prop::sample::select(vec![
+        0x1000u16, 0x1001, 0x1003, 0x1005, 0x1008, 0x1010, 0x1011, 0x1014, 0x1017, 0x1018, 0x1200,
+        0x1800, 0x1801, 0x1A00, 0x1A01, 0x2001, 0x2005, 0x2010, 0x2101, 0x2104, 0x2201, 0x2300,
+        0x2400, 0x2500, 0x6000,
+    ]);
+    let sdo = (
+        prop::sample::select(vec![
+            0x40u8, 0x43, 0x23, 0x27, 0x2B, 0x2F, 0x22, 0x21, 0x20, 0x60, 0x70, 0x00, 0x10, 0x07,
+            0x17, 0x80, 0xA0, 0xC0, 0xE0,
+        ]),
+        indices,
+        0u8..18,
+        prop::array::uniform4(prop::sample::select(vec![
+            0u8, 1, 2, 5, 0x80, 0xFF, 0x73, 0x61, 0x76, 0x65, 0x75, 0x63, 0x6C, 0x90, 0x01, 0x20,
+        ])),
+        any::<bool>(),
+    )
+        .prop_map(|(cmd, idx, sub, d, raw)| {
+            let i = idx.to_le_bytes();
+            let mut data = [cmd, i[0], i[1], sub, d[0], d[1], d[2], d[3]];
+            if raw {
+                // occasionally a write of a mapping / signature value
+                data[4..].copy_from_slice(&od::UNLOCK_SIGNATURE.to_le_bytes());
+            }
+            Frame::new(0x600 + NODE as u16, &data)
+        });
+    let nmt = (
+        prop::sample::select(vec![1u8, 2, 0x80, 0x81, 0x82, 0x33]),
+        prop::sample::select(vec![0u8, NODE, NODE + 1]),
+    )
+        .prop_map(|(cs, n)| Frame::new(0, &[cs, n]));
+    let noise = (0u16..0x900, any::<bool>(), 0u8..12, any::<[u8; 8]>())
+        .prop_map(|(id, rtr, len, data)| Frame { id, rtr, len, data });
+    prop_oneof![
+        8 => sdo,
+        1 => nmt,
+        1 => Just(Frame::new(0x80, &[])),
+        1 => noise,
+    ]
+}
+
+/// Whether `resp` is a well-formed server response to `req`.
+fn valid_response(req: &[u8; 8], resp: &Frame) -> bool {
+    if resp.len != 8 {
+        return false;
+    }
+    let r = resp.data[0];
+    if r == 0x80 {
+        let code = u32::from_le_bytes([resp.data[4], resp.data[5], resp.data[6], resp.data[7]]);
+        return SdoAbort::from_code(code).is_some();
+    }
+    match req[0] >> 5 {
+        1 => r == 0x60 && resp.data[1..4] == req[1..4],
+        2 => (r & 0xE0) == 0x40 && resp.data[1..4] == req[1..4],
+        0 => (r & 0xEF) == 0x20 && (r & 0x10) == (req[0] & 0x10),
+        3 => (r & 0xE0) == 0x00 && (r & 0x10) == (req[0] & 0x10),
+        _ => false,
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+
+    /// Arbitrary frame sequences: no panic; every SDO request in
+    /// pre-operational/operational is answered exactly once with a valid
+    /// response or abort (client aborts and deferred stores excepted); read-
+    /// only objects keep their values; every entry reads back over SDO as
+    /// the device holds it; values stay within their limits.
+    #[test]
+    fn arbitrary_frames_keep_the_dictionary_sound(
+        frames in prop::collection::vec((arb_frame(), 0u64..300_000), 1..120)
+    ) {
+        let mut b = Bus::new();
+        let ro_before: Vec<(usize, u32)> = od::entries()
+            .filter(|(_, i, e)| e.access != od::Access::Rw && !matches!(i, 0x1001 | 0x1003 | 0x1014 | 0x1200 | 0x2001..=0x2007))
+            .map(|(s, _, _)| (s, b.dev.core.values[s]))
+            .collect();
+        let meas_before: Vec<(usize, u32)> = od::entries()
+            .filter(|(_, i, _)| (0x2001..=0x2007).contains(i))
+            .map(|(s, _, _)| (s, b.dev.core.values[s]))
+            .collect();
+        for (f, dt) in frames {
+            b.now += dt;
+            let node = b.dev.node_id() as u16;
+            let state = b.dev.nmt_state();
+            let deferred_before = b.dev.pending_request().is_some();
+            let out = b.send(f);
+            let sdo_out: Vec<&Frame> = out.iter().filter(|o| o.id == 0x580 + node).collect();
+            if f.id == 0x600 + node && f.len <= 8 && !f.rtr
+                && matches!(state, NmtState::PreOperational | NmtState::Operational)
+            {
+                let mut req = [0u8; 8];
+                req.copy_from_slice(&f.data);
+                if f.len < 8 {
+                    // malformed requests are answered with an abort
+                    req[0] = if f.len == 0 { 0xFF } else { req[0] };
+                }
+                let client_abort = f.len > 0 && req[0] >> 5 == 4;
+                let deferred_now = !deferred_before && b.dev.pending_request().is_some();
+                if client_abort || deferred_now {
+                    prop_assert!(sdo_out.is_empty());
+                } else {
+                    prop_assert_eq!(sdo_out.len(), 1, "request {:02x?}", req);
+                    prop_assert!(valid_response(&req, sdo_out[0]), "{:02x?} -> {:02x?}", req, sdo_out[0].data);
+                }
+            } else {
+                prop_assert!(sdo_out.is_empty());
+            }
+            // The application completes storage requests immediately.
+            if b.dev.pending_request().is_some() {
+                b.finish(true);
+            }
+            b.poll();
+        }
+        for (s, v) in ro_before {
+            prop_assert_eq!(b.dev.core.values[s], v);
+        }
+        for (s, v) in meas_before {
+            prop_assert_eq!(b.dev.core.values[s], v);
+        }
+        // Every persisted value is acceptable as an image value.
+        let mut img = [0u8; IMAGE_LEN];
+        b.dev.persistent_image(&mut img);
+        let mut fresh = Device::new(NODE, &Defaults::nominal());
+        prop_assert_eq!(fresh.load_image(&img), Ok(()));
+        // Everything reads back over SDO as held (in pre-operational).
+        b.nmt(0x80, 0);
+        if b.dev.nmt_state() == NmtState::PreOperational {
+            let entries: Vec<_> = od::entries().collect();
+            for (s, index, e) in entries {
+                let got = b.upload(index, e.sub);
+                match e.ty {
+                    od::DataType::VisibleString => prop_assert!(got.is_ok()),
+                    _ => {
+                        let mut want = b.dev.core.values[s].to_le_bytes().to_vec();
+                        want.truncate(e.ty.size());
+                        prop_assert_eq!(got, Ok(want));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Writable entries change only through successful SDO downloads: a
+    /// device that receives only aborted writes keeps every value.
+    #[test]
+    fn aborted_writes_change_nothing(
+        writes in prop::collection::vec((0usize..od::ENTRIES, any::<u32>(), 0usize..5), 1..60)
+    ) {
+        let mut b = Bus::new();
+        let entries: Vec<_> = od::entries().collect();
+        for (k, v, n) in writes {
+            let (_, index, e) = entries[k];
+            let before = b.dev.core.values;
+            let unlocked = b.dev.calibration_unlocked();
+            let bytes = v.to_le_bytes();
+            let r = b.download(index, e.sub, &bytes[..n.clamp(1, 4)]);
+            if b.dev.pending_request().is_some() {
+                b.finish(true);
+            }
+            if r.is_err() {
+                prop_assert_eq!(before, b.dev.core.values, "{:#06x}/{}", index, e.sub);
+                prop_assert_eq!(unlocked, b.dev.calibration_unlocked());
+            } else if e.ty != od::DataType::VisibleString && index != 0x1010 && index != 0x1011 && index != 0x2010 {
+                // the accepted value is what was written
+                let mut want = [0u8; 4];
+                want[..e.ty.size()].copy_from_slice(&bytes[..e.ty.size()]);
+                prop_assert_eq!(b.dev.read_u32(index, e.sub), Some(u32::from_le_bytes(want)));
+            }
+        }
+    }
+}

@@ -1,0 +1,803 @@
+//! The object dictionary: a static table of every object and sub-index the
+//! device implements, with data type, access, PDO mappability, write rule,
+//! persistence, value limits and default. Values live in the
+//! [`crate::Device`] as one `u32` slot per entry (REAL32 as its IEEE-754
+//! bits); strings are constants taken from [`crate::Defaults`].
+//!
+//! The table is the single source of truth: the SDO server, the PDO mapper,
+//! the persistence image and the EDS generator all read it.
+//!
+//! Limits: data types UNSIGNED8/16/32, REAL32 and VISIBLE_STRING only; no
+//! DOMAIN objects; at most 8 bytes of writable data per entry.
+
+/// CANopen data types used by the dictionary (CiA 301 table 44 codes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DataType {
+    /// UNSIGNED8 (0x0005).
+    U8,
+    /// UNSIGNED16 (0x0006).
+    U16,
+    /// UNSIGNED32 (0x0007).
+    U32,
+    /// REAL32 (0x0008), IEEE-754 single precision.
+    Real32,
+    /// VISIBLE_STRING (0x0009), read-only constants here.
+    VisibleString,
+}
+
+impl DataType {
+    /// CiA 301 data type index.
+    pub const fn code(self) -> u16 {
+        match self {
+            DataType::U8 => 0x0005,
+            DataType::U16 => 0x0006,
+            DataType::U32 => 0x0007,
+            DataType::Real32 => 0x0008,
+            DataType::VisibleString => 0x0009,
+        }
+    }
+
+    /// Size in bytes of a numeric value (0 for strings, whose size is their
+    /// length).
+    pub const fn size(self) -> usize {
+        match self {
+            DataType::U8 => 1,
+            DataType::U16 => 2,
+            DataType::U32 | DataType::Real32 => 4,
+            DataType::VisibleString => 0,
+        }
+    }
+
+    /// Size in bits for PDO mapping (0 for strings, which are not mappable).
+    pub const fn bits(self) -> u8 {
+        (self.size() * 8) as u8
+    }
+}
+
+/// Access rights (EDS `AccessType`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    /// Constant, never changes (`const`).
+    Const,
+    /// Read-only; may change by the device itself (`ro`).
+    Ro,
+    /// Read-write (`rw`), subject to the entry's [`Class`] rule.
+    Rw,
+}
+
+/// Write rule and role of an entry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Class {
+    /// Communication object (0x1000..0x1FFF): writable in pre-operational and
+    /// operational.
+    Comm,
+    /// Measurement output of the application (read-only, PDO-mappable).
+    Measurement,
+    /// Calibration (0x21xx sensor geometry, 0x22xx transfer functions):
+    /// writable only in pre-operational **and** after the unlock value was
+    /// written to 0x2010 (abort 0x08000022 / 0x08000021 otherwise).
+    Calibration,
+    /// Configuration (0x2300, 0x2400): writable only in pre-operational.
+    Config,
+    /// A command object (0x1010, 0x1011, 0x2010): writing triggers an action.
+    Command,
+}
+
+/// Range a written value must satisfy (beyond its length).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Limits {
+    /// Any value of the type.
+    Any,
+    /// Unsigned integer in `min..=max` (abort 0x06090032 below,
+    /// 0x06090031 above).
+    Range(u32, u32),
+    /// Finite REAL32 in `min..=max` (abort 0x06090030 for NaN/inf,
+    /// 0x06090032 below, 0x06090031 above).
+    Real(f32, f32),
+    /// One of the listed values (abort 0x06090030 otherwise).
+    OneOf(&'static [u32]),
+    /// A power of two in `min..=max` (abort 0x06090030 otherwise).
+    PowerOfTwo(u32, u32),
+}
+
+/// Which string constant of [`crate::Defaults`] a VISIBLE_STRING holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Text {
+    /// 0x1008.
+    DeviceName,
+    /// 0x1009.
+    HardwareVersion,
+    /// 0x100A.
+    SoftwareVersion,
+}
+
+/// Where an entry's default (power-on / restored) value comes from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Init {
+    /// A fixed value.
+    Fixed(u32),
+    /// `base + node-id` (EDS `$NODEID+base`).
+    Node(u32),
+    /// [`crate::Defaults::device_type`].
+    DeviceType,
+    /// [`crate::Defaults::identity`] field 1..=4 (vendor, product, revision,
+    /// serial).
+    Identity(u8),
+    /// [`crate::Defaults::heartbeat_ms`].
+    Heartbeat,
+    /// Calibration of sensor `.0` (0-based), value `.1` (0-based sub - 1).
+    Calibration(u8, u8),
+    /// Transfer function of sensor `.0` (0-based), field `.1` (0 kind,
+    /// 1 scale, 2 low, 3 high).
+    Transfer(u8, u8),
+    /// Acquisition field 0..=3 (period, oversampling, method, limit).
+    Acquisition(u8),
+    /// [`crate::Defaults::bit_rate_kbps`].
+    BitRate,
+    /// A string constant.
+    Text(Text),
+}
+
+/// One sub-index of an object.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Entry {
+    /// Sub-index.
+    pub sub: u8,
+    /// Name (ASCII, as in the EDS).
+    pub name: &'static str,
+    /// Data type.
+    pub ty: DataType,
+    /// Access rights.
+    pub access: Access,
+    /// Write rule / role.
+    pub class: Class,
+    /// Whether it may be mapped into a TPDO.
+    pub pdo: bool,
+    /// Whether 0x1010 "save" stores it.
+    pub persist: bool,
+    /// Accepted values on write.
+    pub limits: Limits,
+    /// Default value.
+    pub init: Init,
+}
+
+impl Entry {
+    const fn new(sub: u8, name: &'static str, ty: DataType, access: Access, class: Class) -> Self {
+        Self {
+            sub,
+            name,
+            ty,
+            access,
+            class,
+            pdo: false,
+            persist: false,
+            limits: Limits::Any,
+            init: Init::Fixed(0),
+        }
+    }
+    const fn init(mut self, init: Init) -> Self {
+        self.init = init;
+        self
+    }
+    const fn limits(mut self, limits: Limits) -> Self {
+        self.limits = limits;
+        self
+    }
+    const fn pdo(mut self) -> Self {
+        self.pdo = true;
+        self
+    }
+    const fn persist(mut self) -> Self {
+        self.persist = true;
+        self
+    }
+}
+
+/// CiA 306 object code.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// VAR (7): a single value at sub-index 0.
+    Var,
+    /// ARRAY (8): sub 0 = count, subs of one type.
+    Array,
+    /// RECORD (9): sub 0 = highest sub-index, subs of mixed types.
+    Record,
+}
+
+impl Kind {
+    /// CiA 306 `ObjectType` code.
+    pub const fn code(self) -> u8 {
+        match self {
+            Kind::Var => 7,
+            Kind::Array => 8,
+            Kind::Record => 9,
+        }
+    }
+}
+
+/// One object (index) of the dictionary.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Object {
+    /// Index.
+    pub index: u16,
+    /// Name (ASCII, as in the EDS).
+    pub name: &'static str,
+    /// Object code.
+    pub kind: Kind,
+    /// Its sub-indices in increasing order (for VAR exactly one, sub 0).
+    pub subs: &'static [Entry],
+}
+
+use Access::{Const, Ro, Rw};
+use DataType::{Real32, VisibleString, U16, U32, U8};
+
+const fn var(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
+    Object {
+        index,
+        name,
+        kind: Kind::Var,
+        subs: e,
+    }
+}
+const fn rec(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
+    Object {
+        index,
+        name,
+        kind: Kind::Record,
+        subs: e,
+    }
+}
+const fn arr(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
+    Object {
+        index,
+        name,
+        kind: Kind::Array,
+        subs: e,
+    }
+}
+const fn sub0(n: u8) -> Entry {
+    Entry::new(0, "Highest sub-index supported", U8, Const, Class::Comm).init(Init::Fixed(n as u32))
+}
+const fn sub0m(n: u8) -> Entry {
+    Entry::new(
+        0,
+        "Highest sub-index supported",
+        U8,
+        Const,
+        Class::Measurement,
+    )
+    .init(Init::Fixed(n as u32))
+}
+const fn meas(sub: u8, name: &'static str) -> Entry {
+    Entry::new(sub, name, Real32, Ro, Class::Measurement).pdo()
+}
+const fn cal(sensor: u8, sub: u8, name: &'static str, lo: f32, hi: f32) -> Entry {
+    Entry::new(sub, name, Real32, Rw, Class::Calibration)
+        .persist()
+        .limits(Limits::Real(lo, hi))
+        .init(Init::Calibration(sensor, sub - 1))
+}
+
+/// Signature written to 0x1010 sub 1 to store parameters: ASCII "save"
+/// read as a little-endian UNSIGNED32 (CiA 301 §7.5.2.13).
+pub const SAVE_SIGNATURE: u32 = 0x6576_6173;
+/// Signature written to 0x1011 sub 1 to restore defaults: ASCII "load".
+pub const LOAD_SIGNATURE: u32 = 0x6461_6F6C;
+/// Value written to 0x2010 to unlock calibration writes: ASCII "ucal"
+/// read as a little-endian UNSIGNED32 (bytes `75 63 61 6C` on the bus).
+/// Writing 0 locks again; any other value is refused (0x06090030) and locks.
+/// The unlock is cleared by every NMT state change and reset.
+pub const UNLOCK_SIGNATURE: u32 = 0x6C61_6375;
+
+/// Number of TPDOs.
+pub const TPDOS: usize = 4;
+/// Largest number of objects one TPDO maps.
+pub const MAX_MAPPED: usize = 8;
+
+macro_rules! sensor_cal {
+    ($s:expr) => {
+        &[
+            sub0(15),
+            cal($s, 1, "Zero point x mm", -1000.0, 1000.0),
+            cal($s, 2, "Zero point y mm", -1000.0, 1000.0),
+            cal($s, 3, "Zero point z mm", -1000.0, 1000.0),
+            cal($s, 4, "Beam direction x", -1.0, 1.0),
+            cal($s, 5, "Beam direction y", -1.0, 1.0),
+            cal($s, 6, "Beam direction z", -1.0, 1.0),
+            cal($s, 7, "Reference distance mm", 0.0, 1000.0),
+            cal($s, 8, "Gain error", -0.5, 0.5),
+            cal($s, 9, "Quadratic nonlinearity per mm", -1.0, 1.0),
+            cal($s, 10, "Cubic nonlinearity per mm2", -1.0, 1.0),
+            cal($s, 11, "Incidence bias mm", -10.0, 10.0),
+            cal($s, 12, "Crosstalk", -0.5, 0.5),
+            cal($s, 13, "Thermal drift mm per degC", -1.0, 1.0),
+            cal($s, 14, "Reference temperature degC", -50.0, 150.0),
+            cal($s, 15, "Drift mm per s", -1.0, 1.0),
+        ]
+    };
+}
+
+macro_rules! transfer {
+    ($s:expr) => {
+        &[
+            sub0(4),
+            Entry::new(1, "Kind", U8, Rw, Class::Calibration)
+                .persist()
+                .limits(Limits::OneOf(&[0, 1]))
+                .init(Init::Transfer($s, 0)),
+            Entry::new(
+                2,
+                "Shunt ohm or divider ratio",
+                Real32,
+                Rw,
+                Class::Calibration,
+            )
+            .persist()
+            .limits(Limits::Real(0.001, 1000.0))
+            .init(Init::Transfer($s, 1)),
+            Entry::new(
+                3,
+                "Distance at 4 mA or 0 V mm",
+                Real32,
+                Rw,
+                Class::Calibration,
+            )
+            .persist()
+            .limits(Limits::Real(-1000.0, 1000.0))
+            .init(Init::Transfer($s, 2)),
+            Entry::new(
+                4,
+                "Distance at 20 mA or 10 V mm",
+                Real32,
+                Rw,
+                Class::Calibration,
+            )
+            .persist()
+            .limits(Limits::Real(-1000.0, 1000.0))
+            .init(Init::Transfer($s, 3)),
+        ]
+    };
+}
+
+macro_rules! tpdo_comm {
+    ($k:expr) => {
+        &[
+            sub0(5),
+            Entry::new(1, "COB-ID used by TPDO", U32, Rw, Class::Comm)
+                .persist()
+                .init(Init::Node(0x4000_0180 + 0x100 * $k)),
+            Entry::new(2, "Transmission type", U8, Rw, Class::Comm)
+                .persist()
+                .init(Init::Fixed(1)),
+            Entry::new(3, "Inhibit time", U16, Rw, Class::Comm).persist(),
+            Entry::new(5, "Event timer", U16, Rw, Class::Comm).persist(),
+        ]
+    };
+}
+
+const fn map_entry(sub: u8, v: u32) -> Entry {
+    Entry::new(sub, "Application object", U32, Rw, Class::Comm)
+        .persist()
+        .init(Init::Fixed(v))
+}
+
+macro_rules! tpdo_map {
+    ($n:expr, [$a:expr, $b:expr, $c:expr, $d:expr]) => {
+        &[
+            Entry::new(0, "Number of mapped objects", U8, Rw, Class::Comm)
+                .persist()
+                .limits(Limits::Range(0, MAX_MAPPED as u32))
+                .init(Init::Fixed($n)),
+            map_entry(1, $a),
+            map_entry(2, $b),
+            map_entry(3, $c),
+            map_entry(4, $d),
+            map_entry(5, 0),
+            map_entry(6, 0),
+            map_entry(7, 0),
+            map_entry(8, 0),
+        ]
+    };
+}
+
+/// A PDO mapping entry value: `index << 16 | sub << 8 | bits`.
+pub const fn mapping(index: u16, sub: u8, bits: u8) -> u32 {
+    ((index as u32) << 16) | ((sub as u32) << 8) | bits as u32
+}
+
+/// The whole dictionary, sorted by index.
+pub const OBJECTS: &[Object] = &[
+    var(
+        0x1000,
+        "Device type",
+        &[Entry::new(0, "Device type", U32, Const, Class::Comm).init(Init::DeviceType)],
+    ),
+    var(
+        0x1001,
+        "Error register",
+        &[Entry::new(0, "Error register", U8, Ro, Class::Comm).pdo()],
+    ),
+    arr(
+        0x1003,
+        "Pre-defined error field",
+        &[
+            Entry::new(0, "Number of errors", U8, Rw, Class::Comm).limits(Limits::OneOf(&[0])),
+            Entry::new(1, "Standard error field", U32, Ro, Class::Comm),
+            Entry::new(2, "Standard error field", U32, Ro, Class::Comm),
+            Entry::new(3, "Standard error field", U32, Ro, Class::Comm),
+            Entry::new(4, "Standard error field", U32, Ro, Class::Comm),
+            Entry::new(5, "Standard error field", U32, Ro, Class::Comm),
+            Entry::new(6, "Standard error field", U32, Ro, Class::Comm),
+            Entry::new(7, "Standard error field", U32, Ro, Class::Comm),
+            Entry::new(8, "Standard error field", U32, Ro, Class::Comm),
+        ],
+    ),
+    var(
+        0x1005,
+        "COB-ID SYNC",
+        &[Entry::new(0, "COB-ID SYNC", U32, Const, Class::Comm).init(Init::Fixed(0x80))],
+    ),
+    var(
+        0x1008,
+        "Manufacturer device name",
+        &[Entry::new(
+            0,
+            "Manufacturer device name",
+            VisibleString,
+            Const,
+            Class::Comm,
+        )
+        .init(Init::Text(Text::DeviceName))],
+    ),
+    var(
+        0x1009,
+        "Manufacturer hardware version",
+        &[Entry::new(
+            0,
+            "Manufacturer hardware version",
+            VisibleString,
+            Const,
+            Class::Comm,
+        )
+        .init(Init::Text(Text::HardwareVersion))],
+    ),
+    var(
+        0x100A,
+        "Manufacturer software version",
+        &[Entry::new(
+            0,
+            "Manufacturer software version",
+            VisibleString,
+            Const,
+            Class::Comm,
+        )
+        .init(Init::Text(Text::SoftwareVersion))],
+    ),
+    arr(
+        0x1010,
+        "Store parameters",
+        &[
+            sub0(1),
+            Entry::new(1, "Save all parameters", U32, Rw, Class::Command).init(Init::Fixed(1)),
+        ],
+    ),
+    arr(
+        0x1011,
+        "Restore default parameters",
+        &[
+            sub0(1),
+            Entry::new(1, "Restore all default parameters", U32, Rw, Class::Command)
+                .init(Init::Fixed(1)),
+        ],
+    ),
+    var(
+        0x1014,
+        "COB-ID EMCY",
+        &[Entry::new(0, "COB-ID EMCY", U32, Ro, Class::Comm).init(Init::Node(0x80))],
+    ),
+    var(
+        0x1017,
+        "Producer heartbeat time",
+        &[
+            Entry::new(0, "Producer heartbeat time", U16, Rw, Class::Comm)
+                .persist()
+                .init(Init::Heartbeat),
+        ],
+    ),
+    rec(
+        0x1018,
+        "Identity object",
+        &[
+            sub0(4),
+            Entry::new(1, "Vendor-ID", U32, Const, Class::Comm).init(Init::Identity(1)),
+            Entry::new(2, "Product code", U32, Const, Class::Comm).init(Init::Identity(2)),
+            Entry::new(3, "Revision number", U32, Const, Class::Comm).init(Init::Identity(3)),
+            Entry::new(4, "Serial number", U32, Const, Class::Comm).init(Init::Identity(4)),
+        ],
+    ),
+    rec(
+        0x1200,
+        "SDO server parameter",
+        &[
+            sub0(2),
+            Entry::new(1, "COB-ID client to server", U32, Ro, Class::Comm).init(Init::Node(0x600)),
+            Entry::new(2, "COB-ID server to client", U32, Ro, Class::Comm).init(Init::Node(0x580)),
+        ],
+    ),
+    rec(0x1800, "TPDO1 communication parameter", tpdo_comm!(0)),
+    rec(0x1801, "TPDO2 communication parameter", tpdo_comm!(1)),
+    rec(0x1802, "TPDO3 communication parameter", tpdo_comm!(2)),
+    rec(0x1803, "TPDO4 communication parameter", tpdo_comm!(3)),
+    rec(
+        0x1A00,
+        "TPDO1 mapping parameter",
+        tpdo_map!(2, [mapping(0x2002, 1, 32), mapping(0x2002, 2, 32), 0, 0]),
+    ),
+    rec(
+        0x1A01,
+        "TPDO2 mapping parameter",
+        tpdo_map!(2, [mapping(0x2005, 0, 32), mapping(0x2007, 0, 32), 0, 0]),
+    ),
+    rec(
+        0x1A02,
+        "TPDO3 mapping parameter",
+        tpdo_map!(2, [mapping(0x2001, 1, 32), mapping(0x2001, 2, 32), 0, 0]),
+    ),
+    rec(
+        0x1A03,
+        "TPDO4 mapping parameter",
+        tpdo_map!(2, [mapping(0x2001, 3, 32), mapping(0x2006, 0, 32), 0, 0]),
+    ),
+    arr(
+        0x2001,
+        "Surface normal",
+        &[
+            sub0m(3),
+            meas(1, "Normal x"),
+            meas(2, "Normal y"),
+            meas(3, "Normal z"),
+        ],
+    ),
+    rec(
+        0x2002,
+        "Deviation",
+        &[
+            sub0m(3),
+            meas(1, "Theta1 deg"),
+            meas(2, "Theta2 deg"),
+            meas(3, "Theta deg"),
+        ],
+    ),
+    rec(
+        0x2003,
+        "Attitude correction",
+        &[sub0m(2), meas(1, "Pitch deg"), meas(2, "Yaw deg")],
+    ),
+    arr(
+        0x2004,
+        "Distances",
+        &[
+            sub0m(4),
+            meas(1, "Distance sensor 1 mm"),
+            meas(2, "Distance sensor 2 mm"),
+            meas(3, "Distance sensor 3 mm"),
+            meas(4, "Distance sensor 4 mm"),
+        ],
+    ),
+    var(
+        0x2005,
+        "Measurement status",
+        &[
+            Entry::new(0, "Measurement status", U32, Ro, Class::Measurement)
+                .pdo()
+                .init(Init::Fixed(crate::status::NO_PLANE)),
+        ],
+    ),
+    var(
+        0x2006,
+        "Plane RMS residual mm",
+        &[meas(0, "Plane RMS residual mm")],
+    ),
+    var(
+        0x2007,
+        "Sample counter",
+        &[Entry::new(0, "Sample counter", U32, Ro, Class::Measurement).pdo()],
+    ),
+    var(
+        0x2010,
+        "Calibration unlock",
+        &[Entry::new(0, "Calibration unlock", U32, Rw, Class::Command)],
+    ),
+    rec(0x2101, "Sensor 1 calibration", sensor_cal!(0)),
+    rec(0x2102, "Sensor 2 calibration", sensor_cal!(1)),
+    rec(0x2103, "Sensor 3 calibration", sensor_cal!(2)),
+    rec(0x2104, "Sensor 4 calibration", sensor_cal!(3)),
+    rec(0x2201, "Sensor 1 transfer function", transfer!(0)),
+    rec(0x2202, "Sensor 2 transfer function", transfer!(1)),
+    rec(0x2203, "Sensor 3 transfer function", transfer!(2)),
+    rec(0x2204, "Sensor 4 transfer function", transfer!(3)),
+    rec(
+        0x2300,
+        "Acquisition",
+        &[
+            sub0(4),
+            Entry::new(1, "Sample period us", U32, Rw, Class::Config)
+                .persist()
+                .limits(Limits::Range(100, 100_000))
+                .init(Init::Acquisition(0)),
+            Entry::new(2, "Oversampling ratio", U16, Rw, Class::Config)
+                .persist()
+                .limits(Limits::PowerOfTwo(1, 256))
+                .init(Init::Acquisition(1)),
+            Entry::new(3, "Plane method", U8, Rw, Class::Config)
+                .persist()
+                .limits(Limits::OneOf(&[0, 1]))
+                .init(Init::Acquisition(2)),
+            Entry::new(4, "Residual limit mm", Real32, Rw, Class::Config)
+                .persist()
+                .limits(Limits::Real(0.0001, 100.0))
+                .init(Init::Acquisition(3)),
+        ],
+    ),
+    rec(
+        0x2400,
+        "Communication",
+        &[
+            sub0(2),
+            Entry::new(1, "Node-ID", U8, Rw, Class::Config)
+                .persist()
+                .limits(Limits::Range(1, 127))
+                .init(Init::Node(0)),
+            Entry::new(2, "Bit rate kbps", U16, Rw, Class::Config)
+                .persist()
+                .limits(Limits::OneOf(&[125, 250, 500, 1000]))
+                .init(Init::BitRate),
+        ],
+    ),
+];
+
+const fn count_entries() -> usize {
+    let mut n = 0;
+    let mut i = 0;
+    while i < OBJECTS.len() {
+        n += OBJECTS[i].subs.len();
+        i += 1;
+    }
+    n
+}
+
+const fn count_persist() -> usize {
+    let mut n = 0;
+    let mut i = 0;
+    while i < OBJECTS.len() {
+        let mut j = 0;
+        while j < OBJECTS[i].subs.len() {
+            if OBJECTS[i].subs[j].persist {
+                n += 1;
+            }
+            j += 1;
+        }
+        i += 1;
+    }
+    n
+}
+
+/// Number of entries (sub-indices) in the dictionary: the number of value
+/// slots of a [`crate::Device`].
+pub const ENTRIES: usize = count_entries();
+/// Number of entries stored by 0x1010.
+pub const PERSISTENT: usize = count_persist();
+
+/// Slot of the first entry of each object (prefix sums of the sub counts).
+const OFFSETS: [usize; OBJECTS.len()] = {
+    let mut o = [0usize; OBJECTS.len()];
+    let mut i = 1;
+    while i < OBJECTS.len() {
+        o[i] = o[i - 1] + OBJECTS[i - 1].subs.len();
+        i += 1;
+    }
+    o
+};
+
+/// Failure of a dictionary lookup.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Lookup {
+    /// No object with this index (SDO abort 0x06020000).
+    NoObject,
+    /// The object exists but not this sub-index (SDO abort 0x06090011).
+    NoSub,
+}
+
+/// The object with this index.
+pub fn object(index: u16) -> Option<(usize, &'static Object)> {
+    OBJECTS
+        .binary_search_by_key(&index, |o| o.index)
+        .ok()
+        .and_then(|i| OBJECTS.get(i).map(|o| (i, o)))
+}
+
+/// The value slot and descriptor of `(index, sub)`.
+///
+/// # Errors
+/// [`Lookup::NoObject`] / [`Lookup::NoSub`].
+pub fn find(index: u16, sub: u8) -> Result<(usize, &'static Entry), Lookup> {
+    let (oi, obj) = object(index).ok_or(Lookup::NoObject)?;
+    let si = obj
+        .subs
+        .binary_search_by_key(&sub, |e| e.sub)
+        .map_err(|_| Lookup::NoSub)?;
+    let e = obj.subs.get(si).ok_or(Lookup::NoSub)?;
+    Ok((OFFSETS[oi] + si, e))
+}
+
+/// Iterates over every entry as `(slot, index, entry)` in dictionary order.
+pub fn entries() -> impl Iterator<Item = (usize, u16, &'static Entry)> {
+    OBJECTS.iter().enumerate().flat_map(|(oi, o)| {
+        o.subs
+            .iter()
+            .enumerate()
+            .map(move |(si, e)| (OFFSETS[oi] + si, o.index, e))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn table_is_sorted_and_consistent() {
+        for w in OBJECTS.windows(2) {
+            assert!(w[0].index < w[1].index, "{:#06x}", w[1].index);
+        }
+        for o in OBJECTS {
+            for w in o.subs.windows(2) {
+                assert!(w[0].sub < w[1].sub, "{:#06x}", o.index);
+            }
+            match o.kind {
+                Kind::Var => assert_eq!(o.subs.len(), 1),
+                _ => {
+                    // sub 0 is the highest sub-index, an U8
+                    assert_eq!(o.subs[0].sub, 0);
+                    assert_eq!(o.subs[0].ty, DataType::U8);
+                    let last = o.subs[o.subs.len() - 1].sub as u32;
+                    if let Init::Fixed(n) = o.subs[0].init {
+                        if o.subs[0].access == Access::Const {
+                            assert_eq!(n, last, "{:#06x}", o.index);
+                        }
+                    }
+                }
+            }
+            for e in o.subs {
+                if e.pdo {
+                    assert!(e.ty.bits() > 0);
+                }
+                if e.ty == DataType::VisibleString {
+                    assert_eq!(e.access, Access::Const);
+                }
+            }
+        }
+        let mut n = 0;
+        for (slot, index, e) in entries() {
+            assert_eq!(slot, n);
+            assert_eq!(find(index, e.sub), Ok((slot, e)));
+            n += 1;
+        }
+        assert_eq!(n, ENTRIES);
+    }
+
+    #[test]
+    fn lookups_distinguish_object_and_sub() {
+        assert_eq!(find(0x1234, 0), Err(Lookup::NoObject));
+        assert_eq!(find(0x1018, 5), Err(Lookup::NoSub));
+        assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
+        assert!(find(0x2104, 15).is_ok());
+        assert_eq!(find(0x2104, 16), Err(Lookup::NoSub));
+    }
+
+    #[test]
+    fn signatures_are_ascii() {
+        assert_eq!(&SAVE_SIGNATURE.to_le_bytes(), b"save");
+        assert_eq!(&LOAD_SIGNATURE.to_le_bytes(), b"load");
+        assert_eq!(&UNLOCK_SIGNATURE.to_le_bytes(), b"ucal");
+    }
+}

@@ -1,0 +1,738 @@
+//! SDO server (CiA 301 §7.2.4): expedited and segmented upload and
+//! download, toggle check, server-side timeout, abort codes.
+//!
+//! The server is a state machine over 8-byte request payloads; it reaches
+//! the object dictionary through the [`Dictionary`] trait, which applies the
+//! access, state, lock and range rules and answers with an [`SdoAbort`] when
+//! one is violated. Every request the server receives gets exactly one
+//! response (an answer or an abort) except a client's abort, which is
+//! unconfirmed by definition. A write whose effect needs the application
+//! (0x1010 store, 0x1011 restore) is answered when the application reports
+//! the outcome ([`crate::Device::finish_request`]).
+//!
+//! Limits: block transfer is not implemented (abort 0x05040001); segmented
+//! downloads carry at most 8 bytes (no writable object is larger).
+
+/// CiA 301 SDO abort codes the server produces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SdoAbort {
+    /// 0x05030000 toggle bit not alternated.
+    Toggle,
+    /// 0x05040000 SDO protocol timed out.
+    Timeout,
+    /// 0x05040001 client/server command specifier not valid or unknown.
+    Command,
+    /// 0x06010000 unsupported access to an object.
+    Unsupported,
+    /// 0x06010002 attempt to write a read-only object.
+    ReadOnly,
+    /// 0x06020000 object does not exist in the object dictionary.
+    NoObject,
+    /// 0x06040041 object cannot be mapped to the PDO.
+    NotMappable,
+    /// 0x06040042 the number and length of the mapped objects would exceed
+    /// the PDO length.
+    PdoLength,
+    /// 0x06040043 general parameter incompatibility (mapping length does not
+    /// match the object).
+    Incompatible,
+    /// 0x06070010 data type does not match, length of service parameter
+    /// does not match.
+    Length,
+    /// 0x06090011 sub-index does not exist.
+    NoSub,
+    /// 0x06090030 invalid value for parameter (download only).
+    Range,
+    /// 0x06090031 value of parameter written too high.
+    TooHigh,
+    /// 0x06090032 value of parameter written too low.
+    TooLow,
+    /// 0x08000000 general error.
+    General,
+    /// 0x08000020 data cannot be transferred or stored to the application.
+    Store,
+    /// 0x08000021 ... because of local control (calibration locked).
+    Locked,
+    /// 0x08000022 ... because of the present device state.
+    State,
+}
+
+impl SdoAbort {
+    /// The 32-bit abort code sent on the bus.
+    pub const fn code(self) -> u32 {
+        match self {
+            SdoAbort::Toggle => 0x0503_0000,
+            SdoAbort::Timeout => 0x0504_0000,
+            SdoAbort::Command => 0x0504_0001,
+            SdoAbort::Unsupported => 0x0601_0000,
+            SdoAbort::ReadOnly => 0x0601_0002,
+            SdoAbort::NoObject => 0x0602_0000,
+            SdoAbort::NotMappable => 0x0604_0041,
+            SdoAbort::PdoLength => 0x0604_0042,
+            SdoAbort::Incompatible => 0x0604_0043,
+            SdoAbort::Length => 0x0607_0010,
+            SdoAbort::NoSub => 0x0609_0011,
+            SdoAbort::Range => 0x0609_0030,
+            SdoAbort::TooHigh => 0x0609_0031,
+            SdoAbort::TooLow => 0x0609_0032,
+            SdoAbort::General => 0x0800_0000,
+            SdoAbort::Store => 0x0800_0020,
+            SdoAbort::Locked => 0x0800_0021,
+            SdoAbort::State => 0x0800_0022,
+        }
+    }
+
+    /// Every code, for tests and documentation.
+    pub const ALL: [SdoAbort; 18] = [
+        SdoAbort::Toggle,
+        SdoAbort::Timeout,
+        SdoAbort::Command,
+        SdoAbort::Unsupported,
+        SdoAbort::ReadOnly,
+        SdoAbort::NoObject,
+        SdoAbort::NotMappable,
+        SdoAbort::PdoLength,
+        SdoAbort::Incompatible,
+        SdoAbort::Length,
+        SdoAbort::NoSub,
+        SdoAbort::Range,
+        SdoAbort::TooHigh,
+        SdoAbort::TooLow,
+        SdoAbort::General,
+        SdoAbort::Store,
+        SdoAbort::Locked,
+        SdoAbort::State,
+    ];
+
+    /// The abort with this code, if the server can produce it.
+    pub fn from_code(code: u32) -> Option<Self> {
+        Self::ALL.iter().copied().find(|a| a.code() == code)
+    }
+}
+
+/// A value read from the dictionary for an upload.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Value {
+    /// A numeric value: little-endian bytes and their count (1, 2 or 4).
+    Num([u8; 4], usize),
+    /// A string constant.
+    Str(&'static [u8]),
+}
+
+/// What a successful write did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Written {
+    /// Done: confirm now.
+    Done,
+    /// The application must complete it; confirm (or abort) later.
+    Deferred,
+}
+
+/// The server's view of the object dictionary.
+pub trait Dictionary {
+    /// Reads `(index, sub)`.
+    ///
+    /// # Errors
+    /// The abort to send.
+    fn read(&self, index: u16, sub: u8) -> Result<Value, SdoAbort>;
+    /// Checks that `(index, sub)` exists, is writable now and takes `len`
+    /// bytes (`None`: size not indicated), before a segmented download.
+    ///
+    /// # Errors
+    /// The abort to send.
+    fn check_write(&self, index: u16, sub: u8, len: Option<usize>) -> Result<(), SdoAbort>;
+    /// Writes `data` to `(index, sub)` with every rule applied.
+    ///
+    /// # Errors
+    /// The abort to send; the dictionary is unchanged.
+    fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<Written, SdoAbort>;
+}
+
+/// Largest segmented download accepted [bytes].
+pub const MAX_DOWNLOAD: usize = 8;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Transfer {
+    Idle,
+    Upload {
+        index: u16,
+        sub: u8,
+        data: &'static [u8],
+        pos: usize,
+        toggle: bool,
+        deadline: u64,
+    },
+    Download {
+        index: u16,
+        sub: u8,
+        buf: [u8; MAX_DOWNLOAD],
+        len: usize,
+        declared: Option<usize>,
+        toggle: bool,
+        deadline: u64,
+    },
+    /// A write handed to the application; `resp` is the confirmation to
+    /// send on success.
+    Deferred {
+        index: u16,
+        sub: u8,
+        resp: [u8; 8],
+    },
+}
+
+/// The SDO server state (one server, default SDO channel).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SdoServer {
+    transfer: Transfer,
+    timeout_us: u64,
+}
+
+fn abort_payload(index: u16, sub: u8, a: SdoAbort) -> [u8; 8] {
+    let i = index.to_le_bytes();
+    let c = a.code().to_le_bytes();
+    [0x80, i[0], i[1], sub, c[0], c[1], c[2], c[3]]
+}
+
+fn addr_payload(cmd: u8, index: u16, sub: u8) -> [u8; 8] {
+    let i = index.to_le_bytes();
+    [cmd, i[0], i[1], sub, 0, 0, 0, 0]
+}
+
+impl SdoServer {
+    /// An idle server whose segmented transfers time out after `timeout_us`.
+    pub const fn new(timeout_us: u64) -> Self {
+        Self {
+            transfer: Transfer::Idle,
+            timeout_us,
+        }
+    }
+
+    /// Whether a segmented transfer or a deferred write is in progress.
+    pub fn busy(&self) -> bool {
+        self.transfer != Transfer::Idle
+    }
+
+    /// Forgets any transfer in progress (NMT reset, stop).
+    pub fn reset(&mut self) {
+        self.transfer = Transfer::Idle;
+    }
+
+    /// Handles one request payload (`req`, the received frame's bytes;
+    /// shorter than 8 means a malformed request) and returns the response
+    /// payload, or `None` for a client abort.
+    pub fn handle<D: Dictionary>(
+        &mut self,
+        od: &mut D,
+        req: &[u8],
+        now_us: u64,
+    ) -> Option<[u8; 8]> {
+        let cmd = req.first().copied().unwrap_or(0xFF);
+        let ccs = cmd >> 5;
+        if ccs == 4 {
+            // Client abort: unconfirmed; a deferred write stays with the
+            // application (it cannot be recalled) but is not confirmed.
+            self.transfer = Transfer::Idle;
+            return None;
+        }
+        let index = u16::from_le_bytes([
+            req.get(1).copied().unwrap_or(0),
+            req.get(2).copied().unwrap_or(0),
+        ]);
+        let sub = req.get(3).copied().unwrap_or(0);
+        if req.len() < 8 {
+            self.transfer = Transfer::Idle;
+            return Some(abort_payload(index, sub, SdoAbort::Command));
+        }
+        if let Transfer::Deferred { index, sub, .. } = self.transfer {
+            // The previous write is still with the application.
+            return Some(abort_payload(index, sub, SdoAbort::Store));
+        }
+        let mut data = [0u8; 8];
+        data.copy_from_slice(&req[..8]);
+        match ccs {
+            1 => self.initiate_download(od, &data, index, sub, now_us),
+            2 => Some(self.initiate_upload(od, index, sub, now_us)),
+            0 => self.download_segment(od, &data, now_us),
+            3 => Some(self.upload_segment(&data, now_us)),
+            _ => {
+                self.transfer = Transfer::Idle;
+                Some(abort_payload(index, sub, SdoAbort::Command))
+            }
+        }
+    }
+
+    fn finish_write<D: Dictionary>(
+        &mut self,
+        od: &mut D,
+        index: u16,
+        sub: u8,
+        data: &[u8],
+        resp: [u8; 8],
+    ) -> Option<[u8; 8]> {
+        match od.write(index, sub, data) {
+            Ok(Written::Done) => {
+                self.transfer = Transfer::Idle;
+                Some(resp)
+            }
+            Ok(Written::Deferred) => {
+                // Nothing to send yet: `complete` answers.
+                self.transfer = Transfer::Deferred { index, sub, resp };
+                None
+            }
+            Err(a) => {
+                self.transfer = Transfer::Idle;
+                Some(abort_payload(index, sub, a))
+            }
+        }
+    }
+
+    fn initiate_download<D: Dictionary>(
+        &mut self,
+        od: &mut D,
+        req: &[u8; 8],
+        index: u16,
+        sub: u8,
+        now_us: u64,
+    ) -> Option<[u8; 8]> {
+        self.transfer = Transfer::Idle;
+        let expedited = req[0] & 0x02 != 0;
+        let sized = req[0] & 0x01 != 0;
+        if expedited {
+            let len = if sized {
+                4 - ((req[0] >> 2) & 3) as usize
+            } else {
+                // Size not indicated: as many bytes as the object holds
+                // (CiA 301: "d contains unspecified number of bytes").
+                match od.read(index, sub) {
+                    Ok(Value::Num(_, n)) => n,
+                    Ok(Value::Str(_)) => 4,
+                    Err(a) => return Some(abort_payload(index, sub, a)),
+                }
+            };
+            let resp = addr_payload(0x60, index, sub);
+            return self.finish_write(od, index, sub, &req[4..4 + len], resp);
+        }
+        let declared = if sized {
+            Some(u32::from_le_bytes([req[4], req[5], req[6], req[7]]) as usize)
+        } else {
+            None
+        };
+        if let Err(a) = od.check_write(index, sub, declared) {
+            return Some(abort_payload(index, sub, a));
+        }
+        self.transfer = Transfer::Download {
+            index,
+            sub,
+            buf: [0; MAX_DOWNLOAD],
+            len: 0,
+            declared,
+            toggle: false,
+            deadline: now_us.saturating_add(self.timeout_us),
+        };
+        Some(addr_payload(0x60, index, sub))
+    }
+
+    fn download_segment<D: Dictionary>(
+        &mut self,
+        od: &mut D,
+        req: &[u8; 8],
+        now_us: u64,
+    ) -> Option<[u8; 8]> {
+        let Transfer::Download {
+            index,
+            sub,
+            mut buf,
+            mut len,
+            declared,
+            toggle,
+            ..
+        } = self.transfer
+        else {
+            self.transfer = Transfer::Idle;
+            return Some(abort_payload(0, 0, SdoAbort::Command));
+        };
+        let t = req[0] & 0x10 != 0;
+        if t != toggle {
+            self.transfer = Transfer::Idle;
+            return Some(abort_payload(index, sub, SdoAbort::Toggle));
+        }
+        let n = 7 - ((req[0] >> 1) & 7) as usize;
+        let last = req[0] & 0x01 != 0;
+        if len + n > MAX_DOWNLOAD || declared.is_some_and(|d| len + n > d) {
+            self.transfer = Transfer::Idle;
+            return Some(abort_payload(index, sub, SdoAbort::Length));
+        }
+        buf[len..len + n].copy_from_slice(&req[1..1 + n]);
+        len += n;
+        let resp = [0x20 | (req[0] & 0x10), 0, 0, 0, 0, 0, 0, 0];
+        if !last {
+            self.transfer = Transfer::Download {
+                index,
+                sub,
+                buf,
+                len,
+                declared,
+                toggle: !toggle,
+                deadline: now_us.saturating_add(self.timeout_us),
+            };
+            return Some(resp);
+        }
+        if declared.is_some_and(|d| d != len) {
+            self.transfer = Transfer::Idle;
+            return Some(abort_payload(index, sub, SdoAbort::Length));
+        }
+        self.finish_write(od, index, sub, &buf[..len], resp)
+    }
+
+    fn initiate_upload<D: Dictionary>(
+        &mut self,
+        od: &D,
+        index: u16,
+        sub: u8,
+        now_us: u64,
+    ) -> [u8; 8] {
+        self.transfer = Transfer::Idle;
+        let (bytes, n, seg): ([u8; 4], usize, Option<&'static [u8]>) = match od.read(index, sub) {
+            Err(a) => return abort_payload(index, sub, a),
+            Ok(Value::Num(b, n)) => (b, n, None),
+            Ok(Value::Str(s)) if !s.is_empty() && s.len() <= 4 => {
+                let mut b = [0u8; 4];
+                b[..s.len()].copy_from_slice(s);
+                (b, s.len(), None)
+            }
+            Ok(Value::Str(s)) => ([0; 4], s.len(), Some(s)),
+        };
+        let i = index.to_le_bytes();
+        match seg {
+            None => {
+                let cmd = 0x43 | (((4 - n.clamp(1, 4)) as u8) << 2);
+                [cmd, i[0], i[1], sub, bytes[0], bytes[1], bytes[2], bytes[3]]
+            }
+            Some(s) => {
+                self.transfer = Transfer::Upload {
+                    index,
+                    sub,
+                    data: s,
+                    pos: 0,
+                    toggle: false,
+                    deadline: now_us.saturating_add(self.timeout_us),
+                };
+                let l = (s.len() as u32).to_le_bytes();
+                [0x41, i[0], i[1], sub, l[0], l[1], l[2], l[3]]
+            }
+        }
+    }
+
+    fn upload_segment(&mut self, req: &[u8; 8], now_us: u64) -> [u8; 8] {
+        let Transfer::Upload {
+            index,
+            sub,
+            data,
+            pos,
+            toggle,
+            ..
+        } = self.transfer
+        else {
+            self.transfer = Transfer::Idle;
+            return abort_payload(0, 0, SdoAbort::Command);
+        };
+        let t = req[0] & 0x10 != 0;
+        if t != toggle {
+            self.transfer = Transfer::Idle;
+            return abort_payload(index, sub, SdoAbort::Toggle);
+        }
+        let rest = data.get(pos..).unwrap_or(&[]);
+        let k = rest.len().min(7);
+        let last = pos + k >= data.len();
+        let mut out = [0u8; 8];
+        out[0] = (req[0] & 0x10) | (((7 - k) as u8) << 1) | u8::from(last);
+        out[1..1 + k].copy_from_slice(&rest[..k]);
+        self.transfer = if last {
+            Transfer::Idle
+        } else {
+            Transfer::Upload {
+                index,
+                sub,
+                data,
+                pos: pos + k,
+                toggle: !toggle,
+                deadline: now_us.saturating_add(self.timeout_us),
+            }
+        };
+        out
+    }
+
+    /// Whether the last [`SdoServer::handle`] handed a write to the
+    /// application (its response is sent by [`SdoServer::complete`]).
+    pub fn deferred(&self) -> bool {
+        matches!(self.transfer, Transfer::Deferred { .. })
+    }
+
+    /// Completes a deferred write: the confirmation, or the abort `err`.
+    /// `None` when nothing was deferred (or the client aborted meanwhile).
+    pub fn complete(&mut self, err: Option<SdoAbort>) -> Option<[u8; 8]> {
+        let Transfer::Deferred { index, sub, resp } = self.transfer else {
+            return None;
+        };
+        self.transfer = Transfer::Idle;
+        Some(match err {
+            None => resp,
+            Some(a) => abort_payload(index, sub, a),
+        })
+    }
+
+    /// The abort to send if a segmented transfer has timed out at `now_us`
+    /// (the transfer is then dropped).
+    pub fn check_timeout(&mut self, now_us: u64) -> Option<[u8; 8]> {
+        let (index, sub, deadline) = match self.transfer {
+            Transfer::Upload {
+                index,
+                sub,
+                deadline,
+                ..
+            }
+            | Transfer::Download {
+                index,
+                sub,
+                deadline,
+                ..
+            } => (index, sub, deadline),
+            _ => return None,
+        };
+        if now_us >= deadline {
+            self.transfer = Transfer::Idle;
+            Some(abort_payload(index, sub, SdoAbort::Timeout))
+        } else {
+            None
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    /// A dictionary of one U32 at 0x2000, one read-only U16 at 0x2001 and a
+    /// string at 0x2002; 0x2003 defers.
+    struct Mini {
+        v: u32,
+        name: &'static [u8],
+    }
+
+    impl Dictionary for Mini {
+        fn read(&self, index: u16, sub: u8) -> Result<Value, SdoAbort> {
+            match (index, sub) {
+                (0x2000, 0) => Ok(Value::Num(self.v.to_le_bytes(), 4)),
+                (0x2001, 0) => Ok(Value::Num([7, 0, 0, 0], 2)),
+                (0x2002, 0) => Ok(Value::Str(self.name)),
+                (0x2003, 0) => Ok(Value::Num([1, 0, 0, 0], 4)),
+                (0x2000..=0x2003, _) => Err(SdoAbort::NoSub),
+                _ => Err(SdoAbort::NoObject),
+            }
+        }
+        fn check_write(&self, index: u16, sub: u8, len: Option<usize>) -> Result<(), SdoAbort> {
+            match self.read(index, sub)? {
+                Value::Num(_, n) if index != 0x2001 => match len {
+                    Some(l) if l != n => Err(SdoAbort::Length),
+                    _ => Ok(()),
+                },
+                _ => Err(SdoAbort::ReadOnly),
+            }
+        }
+        fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<Written, SdoAbort> {
+            self.check_write(index, sub, Some(data.len()))?;
+            if index == 0x2003 {
+                return Ok(Written::Deferred);
+            }
+            self.v = u32::from_le_bytes([data[0], data[1], data[2], data[3]]);
+            Ok(Written::Done)
+        }
+    }
+
+    fn mini() -> Mini {
+        Mini {
+            v: 0x1122_3344,
+            name: b"perpend normal sensor",
+        }
+    }
+
+    fn abort_code(r: &[u8; 8]) -> Option<u32> {
+        (r[0] == 0x80).then(|| u32::from_le_bytes([r[4], r[5], r[6], r[7]]))
+    }
+
+    #[test]
+    fn expedited_upload_and_download() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        let r = s
+            .handle(&mut od, &[0x40, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(r, [0x43, 0x00, 0x20, 0, 0x44, 0x33, 0x22, 0x11]);
+        let r = s
+            .handle(&mut od, &[0x40, 0x01, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(r, [0x4B, 0x01, 0x20, 0, 7, 0, 0, 0]);
+        let r = s
+            .handle(&mut od, &[0x23, 0x00, 0x20, 0, 1, 2, 3, 4], 0)
+            .unwrap();
+        assert_eq!(r, [0x60, 0x00, 0x20, 0, 0, 0, 0, 0]);
+        assert_eq!(od.v, 0x0403_0201);
+        // size not indicated: the object's size is used
+        let r = s
+            .handle(&mut od, &[0x22, 0x00, 0x20, 0, 9, 9, 9, 9], 0)
+            .unwrap();
+        assert_eq!(r[0], 0x60);
+        assert_eq!(od.v, 0x0909_0909);
+    }
+
+    #[test]
+    fn wrong_length_and_unknown_objects_abort() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        let r = s
+            .handle(&mut od, &[0x2F, 0x00, 0x20, 0, 1, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0607_0010));
+        assert_eq!(&r[1..4], &[0x00, 0x20, 0]);
+        let r = s
+            .handle(&mut od, &[0x40, 0x99, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0602_0000));
+        let r = s
+            .handle(&mut od, &[0x40, 0x00, 0x20, 3, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0609_0011));
+        let r = s
+            .handle(&mut od, &[0x2B, 0x01, 0x20, 0, 1, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0601_0002));
+        // block transfer and short frames
+        let r = s
+            .handle(&mut od, &[0xC0, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0504_0001));
+        let r = s.handle(&mut od, &[0x40, 0x00, 0x20], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0504_0001));
+        // segment without a transfer
+        let r = s.handle(&mut od, &[0x60, 0, 0, 0, 0, 0, 0, 0], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0504_0001));
+        // client abort: no answer
+        assert_eq!(s.handle(&mut od, &[0x80, 0, 0x20, 0, 0, 0, 0, 0], 0), None);
+    }
+
+    #[test]
+    fn segmented_upload_with_toggle() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        let r = s
+            .handle(&mut od, &[0x40, 0x02, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(r, [0x41, 0x02, 0x20, 0, 21, 0, 0, 0]);
+        let mut got = Vec::new();
+        let mut t = 0u8;
+        loop {
+            let r = s
+                .handle(&mut od, &[0x60 | t, 0, 0, 0, 0, 0, 0, 0], 0)
+                .unwrap();
+            assert_eq!(r[0] & 0xE0, 0x00);
+            assert_eq!(r[0] & 0x10, t);
+            let n = 7 - ((r[0] >> 1) & 7) as usize;
+            got.extend_from_slice(&r[1..1 + n]);
+            t ^= 0x10;
+            if r[0] & 1 != 0 {
+                break;
+            }
+        }
+        assert_eq!(got, b"perpend normal sensor");
+        assert!(!s.busy());
+        // toggle error
+        s.handle(&mut od, &[0x40, 0x02, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x70, 0, 0, 0, 0, 0, 0, 0], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0503_0000));
+        assert!(!s.busy());
+    }
+
+    #[test]
+    fn segmented_download_and_checks() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        let r = s
+            .handle(&mut od, &[0x21, 0x00, 0x20, 0, 4, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(r, [0x60, 0x00, 0x20, 0, 0, 0, 0, 0]);
+        // 4 bytes in one last segment: n = 3 unused, c = 1
+        let r = s
+            .handle(&mut od, &[0x07, 0xAA, 0xBB, 0xCC, 0xDD, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(r[0], 0x20);
+        assert_eq!(od.v, 0xDDCC_BBAA);
+        // wrong declared size
+        let r = s
+            .handle(&mut od, &[0x21, 0x00, 0x20, 0, 9, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0607_0010));
+        // oversize data without size indication
+        s.handle(&mut od, &[0x20, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x00, 1, 2, 3, 4, 5, 6, 7], 0).unwrap();
+        assert_eq!(r[0], 0x20);
+        let r = s.handle(&mut od, &[0x10, 1, 2, 3, 4, 5, 6, 7], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0607_0010));
+        // toggle error
+        s.handle(&mut od, &[0x21, 0x00, 0x20, 0, 4, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x17, 1, 2, 3, 4, 0, 0, 0], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0503_0000));
+        assert_eq!(od.v, 0xDDCC_BBAA);
+    }
+
+    #[test]
+    fn timeout_aborts_stalled_transfer() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        s.handle(&mut od, &[0x40, 0x02, 0x20, 0, 0, 0, 0, 0], 10)
+            .unwrap();
+        assert_eq!(s.check_timeout(500), None);
+        s.handle(&mut od, &[0x60, 0, 0, 0, 0, 0, 0, 0], 900)
+            .unwrap();
+        assert_eq!(s.check_timeout(1800), None);
+        let r = s.check_timeout(1900).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0504_0000));
+        assert_eq!(&r[1..4], &[0x02, 0x20, 0]);
+        assert!(!s.busy());
+    }
+
+    #[test]
+    fn deferred_write_is_confirmed_later() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        assert_eq!(
+            s.handle(&mut od, &[0x23, 0x03, 0x20, 0, 1, 0, 0, 0], 0),
+            None
+        );
+        assert!(s.deferred());
+        // a request meanwhile is refused
+        let r = s
+            .handle(&mut od, &[0x40, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0800_0020));
+        assert_eq!(s.complete(None).unwrap(), [0x60, 0x03, 0x20, 0, 0, 0, 0, 0]);
+        assert_eq!(s.complete(None), None);
+        assert_eq!(
+            s.handle(&mut od, &[0x23, 0x03, 0x20, 0, 1, 0, 0, 0], 0),
+            None
+        );
+        let r = s.complete(Some(SdoAbort::Store)).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0800_0020));
+    }
+
+    #[test]
+    fn codes_round_trip() {
+        for a in SdoAbort::ALL {
+            assert_eq!(SdoAbort::from_code(a.code()), Some(a));
+        }
+        assert_eq!(SdoAbort::from_code(1), None);
+    }
+}

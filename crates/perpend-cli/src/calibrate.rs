@@ -1,0 +1,371 @@
+//! `perpend calibrate`: calibrate a sensor head from a calibration run in
+//! the exchange format, with batch least squares (default) or the paper's
+//! EKF, print per-sensor corrections with 1σ, residual RMS and
+//! identifiability, and write the parameter JSON ([`crate::paramfile`]).
+//!
+//! Malformed input is an error naming the file, line and problem; a pose
+//! set that cannot identify a sensor's parameters is an error naming what
+//! it lacks. Either way nothing is written and the exit code is non-zero.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+use nalgebra::Vector3;
+use perpend_core::calib::{
+    assess, ekf_sensor, fit_sensor_base, CovarianceUpdate, Diagnostic, EkfConfig, EkfFit,
+    Innovation, LsqConfig, LsqError, LsqFit, Poses, Status,
+};
+use perpend_core::head::Sensor;
+use perpend_core::model::distance;
+
+use crate::exchange::{read_poses, read_sensors, PoseTable};
+use crate::paramfile::{Identifiability, ParamFile, SensorParams, Triples};
+
+/// Estimator.
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Method {
+    /// Batch Gauss-Newton / Levenberg-Marquardt, 5 parameters per sensor.
+    Lsq,
+    /// The paper's EKF (Chen eq. 10-16), 6 states per sensor.
+    Ekf,
+}
+
+/// Noise settings of the EKF, as printed in the paper.
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EkfPreset {
+    /// §5 step 7: Q = 1e-10·I, R = 8e-5.
+    Simulation,
+    /// §6: Q = 1e-12·I, R = 9e-6.
+    Experiment,
+    /// §3.2 text: Q = 1e-10·I, R = 1e-4.
+    Section3,
+}
+
+impl EkfPreset {
+    /// The configuration of the preset.
+    pub fn config(self) -> EkfConfig<f64> {
+        match self {
+            EkfPreset::Simulation => EkfConfig::chen_simulation(),
+            EkfPreset::Experiment => EkfConfig::chen_experiment(),
+            EkfPreset::Section3 => EkfConfig::chen_section3(),
+        }
+    }
+}
+
+/// Arguments of `perpend calibrate`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The nominal head (sensors.csv).
+    #[arg(long)]
+    pub sensors: PathBuf,
+    /// The calibration run (poses.csv).
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// Estimator.
+    #[arg(long, value_enum, default_value_t = Method::Lsq)]
+    pub method: Method,
+    /// Write the calibrated parameters (JSON) here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// EKF noise preset.
+    #[arg(long, value_enum, default_value_t = EkfPreset::Simulation)]
+    pub ekf_preset: EkfPreset,
+    /// EKF: override R [mm²].
+    #[arg(long)]
+    pub ekf_r: Option<f64>,
+    /// EKF: override the diagonal of Q.
+    #[arg(long)]
+    pub ekf_q: Option<f64>,
+    /// EKF: override the stopping threshold δ.
+    #[arg(long)]
+    pub ekf_delta: Option<f64>,
+    /// EKF: use the nonlinear innovation d_meas − f(Φ̂) instead of the
+    /// paper's linearised one.
+    #[arg(long)]
+    pub ekf_nonlinear: bool,
+    /// EKF: Joseph-form covariance update instead of eq. 15.
+    #[arg(long)]
+    pub ekf_joseph: bool,
+}
+
+/// The EKF configuration from the arguments.
+pub fn ekf_config(a: &Args) -> EkfConfig<f64> {
+    let mut c = a.ekf_preset.config();
+    if let Some(r) = a.ekf_r {
+        c.r = r;
+    }
+    if let Some(q) = a.ekf_q {
+        c.q = nalgebra::SVector::<f64, 6>::from_element(q);
+    }
+    if let Some(d) = a.ekf_delta {
+        c.delta = d;
+    }
+    if a.ekf_nonlinear {
+        c.innovation = Innovation::Nonlinear;
+    }
+    if a.ekf_joseph {
+        c.covariance = CovarianceUpdate::Joseph;
+    }
+    c
+}
+
+/// Residual RMS [mm] of `sensor` (index `idx`) over the run.
+pub fn residual_rms(sensor: &Sensor<f64>, idx: usize, poses: &PoseTable) -> Option<f64> {
+    let mut ss = 0.0;
+    let mut m = 0usize;
+    for k in 0..poses.len() {
+        if let Some(d) = poses.reading(k, idx) {
+            if let Ok(f) = distance(sensor, &poses.plane(k), idx) {
+                ss += (d - f) * (d - f);
+                m += 1;
+            }
+        }
+    }
+    (m > 0).then(|| (ss / m as f64).sqrt())
+}
+
+fn ident_json(d: &Diagnostic<f64>) -> Identifiability {
+    Identifiability {
+        status: d.status.name().into(),
+        condition: d.condition,
+        tilt_x_range_deg: d.tilt_x_range_deg,
+        tilt_y_range_deg: d.tilt_y_range_deg,
+        standoff_range_mm: d.standoff_range_mm,
+        message: d.to_string(),
+    }
+}
+
+/// Least squares on every sensor.
+pub fn run_lsq(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    cfg: &LsqConfig<f64>,
+) -> Vec<Result<LsqFit<f64, 5>, LsqError<f64>>> {
+    nominal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| fit_sensor_base(s, i, poses, cfg))
+        .collect()
+}
+
+/// The paper's EKF on every sensor.
+pub fn run_ekf(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    cfg: EkfConfig<f64>,
+) -> Vec<perpend_core::Result<EkfFit<f64>>> {
+    nominal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| ekf_sensor(s, i, poses, cfg))
+        .collect()
+}
+
+/// Parameters of an LSQ fit for the JSON file.
+pub fn lsq_params(idx: usize, fit: &LsqFit<f64, 5>, nominal: &Sensor<f64>) -> SensorParams {
+    let mut p = SensorParams::from_sensor(idx + 1, &fit.sensor, Some(nominal));
+    p.sigma = Some(Triples {
+        zero_mm: fit.sigma_zero().into(),
+        dir: fit.sigma_dir().into(),
+    });
+    p.residual_rms_mm = Some(fit.rms);
+    p.readings = fit.used;
+    p.identifiability = Some(ident_json(&fit.diagnostic));
+    p
+}
+
+/// Parameters of an EKF fit for the JSON file (1σ from the filter's `P`).
+pub fn ekf_params(
+    idx: usize,
+    fit: &EkfFit<f64>,
+    nominal: &Sensor<f64>,
+    poses: &PoseTable,
+    diag: Option<&Diagnostic<f64>>,
+) -> SensorParams {
+    let mut p = SensorParams::from_sensor(idx + 1, &fit.sensor, Some(nominal));
+    let sd = |i: usize| fit.covariance[(i, i)].max(0.0).sqrt();
+    p.sigma = Some(Triples {
+        zero_mm: [sd(0), sd(1), sd(2)],
+        dir: [sd(3), sd(4), sd(5)],
+    });
+    p.residual_rms_mm = residual_rms(&fit.sensor, idx, poses);
+    p.readings = fit.used;
+    p.identifiability = diag.map(ident_json);
+    p
+}
+
+fn fmt_sensor_table(
+    out: &mut String,
+    nominal: &Sensor<f64>,
+    fitted: &Sensor<f64>,
+    sigma: ([f64; 3], [f64; 3]),
+) {
+    let rows = [
+        ("x", "mm", nominal.zero.x, fitted.zero.x, sigma.0[0]),
+        ("y", "mm", nominal.zero.y, fitted.zero.y, sigma.0[1]),
+        ("z", "mm", nominal.zero.z, fitted.zero.z, sigma.0[2]),
+        ("m", "- ", nominal.dir.x, fitted.dir.x, sigma.1[0]),
+        ("n", "- ", nominal.dir.y, fitted.dir.y, sigma.1[1]),
+        ("q", "- ", nominal.dir.z, fitted.dir.z, sigma.1[2]),
+    ];
+    let _ = writeln!(
+        out,
+        "            nominal    calibrated    correction        1σ"
+    );
+    for (name, unit, n, f, s) in rows {
+        let _ = writeln!(
+            out,
+            "  {name} [{unit}]  {n:>10.4}  {f:>12.6}  {:>+12.6}  {s:>9.6}",
+            f - n
+        );
+    }
+}
+
+/// Runs `perpend calibrate`.
+///
+/// # Errors
+/// Malformed input, unidentifiable pose sets, estimator failures, I/O.
+pub fn run(a: &Args) -> Result<()> {
+    let table = read_sensors(&a.sensors)?;
+    let poses = read_poses(&a.poses, Some(table.len()))?;
+    let nominal = table
+        .sensors()
+        .map_err(|e| anyhow::anyhow!("{}: {e}", a.sensors.display()))?;
+    let mut report = String::new();
+    let mut failures: Vec<String> = Vec::new();
+    let method = match a.method {
+        Method::Lsq => "lsq",
+        Method::Ekf => "ekf",
+    };
+    let mut file = ParamFile::new(method, "base", poses.len());
+    let _ = writeln!(
+        report,
+        "calibration of {} sensors from {} poses ({}), method {}",
+        nominal.len(),
+        poses.len(),
+        a.poses.display(),
+        match a.method {
+            Method::Lsq => "batch least squares (Levenberg-Marquardt, 5 parameters per sensor)",
+            Method::Ekf => "EKF (Chen eq. 10-16, 6 states per sensor)",
+        }
+    );
+    match a.method {
+        Method::Lsq => {
+            let fits = run_lsq(&nominal, &poses, &LsqConfig::default());
+            for (i, r) in fits.iter().enumerate() {
+                let _ = writeln!(report);
+                match r {
+                    Ok(fit) => {
+                        let _ = writeln!(
+                            report,
+                            "sensor {}: {} readings, residual RMS {:.4} mm",
+                            i + 1,
+                            fit.used,
+                            fit.rms
+                        );
+                        fmt_sensor_table(
+                            &mut report,
+                            &nominal[i],
+                            &fit.sensor,
+                            (fit.sigma_zero().into(), fit.sigma_dir().into()),
+                        );
+                        let _ = writeln!(report, "  {}", fit.diagnostic);
+                        if fit.skipped > 0 {
+                            let _ = writeln!(
+                                report,
+                                "  note: {} readings skipped (beam misses the plane at the estimate)",
+                                fit.skipped
+                            );
+                        }
+                        file.sensors.push(lsq_params(i, fit, &nominal[i]));
+                    }
+                    Err(e) => {
+                        let _ = writeln!(report, "sensor {}: FAILED", i + 1);
+                        let _ = writeln!(report, "  {e}");
+                        failures.push(e.to_string());
+                    }
+                }
+            }
+        }
+        Method::Ekf => {
+            let cfg = ekf_config(a);
+            cfg.validate()
+                .map_err(|e| anyhow::anyhow!("EKF settings: {e}"))?;
+            let _ = writeln!(
+                report,
+                "EKF: Q = {:e}·I, R = {:e}, P0 = I, X0 = 0, δ = {:e}, {:?} innovation, {:?} covariance update",
+                cfg.q[0], cfg.r, cfg.delta, cfg.innovation, cfg.covariance
+            );
+            let fits = run_ekf(&nominal, &poses, cfg);
+            for (i, r) in fits.iter().enumerate() {
+                let _ = writeln!(report);
+                let diag = assess(&nominal[i], i, &poses, &Default::default()).ok();
+                if let Some(d) = diag.filter(|d| d.status == Status::NotIdentifiable) {
+                    let _ = writeln!(report, "sensor {}: FAILED", i + 1);
+                    let _ = writeln!(report, "  {d}");
+                    failures.push(d.to_string());
+                    continue;
+                }
+                match r {
+                    Ok(fit) => {
+                        let rms = residual_rms(&fit.sensor, i, &poses).unwrap_or(f64::NAN);
+                        let _ = writeln!(
+                            report,
+                            "sensor {}: {} of {} readings used until the stop ({}), residual RMS {:.4} mm",
+                            i + 1,
+                            fit.used,
+                            fit.available,
+                            if fit.converged {
+                                "stopping rule met"
+                            } else {
+                                "stopping rule not met: all readings used"
+                            },
+                            rms
+                        );
+                        let sd = |j: usize| fit.covariance[(j, j)].max(0.0).sqrt();
+                        fmt_sensor_table(
+                            &mut report,
+                            &nominal[i],
+                            &fit.sensor,
+                            ([sd(0), sd(1), sd(2)], [sd(3), sd(4), sd(5)]),
+                        );
+                        let _ = writeln!(
+                            report,
+                            "  (1σ from the filter's covariance P; m, n, q before normalisation)"
+                        );
+                        if let Some(d) = &diag {
+                            let _ = writeln!(report, "  {d}");
+                        }
+                        file.sensors
+                            .push(ekf_params(i, fit, &nominal[i], &poses, diag.as_ref()));
+                    }
+                    Err(e) => {
+                        let _ = writeln!(report, "sensor {}: FAILED: {e}", i + 1);
+                        failures.push(format!("sensor {}: {e}", i + 1));
+                    }
+                }
+            }
+        }
+    }
+    print!("{report}");
+    if !failures.is_empty() {
+        bail!(
+            "calibration failed for {} of {} sensors; no parameters written:\n  {}",
+            failures.len(),
+            nominal.len(),
+            failures.join("\n  ")
+        );
+    }
+    if let Some(out) = &a.out {
+        file.validate()?;
+        file.write(out)?;
+        println!("\nwrote {}", out.display());
+    }
+    Ok(())
+}
+
+/// Angle [deg] between two unit vectors, accurate near 0.
+pub fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    a.cross(b).norm().atan2(a.dot(b)).to_degrees()
+}

@@ -1,0 +1,728 @@
+//! Reading and writing the measured-data exchange format
+//! (`shared/data-format.md`): `sensors.csv` (the nominal head) and
+//! `poses.csv` (readings of known planes).
+//!
+//! Both are CSV with a header row; lines starting with `#` are comments
+//! anywhere in the file; columns are found by header name in any order;
+//! unknown columns are ignored; CRLF and LF line ends both work. In
+//! `poses.csv` an empty or `NaN` reading is a missing reading (kept as
+//! `None`, never as 0), and the reading columns `d1_mm … dN_mm` may be any
+//! number of sensors.
+//!
+//! Every violation is reported as an [`ExchangeError`] naming the file, the
+//! line (1-based, comments counted) and the problem: missing column,
+//! non-numeric or non-finite value, fewer than three valid readings in a
+//! pose, degenerate plane normal, duplicate or missing sensor numbers, pose
+//! numbers that do not increase, negative readings.
+
+use std::collections::HashMap;
+use std::fmt;
+use std::io::{Read, Write};
+use std::path::Path;
+
+use nalgebra::Vector3;
+use perpend_core::calib::Poses;
+use perpend_core::ext::Context;
+use perpend_core::geometry::Plane;
+use perpend_core::head::Sensor;
+use serde::Deserialize;
+
+/// A violation of the exchange format: where and what.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ExchangeError {
+    /// File name as given by the caller.
+    pub file: String,
+    /// 1-based line number, when the problem is on one line.
+    pub line: Option<u64>,
+    /// What is wrong, in words.
+    pub problem: String,
+}
+
+impl fmt::Display for ExchangeError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.line {
+            Some(l) => write!(f, "{}, line {}: {}", self.file, l, self.problem),
+            None => write!(f, "{}: {}", self.file, self.problem),
+        }
+    }
+}
+
+impl std::error::Error for ExchangeError {}
+
+fn err(file: &str, line: Option<u64>, problem: impl Into<String>) -> ExchangeError {
+    ExchangeError {
+        file: file.to_string(),
+        line,
+        problem: problem.into(),
+    }
+}
+
+/// One row of `sensors.csv`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorRow {
+    /// 1-based sensor number (also the ADC scan order).
+    pub sensor: usize,
+    /// Nominal zero point `E_i` [mm].
+    pub zero_mm: [f64; 3],
+    /// Nominal beam direction as written (not necessarily unit length).
+    pub dir: [f64; 3],
+    /// Datasheet repeatability 1σ [mm], if given.
+    pub sigma_mm: Option<f64>,
+}
+
+impl SensorRow {
+    /// The sensor with its direction normalised.
+    ///
+    /// # Errors
+    /// Zero or non-finite direction / zero point.
+    pub fn sensor(&self) -> perpend_core::Result<Sensor<f64>> {
+        Sensor::new(Vector3::from(self.zero_mm), Vector3::from(self.dir))
+    }
+}
+
+/// The nominal head: sensors `1..=N` in order.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct SensorTable {
+    /// Row `i` is sensor `i + 1`.
+    pub rows: Vec<SensorRow>,
+}
+
+impl SensorTable {
+    /// Number of sensors.
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Whether the table is empty.
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+
+    /// The sensors (directions normalised), in scan order.
+    ///
+    /// # Errors
+    /// As [`SensorRow::sensor`] (cannot happen for a table read by
+    /// [`read_sensors`], which validates).
+    pub fn sensors(&self) -> perpend_core::Result<Vec<Sensor<f64>>> {
+        self.rows.iter().map(SensorRow::sensor).collect()
+    }
+
+    /// A table from sensors (numbered 1..N), optionally with a repeatability.
+    pub fn from_sensors(sensors: &[Sensor<f64>], sigma_mm: Option<f64>) -> Self {
+        Self {
+            rows: sensors
+                .iter()
+                .enumerate()
+                .map(|(i, s)| SensorRow {
+                    sensor: i + 1,
+                    zero_mm: s.zero.into(),
+                    dir: s.dir.into(),
+                    sigma_mm,
+                })
+                .collect(),
+        }
+    }
+}
+
+/// One row of `poses.csv`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PoseRow {
+    /// Line in the file (0 for rows that were not read from a file).
+    pub line: u64,
+    /// Pose number.
+    pub pose: i64,
+    /// The plane `a, b, c, d` as written.
+    pub abcd: [f64; 4],
+    /// The plane, normalised.
+    pub plane: Plane<f64>,
+    /// Readings [mm] of sensors 1..N; `None` = missing.
+    pub readings: Vec<Option<f64>>,
+    /// Acquisition time [s], if given.
+    pub t_s: Option<f64>,
+    /// Head temperature [°C], if given.
+    pub temp_c: Option<f64>,
+}
+
+/// The poses of a run.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct PoseTable {
+    /// Number of reading columns `d1_mm … dN_mm`.
+    pub n_sensors: usize,
+    /// The rows in file order.
+    pub rows: Vec<PoseRow>,
+}
+
+impl PoseTable {
+    /// Whether any row has a time stamp.
+    pub fn has_time(&self) -> bool {
+        self.rows.iter().any(|r| r.t_s.is_some())
+    }
+
+    /// Whether any row has a temperature.
+    pub fn has_temperature(&self) -> bool {
+        self.rows.iter().any(|r| r.temp_c.is_some())
+    }
+}
+
+impl Poses<f64> for PoseTable {
+    fn len(&self) -> usize {
+        self.rows.len()
+    }
+    fn sensors(&self) -> usize {
+        self.n_sensors
+    }
+    fn plane(&self, k: usize) -> Plane<f64> {
+        self.rows[k].plane
+    }
+    fn reading(&self, k: usize, sensor: usize) -> Option<f64> {
+        self.rows[k].readings.get(sensor).copied().flatten()
+    }
+    fn context(&self, k: usize) -> Context<f64> {
+        Context {
+            temp_c: self.rows[k].temp_c,
+            t_s: self.rows[k].t_s,
+        }
+    }
+}
+
+/// A CSV reader configured for the format: comments, no header handling
+/// (done here to know the header's line), trimmed fields.
+fn csv_reader<R: Read>(r: R) -> csv::Reader<R> {
+    csv::ReaderBuilder::new()
+        .has_headers(false)
+        .comment(Some(b'#'))
+        .trim(csv::Trim::All)
+        .flexible(false)
+        .from_reader(r)
+}
+
+fn csv_error(file: &str, e: &csv::Error) -> ExchangeError {
+    match e.kind() {
+        csv::ErrorKind::UnequalLengths {
+            pos,
+            expected_len,
+            len,
+        } => err(
+            file,
+            pos.as_ref().map(|p| p.line()),
+            format!("{len} fields, but the header has {expected_len}"),
+        ),
+        csv::ErrorKind::Utf8 { pos, .. } => err(
+            file,
+            pos.as_ref().map(|p| p.line()),
+            "not valid UTF-8 text",
+        ),
+        _ => err(
+            file,
+            e.position().map(|p| p.line()),
+            format!("cannot read CSV: {e}"),
+        ),
+    }
+}
+
+/// Reads the header row; returns it with its line number.
+fn read_header<R: Read>(
+    rdr: &mut csv::Reader<R>,
+    file: &str,
+) -> Result<(csv::StringRecord, u64), ExchangeError> {
+    let mut rec = csv::StringRecord::new();
+    match rdr.read_record(&mut rec) {
+        Ok(true) => {
+            let line = rec.position().map_or(1, |p| p.line());
+            // A UTF-8 byte order mark would otherwise stick to the first name.
+            let cleaned: csv::StringRecord = rec
+                .iter()
+                .enumerate()
+                .map(|(i, f)| {
+                    if i == 0 {
+                        f.trim_start_matches('\u{feff}').trim()
+                    } else {
+                        f.trim()
+                    }
+                })
+                .collect();
+            Ok((cleaned, line))
+        }
+        Ok(false) => Err(err(file, None, "empty file: no header row")),
+        Err(e) => Err(csv_error(file, &e)),
+    }
+}
+
+/// Turns a serde error of a record into "column X: problem".
+fn de_error(
+    file: &str,
+    line: u64,
+    header: &csv::StringRecord,
+    rec: &csv::StringRecord,
+    e: &csv::Error,
+) -> ExchangeError {
+    if let csv::ErrorKind::Deserialize { err: de, .. } = e.kind() {
+        if let Some(i) = de.field() {
+            let i = i as usize;
+            let name = header.get(i).unwrap_or("?");
+            let value = rec.get(i).unwrap_or("");
+            let problem = if value.is_empty() {
+                format!("column {name}: empty value")
+            } else {
+                format!("column {name}: '{value}' is not a valid number")
+            };
+            return err(file, Some(line), problem);
+        }
+        return err(file, Some(line), format!("{}", de.kind()));
+    }
+    csv_error(file, e)
+}
+
+fn require_columns(
+    file: &str,
+    line: u64,
+    header: &csv::StringRecord,
+    names: &[&str],
+) -> Result<(), ExchangeError> {
+    for n in names {
+        if !header.iter().any(|h| h == *n) {
+            return Err(err(file, Some(line), format!("missing column {n}")));
+        }
+    }
+    Ok(())
+}
+
+fn check_finite(file: &str, line: u64, name: &str, v: f64) -> Result<f64, ExchangeError> {
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(err(
+            file,
+            Some(line),
+            format!("column {name}: value must be a finite number, got {v}"),
+        ))
+    }
+}
+
+#[derive(Deserialize)]
+struct SensorRecord {
+    sensor: i64,
+    x_mm: f64,
+    y_mm: f64,
+    z_mm: f64,
+    m: f64,
+    n: f64,
+    q: f64,
+    #[serde(default)]
+    sigma_mm: Option<f64>,
+}
+
+/// Reads `sensors.csv` from `reader`; `file` names it in errors.
+///
+/// # Errors
+/// [`ExchangeError`] for any violation of the format.
+pub fn parse_sensors<R: Read>(reader: R, file: &str) -> Result<SensorTable, ExchangeError> {
+    let mut rdr = csv_reader(reader);
+    let (header, hline) = read_header(&mut rdr, file)?;
+    require_columns(
+        file,
+        hline,
+        &header,
+        &["sensor", "x_mm", "y_mm", "z_mm", "m", "n", "q"],
+    )?;
+    let mut rows: Vec<(SensorRow, u64)> = Vec::new();
+    let mut rec = csv::StringRecord::new();
+    loop {
+        match rdr.read_record(&mut rec) {
+            Ok(true) => {}
+            Ok(false) => break,
+            Err(e) => return Err(csv_error(file, &e)),
+        }
+        let line = rec.position().map_or(0, |p| p.line());
+        let r: SensorRecord = rec
+            .deserialize(Some(&header))
+            .map_err(|e| de_error(file, line, &header, &rec, &e))?;
+        if r.sensor < 1 {
+            return Err(err(
+                file,
+                Some(line),
+                format!("column sensor: sensor numbers start at 1, got {}", r.sensor),
+            ));
+        }
+        let zero = [
+            check_finite(file, line, "x_mm", r.x_mm)?,
+            check_finite(file, line, "y_mm", r.y_mm)?,
+            check_finite(file, line, "z_mm", r.z_mm)?,
+        ];
+        let dir = [
+            check_finite(file, line, "m", r.m)?,
+            check_finite(file, line, "n", r.n)?,
+            check_finite(file, line, "q", r.q)?,
+        ];
+        if Vector3::from(dir).norm() < 1e-9 {
+            return Err(err(
+                file,
+                Some(line),
+                "beam direction (m, n, q) has zero length",
+            ));
+        }
+        let sigma_mm = match r.sigma_mm {
+            Some(s) if s.is_nan() => None,
+            Some(s) if !(s.is_finite() && s >= 0.0) => {
+                return Err(err(
+                    file,
+                    Some(line),
+                    format!("column sigma_mm: must be a non-negative number, got {s}"),
+                ))
+            }
+            s => s,
+        };
+        if let Some((_, l)) = rows.iter().find(|(x, _)| x.sensor as i64 == r.sensor) {
+            return Err(err(
+                file,
+                Some(line),
+                format!("sensor {} appears twice (also on line {l})", r.sensor),
+            ));
+        }
+        rows.push((
+            SensorRow {
+                sensor: r.sensor as usize,
+                zero_mm: zero,
+                dir,
+                sigma_mm,
+            },
+            line,
+        ));
+    }
+    if rows.is_empty() {
+        return Err(err(file, None, "no sensor rows"));
+    }
+    rows.sort_by_key(|(r, _)| r.sensor);
+    for (i, (r, line)) in rows.iter().enumerate() {
+        if r.sensor != i + 1 {
+            return Err(err(
+                file,
+                Some(*line),
+                format!(
+                    "sensors must be numbered 1..{} without gaps: sensor {} is missing",
+                    rows.len(),
+                    i + 1
+                ),
+            ));
+        }
+    }
+    Ok(SensorTable {
+        rows: rows.into_iter().map(|(r, _)| r).collect(),
+    })
+}
+
+/// Reads `sensors.csv` from a file.
+///
+/// # Errors
+/// [`ExchangeError`] for an unreadable file or any violation of the format.
+pub fn read_sensors(path: &Path) -> Result<SensorTable, ExchangeError> {
+    let name = path.display().to_string();
+    let f = std::fs::File::open(path).map_err(|e| err(&name, None, format!("cannot open: {e}")))?;
+    parse_sensors(f, &name)
+}
+
+#[derive(Deserialize)]
+struct PoseRecord {
+    pose: i64,
+    a: f64,
+    b: f64,
+    c: f64,
+    d_mm: f64,
+    #[serde(default)]
+    t_s: Option<f64>,
+    #[serde(default)]
+    temp_c: Option<f64>,
+}
+
+/// Parses a reading cell: empty / NaN = missing.
+fn parse_reading(
+    file: &str,
+    line: u64,
+    name: &str,
+    cell: &str,
+) -> Result<Option<f64>, ExchangeError> {
+    if cell.is_empty() || cell.eq_ignore_ascii_case("nan") {
+        return Ok(None);
+    }
+    let v: f64 = cell.parse().map_err(|_| {
+        err(
+            file,
+            Some(line),
+            format!("column {name}: '{cell}' is not a valid number"),
+        )
+    })?;
+    if !v.is_finite() {
+        return Err(err(
+            file,
+            Some(line),
+            format!("column {name}: reading must be finite or empty, got '{cell}'"),
+        ));
+    }
+    if v < 0.0 {
+        return Err(err(
+            file,
+            Some(line),
+            format!("column {name}: negative distance {v} (readings are distances along the beam)"),
+        ));
+    }
+    Ok(Some(v))
+}
+
+fn optional_finite(
+    file: &str,
+    line: u64,
+    name: &str,
+    v: Option<f64>,
+) -> Result<Option<f64>, ExchangeError> {
+    match v {
+        None => Ok(None),
+        Some(x) if x.is_nan() => Ok(None),
+        Some(x) => check_finite(file, line, name, x).map(Some),
+    }
+}
+
+/// Reads `poses.csv` from `reader`. `expect_sensors`: the number of sensors
+/// of the head (from `sensors.csv`); the file must then have exactly the
+/// columns `d1_mm … dN_mm`. Without it the columns found decide.
+///
+/// # Errors
+/// [`ExchangeError`] for any violation of the format.
+pub fn parse_poses<R: Read>(
+    reader: R,
+    file: &str,
+    expect_sensors: Option<usize>,
+) -> Result<PoseTable, ExchangeError> {
+    let mut rdr = csv_reader(reader);
+    let (header, hline) = read_header(&mut rdr, file)?;
+    require_columns(file, hline, &header, &["pose", "a", "b", "c", "d_mm"])?;
+    // Reading columns d<i>_mm.
+    let mut dcols: HashMap<usize, usize> = HashMap::new();
+    for (idx, h) in header.iter().enumerate() {
+        if let Some(num) = h.strip_prefix('d').and_then(|s| s.strip_suffix("_mm")) {
+            if let Ok(i) = num.parse::<usize>() {
+                if i == 0 {
+                    return Err(err(
+                        file,
+                        Some(hline),
+                        "column d0_mm: sensors are numbered from 1",
+                    ));
+                }
+                if dcols.insert(i, idx).is_some() {
+                    return Err(err(file, Some(hline), format!("column {h} appears twice")));
+                }
+            }
+        }
+    }
+    let found = dcols.keys().copied().max().unwrap_or(0);
+    let n = expect_sensors.unwrap_or(found);
+    if n == 0 {
+        return Err(err(
+            file,
+            Some(hline),
+            "missing column d1_mm: no reading columns d1_mm … dN_mm",
+        ));
+    }
+    for i in 1..=n {
+        if !dcols.contains_key(&i) {
+            return Err(err(file, Some(hline), format!("missing column d{i}_mm")));
+        }
+    }
+    if found > n {
+        return Err(err(
+            file,
+            Some(hline),
+            format!("column d{found}_mm: the head has only {n} sensors"),
+        ));
+    }
+    let cols: Vec<usize> = (1..=n).map(|i| dcols[&i]).collect();
+
+    let mut rows = Vec::new();
+    let mut rec = csv::StringRecord::new();
+    let mut last_pose: Option<(i64, u64)> = None;
+    loop {
+        match rdr.read_record(&mut rec) {
+            Ok(true) => {}
+            Ok(false) => break,
+            Err(e) => return Err(csv_error(file, &e)),
+        }
+        let line = rec.position().map_or(0, |p| p.line());
+        let r: PoseRecord = rec
+            .deserialize(Some(&header))
+            .map_err(|e| de_error(file, line, &header, &rec, &e))?;
+        if let Some((p, l)) = last_pose {
+            if r.pose <= p {
+                return Err(err(
+                    file,
+                    Some(line),
+                    format!(
+                        "pose numbers must increase in acquisition order: {} follows {} (line {l})",
+                        r.pose, p
+                    ),
+                ));
+            }
+        }
+        last_pose = Some((r.pose, line));
+        let abcd = [
+            check_finite(file, line, "a", r.a)?,
+            check_finite(file, line, "b", r.b)?,
+            check_finite(file, line, "c", r.c)?,
+            check_finite(file, line, "d_mm", r.d_mm)?,
+        ];
+        let plane = Plane::from_abcd(abcd[0], abcd[1], abcd[2], abcd[3])
+            .ok()
+            .filter(|_| Vector3::new(abcd[0], abcd[1], abcd[2]).norm() > 1e-9)
+            .ok_or_else(|| {
+                err(
+                    file,
+                    Some(line),
+                    "degenerate plane normal: (a, b, c) has zero length",
+                )
+            })?;
+        let mut readings = Vec::with_capacity(n);
+        for (i, &c) in cols.iter().enumerate() {
+            let name = format!("d{}_mm", i + 1);
+            readings.push(parse_reading(file, line, &name, rec.get(c).unwrap_or(""))?);
+        }
+        let valid = readings.iter().filter(|r| r.is_some()).count();
+        if valid < 3 {
+            return Err(err(
+                file,
+                Some(line),
+                format!("pose {}: {valid} valid readings, a pose needs at least 3", r.pose),
+            ));
+        }
+        rows.push(PoseRow {
+            line,
+            pose: r.pose,
+            abcd,
+            plane,
+            readings,
+            t_s: optional_finite(file, line, "t_s", r.t_s)?,
+            temp_c: optional_finite(file, line, "temp_c", r.temp_c)?,
+        });
+    }
+    if rows.is_empty() {
+        return Err(err(file, None, "no pose rows"));
+    }
+    Ok(PoseTable { n_sensors: n, rows })
+}
+
+/// Reads `poses.csv` from a file (see [`parse_poses`]).
+///
+/// # Errors
+/// [`ExchangeError`] for an unreadable file or any violation of the format.
+pub fn read_poses(path: &Path, expect_sensors: Option<usize>) -> Result<PoseTable, ExchangeError> {
+    let name = path.display().to_string();
+    let f = std::fs::File::open(path).map_err(|e| err(&name, None, format!("cannot open: {e}")))?;
+    parse_poses(f, &name, expect_sensors)
+}
+
+fn num(x: f64) -> String {
+    format!("{x}")
+}
+
+fn opt(x: Option<f64>) -> String {
+    x.map(num).unwrap_or_default()
+}
+
+/// Writes `sensors.csv`, preceded by `# ` comment lines.
+///
+/// # Errors
+/// I/O errors.
+pub fn write_sensors<W: Write>(
+    mut w: W,
+    table: &SensorTable,
+    comments: &[String],
+) -> std::io::Result<()> {
+    for c in comments {
+        writeln!(w, "# {c}")?;
+    }
+    let with_sigma = table.rows.iter().any(|r| r.sigma_mm.is_some());
+    let mut cw = csv::WriterBuilder::new().from_writer(w);
+    let mut head = vec!["sensor", "x_mm", "y_mm", "z_mm", "m", "n", "q"];
+    if with_sigma {
+        head.push("sigma_mm");
+    }
+    cw.write_record(&head)?;
+    for r in &table.rows {
+        let mut rec = vec![
+            r.sensor.to_string(),
+            num(r.zero_mm[0]),
+            num(r.zero_mm[1]),
+            num(r.zero_mm[2]),
+            num(r.dir[0]),
+            num(r.dir[1]),
+            num(r.dir[2]),
+        ];
+        if with_sigma {
+            rec.push(opt(r.sigma_mm));
+        }
+        cw.write_record(&rec)?;
+    }
+    cw.flush()
+}
+
+/// Writes `poses.csv` (with `t_s` / `temp_c` columns when any row has
+/// them), preceded by `# ` comment lines.
+///
+/// # Errors
+/// I/O errors.
+pub fn write_poses<W: Write>(
+    mut w: W,
+    table: &PoseTable,
+    comments: &[String],
+) -> std::io::Result<()> {
+    for c in comments {
+        writeln!(w, "# {c}")?;
+    }
+    let (ht, htemp) = (table.has_time(), table.has_temperature());
+    let mut cw = csv::WriterBuilder::new().from_writer(w);
+    let mut head: Vec<String> = ["pose", "a", "b", "c", "d_mm"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    head.extend((1..=table.n_sensors).map(|i| format!("d{i}_mm")));
+    if ht {
+        head.push("t_s".into());
+    }
+    if htemp {
+        head.push("temp_c".into());
+    }
+    cw.write_record(&head)?;
+    for r in &table.rows {
+        let mut rec: Vec<String> = vec![r.pose.to_string()];
+        rec.extend(r.abcd.iter().map(|&x| num(x)));
+        rec.extend((0..table.n_sensors).map(|i| opt(r.readings.get(i).copied().flatten())));
+        if ht {
+            rec.push(opt(r.t_s));
+        }
+        if htemp {
+            rec.push(opt(r.temp_c));
+        }
+        cw.write_record(&rec)?;
+    }
+    cw.flush()
+}
+
+/// Writes `sensors.csv` and `poses.csv` into `dir` (created if needed).
+///
+/// # Errors
+/// I/O errors, with the path.
+pub fn write_dataset(
+    dir: &Path,
+    sensors: &SensorTable,
+    poses: &PoseTable,
+    comments: &[String],
+) -> anyhow::Result<()> {
+    use anyhow::Context as _;
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let sp = dir.join("sensors.csv");
+    let f = std::fs::File::create(&sp).with_context(|| format!("cannot write {}", sp.display()))?;
+    write_sensors(std::io::BufWriter::new(f), sensors, comments)
+        .with_context(|| format!("cannot write {}", sp.display()))?;
+    let pp = dir.join("poses.csv");
+    let f = std::fs::File::create(&pp).with_context(|| format!("cannot write {}", pp.display()))?;
+    write_poses(std::io::BufWriter::new(f), poses, comments)
+        .with_context(|| format!("cannot write {}", pp.display()))?;
+    Ok(())
+}

@@ -1,0 +1,349 @@
+//! The calibration parameter file (JSON): what `perpend calibrate --out`
+//! writes and what the board's stored parameter record is built from.
+//!
+//! Per sensor: the calibrated zero point `E_i` [mm, TCS], the unit beam
+//! direction `u_i`, the extension coefficients of
+//! [`perpend_core::ext::Extension`] (all zero for the paper's model), the
+//! correction relative to the nominal head (Chen's `Δx … Δq`), the 1σ of the
+//! zero point and direction components, the residual RMS, the number of
+//! readings and the identifiability verdict.
+//!
+//! ```json
+//! { "format": "perpend-calibration", "version": 1, "method": "lsq",
+//!   "model": "base", "poses": 100,
+//!   "sensors": [ { "sensor": 1, "zero_mm": [..], "dir": [..],
+//!                  "ext": { "d_ref_mm": 0, "gain": 0, ... },
+//!                  "correction": { "zero_mm": [..], "dir": [..] },
+//!                  "sigma": { "zero_mm": [..], "dir": [..] },
+//!                  "residual_rms_mm": 0.012, "readings": 100,
+//!                  "identifiability": { "status": "ok", ... } } ] }
+//! ```
+//!
+//! The reader ([`ParamFile::read`]) rejects anything else with a message
+//! naming the file and the problem (serde's line/column for syntax and
+//! type errors; the sensor and field for values out of range). Unknown
+//! fields are errors, so a typo cannot silently drop a coefficient.
+
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context as _, Result};
+use nalgebra::Vector3;
+use perpend_core::ext::Extension;
+use perpend_core::head::{Head, Sensor};
+use serde::{Deserialize, Serialize};
+
+/// Value of the `format` field.
+pub const FORMAT: &str = "perpend-calibration";
+/// Current `version`.
+pub const VERSION: u32 = 1;
+
+/// Extension coefficients of one sensor (see [`perpend_core::ext`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExtParams {
+    /// Reference distance of gain and linearity [mm].
+    pub d_ref_mm: f64,
+    /// Relative scale error [-].
+    pub gain: f64,
+    /// Quadratic and cubic linearity error [mm⁻¹, mm⁻²].
+    pub nonlinearity: [f64; 2],
+    /// Incidence bias [mm per unit of 1/cos γ − 1].
+    pub incidence_mm: f64,
+    /// Crosstalk fraction from the previously converted channel [-].
+    pub crosstalk: f64,
+    /// Thermal drift [mm/°C].
+    pub thermal_mm_per_c: f64,
+    /// Reference temperature [°C].
+    pub temp_ref_c: f64,
+    /// Drift with time [mm/s].
+    pub drift_mm_per_s: f64,
+}
+
+impl From<&Extension<f64>> for ExtParams {
+    fn from(e: &Extension<f64>) -> Self {
+        Self {
+            d_ref_mm: e.d_ref,
+            gain: e.gain,
+            nonlinearity: e.nonlinearity,
+            incidence_mm: e.incidence,
+            crosstalk: e.crosstalk,
+            thermal_mm_per_c: e.thermal,
+            temp_ref_c: e.temp_ref,
+            drift_mm_per_s: e.drift,
+        }
+    }
+}
+
+impl From<&ExtParams> for Extension<f64> {
+    fn from(p: &ExtParams) -> Self {
+        Extension {
+            d_ref: p.d_ref_mm,
+            gain: p.gain,
+            nonlinearity: p.nonlinearity,
+            incidence: p.incidence_mm,
+            crosstalk: p.crosstalk,
+            thermal: p.thermal_mm_per_c,
+            temp_ref: p.temp_ref_c,
+            drift: p.drift_mm_per_s,
+        }
+    }
+}
+
+/// A zero point and direction triple (corrections or their 1σ).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Triples {
+    /// x, y, z [mm].
+    pub zero_mm: [f64; 3],
+    /// m, n, q [-].
+    pub dir: [f64; 3],
+}
+
+/// Identifiability verdict of one sensor's pose set.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Identifiability {
+    /// `ok`, `weak` or `not-identifiable`.
+    pub status: String,
+    /// Condition number of the column-scaled normal matrix.
+    pub condition: f64,
+    /// Tilt range of the plane normals about x [deg].
+    pub tilt_x_range_deg: f64,
+    /// Same about y [deg].
+    pub tilt_y_range_deg: f64,
+    /// Range of the sensor's readings [mm].
+    pub standoff_range_mm: f64,
+    /// The verdict in words.
+    pub message: String,
+}
+
+/// Calibrated parameters of one sensor.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorParams {
+    /// 1-based sensor number (ADC scan order).
+    pub sensor: usize,
+    /// Zero point `E_i` [mm, TCS].
+    pub zero_mm: [f64; 3],
+    /// Unit beam direction `u_i`.
+    pub dir: [f64; 3],
+    /// Extension coefficients.
+    pub ext: ExtParams,
+    /// Correction relative to the nominal head: `Δx, Δy, Δz` and
+    /// `Δm, Δn, Δq` of the unit directions (Chen Table 2/6 layout).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub correction: Option<Triples>,
+    /// 1σ of the zero point and direction components.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma: Option<Triples>,
+    /// 1σ of the extension coefficients, in the order of `model`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sigma_ext: Vec<f64>,
+    /// Residual RMS of the fit [mm].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub residual_rms_mm: Option<f64>,
+    /// Readings the estimate used (for the EKF: until its stop).
+    #[serde(default)]
+    pub readings: usize,
+    /// Identifiability of the pose set (least squares only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identifiability: Option<Identifiability>,
+}
+
+impl SensorParams {
+    /// The sensor with its extension.
+    ///
+    /// # Errors
+    /// Zero or non-finite direction / zero point.
+    pub fn to_sensor(&self) -> Result<Sensor<f64>> {
+        let mut s = Sensor::new(Vector3::from(self.zero_mm), Vector3::from(self.dir))
+            .map_err(|e| anyhow!("sensor {}: {e}", self.sensor))?;
+        s.ext = Extension::from(&self.ext);
+        Ok(s)
+    }
+
+    /// Parameters of `s` (numbered `sensor`), with the correction relative
+    /// to `nominal` when given.
+    pub fn from_sensor(sensor: usize, s: &Sensor<f64>, nominal: Option<&Sensor<f64>>) -> Self {
+        Self {
+            sensor,
+            zero_mm: s.zero.into(),
+            dir: s.dir.into(),
+            ext: ExtParams::from(&s.ext),
+            correction: nominal.map(|n| Triples {
+                zero_mm: (s.zero - n.zero).into(),
+                dir: (s.dir - n.dir).into(),
+            }),
+            sigma: None,
+            sigma_ext: Vec::new(),
+            residual_rms_mm: None,
+            readings: 0,
+            identifiability: None,
+        }
+    }
+}
+
+/// The whole parameter file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParamFile {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Always [`VERSION`].
+    pub version: u32,
+    /// `lsq`, `ekf`, `truth` (simulator) or `nominal`.
+    pub method: String,
+    /// `base` (the paper's model) or the extension terms fitted, joined by
+    /// `+` (e.g. `gain`).
+    pub model: String,
+    /// Poses of the calibration run.
+    #[serde(default)]
+    pub poses: usize,
+    /// Sensors 1..N in order.
+    pub sensors: Vec<SensorParams>,
+}
+
+impl ParamFile {
+    /// An empty file for `method` / `model`.
+    pub fn new(method: &str, model: &str, poses: usize) -> Self {
+        Self {
+            format: FORMAT.into(),
+            version: VERSION,
+            method: method.into(),
+            model: model.into(),
+            poses,
+            sensors: Vec::new(),
+        }
+    }
+
+    /// The simulator's true head, with corrections relative to `nominal`.
+    pub fn truth(truth: &[Sensor<f64>], nominal: &[Sensor<f64>]) -> Self {
+        let mut f = Self::new("truth", "base", 0);
+        f.sensors = truth
+            .iter()
+            .enumerate()
+            .map(|(i, s)| SensorParams::from_sensor(i + 1, s, nominal.get(i)))
+            .collect();
+        f
+    }
+
+    /// Checks everything the firmware relies on.
+    ///
+    /// # Errors
+    /// A message naming the sensor and the field.
+    pub fn validate(&self) -> Result<()> {
+        if self.format != FORMAT {
+            bail!("format is '{}', expected '{FORMAT}'", self.format);
+        }
+        if self.version != VERSION {
+            bail!("version {} is not supported (expected {VERSION})", self.version);
+        }
+        if self.sensors.is_empty() {
+            bail!("no sensors");
+        }
+        for (i, s) in self.sensors.iter().enumerate() {
+            let id = s.sensor;
+            if id != i + 1 {
+                bail!(
+                    "sensors must be listed as 1..{} in order: entry {} is sensor {id}",
+                    self.sensors.len(),
+                    i + 1
+                );
+            }
+            let finite = |v: &[f64], what: &str| -> Result<()> {
+                if v.iter().all(|x| x.is_finite()) {
+                    Ok(())
+                } else {
+                    bail!("sensor {id}: {what} must be finite numbers")
+                }
+            };
+            finite(&s.zero_mm, "zero_mm")?;
+            finite(&s.dir, "dir")?;
+            let e = &s.ext;
+            finite(
+                &[
+                    e.d_ref_mm,
+                    e.gain,
+                    e.nonlinearity[0],
+                    e.nonlinearity[1],
+                    e.incidence_mm,
+                    e.crosstalk,
+                    e.thermal_mm_per_c,
+                    e.temp_ref_c,
+                    e.drift_mm_per_s,
+                ],
+                "ext",
+            )?;
+            let len = Vector3::from(s.dir).norm();
+            if (len - 1.0).abs() > 1e-6 {
+                bail!("sensor {id}: dir has length {len}, expected a unit vector");
+            }
+            if let Some(sig) = &s.sigma {
+                if !sig
+                    .zero_mm
+                    .iter()
+                    .chain(sig.dir.iter())
+                    .all(|x| x.is_finite() && *x >= 0.0)
+                {
+                    bail!("sensor {id}: sigma must be non-negative finite numbers");
+                }
+            }
+            if let Some(r) = s.residual_rms_mm {
+                if !(r.is_finite() && r >= 0.0) {
+                    bail!("sensor {id}: residual_rms_mm must be a non-negative number");
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Parses and validates a parameter file; `name` labels errors.
+    ///
+    /// # Errors
+    /// Syntax/type errors with line and column, or validation errors.
+    pub fn parse(text: &str, name: &str) -> Result<Self> {
+        let f: ParamFile = serde_json::from_str(text).with_context(|| format!("{name}: malformed"))?;
+        f.validate().with_context(|| format!("{name}: invalid"))?;
+        Ok(f)
+    }
+
+    /// Reads and validates a parameter file.
+    ///
+    /// # Errors
+    /// I/O, syntax and validation errors naming the file.
+    pub fn read(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Writes the file (pretty JSON).
+    ///
+    /// # Errors
+    /// I/O errors.
+    pub fn write(&self, path: &Path) -> Result<()> {
+        let text = serde_json::to_string_pretty(self)?;
+        std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+    }
+
+    /// The sensors (with extensions), in order.
+    ///
+    /// # Errors
+    /// Invalid directions.
+    pub fn sensors(&self) -> Result<Vec<Sensor<f64>>> {
+        self.sensors.iter().map(SensorParams::to_sensor).collect()
+    }
+
+    /// The head of `N` sensors.
+    ///
+    /// # Errors
+    /// When the file has a different number of sensors, or invalid values.
+    pub fn to_head<const N: usize>(&self) -> Result<Head<f64, N>> {
+        self.validate()?;
+        let v = self.sensors()?;
+        let arr: [Sensor<f64>; N] = v.try_into().map_err(|v: Vec<Sensor<f64>>| {
+            anyhow!("the file has {} sensors, the head needs {N}", v.len())
+        })?;
+        Ok(Head::new(arr))
+    }
+}

@@ -1,0 +1,213 @@
+//! Extra linear columns of the least-squares problem: the model extensions
+//! of [`crate::ext`] as regressors.
+//!
+//! The batch solver fits, per sensor, `P = 5 + E` parameters: the 5-DOF
+//! geometry of [`crate::head::Sensor`] and `E` coefficients `c_j` of
+//! corrections that are linear in the coefficients. A reading is predicted as
+//!
+//! ```text
+//! d_meas = f(E, u; plane) + Σ_j c_j · x_j(observation)
+//! ```
+//!
+//! where `f` is Chen eq. 1-3 and `x_j` are the regressors supplied by a
+//! [`Regressors`] implementation. [`ExtTerms`] supplies the terms of
+//! [`crate::ext::Extension::excess`] (gain, linearity, incidence, crosstalk,
+//! thermal, drift), so that a fitted coefficient vector becomes an
+//! [`Extension`] that the board applies with
+//! [`crate::ext::Extension::correct`]; [`NoExtra`] is the paper's model.
+//!
+//! Limits: regressors are evaluated on measured quantities (the readings,
+//! time and temperature of the pose) and, for incidence, on the current
+//! geometric estimate; a missing input (previous channel, temperature,
+//! time) contributes 0, as in [`crate::ext`].
+
+use super::Poses;
+use crate::ext::Extension;
+use crate::head::Sensor;
+use crate::Real;
+
+/// Supplier of the extra columns of one sensor's least-squares problem.
+pub trait Regressors<T: Real> {
+    /// Number of extra columns `E` (the solver's `P` must be `5 + E`).
+    fn count(&self) -> usize;
+
+    /// Writes the `count()` regressors of the observation (pose `k`, sensor
+    /// `sensor`) into `out[..count()]`; `geom` is the current geometric
+    /// estimate of the sensor.
+    fn fill<P: Poses<T> + ?Sized>(
+        &self,
+        poses: &P,
+        k: usize,
+        sensor: usize,
+        geom: &Sensor<T>,
+        out: &mut [T],
+    );
+
+    /// Short name of column `j` for diagnostics (e.g. `"gain"`).
+    fn name(&self, j: usize) -> &'static str;
+}
+
+/// No extra columns: the paper's zero-point + beam-direction model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct NoExtra;
+
+impl<T: Real> Regressors<T> for NoExtra {
+    fn count(&self) -> usize {
+        0
+    }
+    fn fill<P: Poses<T> + ?Sized>(&self, _: &P, _: usize, _: usize, _: &Sensor<T>, _: &mut [T]) {}
+    fn name(&self, _j: usize) -> &'static str {
+        "none"
+    }
+}
+
+/// One term of [`Extension::excess`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Term {
+    /// `gain · (d − d_ref)`.
+    Gain,
+    /// `nl2 · (d − d_ref)²`.
+    Quadratic,
+    /// `nl3 · (d − d_ref)³`.
+    Cubic,
+    /// `incidence · (1/cos γ − 1)`, `cos γ = |n·u|`.
+    Incidence,
+    /// `crosstalk · (d_prev − d)`.
+    Crosstalk,
+    /// `thermal · (T − T_ref)`.
+    Thermal,
+    /// `drift · t`.
+    Drift,
+}
+
+impl Term {
+    /// All terms, in the column order [`ExtTerms`] uses.
+    pub const ALL: [Term; 7] = [
+        Term::Gain,
+        Term::Quadratic,
+        Term::Cubic,
+        Term::Incidence,
+        Term::Crosstalk,
+        Term::Thermal,
+        Term::Drift,
+    ];
+
+    /// Bit of this term in [`ExtTerms::mask`].
+    pub const fn bit(self) -> u8 {
+        match self {
+            Term::Gain => 1,
+            Term::Quadratic => 2,
+            Term::Cubic => 4,
+            Term::Incidence => 8,
+            Term::Crosstalk => 16,
+            Term::Thermal => 32,
+            Term::Drift => 64,
+        }
+    }
+
+    /// Name of the term.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Term::Gain => "gain",
+            Term::Quadratic => "nonlinearity2",
+            Term::Cubic => "nonlinearity3",
+            Term::Incidence => "incidence",
+            Term::Crosstalk => "crosstalk",
+            Term::Thermal => "thermal",
+            Term::Drift => "drift",
+        }
+    }
+}
+
+/// A selection of [`Term`]s as regressors, columns in the order of
+/// [`Term::ALL`], with the reference distance and temperature of the
+/// sensor's [`Extension`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExtTerms<T: Real> {
+    /// Bit set of [`Term::bit`]s.
+    pub mask: u8,
+    /// Reference distance [mm] of gain and linearity (mid-range).
+    pub d_ref: T,
+    /// Reference temperature [°C] of the thermal term.
+    pub temp_ref: T,
+}
+
+impl<T: Real> ExtTerms<T> {
+    /// The terms in `terms` about `d_ref` / `temp_ref`.
+    pub fn new(terms: &[Term], d_ref: T, temp_ref: T) -> Self {
+        Self {
+            mask: terms.iter().fold(0, |m, t| m | t.bit()),
+            d_ref,
+            temp_ref,
+        }
+    }
+
+    fn terms(&self) -> impl Iterator<Item = Term> + '_ {
+        Term::ALL.into_iter().filter(|t| self.mask & t.bit() != 0)
+    }
+
+    /// The extension with the fitted coefficients `coeffs` (in column order,
+    /// at least `count()` of them; missing ones count as 0).
+    pub fn extension(&self, coeffs: &[T]) -> Extension<T> {
+        let mut e = Extension::identity();
+        e.d_ref = self.d_ref;
+        e.temp_ref = self.temp_ref;
+        for (j, t) in self.terms().enumerate() {
+            let c = coeffs.get(j).copied().unwrap_or_else(T::zero);
+            match t {
+                Term::Gain => e.gain = c,
+                Term::Quadratic => e.nonlinearity[0] = c,
+                Term::Cubic => e.nonlinearity[1] = c,
+                Term::Incidence => e.incidence = c,
+                Term::Crosstalk => e.crosstalk = c,
+                Term::Thermal => e.thermal = c,
+                Term::Drift => e.drift = c,
+            }
+        }
+        e
+    }
+}
+
+impl<T: Real> Regressors<T> for ExtTerms<T> {
+    fn count(&self) -> usize {
+        self.mask.count_ones() as usize
+    }
+
+    fn fill<P: Poses<T> + ?Sized>(
+        &self,
+        poses: &P,
+        k: usize,
+        sensor: usize,
+        geom: &Sensor<T>,
+        out: &mut [T],
+    ) {
+        let d = poses.reading(k, sensor).unwrap_or_else(T::zero);
+        let x = d - self.d_ref;
+        let n = poses.sensors().max(1);
+        let ctx = poses.context(k);
+        for (slot, t) in out.iter_mut().zip(self.terms()) {
+            *slot = match t {
+                Term::Gain => x,
+                Term::Quadratic => x * x,
+                Term::Cubic => x * x * x,
+                Term::Incidence => {
+                    let c = poses.plane(k).n.dot(&geom.dir).abs();
+                    if c > T::zero() {
+                        T::one() / c - T::one()
+                    } else {
+                        T::zero()
+                    }
+                }
+                Term::Crosstalk => poses
+                    .reading(k, (sensor + n - 1) % n)
+                    .map_or_else(T::zero, |p| p - d),
+                Term::Thermal => ctx.temp_c.map_or_else(T::zero, |t| t - self.temp_ref),
+                Term::Drift => ctx.t_s.unwrap_or_else(T::zero),
+            };
+        }
+    }
+
+    fn name(&self, j: usize) -> &'static str {
+        self.terms().nth(j).map_or("extension", Term::name)
+    }
+}
