@@ -35,7 +35,7 @@ pub struct SensorCalibration {
     pub zero: [f32; 3],
     /// Sub 4-6: beam direction x, y, z (normalised by the application).
     pub dir: [f32; 3],
-    /// Sub 7: reference distance of gain and non-linearity [mm].
+    /// Sub 7: reference distance of gain and non-linearity \[mm\].
     pub d_ref: f32,
     /// Sub 8: relative gain error [-].
     pub gain: f32,
@@ -43,7 +43,7 @@ pub struct SensorCalibration {
     pub nl2: f32,
     /// Sub 10: cubic non-linearity [mm⁻²].
     pub nl3: f32,
-    /// Sub 11: incidence bias [mm].
+    /// Sub 11: incidence bias \[mm\].
     pub incidence: f32,
     /// Sub 12: cross-talk from the previously converted channel [-].
     pub crosstalk: f32,
@@ -147,12 +147,12 @@ impl SensorCalibration {
 pub struct TransferFunction {
     /// Sub 1: 0 = 4-20 mA on a shunt, 1 = 0-10 V on a divider.
     pub kind: u8,
-    /// Sub 2: shunt resistance [Ω] (kind 0) or divider ratio
+    /// Sub 2: shunt resistance \[Ω\] (kind 0) or divider ratio
     /// `V_pin / V_sensor` in (0, 1] (kind 1).
     pub scale: f32,
-    /// Sub 3: distance at 4 mA / 0 V [mm].
+    /// Sub 3: distance at 4 mA / 0 V \[mm\].
     pub mm_at_low: f32,
-    /// Sub 4: distance at 20 mA / 10 V [mm].
+    /// Sub 4: distance at 20 mA / 10 V \[mm\].
     pub mm_at_high: f32,
 }
 
@@ -164,13 +164,13 @@ pub const TF_VOLTAGE_0_10V: u8 = 1;
 /// Acquisition settings: object 0x2300.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Acquisition {
-    /// Sub 1: sample period [µs], 100..=100000.
+    /// Sub 1: sample period \[µs\], 100..=100000.
     pub period_us: u32,
     /// Sub 2: oversampling ratio, power of two in 1..=256.
     pub oversampling: u16,
     /// Sub 3: plane method, 0 = Chen (eq. 18-19), 1 = least squares.
     pub method: u8,
-    /// Sub 4: largest acceptable plane RMS residual [mm].
+    /// Sub 4: largest acceptable plane RMS residual \[mm\].
     pub residual_limit_mm: f32,
 }
 
@@ -218,9 +218,9 @@ pub struct Defaults {
     pub software_version: &'static str,
     /// 0x1018 identity.
     pub identity: Identity,
-    /// 0x1017 producer heartbeat time [ms] (0 = off).
+    /// 0x1017 producer heartbeat time \[ms\] (0 = off).
     pub heartbeat_ms: u16,
-    /// SDO server timeout of a segmented transfer [µs] (not an object).
+    /// SDO server timeout of a segmented transfer \[µs\] (not an object).
     pub sdo_timeout_us: u64,
     /// 0x2101..0x2104 calibration of sensors 1..4.
     pub calibration: [SensorCalibration; 4],
@@ -378,21 +378,21 @@ impl Acquisition {
 pub struct Measurement {
     /// 0x2001 sub 1-3: unit normal towards the head (TCS).
     pub normal: [f32; 3],
-    /// 0x2002 sub 1: θ1 [deg].
+    /// 0x2002 sub 1: θ1 \[deg\].
     pub theta1_deg: f32,
-    /// 0x2002 sub 2: θ2 [deg].
+    /// 0x2002 sub 2: θ2 \[deg\].
     pub theta2_deg: f32,
-    /// 0x2002 sub 3: θ [deg].
+    /// 0x2002 sub 3: θ \[deg\].
     pub theta_deg: f32,
-    /// 0x2003 sub 1: pitch [deg].
+    /// 0x2003 sub 1: pitch \[deg\].
     pub pitch_deg: f32,
-    /// 0x2003 sub 2: yaw [deg].
+    /// 0x2003 sub 2: yaw \[deg\].
     pub yaw_deg: f32,
-    /// 0x2004 sub 1-4: distances [mm] as converted from each channel.
+    /// 0x2004 sub 1-4: distances \[mm\] as converted from each channel.
     pub distances_mm: [f32; 4],
     /// 0x2005: status word ([`crate::status`]).
     pub status: u32,
-    /// 0x2006: plane RMS residual [mm].
+    /// 0x2006: plane RMS residual \[mm\].
     pub rms_mm: f32,
 }
 

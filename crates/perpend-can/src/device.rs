@@ -95,7 +95,7 @@ impl Events {
     }
 }
 
-/// Length of the persistence image [bytes]: layout signature (4), entry
+/// Length of the persistence image \[bytes\]: layout signature (4), entry
 /// count (4), then one little-endian `u32` per persisted entry in
 /// dictionary order.
 pub const IMAGE_LEN: usize = 8 + 4 * PERSISTENT;
@@ -1074,7 +1074,7 @@ impl Device {
         (0..4).all(|i| self.calibration(i) == self.core.defaults.calibration.get(i).copied())
     }
 
-    /// Heartbeat period 0x1017 [ms].
+    /// Heartbeat period 0x1017 \[ms\].
     pub fn heartbeat_ms(&self) -> u16 {
         self.core.get(0x1017, 0) as u16
     }

@@ -1,7 +1,7 @@
 //! Electronic Data Sheet (CiA 306, EDS 4.0) generated from the object
 //! dictionary table, so that the file integrators load can never disagree
 //! with what the device answers. The committed `perpend.eds` at the
-//! repository root is [`write`] with [`crate::Defaults::nominal`]; a test
+//! repository root is [`write()`] with [`crate::Defaults::nominal`]; a test
 //! checks that they are identical.
 //!
 //! Node-relative defaults are written as `$NODEID+0x...`; limits of

@@ -34,22 +34,25 @@
 //! assert_eq!(sent.len(), 1 + 4);                       // boot-up + 4 TPDOs
 //! ```
 //!
-//! The application loop:
+//! The application loop (`perpend_board::app::App` implements it for the
+//! firmware and the virtual board):
 //! 1. `Device::new(Params::factory().can.node_id, &Defaults::nominal())`
-//!    (factory values: what 0x1011 restores), then `load_params` with the stored
-//!    `perpend_core::params::Params` and `load_image` with the stored
-//!    image (communication parameters), if valid; then `poll` regularly
+//!    (factory values: what 0x1011 restores), then `load_image` with the
+//!    stored image (every persisted object) or `load_params` with a stored
+//!    `perpend_core::params::Params`, if valid; then `poll` regularly
 //!    (≤ 1 ms period) and `handle` every received frame;
-//! 2. per sample: `set_measurement` (increments 0x2007, triggers
-//!    event-driven TPDOs); `signal_emcy` / `clear_emcy` on fault changes;
+//! 2. per sample: `publish` (= `set_measurement`, which increments 0x2007
+//!    and triggers event-driven TPDOs, plus EMCY raised/cleared from the
+//!    status word), or `set_measurement` with the application's own
+//!    `signal_emcy` / `clear_emcy` policy;
 //! 3. `take_events`: on [`Events::CONFIG_CHANGED`] re-read
-//!    [`Device::calibration`], [`Device::transfer`], [`Device::acquisition`];
-//!    on [`Events::RESET_COMM`] apply [`Device::communication`] (bit rate);
-//!    on [`Events::REQUEST`] carry out [`Device::pending_request`] — a
-//!    [`Request::Store`] writes `params(&current)` and
-//!    [`Device::persistent_image`] to flash (one record), a
-//!    [`Request::Restore`] erases it — and call [`Device::finish_request`]
-//!    with the outcome (the SDO confirmation is sent then).
+//!    [`Device::calibration`], [`Device::transfer`], [`Device::acquisition`]
+//!    (or `params(&current)`); on [`Events::RESET_COMM`] apply
+//!    [`Device::communication`] (bit rate); on [`Events::REQUEST`] carry out
+//!    [`Device::pending_request`] — a [`Request::Store`] writes the record
+//!    and [`Device::persistent_image`] to flash, a [`Request::Restore`]
+//!    erases it — and call [`Device::finish_request`] with the outcome (the
+//!    SDO confirmation is sent then).
 //!
 //! ## Public API summary
 //!
@@ -58,7 +61,8 @@
 //! * [`Device`]: `new(node_id, &Defaults)`, `handle(&Frame, now_us, out)`,
 //!   `poll(now_us, out)` with `out: &mut impl FnMut(Frame)`;
 //!   `nmt_state()`, `node_id()`, `take_events()`, `config_generation()`;
-//!   `set_measurement(&Measurement)`, `measurement()`, `status()`,
+//!   `set_measurement(&Measurement)`, `publish(&Measurement)`,
+//!   `measurement()`, `status()`,
 //!   `sample_counter()`; `calibration(i)`, `transfer(i)`, `acquisition()`,
 //!   `communication()`, `heartbeat_ms()`, `calibration_is_default()`,
 //!   `read_u32/read_f32/read_str(index, sub)`;
@@ -118,16 +122,16 @@
 //! | index | sub | name | access |
 //! |---|---|---|---|
 //! | 0x2001 | 1..3 | surface normal x, y, z (unit, towards the head, TCS) | ro, PDO |
-//! | 0x2002 | 1, 2, 3 | θ1, θ2, θ [deg] (Tian eq. 1-5) | ro, PDO |
-//! | 0x2003 | 1, 2 | pitch, yaw [deg] (Chen eq. 22) | ro, PDO |
-//! | 0x2004 | 1..4 | distances [mm] | ro, PDO |
+//! | 0x2002 | 1, 2, 3 | θ1, θ2, θ \[deg\] (Tian eq. 1-5) | ro, PDO |
+//! | 0x2003 | 1, 2 | pitch, yaw \[deg\] (Chen eq. 22) | ro, PDO |
+//! | 0x2004 | 1..4 | distances \[mm\] | ro, PDO |
 //! | 0x2005 | 0 | status, UNSIGNED32 ([`status`]) | ro, PDO |
-//! | 0x2006 | 0 | plane RMS residual [mm] | ro, PDO |
+//! | 0x2006 | 0 | plane RMS residual \[mm\] | ro, PDO |
 //! | 0x2007 | 0 | sample counter, UNSIGNED32 | ro, PDO |
 //! | 0x2010 | 0 | calibration unlock, UNSIGNED32: write "ucal" 0x6C616375 to unlock, 0 to lock; reads 1/0 | rw, pre-op |
-//! | 0x2101..4 | 1..15 | sensor calibration: zero x,y,z [mm], direction x,y,z, d_ref [mm], gain, nl2, nl3, incidence [mm], crosstalk, thermal [mm/°C], temp_ref [°C], drift [mm/s] | rw, pre-op + unlock |
-//! | 0x2201..4 | 1..4 | transfer function: kind U8 (0 = 4-20 mA shunt, 1 = 0-10 V divider), shunt [Ω] / divider ratio, mm at 4 mA / 0 V, mm at 20 mA / 10 V | rw, pre-op + unlock |
-//! | 0x2300 | 1..4 | period [µs] U32 100..100000, oversampling U16 1..256 power of 2, method U8 (0 Chen, 1 LS), residual limit [mm] | rw, pre-op |
+//! | 0x2101..4 | 1..15 | sensor calibration: zero x,y,z \[mm\], direction x,y,z, d_ref \[mm\], gain, nl2, nl3, incidence \[mm\], crosstalk, thermal [mm/°C], temp_ref [°C], drift [mm/s] | rw, pre-op + unlock |
+//! | 0x2201..4 | 1..4 | transfer function: kind U8 (0 = 4-20 mA shunt, 1 = 0-10 V divider), shunt \[Ω\] / divider ratio, mm at 4 mA / 0 V, mm at 20 mA / 10 V | rw, pre-op + unlock |
+//! | 0x2300 | 1..4 | period \[µs\] U32 100..100000, oversampling U16 1..256 power of 2, method U8 (0 Chen, 1 LS), residual limit \[mm\] | rw, pre-op |
 //! | 0x2400 | 1, 2 | node-id U8 1..127, bit rate [kbit/s] U16 125/250/500/1000 | rw, pre-op |
 //!
 //! Default TPDOs, all transmission type 1 (every SYNC), 8 bytes each:

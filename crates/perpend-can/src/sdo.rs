@@ -148,7 +148,7 @@ pub trait Dictionary {
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<Written, SdoAbort>;
 }
 
-/// Largest segmented download accepted [bytes].
+/// Largest segmented download accepted \[bytes\].
 pub const MAX_DOWNLOAD: usize = 8;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -25,7 +25,9 @@ use std::time::Instant;
 
 use anyhow::{anyhow, bail, Result};
 use nalgebra::Vector3;
-use perpend_core::calib::{ekf_sensor, fit_sensor_base, EkfConfig, Innovation, LsqConfig, Thresholds};
+use perpend_core::calib::{
+    ekf_sensor, fit_sensor_base, EkfConfig, Innovation, LsqConfig, Thresholds,
+};
 use perpend_core::ext::Context;
 use perpend_core::geometry::Plane;
 use perpend_core::head::{Head4, Sensor};
@@ -34,7 +36,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use serde::Serialize;
 
-use crate::calibrate::angle_deg;
+use crate::calibrate::{angle_deg, residual_rms};
 use crate::sim::{
     paper_head, readings, simulate, Dataset, Moment, PoseSpread, SimConfig, SimHead,
     PAPER_STANDOFF_RANGE_MM, PAPER_TILT_RANGE_DEG,
@@ -131,8 +133,10 @@ pub struct AccuracyConfig {
     pub seeds: Vec<u64>,
     /// Calibration run.
     pub cal: SimConfig,
-    /// Test planes per seed (drawn from `cal.spread`, noise `cal.zeta_mm`).
+    /// Test planes per seed (noise `cal.zeta_mm`).
     pub test_planes: usize,
+    /// Spread of the test planes.
+    pub test_spread: PoseSpread,
     /// EKF settings.
     pub ekf: EkfConfig<f64>,
     /// LSQ settings.
@@ -146,6 +150,7 @@ impl AccuracyConfig {
             seeds,
             cal: SimConfig::paper(),
             test_planes: 20,
+            test_spread: PoseSpread::paper(),
             ekf: EkfConfig::chen_simulation(),
             lsq: LsqConfig::default(),
         }
@@ -163,9 +168,16 @@ pub struct AccuracyErrors {
     pub lsq: Vec<f64>,
     /// True head.
     pub floor: Vec<f64>,
-    /// EKF readings used until the stop, per sensor, per seed.
+    /// EKF readings used until the stop, per sensor, per (converged) seed.
     pub ekf_used: Vec<[usize; 4]>,
+    /// Seeds whose EKF diverged on some sensor (excluded from `ekf`).
+    pub ekf_diverged: Vec<u64>,
 }
+
+/// Residual RMS [mm] above which an EKF run counts as diverged: 10 ζ of the
+/// paper's simulation (converged runs stay below 0.05 mm, diverged ones
+/// are at 0.5-10 mm).
+pub const EKF_DIVERGED_RMS_MM: f64 = 0.1;
 
 fn head4(s: &[Sensor<f64>]) -> Result<Head4<f64>> {
     let arr: [Sensor<f64>; 4] = s
@@ -185,24 +197,46 @@ fn normal_error(head: &Head4<f64>, r: &[Option<f64>], truth: &Plane<f64>) -> Res
     Ok(angle_deg(&fit.normal, &n_true))
 }
 
-/// Calibrates with both methods; returns (ekf head, lsq head, ekf used).
+/// Both calibrations of one simulated run.
+#[derive(Debug, Clone)]
+pub struct Calibrated {
+    /// EKF head (`None` where the filter diverged, see
+    /// [`EKF_DIVERGED_RMS_MM`]).
+    pub ekf: Vec<Option<Sensor<f64>>>,
+    /// EKF readings used until the stop, per sensor.
+    pub ekf_used: Vec<usize>,
+    /// Least-squares head.
+    pub lsq: Vec<Sensor<f64>>,
+}
+
+/// Calibrates with both methods. An EKF run that rejected readings (the
+/// beam missed the plane at its estimate) or whose residual RMS over the
+/// run exceeds [`EKF_DIVERGED_RMS_MM`] is reported as diverged (`None`).
+///
+/// # Errors
+/// LSQ failures (a pose set that cannot identify the head).
 pub fn calibrate_both(
     head: &SimHead,
     data: &Dataset,
     ekf: EkfConfig<f64>,
     lsq: &LsqConfig<f64>,
-) -> Result<(Vec<Sensor<f64>>, Vec<Sensor<f64>>, Vec<usize>)> {
-    let mut e = Vec::new();
-    let mut l = Vec::new();
-    let mut used = Vec::new();
+) -> Result<Calibrated> {
+    let mut out = Calibrated {
+        ekf: Vec::new(),
+        ekf_used: Vec::new(),
+        lsq: Vec::new(),
+    };
     for (i, s) in head.nominal.iter().enumerate() {
-        let f = ekf_sensor(s, i, &data.poses, ekf).map_err(|e| anyhow!("EKF sensor {}: {e}", i + 1))?;
-        e.push(f.sensor);
-        used.push(f.used);
+        let f = ekf_sensor(s, i, &data.poses, ekf).ok().filter(|f| {
+            f.rejected == 0
+                && residual_rms(&f.sensor, i, &data.poses).is_some_and(|r| r < EKF_DIVERGED_RMS_MM)
+        });
+        out.ekf_used.push(f.as_ref().map_or(0, |f| f.used));
+        out.ekf.push(f.map(|f| f.sensor));
         let g = fit_sensor_base(s, i, &data.poses, lsq).map_err(|e| anyhow!("LSQ: {e}"))?;
-        l.push(g.sensor);
+        out.lsq.push(g.sensor);
     }
-    Ok((e, l, used))
+    Ok(out)
 }
 
 /// Runs the paper's simulation for every seed.
@@ -217,19 +251,44 @@ pub fn accuracy(cfg: &AccuracyConfig) -> Result<AccuracyErrors> {
     for &seed in &cfg.seeds {
         let mut rng = StdRng::seed_from_u64(seed);
         let data = simulate(&head, &cfg.cal, &[], &mut rng)?;
-        let (e, l, used) = calibrate_both(&head, &data, cfg.ekf, &cfg.lsq)?;
-        let (ekf, lsq) = (head4(&e)?, head4(&l)?);
-        out.ekf_used.push([used[0], used[1], used[2], used[3]]);
+        let c = calibrate_both(&head, &data, cfg.ekf, &cfg.lsq)?;
+        let lsq = head4(&c.lsq)?;
+        let ekf = match c.ekf.iter().copied().collect::<Option<Vec<_>>>() {
+            Some(e) => {
+                let u = &c.ekf_used;
+                out.ekf_used.push([u[0], u[1], u[2], u[3]]);
+                Some(head4(&e)?)
+            }
+            None => {
+                out.ekf_diverged.push(seed);
+                None
+            }
+        };
         let mut test_cfg = cfg.cal;
         test_cfg.dropout = 0.0;
         for t in 0..cfg.test_planes {
-            let p = cfg.cal.spread.draw(&mut rng);
-            let r = readings(&head, &test_cfg, &[], &p, Moment { pose: t, ..Moment::default() }, &mut rng);
+            let p = cfg.test_spread.draw(&mut rng);
+            let r = readings(
+                &head,
+                &test_cfg,
+                &[],
+                &p,
+                Moment {
+                    pose: t,
+                    ..Moment::default()
+                },
+                &mut rng,
+            );
             if r.iter().any(Option::is_none) {
-                bail!("seed {seed}: test plane {} is out of the sensors' reach", t + 1);
+                bail!(
+                    "seed {seed}: test plane {} is out of the sensors' reach",
+                    t + 1
+                );
             }
             out.before.push(normal_error(&nominal, &r, &p)?);
-            out.ekf.push(normal_error(&ekf, &r, &p)?);
+            if let Some(h) = &ekf {
+                out.ekf.push(normal_error(h, &r, &p)?);
+            }
             out.lsq.push(normal_error(&lsq, &r, &p)?);
             out.floor.push(normal_error(&truth, &r, &p)?);
         }
@@ -257,9 +316,22 @@ fn run_accuracy(a: &AccuracyArgs) -> Result<()> {
         Stats::of(&errs.lsq),
         Stats::of(&errs.floor),
     );
+    let diverged = format!(
+        "EKF diverged (rejected readings or residual RMS > {EKF_DIVERGED_RMS_MM} mm) in {} of {} seeds{}; those seeds are excluded from the ekf row",
+        errs.ekf_diverged.len(),
+        a.seeds,
+        if errs.ekf_diverged.is_empty() {
+            String::new()
+        } else {
+            format!(" ({:?})", errs.ekf_diverged)
+        }
+    );
     if a.json {
         let v = serde_json::json!({ "before": b, "ekf": e, "lsq": l, "floor": f });
         println!("{v}");
+        if !errs.ekf_diverged.is_empty() {
+            eprintln!("note: {diverged}");
+        }
         return Ok(());
     }
     let s = &cfg.cal.spread;
@@ -278,23 +350,25 @@ fn run_accuracy(a: &AccuracyArgs) -> Result<()> {
     );
     println!("normal: Chen eq. 18-19 (averaged cross products) for every row");
     println!();
-    println!(
-        "                      this run                     |  Chen Table 4"
-    );
-    println!(
-        "                      max [°]   mean [°]   std [°]  |  max [°]   mean [°]   std [°]"
-    );
+    println!("                      this run                     |  Chen Table 4");
+    println!("                      max [°]   mean [°]   std [°]  |  max [°]   mean [°]   std [°]");
     let row = |name: &str, s: &Stats, paper: Option<(f64, f64, f64)>| {
-        let p = paper.map_or("        –          –         –".to_string(), |(x, m, d)| {
-            format!("{x:>8.4}   {m:>8.4}  {d:>8.4}")
-        });
+        let p = paper.map_or(
+            "        –          –         –".to_string(),
+            |(x, m, d)| format!("{x:>8.4}   {m:>8.4}  {d:>8.4}"),
+        );
         println!(
             "{name:<20} {:>8.4}   {:>8.4}  {:>8.4}  | {p}",
             s.max_deg, s.mean_deg, s.std_deg
         );
     };
     row("before", &b, Some((1.6801, 1.3387, 0.1841)));
-    row("EKF (paper, §3.2)", &e, Some((0.0511, 0.0412, 0.0057)));
+    let ekf_name = if a.ekf_nonlinear {
+        "EKF (nonlinear inn.)"
+    } else {
+        "EKF (Chen eq. 10-16)"
+    };
+    row(ekf_name, &e, Some((0.0511, 0.0412, 0.0057)));
     row("LSQ (5-DOF LM)", &l, None);
     row("floor (true head)", &f, None);
     println!("(paper's method 1, nonlinear LS of [19]: 0.4278 / 0.2446 / 0.1024)");
@@ -313,6 +387,7 @@ fn run_accuracy(a: &AccuracyArgs) -> Result<()> {
         "EKF readings used until the stop (mean over seeds): {}  (Chen Table 3: 75 86 91 81)",
         used.join(", ")
     );
+    println!("{diverged}");
     println!(
         "lsq / floor: mean {:.3}, max {:.3}   (done when ≤ 1.10 and ≤ 1.25)",
         l.mean_deg / f.mean_deg,
@@ -464,6 +539,8 @@ pub struct IdentRow {
     pub standoff: f64,
     /// Largest condition number over sensors and seeds.
     pub condition: f64,
+    /// Smallest per-sensor reading range over sensors and seeds [mm].
+    pub reading_range_mm: f64,
     /// Median over sensors/seeds of the largest 1σ of the across-beam
     /// zero-point components [mm].
     pub sigma_zero_mm: f64,
@@ -495,6 +572,7 @@ pub fn ident_row(tilt_x: f64, tilt_y: f64, standoff: f64, seeds: u64) -> Result<
     let test = PoseSpread::paper();
     let truth = head4(&head.truth)?;
     let (mut kmax, mut sz, mut sd) = (0f64, Vec::new(), Vec::new());
+    let mut rmin = f64::INFINITY;
     let (mut el, mut ef) = (0.0, 0.0);
     for seed in 1..=seeds {
         let mut rng = StdRng::seed_from_u64(seed);
@@ -504,6 +582,7 @@ pub fn ident_row(tilt_x: f64, tilt_y: f64, standoff: f64, seeds: u64) -> Result<
             match fit_sensor_base(s, i, &data.poses, &lsq) {
                 Ok(f) => {
                     kmax = kmax.max(f.diagnostic.condition);
+                    rmin = rmin.min(f.diagnostic.standoff_range_mm);
                     // Across-beam zero point: σ projected on the tangent
                     // basis of the beam.
                     let (e1, e2) = f.sensor.basis();
@@ -526,7 +605,17 @@ pub fn ident_row(tilt_x: f64, tilt_y: f64, standoff: f64, seeds: u64) -> Result<
         let h = head4(&fitted)?;
         for t in 0..20 {
             let p = test.draw(&mut rng);
-            let r = readings(&head, &cal, &[], &p, Moment { pose: t, ..Moment::default() }, &mut rng);
+            let r = readings(
+                &head,
+                &cal,
+                &[],
+                &p,
+                Moment {
+                    pose: t,
+                    ..Moment::default()
+                },
+                &mut rng,
+            );
             if r.iter().any(Option::is_none) {
                 continue;
             }
@@ -539,6 +628,7 @@ pub fn ident_row(tilt_x: f64, tilt_y: f64, standoff: f64, seeds: u64) -> Result<
         tilt_y,
         standoff,
         condition: kmax,
+        reading_range_mm: rmin,
         sigma_zero_mm: median(sz),
         sigma_dir_mrad: median(sd),
         ratio: el / ef,
@@ -549,7 +639,7 @@ fn run_ident(a: &IdentArgs) -> Result<()> {
     println!("identifiability vs calibration pose spread (paper head, ζ = 0.01 mm, ξ = 0.02 mm, 100 poses, {} seeds)", a.seeds);
     println!("test planes: paper spread; ratio = mean normal error LSQ head / true head");
     println!();
-    println!("tilt x [°]  tilt y [°]  standoff [mm]  max condition  σ zero⊥ [mm]  σ dir [mrad]  ratio");
+    println!("tilt x [°]  tilt y [°]  standoff [mm]  min reading range [mm]  max condition  σ zero⊥ [mm]  σ dir [mrad]  ratio");
     let mut grid: Vec<(f64, f64, f64)> = Vec::new();
     for t in [0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 20.0] {
         grid.push((t, t, PAPER_STANDOFF_RANGE_MM));
@@ -560,11 +650,21 @@ fn run_ident(a: &IdentArgs) -> Result<()> {
     for s in [0.0, 1.0, 2.0, 3.0, 5.0, 10.0] {
         grid.push((PAPER_TILT_RANGE_DEG, PAPER_TILT_RANGE_DEG, s));
     }
+    for s in [0.0, 1.0, 2.0, 3.0, 5.0] {
+        grid.push((3.0, 3.0, s));
+    }
     for (tx, ty, s) in grid {
         let r = ident_row(tx, ty, s, a.seeds)?;
         println!(
-            "{:>10.1}  {:>10.1}  {:>13.1}  {:>13.2e}  {:>12.4}  {:>12.3}  {:>5.3}",
-            r.tilt_x, r.tilt_y, r.standoff, r.condition, r.sigma_zero_mm, r.sigma_dir_mrad, r.ratio
+            "{:>10.1}  {:>10.1}  {:>13.1}  {:>22.1}  {:>13.2e}  {:>12.4}  {:>12.3}  {:>5.3}",
+            r.tilt_x,
+            r.tilt_y,
+            r.standoff,
+            r.reading_range_mm,
+            r.condition,
+            r.sigma_zero_mm,
+            r.sigma_dir_mrad,
+            r.ratio
         );
     }
     Ok(())

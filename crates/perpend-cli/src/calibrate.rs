@@ -141,11 +141,11 @@ pub fn run_lsq(
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
     cfg: &LsqConfig<f64>,
-) -> Vec<Result<LsqFit<f64, 5>, LsqError<f64>>> {
+) -> Vec<Result<LsqFit<f64, 5>, Box<LsqError<f64>>>> {
     nominal
         .iter()
         .enumerate()
-        .map(|(i, s)| fit_sensor_base(s, i, poses, cfg))
+        .map(|(i, s)| fit_sensor_base(s, i, poses, cfg).map_err(Box::new))
         .collect()
 }
 

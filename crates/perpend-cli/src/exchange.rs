@@ -185,18 +185,63 @@ impl Poses<f64> for PoseTable {
     }
 }
 
-/// A CSV reader configured for the format: comments, no header handling
-/// (done here to know the header's line), trimmed fields.
-fn csv_reader<R: Read>(r: R) -> csv::Reader<R> {
+/// A CSV reader configured for the format (comments are removed before,
+/// see [`Text`]): no header handling (done here to know the header's
+/// line), trimmed fields.
+fn csv_reader(text: &[u8]) -> csv::Reader<&[u8]> {
     csv::ReaderBuilder::new()
         .has_headers(false)
-        .comment(Some(b'#'))
         .trim(csv::Trim::All)
         .flexible(false)
-        .from_reader(r)
+        .from_reader(text)
 }
 
-fn csv_error(file: &str, e: &csv::Error) -> ExchangeError {
+/// The file's text without comment and blank lines, and the original line
+/// number of each remaining line. (The csv crate's record positions point
+/// at the first skipped line before a record, so its line numbers are wrong
+/// after comments or blank lines; with those removed they are exact and
+/// are mapped back here.)
+struct Text {
+    bytes: Vec<u8>,
+    lines: Vec<u64>,
+}
+
+impl Text {
+    fn read<R: Read>(mut r: R, file: &str) -> Result<Self, ExchangeError> {
+        let mut raw = Vec::new();
+        r.read_to_end(&mut raw)
+            .map_err(|e| err(file, None, format!("cannot read: {e}")))?;
+        let mut bytes = Vec::with_capacity(raw.len());
+        let mut lines = Vec::new();
+        for (n, line) in raw.split(|&b| b == b'\n').enumerate() {
+            let blank = line.iter().all(|b| b.is_ascii_whitespace());
+            if blank || line.first() == Some(&b'#') {
+                continue;
+            }
+            bytes.extend_from_slice(line);
+            bytes.push(b'\n');
+            lines.push(n as u64 + 1);
+        }
+        Ok(Self { bytes, lines })
+    }
+
+    /// Original 1-based line of line `l` (1-based) of the filtered text.
+    fn line(&self, l: u64) -> u64 {
+        let i = l.saturating_sub(1) as usize;
+        self.lines
+            .get(i)
+            .copied()
+            .unwrap_or_else(|| self.lines.last().map_or(l, |x| x + 1))
+    }
+
+    /// Original line where `rec` starts.
+    fn line_of(&self, rec: &csv::StringRecord) -> u64 {
+        rec.position().map_or(0, |p| self.line(p.line()))
+    }
+}
+
+fn csv_error(file: &str, text: &Text, e: &csv::Error) -> ExchangeError {
+    let line = |p: &Option<csv::Position>| p.as_ref().map(|p| text.line(p.line()));
     match e.kind() {
         csv::ErrorKind::UnequalLengths {
             pos,
@@ -204,17 +249,13 @@ fn csv_error(file: &str, e: &csv::Error) -> ExchangeError {
             len,
         } => err(
             file,
-            pos.as_ref().map(|p| p.line()),
+            line(pos),
             format!("{len} fields, but the header has {expected_len}"),
         ),
-        csv::ErrorKind::Utf8 { pos, .. } => err(
-            file,
-            pos.as_ref().map(|p| p.line()),
-            "not valid UTF-8 text",
-        ),
+        csv::ErrorKind::Utf8 { pos, .. } => err(file, line(pos), "not valid UTF-8 text"),
         _ => err(
             file,
-            e.position().map(|p| p.line()),
+            e.position().map(|p| text.line(p.line())),
             format!("cannot read CSV: {e}"),
         ),
     }
@@ -223,12 +264,13 @@ fn csv_error(file: &str, e: &csv::Error) -> ExchangeError {
 /// Reads the header row; returns it with its line number.
 fn read_header<R: Read>(
     rdr: &mut csv::Reader<R>,
+    text: &Text,
     file: &str,
 ) -> Result<(csv::StringRecord, u64), ExchangeError> {
     let mut rec = csv::StringRecord::new();
     match rdr.read_record(&mut rec) {
         Ok(true) => {
-            let line = rec.position().map_or(1, |p| p.line());
+            let line = text.line_of(&rec);
             // A UTF-8 byte order mark would otherwise stick to the first name.
             let cleaned: csv::StringRecord = rec
                 .iter()
@@ -244,13 +286,14 @@ fn read_header<R: Read>(
             Ok((cleaned, line))
         }
         Ok(false) => Err(err(file, None, "empty file: no header row")),
-        Err(e) => Err(csv_error(file, &e)),
+        Err(e) => Err(csv_error(file, text, &e)),
     }
 }
 
 /// Turns a serde error of a record into "column X: problem".
 fn de_error(
     file: &str,
+    text: &Text,
     line: u64,
     header: &csv::StringRecord,
     rec: &csv::StringRecord,
@@ -270,7 +313,7 @@ fn de_error(
         }
         return err(file, Some(line), format!("{}", de.kind()));
     }
-    csv_error(file, e)
+    csv_error(file, text, e)
 }
 
 fn require_columns(
@@ -317,8 +360,9 @@ struct SensorRecord {
 /// # Errors
 /// [`ExchangeError`] for any violation of the format.
 pub fn parse_sensors<R: Read>(reader: R, file: &str) -> Result<SensorTable, ExchangeError> {
-    let mut rdr = csv_reader(reader);
-    let (header, hline) = read_header(&mut rdr, file)?;
+    let text = Text::read(reader, file)?;
+    let mut rdr = csv_reader(&text.bytes);
+    let (header, hline) = read_header(&mut rdr, &text, file)?;
     require_columns(
         file,
         hline,
@@ -331,12 +375,12 @@ pub fn parse_sensors<R: Read>(reader: R, file: &str) -> Result<SensorTable, Exch
         match rdr.read_record(&mut rec) {
             Ok(true) => {}
             Ok(false) => break,
-            Err(e) => return Err(csv_error(file, &e)),
+            Err(e) => return Err(csv_error(file, &text, &e)),
         }
-        let line = rec.position().map_or(0, |p| p.line());
+        let line = text.line_of(&rec);
         let r: SensorRecord = rec
             .deserialize(Some(&header))
-            .map_err(|e| de_error(file, line, &header, &rec, &e))?;
+            .map_err(|e| de_error(file, &text, line, &header, &rec, &e))?;
         if r.sensor < 1 {
             return Err(err(
                 file,
@@ -492,8 +536,9 @@ pub fn parse_poses<R: Read>(
     file: &str,
     expect_sensors: Option<usize>,
 ) -> Result<PoseTable, ExchangeError> {
-    let mut rdr = csv_reader(reader);
-    let (header, hline) = read_header(&mut rdr, file)?;
+    let text = Text::read(reader, file)?;
+    let mut rdr = csv_reader(&text.bytes);
+    let (header, hline) = read_header(&mut rdr, &text, file)?;
     require_columns(file, hline, &header, &["pose", "a", "b", "c", "d_mm"])?;
     // Reading columns d<i>_mm.
     let mut dcols: HashMap<usize, usize> = HashMap::new();
@@ -543,12 +588,12 @@ pub fn parse_poses<R: Read>(
         match rdr.read_record(&mut rec) {
             Ok(true) => {}
             Ok(false) => break,
-            Err(e) => return Err(csv_error(file, &e)),
+            Err(e) => return Err(csv_error(file, &text, &e)),
         }
-        let line = rec.position().map_or(0, |p| p.line());
+        let line = text.line_of(&rec);
         let r: PoseRecord = rec
             .deserialize(Some(&header))
-            .map_err(|e| de_error(file, line, &header, &rec, &e))?;
+            .map_err(|e| de_error(file, &text, line, &header, &rec, &e))?;
         if let Some((p, l)) = last_pose {
             if r.pose <= p {
                 return Err(err(
@@ -588,7 +633,10 @@ pub fn parse_poses<R: Read>(
             return Err(err(
                 file,
                 Some(line),
-                format!("pose {}: {valid} valid readings, a pose needs at least 3", r.pose),
+                format!(
+                    "pose {}: {valid} valid readings, a pose needs at least 3",
+                    r.pose
+                ),
             ));
         }
         rows.push(PoseRow {
@@ -618,7 +666,8 @@ pub fn read_poses(path: &Path, expect_sensors: Option<usize>) -> Result<PoseTabl
 }
 
 fn num(x: f64) -> String {
-    format!("{x}")
+    // `+ 0.0` turns a negative zero into 0 (no "-0" in the files).
+    format!("{}", x + 0.0)
 }
 
 fn opt(x: Option<f64>) -> String {

@@ -5,8 +5,11 @@
 #![deny(missing_docs)]
 
 pub mod bench;
+pub mod board;
 pub mod calibrate;
 pub mod demo;
+pub mod diagnose;
 pub mod exchange;
 pub mod paramfile;
 pub mod sim;
+pub mod slcan;

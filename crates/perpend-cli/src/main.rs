@@ -19,8 +19,15 @@ enum Cmd {
     Simulate(sim::Args),
     /// Calibrate a head from sensors.csv + poses.csv (least squares or the paper's EKF).
     Calibrate(calibrate::Args),
+    /// Find what the model misses in a calibration run: name the effect, extend the model, measure the gain.
+    Diagnose(diagnose::Args),
+    /// Studies: `study paper` puts the paper's simulation beside its experiment.
+    Study(diagnose::study::Args),
     /// Benchmarks: the paper's simulation (accuracy), calibration speed, identifiability study.
     Bench(bench::Args),
+    /// Run a virtual board: the firmware's application on a simulated head,
+    /// CANopen served as slcan over TCP.
+    Board(board::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -29,7 +36,10 @@ fn main() -> std::process::ExitCode {
         Cmd::Demo(a) => demo::run(&a),
         Cmd::Simulate(a) => sim::run(&a),
         Cmd::Calibrate(a) => calibrate::run(&a),
+        Cmd::Diagnose(a) => diagnose::run(&a),
+        Cmd::Study(a) => diagnose::study::run(&a),
         Cmd::Bench(a) => bench::run(&a),
+        Cmd::Board(a) => board::run(&a),
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -236,7 +236,10 @@ impl ParamFile {
             bail!("format is '{}', expected '{FORMAT}'", self.format);
         }
         if self.version != VERSION {
-            bail!("version {} is not supported (expected {VERSION})", self.version);
+            bail!(
+                "version {} is not supported (expected {VERSION})",
+                self.version
+            );
         }
         if self.sensors.is_empty() {
             bail!("no sensors");
@@ -302,7 +305,8 @@ impl ParamFile {
     /// # Errors
     /// Syntax/type errors with line and column, or validation errors.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
-        let f: ParamFile = serde_json::from_str(text).with_context(|| format!("{name}: malformed"))?;
+        let f: ParamFile =
+            serde_json::from_str(text).with_context(|| format!("{name}: malformed"))?;
         f.validate().with_context(|| format!("{name}: invalid"))?;
         Ok(f)
     }
@@ -323,7 +327,8 @@ impl ParamFile {
     /// I/O errors.
     pub fn write(&self, path: &Path) -> Result<()> {
         let text = serde_json::to_string_pretty(self)?;
-        std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+        std::fs::write(path, text + "\n")
+            .with_context(|| format!("cannot write {}", path.display()))
     }
 
     /// The sensors (with extensions), in order.

@@ -67,7 +67,7 @@ impl<T: Real> Deviation<T> {
         let theta2 = (-n.x).atan2(-n.z);
         // atan2 of the lateral and axial parts: exact near 0, where
         // acos(−n_z) loses half the digits.
-        let theta = (n.x * n.x + n.y * n.y).sqrt().atan2(-n.z);
+        let theta = (n.x * n.x + n.y * n.y).fast_sqrt().atan2(-n.z);
         let t1 = n.y.max(-T::one()).min(T::one()).asin();
         Ok(Self {
             theta1,
@@ -104,6 +104,15 @@ impl<T: Real> Attitude<T> {
             pitch: -(f.y.max(-T::one()).min(T::one())).asin(),
             yaw: (f.x / f.z).atan(),
         })
+    }
+
+    /// The same angles from Tian's deviation: `pitch = t1`, `yaw = θ2`
+    /// (module docs).
+    pub fn from_deviation(dev: &Deviation<T>) -> Self {
+        Self {
+            pitch: dev.t1,
+            yaw: dev.theta2,
+        }
     }
 
     /// The rotation `Rot(y, yaw)·Rot(x, pitch)` (Chen eq. 20-21, φ = 0).
@@ -389,6 +398,9 @@ mod tests {
         let dev = Deviation::from_normal(&n).unwrap();
         assert_relative_eq!(att.yaw, dev.theta2, epsilon = 1e-14);
         assert_relative_eq!(att.pitch, dev.t1, epsilon = 1e-14);
+        let via = Attitude::from_deviation(&dev);
+        assert_relative_eq!(via.yaw, att.yaw, epsilon = 1e-14);
+        assert_relative_eq!(via.pitch, att.pitch, epsilon = 1e-14);
     }
 
     #[test]

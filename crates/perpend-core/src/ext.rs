@@ -52,12 +52,22 @@ pub struct Extension<T: Real> {
 }
 
 /// What the corrections need besides the reading itself.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Context<T: Real> {
     /// Head temperature [°C], if measured.
     pub temp_c: Option<T>,
     /// Time since the start of the run [s], if known.
     pub t_s: Option<T>,
+}
+
+impl<T: Real> Default for Context<T> {
+    /// Neither temperature nor time known.
+    fn default() -> Self {
+        Self {
+            temp_c: None,
+            t_s: None,
+        }
+    }
 }
 
 impl<T: Real> Default for Extension<T> {

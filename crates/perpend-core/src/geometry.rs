@@ -25,7 +25,7 @@ pub fn unit<T: Real>(v: Vector3<T>, what: &'static str) -> Result<Vector3<T>> {
     if !(n2 > zero_len_sq::<T>()) {
         return Err(Error::ZeroLength(what));
     }
-    Ok(v / n2.sqrt())
+    Ok(v / n2.fast_sqrt())
 }
 
 /// A plane `n·x + d = 0` in the TCS with unit normal `n` (Chen eq. 1).
@@ -55,7 +55,7 @@ impl<T: Real> Plane<T> {
         if !(len2 > zero_len_sq::<T>()) {
             return Err(Error::ZeroLength("plane normal"));
         }
-        let len = len2.sqrt();
+        let len = len2.fast_sqrt();
         Ok(Self {
             n: raw / len,
             d: d / len,
@@ -126,7 +126,7 @@ pub fn tangent_basis<T: Real>(u: &Vector3<T>) -> (Vector3<T>, Vector3<T>) {
     let e1 = reference.cross(u);
     // `u` is unit and `reference` is at least ~25° away from it, so the
     // cross product has length >= sin(25°); normalising cannot divide by 0.
-    let e1 = e1 / e1.norm();
+    let e1 = e1 / e1.norm_squared().fast_sqrt();
     let e2 = u.cross(&e1);
     (e1, e2)
 }

@@ -52,24 +52,41 @@ pub struct Thresholds<T: Real> {
 }
 
 impl<T: Real> Default for Thresholds<T> {
-    /// Values from the sensitivity study (`perpend bench ident`, run on the
-    /// paper's head with ζ = 0.01 mm, ξ = 0.02 mm, 100 poses):
+    /// Values from the sensitivity study `perpend bench ident` (paper head,
+    /// ζ = 0.01 mm, ξ = 0.02 mm, 100 poses, 10 seeds; test planes from the
+    /// paper spread, ±5° about x and y, ±1.5 mm; "ratio" = mean normal
+    /// error with the calibrated head / with the true head):
     ///
-    /// * `max_condition = 1e9`: κ of pose sets with tilt about one axis
-    ///   only lies above 1e10; of sets that reach the noise floor, below
-    ///   1e7. 1e9 rejects the first with margin while keeping weak but
-    ///   usable sets (tilt ranges around 1°).
-    /// * `min_tilt_deg = 3`: below ~3° the 1σ of the across-beam zero point
-    ///   exceeds 0.05 mm and the normal error on a 30°-tilted test plane
-    ///   grows beyond the noise floor by more than 10%.
-    /// * `min_standoff_mm = 3`: with less than ~3 mm of reading range per
-    ///   sensor the beam direction's 1σ exceeds 1 mrad, which moves the spot
-    ///   by more than the reading noise over a ±5 mm working range.
+    /// | calibration tilt x / y [°], standoff [mm] | min reading range [mm] | condition | ratio |
+    /// |---|---|---|---|
+    /// | 0 / 10, 3     | 2.9  | 5.7e7 | 2784 |
+    /// | 0.4 / 10, 3   | 2.8  | 1.5e5 | 2.39 |
+    /// | 3 / 3, 0      | 1.6  | 3.2e6 | 4.82 |
+    /// | 1 / 1, 3      | 2.9  | 2.6e4 | 3.31 |
+    /// | 3 / 3, 3      | 3.4  | 4.2e3 | 1.46 |
+    /// | 5 / 5, 3      | 4.3  | 2.4e3 | 1.18 |
+    /// | 10 / 10, 0    | 5.4  | 2.8e4 | 1.18 |
+    /// | 10 / 10, 2    | 5.9  | 3.2e3 | 1.05 |
+    /// | 10 / 10, 3    | 6.7  | 1.6e3 | 1.04 |
+    /// | 20 / 20, 3    | 11.3 | 1.0e3 | 1.01 |
+    ///
+    /// * `max_condition = 1e5`: pose sets with (almost) no tilt about one
+    ///   axis or with neither tilt nor standoff variation lie above it
+    ///   (1.5e5 … 5.7e7, normal error 2.4× … 2800× the floor) and are
+    ///   refused; everything below is at worst weak.
+    /// * `min_tilt_deg = 5`: from 5° on, the calibrated normal error is
+    ///   within ~20% of the floor over a ±5° working range (10°: 4%).
+    /// * `min_standoff_mm = 6`: each sensor's readings must span ≥ 6 mm
+    ///   (tilt moves the spot too); below, the direction is determined
+    ///   poorly (10°/10° with 0-2 mm standoff range: 5-18% above floor).
+    ///
+    /// The thresholds scale with the noise: with 3× lower noise the same
+    /// accuracy needs ~3× smaller ranges.
     fn default() -> Self {
         Self {
-            max_condition: T::lit(1e9),
-            min_tilt_deg: T::lit(3.0),
-            min_standoff_mm: T::lit(3.0),
+            max_condition: T::lit(1e5),
+            min_tilt_deg: T::lit(5.0),
+            min_standoff_mm: T::lit(6.0),
         }
     }
 }
@@ -297,8 +314,7 @@ impl<T: Real> Diagnostic<T> {
             m |= Missing::READINGS;
         }
         self.missing = Missing(m);
-        self.status = if Missing(m).has(Missing::READINGS)
-            || !(self.condition <= th.max_condition)
+        self.status = if Missing(m).has(Missing::READINGS) || !(self.condition <= th.max_condition)
         {
             Status::NotIdentifiable
         } else if m != 0 {
@@ -392,5 +408,87 @@ impl<T: Real> fmt::Display for Diagnostic<T> {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::calib::testutil::{paper_heads, plane};
+    use crate::calib::CalPose;
+    use crate::ext::Context;
+    use crate::model::distance;
+    use approx::assert_relative_eq;
+
+    #[test]
+    fn ranges_of_a_hand_made_pose_set() {
+        let (nominal, _) = paper_heads();
+        let poses: std::vec::Vec<CalPose<f64, 4>> =
+            [(-2.0, 0.0, 30.0), (3.0, 0.0, 32.0), (0.0, 0.0, 31.0)]
+                .iter()
+                .map(|&(tx, ty, s)| {
+                    let p = plane(tx, ty, s);
+                    CalPose {
+                        plane: p,
+                        readings: core::array::from_fn(|i| {
+                            Some(distance(&nominal.sensors[i], &p, i).unwrap())
+                        }),
+                        ctx: Context::default(),
+                    }
+                })
+                .collect();
+        let (tx, ty, so, n) = pose_ranges(poses.as_slice(), 0, &nominal.sensors[0]);
+        assert_eq!(n, 3);
+        assert_relative_eq!(tx, 5.0, epsilon = 0.05);
+        assert_relative_eq!(ty, 0.0, epsilon = 1e-9);
+        let d: std::vec::Vec<f64> = poses.iter().map(|p| p.readings[0].unwrap()).collect();
+        let want =
+            d.iter().cloned().fold(f64::MIN, f64::max) - d.iter().cloned().fold(f64::MAX, f64::min);
+        assert_relative_eq!(so, want, epsilon = 1e-12);
+    }
+
+    #[test]
+    fn verdicts_and_messages() {
+        let mut d = Diagnostic::<f64> {
+            sensor: 1,
+            readings: 100,
+            params: 5,
+            tilt_x_range_deg: 0.4,
+            tilt_y_range_deg: 8.0,
+            standoff_range_mm: 7.0,
+            condition: 2e5,
+            weakest: 0,
+            weakest_name: "zero point x",
+            missing: Missing::default(),
+            status: Status::Ok,
+            thresholds: Thresholds::default(),
+        };
+        d.judge();
+        assert_eq!(d.status, Status::NotIdentifiable);
+        assert_eq!(
+            std::format!("{d}"),
+            "sensor 2: the pose set cannot identify its parameters (condition 2.0e5, limit 1e5): tilt range 0.4° about x: need ≥ 5°"
+        );
+        d.condition = 5e3;
+        d.judge();
+        assert_eq!(d.status, Status::Weak);
+        d.tilt_x_range_deg = 8.0;
+        d.judge();
+        assert_eq!(d.status, Status::Ok);
+        assert!(std::format!("{d}").starts_with("sensor 2: identifiable (condition 5.0e3"));
+        d.condition = f64::INFINITY;
+        d.judge();
+        assert_eq!(d.status, Status::NotIdentifiable);
+        assert!(std::format!("{d}").ends_with("the readings do not determine the zero point x"));
+    }
+
+    #[test]
+    fn singular_matrix_has_infinite_condition() {
+        let mut a = SMatrix::<f64, 3, 3>::identity();
+        a[(1, 1)] = 0.0;
+        assert_eq!(scaled_condition(&a), (f64::INFINITY, 1));
+        let b = SMatrix::<f64, 2, 2>::new(1.0, 1.0, 1.0, 1.0);
+        assert!(scaled_condition(&b).0 > 1e12);
     }
 }

@@ -138,7 +138,9 @@ mod tests {
     use approx::assert_relative_eq;
 
     fn test_matrix() -> SMatrix<f64, 5, 5> {
-        let b = SMatrix::<f64, 5, 5>::from_fn(|i, j| ((i * 7 + j * 3) % 11) as f64 - 4.0 + 0.1 * j as f64);
+        let b = SMatrix::<f64, 5, 5>::from_fn(|i, j| {
+            ((i * 7 + j * 3) % 11) as f64 - 4.0 + 0.1 * j as f64
+        });
         b * b.transpose() + SMatrix::identity() * 0.5
     }
 

@@ -29,12 +29,14 @@ pub mod ident;
 mod linalg;
 pub mod lsq;
 pub mod regress;
+#[cfg(test)]
+pub(crate) mod testutil;
 
 use crate::ext::Context;
 use crate::geometry::Plane;
 use crate::Real;
 
-pub use ekf::{ekf_sensor, CovarianceUpdate, Ekf, EkfConfig, EkfFit, Innovation};
+pub use ekf::{ekf_sensor, CovarianceUpdate, Ekf, EkfConfig, EkfFit, Innovation, JacobianAt};
 pub use ident::{Diagnostic, Missing, Status, Thresholds};
 pub use lsq::{assess, fit_head, fit_sensor, fit_sensor_base, LsqConfig, LsqError, LsqFit};
 pub use regress::{ExtTerms, NoExtra, Regressors, Term};

@@ -211,3 +211,50 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
         self.terms().nth(j).map_or("extension", Term::name)
     }
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::calib::testutil::{paper_heads, plane};
+    use crate::calib::CalPose;
+    use crate::ext::Context;
+    use approx::assert_relative_eq;
+
+    #[test]
+    fn regressors_reproduce_extension_excess() {
+        let (_, truth) = paper_heads();
+        let p = plane(15.0, 2.0, 29.0);
+        let pose = CalPose {
+            plane: p,
+            readings: [Some(33.0), Some(30.5), None, Some(35.25)],
+            ctx: Context {
+                temp_c: Some(31.0),
+                t_s: Some(12.5),
+            },
+        };
+        let poses = [pose];
+        let terms = ExtTerms::new(&Term::ALL, 32.0, 21.0);
+        assert_eq!(Regressors::<f64>::count(&terms), 7);
+        let c = [1e-3, 2e-4, -3e-5, 0.02, 4e-3, 1e-3, -2e-4];
+        let ext = terms.extension(&c);
+        for i in [0usize, 1, 3] {
+            let mut x = [0.0; 7];
+            terms.fill(poses.as_slice(), 0, i, &truth.sensors[i], &mut x);
+            let lin: f64 = x.iter().zip(c.iter()).map(|(a, b)| a * b).sum();
+            let prev = pose.readings[(i + 3) % 4];
+            let cg = p.n.dot(&truth.sensors[i].dir).abs();
+            let want = ext.excess(pose.readings[i].unwrap(), prev, cg, &pose.ctx);
+            assert_relative_eq!(lin, want, epsilon = 1e-12);
+        }
+        assert_eq!(Regressors::<f64>::name(&terms, 4), "crosstalk");
+        let only = ExtTerms::new(&[Term::Thermal, Term::Gain], 30.0, 20.0);
+        assert_eq!(Regressors::<f64>::name(&only, 0), "gain");
+        assert_eq!(Regressors::<f64>::name(&only, 1), "thermal");
+        let e = only.extension(&[0.5, 0.25]);
+        assert_eq!(
+            (e.gain, e.thermal, e.d_ref, e.temp_ref),
+            (0.5, 0.25, 30.0, 20.0)
+        );
+    }
+}

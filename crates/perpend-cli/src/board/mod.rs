@@ -1,0 +1,213 @@
+//! `perpend board`: a virtual sensor board on the host. The firmware's
+//! application ([`perpend_board::app::App`]: the same pipeline,
+//! `perpend-core` math and `perpend-can` device as on the STM32) runs
+//! against a simulated head looking at a fixed plane and serves its CAN bus
+//! as LAWICEL/slcan over TCP, one client at a time, so that python-can's
+//! `slcan` interface with channel `socket://HOST:PORT` (and any CANopen
+//! master on top of it) talks to it.
+//!
+//! ```text
+//! perpend board --slcan 127.0.0.1:5555 --node-id 16 --plane 0.035,-0.052,1,-40 \
+//!               [--sensors sensors.csv] [--params params.json] [--noise-mm 0.002] \
+//!               [--fault 3:open] [--seed 1]
+//! ```
+//!
+//! * `--plane A,B,C,D`: the surface `A·x + B·y + C·z + D = 0` in the TCS.
+//! * `--sensors`: the head the board is built with (exchange format,
+//!   4 sensors): stored on the board and simulated.
+//! * `--params`: a calibration (`perpend calibrate --out`): stored on the
+//!   board and simulated as the true head (it overrides `--sensors` for
+//!   both). Without either flag the board runs the factory head.
+//! * `--noise-mm`: reading noise, 1σ (default 2 µm; 0 makes every sensor
+//!   look stuck after the stuck detector's 2 s).
+//! * `--fault SENSOR:KIND` (repeatable): `open`, `overcurrent`,
+//!   `saturated`, `stuck`, `noisy` (see [`sim`]).
+//! * Port 0 picks a free port. The first line on stdout is
+//!   `perpend board: node N on HOST:PORT` once the port accepts clients.
+//!
+//! Parameters stored by 0x1010 live in an in-memory flash: they survive
+//! NMT resets (and 0x1011 restores the factory state) for the run.
+
+pub mod node;
+pub mod server;
+pub mod sim;
+
+use std::io::Write as _;
+use std::net::TcpListener;
+use std::path::PathBuf;
+
+use anyhow::{anyhow, bail, Context as _, Result};
+use perpend_core::head::Head4;
+use perpend_core::params::Params;
+
+use crate::demo::parse_plane;
+use node::{BoardConfig, VirtualBoard};
+use sim::{Fault, SimHead};
+
+/// Arguments of `perpend board`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// TCP address to serve slcan on, e.g. `127.0.0.1:5555` (port 0: any
+    /// free port, printed at start).
+    #[arg(long)]
+    pub slcan: String,
+    /// CANopen node-id, 1..127 (decimal or 0x hex).
+    #[arg(long, default_value = "0x20", value_parser = parse_node_id)]
+    pub node_id: u8,
+    /// Plane `A,B,C,D` (`A·x + B·y + C·z + D = 0`, TCS, +z = feed).
+    #[arg(long, default_value = "0.035,-0.052,1,-40", allow_hyphen_values = true)]
+    pub plane: String,
+    /// Head of the board (`sensors.csv`, exchange format, 4 sensors).
+    #[arg(long)]
+    pub sensors: Option<PathBuf>,
+    /// Calibration of the board (`params.json` of `perpend calibrate`).
+    #[arg(long)]
+    pub params: Option<PathBuf>,
+    /// Reading noise [mm, 1σ].
+    #[arg(long, default_value_t = 0.002)]
+    pub noise_mm: f64,
+    /// Fault `SENSOR:KIND` (1-based sensor; open, overcurrent, saturated,
+    /// stuck, noisy); repeatable.
+    #[arg(long)]
+    pub fault: Vec<Fault>,
+    /// Seed of the noise generator.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+/// Parses a node-id: decimal or `0x` hex, 1..=127.
+pub fn parse_node_id(s: &str) -> Result<u8> {
+    let v = match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
+        Some(h) => u8::from_str_radix(h, 16),
+        None => s.parse::<u8>(),
+    }
+    .map_err(|_| anyhow!("node-id '{s}': expected 1..127"))?;
+    if !(1..=127).contains(&v) {
+        bail!("node-id '{s}': expected 1..127");
+    }
+    Ok(v)
+}
+
+fn head4(v: Vec<perpend_core::head::Sensor<f64>>, what: &str) -> Result<Head4<f64>> {
+    let n = v.len();
+    let arr: [perpend_core::head::Sensor<f64>; 4] = v
+        .try_into()
+        .map_err(|_| anyhow!("{what}: the board has 4 sensors, the file has {n}"))?;
+    Ok(Head4::new(arr))
+}
+
+/// Builds the board from the arguments (no network).
+///
+/// # Errors
+/// Unreadable or invalid files, a bad plane, noise or node-id.
+pub fn build(a: &Args) -> Result<VirtualBoard> {
+    let plane = parse_plane(&a.plane)?;
+    let head = match &a.sensors {
+        Some(p) => {
+            let t = crate::exchange::read_sensors(p)?;
+            Some(head4(t.sensors()?, &p.display().to_string())?)
+        }
+        None => None,
+    };
+    let calibration = match &a.params {
+        Some(p) => {
+            let f = crate::paramfile::ParamFile::read(p)?;
+            Some(head4(f.sensors()?, &p.display().to_string())?)
+        }
+        None => None,
+    };
+    let truth = calibration
+        .or(head)
+        .unwrap_or_else(|| Params::factory().head.cast());
+    let mut sim = SimHead::new(truth, plane, a.noise_mm, a.seed)?;
+    for f in &a.fault {
+        sim.set_fault(f.sensor, Some(f.kind));
+    }
+    let cfg = BoardConfig {
+        node_id: a.node_id,
+        head,
+        calibration,
+    };
+    VirtualBoard::new(&cfg, sim)
+}
+
+/// Runs `perpend board` until killed.
+///
+/// # Errors
+/// As [`build`], or when the address cannot be bound.
+pub fn run(a: &Args) -> Result<()> {
+    let mut board = build(a)?;
+    let listener = TcpListener::bind(&a.slcan)
+        .with_context(|| format!("--slcan {}: cannot listen", a.slcan))?;
+    let addr = listener.local_addr()?;
+    println!(
+        "perpend board: node {} on {addr}",
+        board.app().device().node_id()
+    );
+    std::io::stdout().flush()?;
+    server::serve(listener, &mut board)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::exchange::{write_sensors, SensorTable};
+
+    fn args() -> Args {
+        Args {
+            slcan: "127.0.0.1:0".into(),
+            node_id: 0x20,
+            plane: "0.01,0.02,1,-40".into(),
+            sensors: None,
+            params: None,
+            noise_mm: 0.0,
+            fault: Vec::new(),
+            seed: 1,
+        }
+    }
+
+    #[test]
+    fn node_ids_parse_in_decimal_and_hex() {
+        assert_eq!(parse_node_id("16").unwrap(), 16);
+        assert_eq!(parse_node_id("0x7F").unwrap(), 127);
+        assert!(parse_node_id("0").is_err());
+        assert!(parse_node_id("128").is_err());
+        assert!(parse_node_id("x").is_err());
+    }
+
+    #[test]
+    fn builds_from_a_sensors_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sensors.csv");
+        let head = Head4::<f64>::cone(60.0, 25f64.to_radians(), 0.0, 0.0).unwrap();
+        let table = SensorTable::from_sensors(&head.sensors, None);
+        let mut f = std::fs::File::create(&path).unwrap();
+        write_sensors(&mut f, &table, &[]).unwrap();
+        drop(f);
+        let mut a = args();
+        a.sensors = Some(path);
+        let b = build(&a).unwrap();
+        let c = b.app().device().calibration(0).unwrap();
+        assert!((c.zero[0] - 60.0).abs() < 1e-4);
+        // three sensors in a file: refused
+        let path3 = dir.path().join("three.csv");
+        let t3 = SensorTable::from_sensors(&head.sensors[..3], None);
+        let mut f = std::fs::File::create(&path3).unwrap();
+        write_sensors(&mut f, &t3, &[]).unwrap();
+        drop(f);
+        a.sensors = Some(path3);
+        let e = build(&a).err().unwrap().to_string();
+        assert!(e.contains("4 sensors"), "{e}");
+    }
+
+    #[test]
+    fn bad_plane_and_noise_are_refused() {
+        let mut a = args();
+        a.plane = "0,0,0,1".into();
+        assert!(build(&a).is_err());
+        let mut a = args();
+        a.noise_mm = f64::NAN;
+        assert!(build(&a).is_err());
+    }
+}

@@ -1,0 +1,274 @@
+//! The virtual board without its transport: the firmware's application
+//! ([`perpend_board::app::App`]: pipeline, CANopen device, parameter
+//! storage on an in-memory flash) fed by the simulated head, driven by the
+//! caller's clock. The TCP/slcan server and the tests drive this.
+//!
+//! Start-up: when the board must differ from the factory state (another
+//! node-id, a head from `--sensors`, a calibration from `--params`), a
+//! record is written to the in-memory flash first, exactly as a store
+//! (0x1010) would write it, and the application boots from it. So the
+//! node-id, head and calibration given on the command line are the stored
+//! state: they survive NMT resets; 0x1011 "load" followed by a reset node
+//! brings the firmware's factory state back (node-id 0x20, nominal head).
+//!
+//! Limits: no temperature input; the bit rate in 0x2400 has no effect on
+//! the virtual bus.
+
+use anyhow::{anyhow, Result};
+use perpend_board::app::{defaults_for, App};
+use perpend_board::pipeline::{Output, Sample};
+use perpend_board::storage::{host_store, save_with_tail, HostFlash, SeqStore};
+use perpend_can::{Device, Frame, IMAGE_LEN};
+use perpend_core::head::Head4;
+use perpend_core::params::Params;
+
+use super::sim::SimHead;
+
+/// The application type of the virtual board.
+pub type HostApp = App<SeqStore<HostFlash>>;
+
+/// What the board starts with.
+#[derive(Debug, Clone)]
+pub struct BoardConfig {
+    /// Node-id 1..=127.
+    pub node_id: u8,
+    /// Head the board is built with (its stored geometry), if not the
+    /// factory head.
+    pub head: Option<Head4<f64>>,
+    /// Calibrated head (stored calibration), if any; also the simulated
+    /// truth.
+    pub calibration: Option<Head4<f64>>,
+}
+
+/// The stored record the board starts from, or `None` for a factory board.
+fn seed_record(cfg: &BoardConfig) -> Result<Option<(Params, [u8; IMAGE_LEN])>> {
+    let factory = Params::factory();
+    if cfg.node_id == factory.can.node_id && cfg.head.is_none() && cfg.calibration.is_none() {
+        return Ok(None);
+    }
+    let mut p = factory;
+    p.can.node_id = cfg.node_id;
+    if let Some(h) = cfg.calibration.as_ref().or(cfg.head.as_ref()) {
+        p.head = h.cast();
+        p.validate()
+            .map_err(|e| anyhow!("the head cannot be stored on the board: {e}"))?;
+    }
+    p.stamp = 1;
+    let mut dev = Device::new(cfg.node_id, &defaults_for(&p));
+    dev.load_params(&p)
+        .map_err(|e| anyhow!("the head does not fit the object dictionary: {e}"))?;
+    let mut img = [0u8; IMAGE_LEN];
+    dev.persistent_image(&mut img);
+    Ok(Some((p, img)))
+}
+
+/// The virtual board.
+pub struct VirtualBoard {
+    app: HostApp,
+    sim: SimHead,
+}
+
+impl VirtualBoard {
+    /// Boots a board with `cfg` whose head looks through `sim`.
+    ///
+    /// # Errors
+    /// A head or node-id the board cannot store.
+    pub fn new(cfg: &BoardConfig, sim: SimHead) -> Result<Self> {
+        if !(1..=127).contains(&cfg.node_id) {
+            return Err(anyhow!("--node-id {}: must be 1..127", cfg.node_id));
+        }
+        let mut store = host_store(HostFlash::new());
+        if let Some((p, img)) = seed_record(cfg)? {
+            save_with_tail(&mut store, &p, &img)
+                .map_err(|e| anyhow!("writing the start-up record: {e:?}"))?;
+        }
+        let app = App::new(store);
+        Ok(Self { app, sim })
+    }
+
+    /// The application (device, pipeline, storage).
+    pub fn app(&self) -> &HostApp {
+        &self.app
+    }
+
+    /// The application, mutable.
+    pub fn app_mut(&mut self) -> &mut HostApp {
+        &mut self.app
+    }
+
+    /// The simulated head, mutable (inject faults).
+    pub fn sim_mut(&mut self) -> &mut SimHead {
+        &mut self.sim
+    }
+
+    /// The sample period the application asks for \[µs\].
+    pub fn period_us(&self) -> u64 {
+        self.app.acquisition().period_us.max(1) as u64
+    }
+
+    /// Handles a frame received from the bus at `now_us`.
+    pub fn handle(&mut self, f: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
+        self.app.handle(f, now_us, out);
+    }
+
+    /// Runs the timers at `now_us`.
+    pub fn poll(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        self.app.poll(now_us, out);
+    }
+
+    /// Takes and processes one ADC scan at `now_us`.
+    pub fn sample(&mut self, now_us: u64) -> Output {
+        let p = *self.app.pipeline().params();
+        let counts = self.sim.sample(&p.transfer, &p.acq);
+        self.app.on_sample(
+            &Sample {
+                counts,
+                temp_c: None,
+                t_s: None,
+            },
+            now_us,
+        )
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::panic)]
+mod tests {
+    use super::*;
+    use crate::board::sim::FaultKind;
+    use perpend_can::status::{self, emcy};
+    use perpend_core::geometry::Plane;
+
+    const NODE: u8 = 0x11;
+
+    struct Rig {
+        b: VirtualBoard,
+        t: u64,
+        sent: Vec<Frame>,
+    }
+
+    impl Rig {
+        fn new(plane: Plane<f64>, cfg: BoardConfig) -> Self {
+            let sim = SimHead::new(Params::factory().head.cast(), plane, 0.002, 7).unwrap();
+            let mut r = Rig {
+                b: VirtualBoard::new(&cfg, sim).unwrap(),
+                t: 0,
+                sent: Vec::new(),
+            };
+            r.run(1);
+            r
+        }
+        fn node(&self) -> u16 {
+            self.b.app().device().node_id() as u16
+        }
+        /// Runs `n` sample periods (sample + poll each).
+        fn run(&mut self, n: usize) {
+            for _ in 0..n {
+                self.t += self.b.period_us();
+                self.b.sample(self.t);
+                let s = &mut self.sent;
+                self.b.poll(self.t, &mut |f| s.push(f));
+            }
+        }
+        fn send(&mut self, f: Frame) -> Vec<Frame> {
+            let mut v = Vec::new();
+            self.b.handle(&f, self.t, &mut |f| v.push(f));
+            self.sent.extend_from_slice(&v);
+            v
+        }
+        fn sdo(&mut self, req: [u8; 8]) -> [u8; 8] {
+            let id = 0x600 + self.node();
+            let r = self.send(Frame::new(id, &req));
+            r.iter().find(|f| f.id == 0x580 + self.node()).unwrap().data
+        }
+        fn write(&mut self, index: u16, sub: u8, v: &[u8]) -> u8 {
+            let i = index.to_le_bytes();
+            let mut req = [
+                0x23 | (((4 - v.len()) as u8) << 2),
+                i[0],
+                i[1],
+                sub,
+                0,
+                0,
+                0,
+                0,
+            ];
+            req[4..4 + v.len()].copy_from_slice(v);
+            self.sdo(req)[0]
+        }
+    }
+
+    fn plane() -> Plane<f64> {
+        Plane::from_abcd(0.035, -0.052, 1.0, -40.0).unwrap()
+    }
+
+    fn cfg() -> BoardConfig {
+        BoardConfig {
+            node_id: NODE,
+            head: None,
+            calibration: None,
+        }
+    }
+
+    #[test]
+    fn tpdos_carry_the_plane_angles() {
+        let mut r = Rig::new(plane(), cfg());
+        assert_eq!(r.sent[0], Frame::new(0x700 + NODE as u16, &[0]));
+        r.send(Frame::new(0, &[1, NODE]));
+        r.run(20);
+        let f = r.send(Frame::new(0x80, &[]));
+        let t1 = f.iter().find(|f| f.id == 0x180 + NODE as u16).unwrap();
+        let th1 = f32::from_le_bytes(t1.data[..4].try_into().unwrap()) as f64;
+        let th2 = f32::from_le_bytes(t1.data[4..].try_into().unwrap()) as f64;
+        // Tian eq. 1-3 through the TCS mapping: θ1 = atan2(n_y, −n_z),
+        // θ2 = atan2(−n_x, −n_z) with n towards the head (−(a,b,c)).
+        let n = -plane().n;
+        assert!((th1 - n.y.atan2(-n.z).to_degrees()).abs() < 0.01, "{th1}");
+        assert!(
+            (th2 - (-n.x).atan2(-n.z).to_degrees()).abs() < 0.01,
+            "{th2}"
+        );
+        let t2 = f.iter().find(|f| f.id == 0x280 + NODE as u16).unwrap();
+        let st = u32::from_le_bytes(t2.data[..4].try_into().unwrap());
+        assert_eq!(st & status::NO_PLANE, 0);
+        assert_eq!(st & 0x1111, 0x1111);
+    }
+
+    #[test]
+    fn a_faulted_sensor_raises_emcy_and_degrades() {
+        let mut r = Rig::new(plane(), cfg());
+        r.send(Frame::new(0, &[1, NODE]));
+        r.run(5);
+        r.b.sim_mut().set_fault(2, Some(FaultKind::Open));
+        r.sent.clear();
+        r.run(5);
+        let e: Vec<_> = r
+            .sent
+            .iter()
+            .filter(|f| f.id == 0x80 + NODE as u16)
+            .collect();
+        assert_eq!(e.len(), 1);
+        assert_eq!(
+            u16::from_le_bytes([e[0].data[0], e[0].data[1]]),
+            emcy::sensor_current(2)
+        );
+        let st = r.b.app().device().status();
+        assert_eq!(status::sensor_nibble(st, 2), status::SENSOR_OPEN_LOOP);
+        assert_ne!(st & status::DEGRADED, 0);
+        assert_eq!(st & status::NO_PLANE, 0);
+    }
+
+    #[test]
+    fn stored_calibration_survives_reset_node() {
+        let mut r = Rig::new(plane(), cfg());
+        assert_eq!(r.write(0x2010, 0, &0x6C61_6375u32.to_le_bytes()), 0x60);
+        assert_eq!(r.write(0x2101, 8, &0.001f32.to_le_bytes()), 0x60);
+        assert_eq!(r.write(0x1010, 1, &0x6576_6173u32.to_le_bytes()), 0x60);
+        assert_eq!(r.write(0x2101, 8, &0.002f32.to_le_bytes()), 0x60);
+        r.send(Frame::new(0, &[0x81, NODE]));
+        r.run(2);
+        assert_eq!(r.node(), NODE as u16);
+        assert_eq!(r.b.app().device().calibration(0).unwrap().gain, 0.001);
+        assert_eq!(r.b.app().stores(), 1);
+    }
+}

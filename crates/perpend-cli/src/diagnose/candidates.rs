@@ -1,0 +1,372 @@
+//! The candidate effects of the diagnosis and how each is fitted.
+//!
+//! A candidate is a physically motivated extension of the paper's model
+//! (Chen eq. 1-9: zero point + beam direction, 5 degrees of freedom per
+//! sensor) by the linear terms of [`perpend_core::ext::Extension`], fitted
+//! per sensor by the batch least squares of [`perpend_core::calib`] through
+//! [`ExtTerms`]:
+//!
+//! | effect | terms per sensor | physics |
+//! |---|---|---|
+//! | `gain` | `d − d_ref` | scale error of the analog chain |
+//! | `nonlinearity` | `d − d_ref`, `(d − d_ref)²`, `(d − d_ref)³` | polynomial linearity error (the linear term keeps the polynomial independent of the reference `d_ref`) |
+//! | `incidence` | `1/cos γ − 1` | spot/speckle bias growing with the angle between beam and surface normal |
+//! | `crosstalk` | `d_prev − d` | ADC sample-and-hold carry-over from the channel converted just before |
+//! | `thermal` | `T − T_ref` | drift with the head temperature (`temp_c`) |
+//! | `drift` | `t` | drift with time since the start of the run (`t_s`) |
+//!
+//! `d_ref` is each sensor's mean reading over the run and `T_ref` the mean
+//! temperature: both only re-parameterise the fit (a constant is the zero
+//! point's job) and keep the columns well conditioned.
+//!
+//! Limits: at most three extension terms per sensor (the solver's
+//! parameter count is a compile-time constant, dispatched here for 5..8).
+
+use nalgebra::Vector3;
+use perpend_core::calib::{fit_sensor, ExtTerms, LsqConfig, Poses, Regressors, Term};
+use perpend_core::ext::Extension;
+use perpend_core::geometry::Plane;
+use perpend_core::head::Sensor;
+use perpend_core::model::distance;
+
+use crate::exchange::PoseTable;
+
+/// The names the diagnosis can give (the catalogue plus `none` and
+/// `unexplained`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Effect {
+    /// The paper's model is enough.
+    None,
+    /// Per-sensor scale error of the analog chain.
+    Gain,
+    /// Per-sensor polynomial linearity error.
+    Nonlinearity,
+    /// Bias depending on the angle between beam and surface.
+    Incidence,
+    /// Carry-over from the previously converted channel.
+    Crosstalk,
+    /// Per-sensor drift with the head temperature.
+    Thermal,
+    /// Per-sensor drift with time.
+    Drift,
+    /// The residuals exceed the expectation and no candidate explains them.
+    Unexplained,
+}
+
+impl Effect {
+    /// The candidate extensions, in report order.
+    pub const CATALOG: [Effect; 6] = [
+        Effect::Gain,
+        Effect::Nonlinearity,
+        Effect::Incidence,
+        Effect::Crosstalk,
+        Effect::Thermal,
+        Effect::Drift,
+    ];
+
+    /// Lower-case name as printed and in JSON.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Effect::None => "none",
+            Effect::Gain => "gain",
+            Effect::Nonlinearity => "nonlinearity",
+            Effect::Incidence => "incidence",
+            Effect::Crosstalk => "crosstalk",
+            Effect::Thermal => "thermal",
+            Effect::Drift => "drift",
+            Effect::Unexplained => "unexplained",
+        }
+    }
+
+    /// Parses a name of [`Effect::name`].
+    pub fn from_name(s: &str) -> Option<Self> {
+        [
+            Effect::None,
+            Effect::Gain,
+            Effect::Nonlinearity,
+            Effect::Incidence,
+            Effect::Crosstalk,
+            Effect::Thermal,
+            Effect::Drift,
+            Effect::Unexplained,
+        ]
+        .into_iter()
+        .find(|e| e.name() == s)
+    }
+
+    /// The extension terms of the candidate (empty for `none` and
+    /// `unexplained`: the paper's model).
+    pub const fn terms(self) -> &'static [Term] {
+        match self {
+            Effect::Gain => &[Term::Gain],
+            Effect::Nonlinearity => &[Term::Gain, Term::Quadratic, Term::Cubic],
+            Effect::Incidence => &[Term::Incidence],
+            Effect::Crosstalk => &[Term::Crosstalk],
+            Effect::Thermal => &[Term::Thermal],
+            Effect::Drift => &[Term::Drift],
+            Effect::None | Effect::Unexplained => &[],
+        }
+    }
+
+    /// What the regressor of the candidate is, in words (for reports and
+    /// plot axes).
+    pub const fn regressor_label(self) -> &'static str {
+        match self {
+            Effect::Gain | Effect::Nonlinearity | Effect::None | Effect::Unexplained => {
+                "reading − mean reading [mm]"
+            }
+            Effect::Incidence => "1/cos γ − 1 (γ: beam to surface normal)",
+            Effect::Crosstalk => "previous channel's reading − reading [mm]",
+            Effect::Thermal => "head temperature − mean [°C]",
+            Effect::Drift => "time since start [s]",
+        }
+    }
+}
+
+/// The references of the extension terms for one run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refs {
+    /// Mean reading of each sensor [mm].
+    pub d_ref: Vec<f64>,
+    /// Mean head temperature [°C] (20 when the run has none).
+    pub temp_ref: f64,
+}
+
+impl Refs {
+    /// The references of `poses`.
+    pub fn of(poses: &PoseTable) -> Self {
+        let d_ref = (0..poses.n_sensors)
+            .map(|i| {
+                let v: Vec<f64> = poses
+                    .rows
+                    .iter()
+                    .filter_map(|r| r.readings.get(i).copied().flatten())
+                    .collect();
+                super::stats::mean(&v)
+            })
+            .collect();
+        let temps: Vec<f64> = poses.rows.iter().filter_map(|r| r.temp_c).collect();
+        Self {
+            d_ref,
+            temp_ref: if temps.is_empty() {
+                20.0
+            } else {
+                super::stats::mean(&temps)
+            },
+        }
+    }
+
+    /// The regressors of `effect` for sensor `idx`.
+    pub fn terms(&self, effect: Effect, idx: usize) -> ExtTerms<f64> {
+        ExtTerms::new(
+            effect.terms(),
+            self.d_ref.get(idx).copied().unwrap_or(0.0),
+            self.temp_ref,
+        )
+    }
+}
+
+/// Whether the run has the inputs a candidate needs; `Err` says what is
+/// missing.
+pub fn available(effect: Effect, poses: &PoseTable) -> Result<(), String> {
+    let spread = |v: &[f64]| {
+        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        hi - lo
+    };
+    match effect {
+        Effect::Thermal => {
+            let t: Vec<f64> = poses.rows.iter().filter_map(|r| r.temp_c).collect();
+            if t.is_empty() {
+                return Err("no temp_c column in the poses file".into());
+            }
+            if t.len() < poses.rows.len() {
+                return Err(format!(
+                    "temp_c is missing on {} of {} poses",
+                    poses.rows.len() - t.len(),
+                    poses.rows.len()
+                ));
+            }
+            if !(spread(&t) > 0.0) {
+                return Err("temp_c does not vary over the run".into());
+            }
+            Ok(())
+        }
+        Effect::Drift => {
+            let t: Vec<f64> = poses.rows.iter().filter_map(|r| r.t_s).collect();
+            if t.is_empty() {
+                return Err("no t_s column in the poses file".into());
+            }
+            if t.len() < poses.rows.len() {
+                return Err(format!(
+                    "t_s is missing on {} of {} poses",
+                    poses.rows.len() - t.len(),
+                    poses.rows.len()
+                ));
+            }
+            if !(spread(&t) > 0.0) {
+                return Err("t_s does not vary over the run".into());
+            }
+            Ok(())
+        }
+        Effect::Crosstalk if poses.n_sensors < 2 => Err("a single sensor has no neighbour".into()),
+        Effect::Unexplained => Err("not a model".into()),
+        _ => Ok(()),
+    }
+}
+
+/// One sensor fitted with a candidate model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorFit {
+    /// The fitted sensor with the candidate's extension coefficients.
+    pub sensor: Sensor<f64>,
+    /// The regressors used (references and terms).
+    pub terms: ExtTerms<f64>,
+    /// Extension coefficients (column order of [`ExtTerms`]).
+    pub coeffs: Vec<f64>,
+    /// Their 1σ.
+    pub sigma: Vec<f64>,
+    /// In-sample residual RMS [mm].
+    pub rms: f64,
+    /// Readings used.
+    pub used: usize,
+}
+
+fn convert<const P: usize>(
+    r: Result<perpend_core::calib::LsqFit<f64, P>, perpend_core::calib::LsqError<f64>>,
+    terms: ExtTerms<f64>,
+) -> Result<SensorFit, String> {
+    let f = r.map_err(|e| e.to_string())?;
+    let coeffs = f.coefficients().to_vec();
+    let sigma = f.sigma.as_slice()[perpend_core::head::DOF..].to_vec();
+    let mut sensor = f.sensor;
+    sensor.ext = terms.extension(&coeffs);
+    Ok(SensorFit {
+        sensor,
+        terms,
+        coeffs,
+        sigma,
+        rms: f.rms,
+        used: f.used,
+    })
+}
+
+/// Fits sensor `idx` with the regressors `terms` (0 to 3 columns).
+///
+/// # Errors
+/// The solver's message (not identifiable, no convergence, …).
+pub fn fit<PS: Poses<f64> + ?Sized>(
+    nominal: &Sensor<f64>,
+    idx: usize,
+    poses: &PS,
+    terms: ExtTerms<f64>,
+    cfg: &LsqConfig<f64>,
+) -> Result<SensorFit, String> {
+    let mut start = *nominal;
+    start.ext = Extension::identity();
+    match terms.count() {
+        0 => convert::<5>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        1 => convert::<6>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        2 => convert::<7>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        3 => convert::<8>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        n => Err(format!("{n} extension terms: at most 3 are supported")),
+    }
+}
+
+/// The reading the fitted model predicts for sensor `idx` in pose `k` of
+/// `poses`: `f(E, u; plane) + Σ c_j x_j` (the regressors on the pose's
+/// measured readings, as in the fit). `None` when the sensor has no reading
+/// or the beam misses the plane.
+pub fn predict<PS: Poses<f64> + ?Sized>(
+    fit: &SensorFit,
+    poses: &PS,
+    k: usize,
+    idx: usize,
+) -> Option<f64> {
+    poses.reading(k, idx)?;
+    let f = distance(&fit.sensor, &poses.plane(k), idx).ok()?;
+    let mut x = [0.0; 8];
+    let n = fit.terms.count().min(x.len());
+    fit.terms.fill(poses, k, idx, &fit.sensor, &mut x[..n]);
+    Some(f + (0..n).map(|j| fit.coeffs[j] * x[j]).sum::<f64>())
+}
+
+/// The regressor values of `effect` for sensor `idx` in pose `k` (its
+/// first term; `d − d_ref` for `none`), with the geometry of `sensor`.
+pub fn regressor<PS: Poses<f64> + ?Sized>(
+    effect: Effect,
+    refs: &Refs,
+    poses: &PS,
+    k: usize,
+    idx: usize,
+    sensor: &Sensor<f64>,
+) -> Option<f64> {
+    poses.reading(k, idx)?;
+    let e = match effect {
+        Effect::None | Effect::Unexplained | Effect::Nonlinearity => Effect::Gain,
+        e => e,
+    };
+    let terms = refs.terms(e, idx);
+    let mut x = [0.0; 1];
+    terms.fill(poses, k, idx, sensor, &mut x);
+    Some(x[0])
+}
+
+/// A view of some poses of a table (the training poses of a fold).
+#[derive(Debug, Clone, Copy)]
+pub struct Subset<'a> {
+    /// The whole run.
+    pub all: &'a PoseTable,
+    /// Indices of the poses in the view.
+    pub idx: &'a [usize],
+}
+
+impl Poses<f64> for Subset<'_> {
+    fn len(&self) -> usize {
+        self.idx.len()
+    }
+    fn sensors(&self) -> usize {
+        self.all.n_sensors
+    }
+    fn plane(&self, k: usize) -> Plane<f64> {
+        self.all.plane(self.idx[k])
+    }
+    fn reading(&self, k: usize, sensor: usize) -> Option<f64> {
+        self.all.reading(self.idx[k], sensor)
+    }
+    fn context(&self, k: usize) -> perpend_core::ext::Context<f64> {
+        self.all.context(self.idx[k])
+    }
+}
+
+/// Angle [deg] between two lines (unsigned normals), accurate near 0.
+pub fn line_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    let c = a.cross(b).norm();
+    c.atan2(a.dot(b).abs()).to_degrees()
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_round_trip_and_terms() {
+        for e in Effect::CATALOG {
+            assert_eq!(Effect::from_name(e.name()), Some(e));
+            assert!(!e.terms().is_empty());
+        }
+        assert_eq!(Effect::from_name("none"), Some(Effect::None));
+        assert_eq!(Effect::from_name("unexplained"), Some(Effect::Unexplained));
+        assert_eq!(Effect::from_name("bogus"), None);
+        assert_eq!(Effect::Nonlinearity.terms().len(), 3);
+        assert!(Effect::None.terms().is_empty());
+    }
+
+    #[test]
+    fn line_angle_ignores_orientation() {
+        let a = Vector3::new(0.0, 0.0, 1.0);
+        let b = Vector3::new(0.0, 1e-3f64.sin(), -(1e-3f64.cos()));
+        approx::assert_relative_eq!(line_angle_deg(&a, &b), 1e-3f64.to_degrees(), epsilon = 1e-12);
+    }
+}

@@ -1,0 +1,346 @@
+//! What the residuals *should* look like: the same analysis on Monte-Carlo
+//! runs of the simulator for this head and this pose set.
+//!
+//! Each draw re-creates the run with the paper's model only: the head is
+//! the base fit of the measured run taken as the truth (Chen eq. 1-3), the
+//! poses are the measured run's planes taken as the true planes, a reading
+//! exists where the measured run has one, reading noise is N(0, σ_i) with
+//! the datasheet σ (`sigma_mm`), and the plane written for the pose is what
+//! the laser tracker would report ([`Tracker::measure`], Chen §5 step 1),
+//! drawn anew. Time and temperature are copied. The draws go through
+//! exactly the analysis of the measured run ([`analyse`]): the spread of a
+//! statistic over the draws is its sampling spread for this pose set, which
+//! is what the measured statistic is compared against.
+//!
+//! Limits: the expectation is only as good as σ and the tracker model; an
+//! optimistic datasheet σ shows up as residuals "above expectation".
+
+use perpend_core::calib::{LsqConfig, Poses, Regressors};
+use perpend_core::head::Sensor;
+use perpend_core::model::distance;
+use perpend_core::normal::Method;
+use rand::rngs::StdRng;
+
+use super::candidates::{fit, Effect, Refs, SensorFit};
+use super::cv::{cross_validate, normal_errors, CvResult, Folds};
+use super::stats;
+use crate::exchange::{PoseRow, PoseTable};
+use crate::sim::{gauss, Tracker};
+
+/// The measurement noise the expectation assumes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NoiseModel {
+    /// Reading noise 1σ of each sensor [mm].
+    pub sigma: Vec<f64>,
+    /// The tracker's plane measurement (`None`: planes exact).
+    pub tracker: Option<Tracker>,
+}
+
+/// A run re-created with the paper's model: `truth` reads the planes of
+/// `poses` with noise `noise` where `poses` has a reading.
+pub fn null_table(
+    truth: &[Sensor<f64>],
+    poses: &PoseTable,
+    noise: &NoiseModel,
+    rng: &mut StdRng,
+) -> PoseTable {
+    let rows = poses
+        .rows
+        .iter()
+        .map(|row| {
+            let readings: Vec<Option<f64>> = row
+                .readings
+                .iter()
+                .enumerate()
+                .map(|(i, r)| {
+                    let s = noise.sigma.get(i).copied().unwrap_or(0.0);
+                    let e = s * gauss(rng);
+                    let d = distance(truth.get(i)?, &row.plane, i).ok()?;
+                    r.and(Some(d + e)).filter(|v| *v >= 0.0)
+                })
+                .collect();
+            let plane = match &noise.tracker {
+                Some(t) => t.measure(&row.plane, rng),
+                None => row.plane,
+            };
+            PoseRow {
+                line: row.line,
+                pose: row.pose,
+                abcd: [plane.n.x, plane.n.y, plane.n.z, plane.d],
+                plane,
+                readings,
+                t_s: row.t_s,
+                temp_c: row.temp_c,
+            }
+        })
+        .collect();
+    PoseTable {
+        n_sensors: poses.n_sensors,
+        rows,
+    }
+}
+
+/// Everything computed on one run (measured or simulated).
+#[derive(Debug, Clone)]
+pub struct Analysis {
+    /// Cross-validation of each model (`Effect::None` first), or why it
+    /// could not be fitted.
+    pub cv: Vec<(Effect, Result<CvResult, String>)>,
+    /// The base model fitted on all poses.
+    pub base_fit: Vec<SensorFit>,
+    /// In-sample residuals of the base fit `[pose][sensor]` [mm].
+    pub insample: Vec<Vec<Option<f64>>>,
+    /// Pooled lag-1 autocorrelation of the in-sample residuals in
+    /// acquisition order, and the number of pairs.
+    pub lag1: (f64, usize),
+    /// Runs test z pooled over sensors (`Σ z_i / √N`).
+    pub runs_z: f64,
+    /// Fraction of the in-sample residual variance each candidate's
+    /// regressors explain (pooled over sensors).
+    pub r2: Vec<(Effect, f64)>,
+    /// Held-out normal errors of the base model [deg] (simulated runs
+    /// only when asked).
+    pub base_normal: Vec<Option<f64>>,
+}
+
+impl Analysis {
+    /// The cross-validation of `e`, if it succeeded.
+    pub fn cv_of(&self, e: Effect) -> Option<&CvResult> {
+        self.cv
+            .iter()
+            .find(|(x, _)| *x == e)
+            .and_then(|(_, r)| r.as_ref().ok())
+    }
+
+    /// Pooled R² of candidate `e`.
+    pub fn r2_of(&self, e: Effect) -> Option<f64> {
+        self.r2.iter().find(|(x, _)| *x == e).map(|(_, r)| *r)
+    }
+}
+
+/// Settings shared by the measured and simulated analyses.
+#[derive(Debug, Clone)]
+pub struct Plan<'a> {
+    /// Nominal head.
+    pub nominal: &'a [Sensor<f64>],
+    /// Term references (from the measured run).
+    pub refs: &'a Refs,
+    /// Folds.
+    pub folds: &'a Folds,
+    /// Models to cross-validate (`Effect::None` first).
+    pub models: &'a [Effect],
+    /// Solver settings.
+    pub lsq: &'a LsqConfig<f64>,
+    /// Normal method for held-out normal errors.
+    pub method: Method,
+}
+
+/// Runs the analysis on `poses`.
+///
+/// # Errors
+/// When the base model cannot be fitted on all poses.
+pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Analysis, String> {
+    let base_fit: Vec<SensorFit> = plan
+        .nominal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            fit(s, i, poses, plan.refs.terms(Effect::None, i), plan.lsq)
+                .map_err(|e| format!("base model, sensor {}: {e}", i + 1))
+        })
+        .collect::<Result<_, _>>()?;
+    let ns = plan.nominal.len();
+    let insample: Vec<Vec<Option<f64>>> = (0..poses.len())
+        .map(|k| {
+            (0..ns)
+                .map(|i| {
+                    let d = poses.reading(k, i)?;
+                    super::candidates::predict(&base_fit[i], poses, k, i).map(|p| d - p)
+                })
+                .collect()
+        })
+        .collect();
+    let per_sensor: Vec<Vec<Option<f64>>> = (0..ns)
+        .map(|i| insample.iter().map(|r| r[i]).collect())
+        .collect();
+    let lag1 = stats::lag1(&per_sensor);
+    let runs_z = per_sensor.iter().map(|s| stats::runs_z(s)).sum::<f64>() / (ns as f64).sqrt();
+    let r2 = plan
+        .models
+        .iter()
+        .filter(|e| **e != Effect::None)
+        .map(|&e| {
+            let (mut ex, mut tot) = (0.0, 0.0);
+            for i in 0..ns {
+                let terms = plan.refs.terms(e, i);
+                let m = terms.count();
+                let mut ys = Vec::new();
+                let mut xs = vec![Vec::new(); m];
+                for (k, row) in insample.iter().enumerate() {
+                    let Some(r) = row[i] else { continue };
+                    let mut x = [0.0; 8];
+                    terms.fill(poses, k, i, &base_fit[i].sensor, &mut x[..m]);
+                    ys.push(r);
+                    for j in 0..m {
+                        xs[j].push(x[j]);
+                    }
+                }
+                let (a, b) = stats::explained(&ys, &xs);
+                ex += a;
+                tot += b;
+            }
+            (e, if tot > 0.0 { ex / tot } else { 0.0 })
+        })
+        .collect();
+    let cv: Vec<(Effect, Result<CvResult, String>)> = plan
+        .models
+        .iter()
+        .map(|&e| {
+            (
+                e,
+                cross_validate(e, plan.nominal, poses, plan.refs, plan.folds, plan.lsq),
+            )
+        })
+        .collect();
+    let base_normal = match (normals, cv.first()) {
+        (true, Some((_, Ok(b)))) => normal_errors(b, poses, plan.folds, plan.method),
+        _ => Vec::new(),
+    };
+    Ok(Analysis {
+        cv,
+        base_fit,
+        insample,
+        lag1,
+        runs_z,
+        r2,
+        base_normal,
+    })
+}
+
+/// Mean and sample spread of a statistic over the draws.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Spread {
+    /// Mean over the draws.
+    pub mean: f64,
+    /// Sample standard deviation over the draws.
+    pub sd: f64,
+    /// Number of draws that produced the statistic.
+    pub n: usize,
+}
+
+impl Spread {
+    /// Of the values `v`.
+    pub fn of(v: &[f64]) -> Self {
+        Self {
+            mean: stats::mean(v),
+            sd: stats::sd(v),
+            n: v.len(),
+        }
+    }
+
+    /// Standard deviation of a *new* observation around `mean` (prediction
+    /// spread `sd·√(1 + 1/n)`), at least `floor`.
+    pub fn predictive_sd(&self, floor: f64) -> f64 {
+        let n = self.n.max(1) as f64;
+        (self.sd * (1.0 + 1.0 / n).sqrt()).max(floor)
+    }
+}
+
+/// The simulated expectation of every statistic.
+#[derive(Debug, Clone, Default)]
+pub struct Expectation {
+    /// Draws run.
+    pub draws: usize,
+    /// Held-out RMS of each model [mm].
+    pub rms: Vec<(Effect, Spread)>,
+    /// Held-out RMS of the base model per sensor [mm].
+    pub rms_sensor: Vec<Spread>,
+    /// Lag-1 autocorrelation.
+    pub lag1: Spread,
+    /// Runs test z.
+    pub runs_z: Spread,
+    /// R² of each candidate's regressors.
+    pub r2: Vec<(Effect, Spread)>,
+    /// Held-out normal error of the base model, mean over poses [deg].
+    pub normal_err_deg: Spread,
+}
+
+impl Expectation {
+    /// Held-out RMS spread of model `e`.
+    pub fn rms_of(&self, e: Effect) -> Option<Spread> {
+        self.rms.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
+    }
+
+    /// R² spread of candidate `e`.
+    pub fn r2_of(&self, e: Effect) -> Option<Spread> {
+        self.r2.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
+    }
+}
+
+/// Runs `draws` Monte-Carlo draws of the run with the base fit `truth` and
+/// collects the expectation. Draw `j` uses the seed `seed + j` (so the
+/// result is reproducible and independent of the measured data's values).
+pub fn expect(
+    truth: &[Sensor<f64>],
+    poses: &PoseTable,
+    noise: &NoiseModel,
+    plan: &Plan<'_>,
+    draws: usize,
+    seed: u64,
+) -> Expectation {
+    use rand::SeedableRng;
+    let mut analyses = Vec::with_capacity(draws);
+    for j in 0..draws {
+        let mut rng = StdRng::seed_from_u64(seed.wrapping_add(j as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let table = null_table(truth, poses, noise, &mut rng);
+        if let Ok(a) = analyse(&table, plan, true) {
+            analyses.push(a);
+        }
+    }
+    let ns = plan.nominal.len();
+    let rms = plan
+        .models
+        .iter()
+        .map(|&e| {
+            let v: Vec<f64> = analyses.iter().filter_map(|a| a.cv_of(e)).map(|c| c.rms).collect();
+            (e, Spread::of(&v))
+        })
+        .collect();
+    let rms_sensor = (0..ns)
+        .map(|i| {
+            let v: Vec<f64> = analyses
+                .iter()
+                .filter_map(|a| a.cv_of(Effect::None))
+                .map(|c| c.rms_sensor[i])
+                .collect();
+            Spread::of(&v)
+        })
+        .collect();
+    let r2 = plan
+        .models
+        .iter()
+        .filter(|e| **e != Effect::None)
+        .map(|&e| {
+            let v: Vec<f64> = analyses.iter().filter_map(|a| a.r2_of(e)).collect();
+            (e, Spread::of(&v))
+        })
+        .collect();
+    let lag: Vec<f64> = analyses.iter().map(|a| a.lag1.0).collect();
+    let runs: Vec<f64> = analyses.iter().map(|a| a.runs_z).collect();
+    let nerr: Vec<f64> = analyses
+        .iter()
+        .map(|a| {
+            let v: Vec<f64> = a.base_normal.iter().flatten().copied().collect();
+            stats::mean(&v)
+        })
+        .collect();
+    Expectation {
+        draws: analyses.len(),
+        rms,
+        rms_sensor,
+        lag1: Spread::of(&lag),
+        runs_z: Spread::of(&runs),
+        r2,
+        normal_err_deg: Spread::of(&nerr),
+    }
+}

@@ -1,0 +1,516 @@
+//! `perpend diagnose`: find what the paper's model misses in a calibration
+//! run, name the cause, extend the model and measure the gain.
+//!
+//! For any run in the exchange format (`sensors.csv` + `poses.csv`):
+//!
+//! 1. **Base model.** Every sensor is fitted with the paper's model (Chen
+//!    eq. 1-9, zero point + beam direction, batch least squares) and
+//!    cross-validated by pose ([`cv`]): held-out residual RMS (overall and
+//!    per sensor) and held-out normal error.
+//! 2. **Expectation.** The simulator re-creates the run with the paper's
+//!    model only — the fitted head as the truth, the same planes and the
+//!    same missing readings, the datasheet reading noise σ (`sigma_mm` or
+//!    `--sigma-mm`) and the tracker's plane-fit noise — in several seeded
+//!    Monte-Carlo draws, each analysed exactly like the measured run
+//!    ([`expect`]). Measured and simulated statistics are compared: RMS
+//!    overall and per sensor, whiteness in acquisition order (lag-1
+//!    autocorrelation, runs test) and the share of the residual variance
+//!    each candidate's regressor explains. Statistics outside the
+//!    simulated spread are what the simulation gets wrong.
+//! 3. **Candidates** ([`candidates`]): gain, nonlinearity, incidence,
+//!    crosstalk, thermal (needs `temp_c`), drift (needs `t_s`), each an
+//!    extension with its own per-sensor coefficients, cross-validated on
+//!    the same folds; candidates whose inputs are absent are skipped.
+//! 4. **Selection** ([`select`]): paired held-out loss test with a
+//!    Bonferroni level, a minimum gain relative to the noise floor and the
+//!    one-standard-error parsimony rule; `unexplained` when the residuals
+//!    stay above the simulated floor and no candidate brings them down to
+//!    it.
+//! 5. **Gain.** The named extension's held-out RMS and held-out normal
+//!    error (normals through `perpend-core` with the extension applied, as
+//!    on the board) against the base model's.
+//!
+//! Everything is seeded: the same files and options give the same report.
+
+pub mod bench;
+pub mod candidates;
+pub mod cv;
+pub mod expect;
+pub mod plot;
+pub mod report;
+pub mod scenario;
+pub mod select;
+pub mod stats;
+pub mod study;
+
+use std::path::PathBuf;
+
+use anyhow::{anyhow, bail, Context as _, Result};
+use perpend_core::calib::LsqConfig;
+use perpend_core::head::Sensor;
+use perpend_core::normal::Method;
+use serde::{Deserialize, Serialize};
+
+use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
+use crate::sim::Tracker;
+use candidates::{available, fit, Effect, Refs, SensorFit};
+use cv::{normal_errors, Folds};
+use expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
+use select::{decide, Decision, Rule};
+
+/// Which micro-plane normal the held-out normal error uses.
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NormalMethod {
+    /// Total least-squares plane (any number of sensors; the board's default).
+    Lsq,
+    /// Chen eq. 18-19 (averaged cross products; four sensors in order).
+    Chen,
+}
+
+impl NormalMethod {
+    /// The core's method.
+    pub fn method(self) -> Method {
+        match self {
+            NormalMethod::Lsq => Method::LeastSquares,
+            NormalMethod::Chen => Method::Chen,
+        }
+    }
+}
+
+/// Arguments of `perpend diagnose`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct Args {
+    /// The nominal head (sensors.csv).
+    #[arg(long)]
+    pub sensors: PathBuf,
+    /// The calibration run (poses.csv).
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// Datasheet reading noise 1σ [mm] (overrides the sigma_mm column).
+    #[arg(long)]
+    pub sigma_mm: Option<f64>,
+    /// Print one JSON object instead of the report.
+    #[arg(long)]
+    pub json: bool,
+    /// Write SVG plots into this directory.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Tracker point noise ξ (1σ per coordinate) [mm]; 0: planes exact.
+    #[arg(long, default_value_t = 0.02)]
+    pub xi_mm: f64,
+    /// Tracker points per plane fit.
+    #[arg(long, default_value_t = 20)]
+    pub tracker_points: usize,
+    /// Side of the square patch the tracker points cover [mm].
+    #[arg(long, default_value_t = 150.0)]
+    pub tracker_patch_mm: f64,
+    /// Folds of the cross-validation (split by pose).
+    #[arg(long, default_value_t = 5)]
+    pub folds: usize,
+    /// Monte-Carlo draws of the simulated expectation.
+    #[arg(long, default_value_t = 8)]
+    pub draws: usize,
+    /// Seed of the folds and the draws.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Family-wise level of naming an effect that is not there.
+    #[arg(long, default_value_t = 0.01)]
+    pub alpha: f64,
+    /// Normal computation for the held-out normal error.
+    #[arg(long, value_enum, default_value_t = NormalMethod::Lsq)]
+    pub normal: NormalMethod,
+}
+
+/// Settings of a diagnosis (what [`Args`] carries besides the files).
+#[derive(Debug, Clone)]
+pub struct Settings {
+    /// Reading noise override [mm].
+    pub sigma_mm: Option<f64>,
+    /// Tracker model (`None`: exact planes).
+    pub tracker: Option<Tracker>,
+    /// Folds.
+    pub folds: usize,
+    /// Monte-Carlo draws.
+    pub draws: usize,
+    /// Seed.
+    pub seed: u64,
+    /// Selection thresholds.
+    pub rule: Rule,
+    /// Normal method.
+    pub method: Method,
+    /// Solver settings.
+    pub lsq: LsqConfig<f64>,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            sigma_mm: None,
+            tracker: Some(Tracker::paper()),
+            folds: 5,
+            draws: 8,
+            seed: 1,
+            rule: Rule::default(),
+            method: Method::LeastSquares,
+            lsq: LsqConfig::default(),
+        }
+    }
+}
+
+impl Settings {
+    /// From the command line.
+    ///
+    /// # Errors
+    /// Out-of-range values.
+    pub fn from_args(a: &Args) -> Result<Self> {
+        for (v, name) in [
+            (a.xi_mm, "--xi-mm"),
+            (a.tracker_patch_mm, "--tracker-patch-mm"),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                bail!("{name} must be a non-negative number, got {v}");
+            }
+        }
+        if let Some(s) = a.sigma_mm {
+            if !(s.is_finite() && s > 0.0) {
+                bail!("--sigma-mm must be a positive number, got {s}");
+            }
+        }
+        if a.folds < 2 {
+            bail!("--folds must be at least 2");
+        }
+        if a.draws < 3 {
+            bail!("--draws must be at least 3 (the spread of the expectation needs them)");
+        }
+        if !(a.alpha > 0.0 && a.alpha < 0.5) {
+            bail!("--alpha must be in (0, 0.5), got {}", a.alpha);
+        }
+        Ok(Self {
+            sigma_mm: a.sigma_mm,
+            tracker: (a.xi_mm > 0.0 && a.tracker_points >= 3).then_some(Tracker {
+                xi_mm: a.xi_mm,
+                points: a.tracker_points,
+                patch_mm: a.tracker_patch_mm,
+            }),
+            folds: a.folds,
+            draws: a.draws,
+            seed: a.seed,
+            rule: Rule {
+                alpha: a.alpha,
+                ..Rule::default()
+            },
+            method: a.normal.method(),
+            lsq: LsqConfig::default(),
+        })
+    }
+}
+
+/// Held-out performance of a model.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Perf {
+    /// Held-out residual RMS [mm].
+    pub heldout_rms_mm: f64,
+    /// Mean held-out normal error [deg] (`null` when no pose's normal could
+    /// be measured).
+    pub heldout_normal_err_deg: Option<f64>,
+}
+
+/// One candidate in the JSON output.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CandidateJson {
+    /// Model name (`none` = the paper's model).
+    pub effect: String,
+    /// Held-out residual RMS [mm].
+    pub heldout_rms_mm: f64,
+    /// Parameters of the whole head.
+    pub n_params: usize,
+}
+
+/// The `--json` output: exactly these keys.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiagnoseJson {
+    /// The name given.
+    pub effect: String,
+    /// Simulated held-out RMS of the base model on effect-free data [mm].
+    pub expected_rms_mm: f64,
+    /// Base model.
+    pub base: Perf,
+    /// Named extension (repeats `base` for none / unexplained).
+    pub extended: Perf,
+    /// Every model cross-validated.
+    pub candidates: Vec<CandidateJson>,
+}
+
+/// A comparison of a measured statistic with its simulated expectation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Check {
+    /// What is compared.
+    pub what: String,
+    /// Measured value.
+    pub measured: f64,
+    /// Simulated mean.
+    pub expected: f64,
+    /// Simulated predictive spread (1σ).
+    pub spread: f64,
+    /// `(measured − expected) / spread`.
+    pub z: f64,
+    /// Outside the simulated spread at the diagnosis' level.
+    pub flagged: bool,
+}
+
+/// Everything a diagnosis found.
+#[derive(Debug, Clone)]
+pub struct Diagnosis {
+    /// The name given.
+    pub effect: Effect,
+    /// The selection.
+    pub decision: Decision,
+    /// The simulated expectation.
+    pub expected: Expectation,
+    /// The analysis of the measured run.
+    pub measured: Analysis,
+    /// The noise the expectation assumed.
+    pub noise: NoiseModel,
+    /// Base model's held-out performance.
+    pub base: Perf,
+    /// Named extension's held-out performance (= base for none/unexplained).
+    pub extended: Perf,
+    /// Held-out normal errors per pose, base model [deg].
+    pub base_normals: Vec<Option<f64>>,
+    /// Held-out normal errors per pose, extended model [deg].
+    pub ext_normals: Vec<Option<f64>>,
+    /// The model behind `extended` (`None` = base).
+    pub ext_model: Effect,
+    /// All poses fitted with the named extension (or, for `unexplained`,
+    /// the partial winner), with coefficients and 1σ.
+    pub refit: Option<(Effect, Vec<SensorFit>)>,
+    /// Candidates not tested and why.
+    pub skipped: Vec<(Effect, String)>,
+    /// Comparisons with the simulation.
+    pub checks: Vec<Check>,
+    /// Term references.
+    pub refs: Refs,
+    /// Folds used.
+    pub folds: Folds,
+    /// Nominal head.
+    pub nominal: Vec<Sensor<f64>>,
+    /// The run.
+    pub poses: PoseTable,
+}
+
+impl Diagnosis {
+    /// The `--json` object.
+    pub fn json(&self) -> DiagnoseJson {
+        DiagnoseJson {
+            effect: self.effect.name().into(),
+            expected_rms_mm: self
+                .expected
+                .rms_of(Effect::None)
+                .map_or(0.0, |s| s.mean),
+            base: self.base,
+            extended: self.extended,
+            candidates: self
+                .decision
+                .verdicts
+                .iter()
+                .map(|v| CandidateJson {
+                    effect: v.effect.name().into(),
+                    heldout_rms_mm: v.rms,
+                    n_params: v.n_params,
+                })
+                .collect(),
+        }
+    }
+}
+
+/// The reading noise of each sensor: the override or the `sigma_mm` column.
+///
+/// # Errors
+/// When neither gives a positive value for every sensor.
+pub fn reading_sigma(sensors: &SensorTable, sigma_mm: Option<f64>) -> Result<Vec<f64>> {
+    if let Some(s) = sigma_mm {
+        return Ok(vec![s; sensors.len()]);
+    }
+    sensors
+        .rows
+        .iter()
+        .map(|r| match r.sigma_mm {
+            Some(s) if s > 0.0 => Ok(s),
+            Some(s) => Err(anyhow!(
+                "sensor {}: sigma_mm = {s}: the expectation needs a positive reading noise (pass --sigma-mm)",
+                r.sensor
+            )),
+            None => Err(anyhow!(
+                "sensor {} has no sigma_mm: the expected residuals need the datasheet reading noise; add a sigma_mm column to sensors.csv or pass --sigma-mm",
+                r.sensor
+            )),
+        })
+        .collect()
+}
+
+fn mean_opt(v: &[Option<f64>]) -> Option<f64> {
+    let x: Vec<f64> = v.iter().flatten().copied().collect();
+    (!x.is_empty()).then(|| stats::mean(&x))
+}
+
+/// Runs the diagnosis on a run read from the exchange format.
+///
+/// # Errors
+/// Missing reading noise, a base model that cannot be fitted (the pose set
+/// does not identify it), too few poses for the folds.
+pub fn diagnose(sensors: &SensorTable, poses: &PoseTable, s: &Settings) -> Result<Diagnosis> {
+    let nominal = sensors
+        .sensors()
+        .map_err(|e| anyhow!("nominal head: {e}"))?;
+    if poses.n_sensors != nominal.len() {
+        bail!(
+            "the poses have {} reading columns, the head {} sensors",
+            poses.n_sensors,
+            nominal.len()
+        );
+    }
+    let sigma = reading_sigma(sensors, s.sigma_mm)?;
+    let n = poses.rows.len();
+    if n < 2 * s.folds.max(2) {
+        bail!(
+            "{n} poses are too few for {}-fold cross-validation (need at least {})",
+            s.folds,
+            2 * s.folds
+        );
+    }
+    let refs = Refs::of(poses);
+    let folds = Folds::new(n, s.folds, s.seed);
+    let mut models = vec![Effect::None];
+    let mut skipped = Vec::new();
+    for e in Effect::CATALOG {
+        match available(e, poses) {
+            Ok(()) => models.push(e),
+            Err(why) => skipped.push((e, why)),
+        }
+    }
+    let plan = Plan {
+        nominal: &nominal,
+        refs: &refs,
+        folds: &folds,
+        models: &models,
+        lsq: &s.lsq,
+        method: s.method,
+    };
+    let measured = analyse(poses, &plan, true).map_err(|e| anyhow!("{e}"))?;
+    let base_cv = match measured.cv.first() {
+        Some((_, Ok(b))) => b.clone(),
+        Some((_, Err(e))) => bail!("the paper's model cannot be cross-validated: {e}"),
+        None => bail!("no model"),
+    };
+    for (e, r) in &measured.cv {
+        if let Err(why) = r {
+            skipped.push((*e, format!("cannot be fitted: {why}")));
+        }
+    }
+    // Models that failed on the measured data are not simulated either.
+    let fitted: Vec<Effect> = measured
+        .cv
+        .iter()
+        .filter(|(_, r)| r.is_ok())
+        .map(|(e, _)| *e)
+        .collect();
+    let plan = Plan {
+        models: &fitted,
+        ..plan
+    };
+    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
+    let noise = NoiseModel {
+        sigma,
+        tracker: s.tracker,
+    };
+    let expected = expect(&truth, poses, &noise, &plan, s.draws, s.seed);
+    if expected.draws < 2 {
+        bail!("the simulated expectation failed: the base model could not be fitted on the simulated runs");
+    }
+    let decision = decide(&measured, &expected, nominal.len(), &s.rule);
+    let effect = decision.effect;
+    let base_normals = measured.base_normal.clone();
+    let base = Perf {
+        heldout_rms_mm: base_cv.rms,
+        heldout_normal_err_deg: mean_opt(&base_normals),
+    };
+    let ext_model = match effect {
+        Effect::None | Effect::Unexplained => Effect::None,
+        e => e,
+    };
+    let (extended, ext_normals) = match measured.cv_of(ext_model) {
+        Some(c) if ext_model != Effect::None => {
+            let ne = normal_errors(c, poses, &folds, s.method);
+            (
+                Perf {
+                    heldout_rms_mm: c.rms,
+                    heldout_normal_err_deg: mean_opt(&ne),
+                },
+                ne,
+            )
+        }
+        _ => (base, base_normals.clone()),
+    };
+    let refit_model = match effect {
+        Effect::None => None,
+        Effect::Unexplained => decision.winner,
+        e => Some(e),
+    };
+    let refit = match refit_model {
+        Some(e) => {
+            let fits: std::result::Result<Vec<SensorFit>, String> = nominal
+                .iter()
+                .enumerate()
+                .map(|(i, sn)| fit(sn, i, poses, refs.terms(e, i), &s.lsq))
+                .collect();
+            fits.ok().map(|f| (e, f))
+        }
+        None => None,
+    };
+    let checks = report::checks(&measured, &expected, &fitted, &decision);
+    Ok(Diagnosis {
+        effect,
+        decision,
+        expected,
+        measured,
+        noise,
+        base,
+        extended,
+        base_normals,
+        ext_normals,
+        ext_model,
+        refit,
+        skipped,
+        checks,
+        refs,
+        folds,
+        nominal,
+        poses: poses.clone(),
+    })
+}
+
+/// Runs `perpend diagnose`.
+///
+/// # Errors
+/// Malformed input (file, line, problem), missing reading noise, a pose set
+/// that cannot identify the paper's model, I/O errors of the plots.
+pub fn run(a: &Args) -> Result<()> {
+    let settings = Settings::from_args(a)?;
+    let table = read_sensors(&a.sensors)?;
+    let poses = read_poses(&a.poses, Some(table.len()))?;
+    let d = diagnose(&table, &poses, &settings)?;
+    if let Some(dir) = &a.plot {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        plot::write_all(&d, dir)?;
+    }
+    if a.json {
+        println!("{}", serde_json::to_string(&d.json())?);
+    } else {
+        print!("{}", report::text(&d, &a.sensors, &a.poses, &settings));
+        if let Some(dir) = &a.plot {
+            println!("\nplots written to {}", dir.display());
+        }
+    }
+    Ok(())
+}

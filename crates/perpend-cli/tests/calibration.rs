@@ -1,0 +1,265 @@
+//! Simulator, parameter file, `perpend calibrate` and the accuracy bench,
+//! end to end through the exchange-format files.
+#![allow(clippy::unwrap_used)]
+
+use std::path::Path;
+
+use perpend_cli::bench::{accuracy, AccuracyConfig, Stats};
+use perpend_cli::calibrate::{self, angle_deg, EkfPreset, Method};
+use perpend_cli::exchange::{read_poses, read_sensors, write_dataset};
+use perpend_cli::paramfile::ParamFile;
+use perpend_cli::sim::{
+    paper_head, plane_from_tilts, simulate, HeadKind, PoseSpread, SimConfig, Tracker,
+};
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+
+fn args(dir: &Path, method: Method, out: Option<&Path>) -> calibrate::Args {
+    calibrate::Args {
+        sensors: dir.join("sensors.csv"),
+        poses: dir.join("poses.csv"),
+        method,
+        out: out.map(Path::to_path_buf),
+        ekf_preset: EkfPreset::Simulation,
+        ekf_r: None,
+        ekf_q: None,
+        ekf_delta: None,
+        ekf_nonlinear: false,
+        ekf_joseph: false,
+    }
+}
+
+fn write_paper_run(dir: &Path, seed: u64, cfg: &SimConfig) {
+    let head = paper_head().unwrap();
+    let mut rng = StdRng::seed_from_u64(seed);
+    let data = simulate(&head, cfg, &[], &mut rng).unwrap();
+    write_dataset(dir, &data.sensors, &data.poses, &["test".into()]).unwrap();
+}
+
+#[test]
+fn paper_head_is_rotated_into_the_feed_frame() {
+    let h = paper_head().unwrap();
+    // Table 2 sensor 2 at (0, 50, 0) looking along (0, -0.5, -0.866)
+    // becomes (0, -50, 0) looking along (0, 0.5, 0.866).
+    assert!((h.nominal[1].zero - nalgebra::Vector3::new(0.0, -50.0, 0.0)).norm() < 1e-12);
+    assert!(h.nominal[1].dir.z > 0.86 && h.nominal[1].dir.y > 0.49);
+    // true zero point: (1.3, 50 − 1.4, 1.6) → (1.3, −48.6, −1.6)
+    assert!((h.truth[1].zero - nalgebra::Vector3::new(1.3, -48.6, -1.6)).norm() < 1e-12);
+    // The Table 1 plane in our frame: θ1 = 17.89°, θ2 = −1.04°.
+    let s = PoseSpread::paper();
+    assert!((s.center_tilt_x_deg - 17.888).abs() < 1e-3);
+    assert!((s.center_tilt_y_deg + 1.0416).abs() < 1e-3);
+    let p = plane_from_tilts(
+        s.center_tilt_x_deg.to_radians(),
+        s.center_tilt_y_deg.to_radians(),
+        35.861,
+    );
+    let t1 = nalgebra::Vector3::new(0.0173, 0.3071, -0.9515).normalize();
+    assert!(angle_deg(&p.n, &t1) < 0.01);
+}
+
+#[test]
+fn simulation_is_reproducible_and_noisy_as_configured() {
+    let head = paper_head().unwrap();
+    let cfg = SimConfig::paper();
+    let a = simulate(&head, &cfg, &[], &mut StdRng::seed_from_u64(5)).unwrap();
+    let b = simulate(&head, &cfg, &[], &mut StdRng::seed_from_u64(5)).unwrap();
+    let c = simulate(&head, &cfg, &[], &mut StdRng::seed_from_u64(6)).unwrap();
+    assert_eq!(a, b);
+    assert_ne!(a.poses, c.poses);
+    // tracker: the fitted plane is close to, not equal to, the true one
+    let mut tilt = Vec::new();
+    for (row, truth) in a.poses.rows.iter().zip(a.true_planes.iter()) {
+        let ang = angle_deg(&row.plane.n, &truth.n);
+        assert!(ang > 0.0 && ang < 0.05, "{ang}");
+        tilt.push(ang.to_radians());
+    }
+    // 20 points, ξ = 0.02 mm on a 150 mm patch: tilt σ per axis ≈
+    // 0.02 / (sqrt(20)·150/sqrt(12)) ≈ 1.0e-4 rad; the angle is Rayleigh,
+    // mean ≈ 1.3e-4 rad.
+    let mean = tilt.iter().sum::<f64>() / tilt.len() as f64;
+    assert!(mean > 0.7e-4 && mean < 2.0e-4, "mean tilt error {mean}");
+    // readings: the truth plus noise ζ = 0.01 mm
+    let mut ss = 0.0;
+    let mut n = 0.0;
+    for (row, truth) in a.poses.rows.iter().zip(a.true_planes.iter()) {
+        for (i, r) in row.readings.iter().enumerate() {
+            let d = perpend_core::model::distance(&head.truth[i], truth, i).unwrap();
+            ss += (r.unwrap() - d).powi(2);
+            n += 1.0;
+        }
+    }
+    let rms = (ss / n).sqrt();
+    assert!((rms - 0.01).abs() < 0.0015, "reading noise {rms}");
+}
+
+#[test]
+fn calibrate_recovers_the_head_from_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = SimConfig::paper();
+    cfg.tracker = None;
+    cfg.zeta_mm = 0.0;
+    write_paper_run(dir.path(), 3, &cfg);
+    let out = dir.path().join("params.json");
+    calibrate::run(&args(dir.path(), Method::Lsq, Some(&out))).unwrap();
+    let pf = ParamFile::read(&out).unwrap();
+    assert_eq!(pf.method, "lsq");
+    assert_eq!(pf.poses, 100);
+    let head = pf.to_head::<4>().unwrap();
+    let truth = paper_head().unwrap().truth;
+    for (s, t) in head.sensors.iter().zip(truth.iter()) {
+        assert!((s.zero - t.zero).norm() < 1e-6);
+        assert!((s.dir - t.dir).norm() < 1e-8);
+    }
+    let s1 = &pf.sensors[0];
+    assert_eq!(s1.identifiability.as_ref().unwrap().status, "ok");
+    assert!(s1.residual_rms_mm.unwrap() < 1e-8);
+    // corrections are relative to the nominal head
+    let c = s1.correction.unwrap();
+    assert!((c.zero_mm[0] - 1.3).abs() < 1e-6);
+    assert!(pf.to_head::<3>().is_err());
+}
+
+#[test]
+fn ekf_method_writes_parameters_too() {
+    let dir = tempfile::tempdir().unwrap();
+    write_paper_run(dir.path(), 1, &SimConfig::paper());
+    let out = dir.path().join("ekf.json");
+    calibrate::run(&args(dir.path(), Method::Ekf, Some(&out))).unwrap();
+    let pf = ParamFile::read(&out).unwrap();
+    assert_eq!(pf.method, "ekf");
+    for s in &pf.sensors {
+        assert!(s.readings > 10 && s.readings <= 100);
+        assert!(s.residual_rms_mm.unwrap() < 0.1);
+    }
+}
+
+#[test]
+fn unidentifiable_pose_set_fails_naming_what_is_missing() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = SimConfig::paper();
+    cfg.spread.tilt_x_range_deg = 0.0;
+    write_paper_run(dir.path(), 2, &cfg);
+    let out = dir.path().join("params.json");
+    let e = calibrate::run(&args(dir.path(), Method::Lsq, Some(&out))).unwrap_err();
+    let msg = format!("{e:#}");
+    assert!(msg.contains("tilt range 0.0° about x: need ≥ 5°"), "{msg}");
+    assert!(!out.exists(), "no parameters may be written");
+}
+
+#[test]
+fn malformed_input_names_file_and_line() {
+    let dir = tempfile::tempdir().unwrap();
+    write_paper_run(dir.path(), 4, &SimConfig::paper());
+    let poses = dir.path().join("poses.csv");
+    let text = std::fs::read_to_string(&poses).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    // line 10 of the file: break its plane normal
+    let f: Vec<&str> = lines[9].split(',').collect();
+    lines[9] = format!("{},0,0,0,{}", f[0], f[4..].join(","));
+    std::fs::write(&poses, lines.join("\n")).unwrap();
+    let e = calibrate::run(&args(dir.path(), Method::Lsq, None)).unwrap_err();
+    let msg = format!("{e:#}");
+    assert!(
+        msg.contains("poses.csv, line 10: degenerate plane normal"),
+        "{msg}"
+    );
+    // a sensors.csv that does not match the readings
+    let s = dir.path().join("sensors.csv");
+    let text = std::fs::read_to_string(&s).unwrap();
+    let three: Vec<&str> = text.lines().filter(|l| !l.starts_with('4')).collect();
+    std::fs::write(&s, three.join("\n")).unwrap();
+    let e = calibrate::run(&args(dir.path(), Method::Lsq, None)).unwrap_err();
+    assert!(format!("{e:#}").contains("d4_mm: the head has only 3 sensors"));
+}
+
+#[test]
+fn parameter_file_rejects_malformed_files() {
+    let head = paper_head().unwrap();
+    let pf = ParamFile::truth(&head.truth, &head.nominal);
+    let text = serde_json::to_string_pretty(&pf).unwrap();
+    let back = ParamFile::parse(&text, "p.json").unwrap();
+    assert_eq!(back, pf);
+    let bad = text.replacen("\"gain\"", "\"gian\"", 1);
+    let e = format!("{:#}", ParamFile::parse(&bad, "p.json").unwrap_err());
+    assert!(e.contains("p.json: malformed") && e.contains("line"), "{e}");
+    let bad = text.replacen("\"version\": 1", "\"version\": 7", 1);
+    let e = format!("{:#}", ParamFile::parse(&bad, "p.json").unwrap_err());
+    assert!(e.contains("version 7 is not supported"), "{e}");
+    let mut p2 = pf.clone();
+    p2.sensors[2].dir = [0.0, 0.0, 0.5];
+    let e = format!(
+        "{:#}",
+        ParamFile::parse(&serde_json::to_string(&p2).unwrap(), "q").unwrap_err()
+    );
+    assert!(e.contains("sensor 3: dir has length 0.5"), "{e}");
+    let mut p3 = pf.clone();
+    p3.sensors.swap(0, 1);
+    assert!(ParamFile::parse(&serde_json::to_string(&p3).unwrap(), "q").is_err());
+    assert!(ParamFile::parse("{", "q").is_err());
+}
+
+#[test]
+fn simulate_command_writes_readable_files() {
+    let dir = tempfile::tempdir().unwrap();
+    for head in [HeadKind::Paper, HeadKind::Experiment, HeadKind::Random] {
+        let a = perpend_cli::sim::Args {
+            out: dir.path().to_path_buf(),
+            head,
+            seed: 9,
+            poses: 30,
+            center_tilt_x: None,
+            center_tilt_y: None,
+            tilt_x_range: 10.0,
+            tilt_y_range: 10.0,
+            standoff: None,
+            standoff_range: 6.0,
+            xi: 0.02,
+            tracker_points: 20,
+            patch: 150.0,
+            zeta: 0.01,
+            dropout: 0.05,
+            dt: Some(2.0),
+            temp_start: Some(20.0),
+            temp_rate: 0.01,
+            truth: Some(dir.path().join("truth.json")),
+        };
+        perpend_cli::sim::run(&a).unwrap();
+        let s = read_sensors(&dir.path().join("sensors.csv")).unwrap();
+        let p = read_poses(&dir.path().join("poses.csv"), Some(s.len())).unwrap();
+        assert_eq!(p.rows.len(), 30);
+        assert_eq!(p.rows[3].t_s, Some(6.0));
+        assert!((p.rows[3].temp_c.unwrap() - 20.06).abs() < 1e-12);
+        let t = ParamFile::read(&dir.path().join("truth.json")).unwrap();
+        assert_eq!(t.sensors.len(), 4);
+    }
+}
+
+#[test]
+fn accuracy_bench_on_two_seeds() {
+    let cfg = AccuracyConfig::paper(vec![1, 2]);
+    let e = accuracy(&cfg).unwrap();
+    assert_eq!(e.before.len(), 40);
+    assert_eq!(e.lsq.len(), 40);
+    let (b, l, f) = (Stats::of(&e.before), Stats::of(&e.lsq), Stats::of(&e.floor));
+    // Chen Table 4 "before": 1.34° mean
+    assert!(b.mean_deg > 1.1 && b.mean_deg < 1.6, "{b:?}");
+    assert!(l.mean_deg < 1.2 * f.mean_deg, "{l:?} vs {f:?}");
+    assert!(f.mean_deg > 0.005 && f.mean_deg < 0.03, "{f:?}");
+    if !e.ekf.is_empty() {
+        let k = Stats::of(&e.ekf);
+        assert!(k.mean_deg < 0.2, "{k:?}");
+    }
+}
+
+#[test]
+fn tracker_without_noise_is_exact() {
+    let t = Tracker {
+        xi_mm: 0.0,
+        points: 20,
+        patch_mm: 100.0,
+    };
+    let p = plane_from_tilts(0.2, -0.1, 30.0);
+    let q = t.measure(&p, &mut StdRng::seed_from_u64(1));
+    assert!((p.n - q.n).norm() < 1e-12 && (p.d - q.d).abs() < 1e-9);
+}
