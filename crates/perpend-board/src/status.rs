@@ -1,7 +1,7 @@
 //! The measurement status word (object 0x2005): bit constants.
 //!
-//! The contract is shared with `perpend-can` (its `status` module documents
-//! the same layout):
+//! The contract is defined in `perpend_can::status` (re-exported here); the
+//! board's meaning of each bit:
 //!
 //! ```text
 //! bit 4i+0  sensor i valid             (i = 0..3; sensors 1..4 on the bus)
@@ -21,46 +21,13 @@
 //! the jump detector (spatter, hole edge: see [`crate::acq::Channel`]); with
 //! bit 20 set, the sensors with an all-zero nibble are the stuck ones.
 
-/// Nibble bit: the sensor's reading is valid and used.
-pub const SENSOR_VALID: u32 = 1 << 0;
-/// Nibble bit: out of measuring range / saturated.
-pub const SENSOR_OUT_OF_RANGE: u32 = 1 << 1;
-/// Nibble bit: open loop (signal below the NE43 failure limit).
-pub const SENSOR_OPEN_LOOP: u32 = 1 << 2;
-/// Nibble bit: overcurrent (signal above the NE43 failure limit).
-pub const SENSOR_OVERCURRENT: u32 = 1 << 3;
-/// The four bits of one nibble.
-pub const SENSOR_MASK: u32 = 0xF;
-/// Plane from three sensors.
-pub const DEGRADED: u32 = 1 << 16;
-/// Factory calibration in use.
-pub const UNCALIBRATED: u32 = 1 << 17;
-/// Plane RMS residual above the limit.
-pub const RESIDUAL_HIGH: u32 = 1 << 18;
-/// No valid plane.
-pub const NO_PLANE: u32 = 1 << 19;
-/// At least one sensor is stuck.
-pub const SENSOR_STUCK: u32 = 1 << 20;
-/// The configuration is invalid.
-pub const CONFIG_INVALID: u32 = 1 << 21;
-
-/// `bits` (nibble bits) moved to sensor `i` (0-based); 0 for `i > 3`.
-pub const fn sensor_bits(i: usize, bits: u32) -> u32 {
-    if i < 4 {
-        (bits & SENSOR_MASK) << (4 * i)
-    } else {
-        0
-    }
-}
-
-/// The nibble of sensor `i` (0-based) in `status`; 0 for `i > 3`.
-pub const fn sensor_nibble(status: u32, i: usize) -> u32 {
-    if i < 4 {
-        (status >> (4 * i)) & SENSOR_MASK
-    } else {
-        0
-    }
-}
+// One definition of the contract: the constants are `perpend-can`'s, which
+// documents them for the bus.
+pub use perpend_can::status::{
+    sensor_bits, sensor_nibble, CONFIG_INVALID, DEGRADED, NO_PLANE, RESIDUAL_HIGH, SENSOR_MASK,
+    SENSOR_OPEN_LOOP, SENSOR_OUT_OF_RANGE, SENSOR_OVERCURRENT, SENSOR_STUCK, SENSOR_VALID,
+    UNCALIBRATED,
+};
 
 #[cfg(test)]
 mod tests {
