@@ -59,6 +59,9 @@ pub enum Bench {
     Speed(SpeedArgs),
     /// Sensitivity of identifiability and accuracy to the pose spread.
     Ident(IdentArgs),
+    /// Diagnosis over many seeds and magnitudes: confusion matrix, false
+    /// positives on clean data, detection rate against effect size.
+    Diagnose(crate::diagnose::bench::Args),
 }
 
 /// Arguments of `perpend bench accuracy`.
@@ -679,5 +682,6 @@ pub fn run(a: &Args) -> Result<()> {
         Bench::Accuracy(x) => run_accuracy(x),
         Bench::Speed(x) => run_speed(x),
         Bench::Ident(x) => run_ident(x),
+        Bench::Diagnose(x) => crate::diagnose::bench::run(x),
     }
 }

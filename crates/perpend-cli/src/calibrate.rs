@@ -19,6 +19,7 @@ use perpend_core::calib::{
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 
+use crate::diagnose::candidates::{self, Effect, Refs};
 use crate::exchange::{read_poses, read_sensors, PoseTable};
 use crate::paramfile::{Identifiability, ParamFile, SensorParams, Triples};
 
@@ -29,6 +30,41 @@ pub enum Method {
     Lsq,
     /// The paper's EKF (Chen eq. 10-16), 6 states per sensor.
     Ekf,
+}
+
+/// The reading model to fit: the paper's, or the paper's plus one
+/// extension of [`perpend_core::ext`] (what `perpend diagnose` names).
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Model {
+    /// Zero point + beam direction (Chen §3.1).
+    Base,
+    /// + per-sensor scale error of the analog chain.
+    Gain,
+    /// + per-sensor gain, quadratic and cubic linearity error.
+    Nonlinearity,
+    /// + bias with the beam's incidence angle on the surface.
+    Incidence,
+    /// + carry-over from the previously converted channel.
+    Crosstalk,
+    /// + drift with the head temperature (`temp_c`).
+    Thermal,
+    /// + drift with time (`t_s`).
+    Drift,
+}
+
+impl Model {
+    /// The diagnosis' name of the model.
+    pub fn effect(self) -> Effect {
+        match self {
+            Model::Base => Effect::None,
+            Model::Gain => Effect::Gain,
+            Model::Nonlinearity => Effect::Nonlinearity,
+            Model::Incidence => Effect::Incidence,
+            Model::Crosstalk => Effect::Crosstalk,
+            Model::Thermal => Effect::Thermal,
+            Model::Drift => Effect::Drift,
+        }
+    }
 }
 
 /// Noise settings of the EKF, as printed in the paper.
@@ -65,6 +101,11 @@ pub struct Args {
     /// Estimator.
     #[arg(long, value_enum, default_value_t = Method::Lsq)]
     pub method: Method,
+    /// Reading model: the paper's (`base`) or with one extension, whose
+    /// coefficients the parameter file carries and the board applies
+    /// (least squares only).
+    #[arg(long, value_enum, default_value_t = Model::Base)]
+    pub model: Model,
     /// Write the calibrated parameters (JSON) here.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -126,14 +167,7 @@ pub fn residual_rms(sensor: &Sensor<f64>, idx: usize, poses: &PoseTable) -> Opti
 }
 
 fn ident_json(d: &Diagnostic<f64>) -> Identifiability {
-    Identifiability {
-        status: d.status.name().into(),
-        condition: d.condition,
-        tilt_x_range_deg: d.tilt_x_range_deg,
-        tilt_y_range_deg: d.tilt_y_range_deg,
-        standoff_range_mm: d.standoff_range_mm,
-        message: d.to_string(),
-    }
+    Identifiability::from(d)
 }
 
 /// Least squares on every sensor.
@@ -238,7 +272,22 @@ pub fn run(a: &Args) -> Result<()> {
         Method::Lsq => "lsq",
         Method::Ekf => "ekf",
     };
-    let mut file = ParamFile::new(method, "base", poses.len());
+    if a.model != Model::Base && a.method != Method::Lsq {
+        bail!(
+            "--model {:?}: extensions are fitted by least squares (--method lsq)",
+            a.model
+        );
+    }
+    let model = a.model.effect();
+    let mut file = ParamFile::new(
+        method,
+        if model == Effect::None {
+            "base"
+        } else {
+            model.name()
+        },
+        poses.len(),
+    );
     let _ = writeln!(
         report,
         "calibration of {} sensors from {} poses ({}), method {}",
@@ -251,6 +300,49 @@ pub fn run(a: &Args) -> Result<()> {
         }
     );
     match a.method {
+        Method::Lsq if model != Effect::None => {
+            let refs = Refs::of(&poses);
+            let _ = writeln!(
+                report,
+                "model: zero point + beam direction + {} ({})",
+                model.name(),
+                model.regressor_label()
+            );
+            for (i, s) in nominal.iter().enumerate() {
+                let _ = writeln!(report);
+                match candidates::fit(s, i, &poses, refs.terms(model, i), &LsqConfig::default()) {
+                    Ok(fit) => {
+                        let _ = writeln!(
+                            report,
+                            "sensor {}: {} readings, residual RMS {:.4} mm",
+                            i + 1,
+                            fit.used,
+                            fit.rms
+                        );
+                        fmt_sensor_table(
+                            &mut report,
+                            s,
+                            &fit.sensor,
+                            (fit.sigma_zero, fit.sigma_dir),
+                        );
+                        for (j, (c, sd)) in fit.coeffs.iter().zip(&fit.sigma).enumerate() {
+                            let _ = writeln!(
+                                report,
+                                "  {:<12} {c:>+14.6e}  1σ {sd:.2e}",
+                                perpend_core::calib::Regressors::<f64>::name(&fit.terms, j)
+                            );
+                        }
+                        let _ = writeln!(report, "  {}", fit.diagnostic);
+                        file.sensors.push(candidates::params_of(i, &fit, s));
+                    }
+                    Err(e) => {
+                        let _ = writeln!(report, "sensor {}: FAILED", i + 1);
+                        let _ = writeln!(report, "  {e}");
+                        failures.push(format!("sensor {}: {e}", i + 1));
+                    }
+                }
+            }
+        }
         Method::Lsq => {
             let fits = run_lsq(&nominal, &poses, &LsqConfig::default());
             for (i, r) in fits.iter().enumerate() {

@@ -117,6 +117,19 @@ pub struct Identifiability {
     pub message: String,
 }
 
+impl From<&perpend_core::calib::Diagnostic<f64>> for Identifiability {
+    fn from(d: &perpend_core::calib::Diagnostic<f64>) -> Self {
+        Self {
+            status: d.status.name().into(),
+            condition: d.condition,
+            tilt_x_range_deg: d.tilt_x_range_deg,
+            tilt_y_range_deg: d.tilt_y_range_deg,
+            standoff_range_mm: d.standoff_range_mm,
+            message: d.to_string(),
+        }
+    }
+}
+
 /// Calibrated parameters of one sensor.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -606,7 +606,9 @@ pub fn simulate(
         planes.push(plane);
     }
     Ok(Dataset {
-        sensors: SensorTable::from_sensors(&head.nominal, head.sigma_mm),
+        // The datasheet σ written is the reading noise actually simulated,
+        // so that a diagnosis of clean simulated data expects what it gets.
+        sensors: SensorTable::from_sensors(&head.nominal, head.sigma_mm.map(|_| cfg.zeta_mm)),
         poses: PoseTable { n_sensors: n, rows },
         true_planes: planes,
         truth: head.truth.clone(),

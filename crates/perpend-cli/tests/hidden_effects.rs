@@ -94,7 +94,10 @@ fn hidden_effects_are_named_from_the_files_alone() {
                 "seed {seed}: normal error not improved"
             );
         } else {
-            assert_eq!(d.extended, d.base, "seed {seed}: none/unexplained repeat base");
+            assert_eq!(
+                d.extended, d.base,
+                "seed {seed}: none/unexplained repeat base"
+            );
         }
         if sc.hidden == Hidden::Ripple {
             assert!(d.base.heldout_rms_mm > 1.15 * d.expected_rms_mm);
@@ -121,7 +124,10 @@ fn candidates_without_their_inputs_are_skipped() {
     write(&g.data, dir.path()).unwrap();
     let (d, _) = diagnose_json(dir.path());
     let names: Vec<&str> = d.candidates.iter().map(|c| c.effect.as_str()).collect();
-    assert!(!names.contains(&"drift") && !names.contains(&"thermal"), "{names:?}");
+    assert!(
+        !names.contains(&"drift") && !names.contains(&"thermal"),
+        "{names:?}"
+    );
     assert!(names.contains(&"gain") && names.contains(&"crosstalk"));
     assert_ne!(d.effect, "drift");
     // A drift the catalogue cannot test is still seen: the residuals are
@@ -139,7 +145,10 @@ fn candidates_without_their_inputs_are_skipped() {
     ]);
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
-    assert!(text.contains("skipped: thermal (no temp_c column"), "{text}");
+    assert!(
+        text.contains("skipped: thermal (no temp_c column"),
+        "{text}"
+    );
     assert!(text.contains("skipped: drift (no t_s column"), "{text}");
     assert!(text.contains("What the simulation gets wrong"));
 }
@@ -160,7 +169,10 @@ fn reading_noise_is_required_and_plots_are_svg() {
     let out = perpend(&["diagnose", "--sensors", s, "--poses", p]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("sigma_mm") && err.contains("--sigma-mm"), "{err}");
+    assert!(
+        err.contains("sigma_mm") && err.contains("--sigma-mm"),
+        "{err}"
+    );
 
     let sigma = format!("{}", sc.sigma_mm);
     let plots = dir.path().join("plots");
@@ -175,7 +187,11 @@ fn reading_noise_is_required_and_plots_are_svg() {
         "--plot",
         plots.to_str().unwrap(),
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(text.contains("Verdict: gain"), "{text}");
     for f in ["residuals.svg", "normal_errors.svg"] {
@@ -195,7 +211,11 @@ fn malformed_input_names_file_and_line() {
         "sensor,x_mm,y_mm,z_mm,m,n,q,sigma_mm\n1,50,0,0,-0.5,0,0.866,0.01\n2,0,50,0,0,-0.5,0.866,0.01\n3,-50,0,0,0.5,0,0.866,0.01\n4,0,-50,0,0,0.5,0.866,0.01\n",
     )
     .unwrap();
-    std::fs::write(&p, "pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm,d4_mm\n1,0,0,1,-40,41,x,41,41\n").unwrap();
+    std::fs::write(
+        &p,
+        "pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm,d4_mm\n1,0,0,1,-40,41,x,41,41\n",
+    )
+    .unwrap();
     let out = perpend(&[
         "diagnose",
         "--sensors",
@@ -205,5 +225,8 @@ fn malformed_input_names_file_and_line() {
     ]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("poses.csv") && err.contains("line 2") && err.contains("d2_mm"), "{err}");
+    assert!(
+        err.contains("poses.csv") && err.contains("line 2") && err.contains("d2_mm"),
+        "{err}"
+    );
 }

@@ -278,9 +278,15 @@ pub fn fit<T: Real, const N: usize>(
     })
 }
 
+/// Passes of the incidence correction after the first plane (each refits
+/// the plane with γ from the previous one; a fixed point is reached in 2-3).
+const INCIDENCE_PASSES: usize = 4;
+
 /// Readings to plane: spots (eq. 17) with corrections, then the fit. When a
-/// sensor has an incidence correction, the plane is fitted twice (the angle
-/// γ needs the first plane).
+/// sensor has an incidence correction, the angle γ between each beam and the
+/// surface normal needs a plane first: the plane is refitted with γ from the
+/// previous fit until the normal moves by less than `sqrt(ε)` rad (at most
+/// [`INCIDENCE_PASSES`] refits).
 ///
 /// # Errors
 /// Those of [`spots`] and [`fit`].
@@ -292,13 +298,22 @@ pub fn plane<T: Real, const N: usize>(
 ) -> Result<PlaneFit<T>> {
     let ones = [T::one(); N];
     let (s, _) = spots(head, readings, ctx, &ones)?;
-    let first = fit(head, &s, method)?;
+    let mut current = fit(head, &s, method)?;
     if !head.sensors.iter().any(|s| s.ext.needs_incidence()) {
-        return Ok(first);
+        return Ok(current);
     }
-    let cg: [T; N] = core::array::from_fn(|i| first.normal.dot(&head.sensors[i].dir).abs());
-    let (s, _) = spots(head, readings, ctx, &cg)?;
-    fit(head, &s, method)
+    let tol = degenerate_tol::<T>();
+    for _ in 0..INCIDENCE_PASSES {
+        let cg: [T; N] = core::array::from_fn(|i| current.normal.dot(&head.sensors[i].dir).abs());
+        let (s, _) = spots(head, readings, ctx, &cg)?;
+        let next = fit(head, &s, method)?;
+        let moved = (next.normal - current.normal).norm_squared();
+        current = next;
+        if moved < tol * tol {
+            break;
+        }
+    }
+    Ok(current)
 }
 
 /// The whole per-sample computation: plane, deviation (Tian eq. 1-5) and

@@ -27,6 +27,11 @@ use crate::slcan::{self, Command, LineSplitter};
 const MAX_BACKLOG: usize = 1 << 20;
 /// Most samples run in one loop turn before skipping ahead.
 const MAX_CATCH_UP: u32 = 50;
+/// Most bytes taken from the client per loop turn (~190 frames): a client
+/// that writes faster than the board handles frames is throttled by TCP
+/// flow control, as a bus would throttle it, instead of holding the loop
+/// in its read (no samples, no SYNC answers, output dropped).
+const MAX_READ: usize = 4096;
 
 struct Client {
     stream: TcpStream,
@@ -49,11 +54,11 @@ impl Client {
         })
     }
 
-    /// Reads what is available; returns the frames to transmit, or `None`
-    /// when the client has gone.
+    /// Reads what is available, at most [`MAX_READ`] bytes; returns the
+    /// frames to transmit, or `None` when the client has gone.
     fn read(&mut self) -> Option<Vec<Frame>> {
         let mut frames = Vec::new();
-        let mut buf = [0u8; 4096];
+        let mut buf = [0u8; MAX_READ];
         loop {
             match self.stream.read(&mut buf) {
                 Ok(0) => return None,
@@ -78,10 +83,16 @@ impl Client {
                                     }
                                     _ => {}
                                 }
-                                out.extend_from_slice(slcan::reply(&cmd));
+                                if out.len() < MAX_BACKLOG {
+                                    out.extend_from_slice(slcan::reply(&cmd));
+                                }
                             }
-                            Err(_) => out.extend_from_slice(slcan::ERROR),
+                            Err(_) if out.len() < MAX_BACKLOG => {
+                                out.extend_from_slice(slcan::ERROR)
+                            }
+                            Err(_) => {}
                         });
+                    return Some(frames);
                 }
                 Err(e) if e.kind() == ErrorKind::WouldBlock => return Some(frames),
                 Err(e) if e.kind() == ErrorKind::Interrupted => {}
@@ -180,5 +191,79 @@ pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
             let until_sample = next_sample.saturating_sub(start.elapsed().as_micros() as u64);
             std::thread::sleep(Duration::from_micros(until_sample.clamp(20, 200)));
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use std::net::TcpListener;
+
+    /// A connected (server-side client, peer) pair on loopback.
+    fn pair() -> (Client, TcpStream) {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        let peer = TcpStream::connect(l.local_addr().unwrap()).unwrap();
+        let (s, _) = l.accept().unwrap();
+        (Client::new(s).unwrap(), peer)
+    }
+
+    /// One SDO upload request of 0x1000 to node 0x10 (22 bytes).
+    const REQ: &[u8] = b"t6108400010000000000000\r";
+
+    /// Reads until `n` frames came in; returns the frames of each turn.
+    fn read_all(c: &mut Client, n: usize) -> Vec<usize> {
+        let mut turns = Vec::new();
+        let mut total = 0;
+        let t = std::time::Instant::now();
+        while total < n {
+            assert!(t.elapsed() < Duration::from_secs(10), "{total} of {n}");
+            let f = c.read().unwrap();
+            total += f.len();
+            if f.is_empty() {
+                std::thread::sleep(Duration::from_millis(1));
+            } else {
+                turns.push(f.len());
+            }
+        }
+        turns
+    }
+
+    #[test]
+    fn a_flooding_client_is_read_in_bounded_turns() {
+        // Regression (issue 7 load test): a client writing faster than the
+        // board handles frames held the loop in `read` until it ran dry.
+        let (mut c, mut peer) = pair();
+        let mut msg = b"O\r".to_vec();
+        for _ in 0..5000 {
+            msg.extend_from_slice(REQ);
+        }
+        let writer = std::thread::spawn(move || {
+            peer.write_all(&msg).unwrap();
+            peer
+        });
+        let turns = read_all(&mut c, 5000);
+        let _peer = writer.join().unwrap();
+        assert!(turns.iter().all(|&n| n <= MAX_READ / (REQ.len() - 1)));
+        assert!(turns.len() >= 5000 * REQ.len() / MAX_READ, "{turns:?}");
+    }
+
+    #[test]
+    fn replies_to_a_client_that_does_not_read_are_bounded() {
+        // Regression: the "z" replies bypassed the backlog limit, so a
+        // client that only writes grew the board's memory without bound.
+        let (mut c, mut peer) = pair();
+        c.out = vec![b'x'; MAX_BACKLOG];
+        let mut msg = b"O\r".to_vec();
+        for _ in 0..200 {
+            msg.extend_from_slice(REQ);
+        }
+        msg.extend_from_slice(b"?\r"); // an error reply too
+        peer.write_all(&msg).unwrap();
+        let frames: usize = read_all(&mut c, 200).iter().sum();
+        assert_eq!(frames, 200);
+        std::thread::sleep(Duration::from_millis(20));
+        c.read().unwrap();
+        assert_eq!(c.out.len(), MAX_BACKLOG);
     }
 }

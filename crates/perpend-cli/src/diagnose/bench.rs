@@ -150,7 +150,11 @@ pub fn scenarios(a: &Args) -> Vec<Scenario> {
             for (j, &m) in a.magnitudes.iter().enumerate() {
                 let (seed, sigma, m) = if h == Hidden::None {
                     let cs = s.wrapping_mul(1000).wrapping_add(j as u64);
-                    (cs, Scenario::draw(cs, &[Hidden::None], a.poses).sigma_mm, 0.0)
+                    (
+                        cs,
+                        Scenario::draw(cs, &[Hidden::None], a.poses).sigma_mm,
+                        0.0,
+                    )
                 } else {
                     (s, sigma, m)
                 };
@@ -503,7 +507,10 @@ pub fn run(a: &Args) -> Result<()> {
     );
     println!("effect size: raise = base held-out RMS / floor − 1 (floor: base held-out RMS of the clean twin)");
     print_confusion("confusion, all runs", &s.confusion);
-    print_confusion("confusion, runs with raise ≥ 50%", &s.confusion_raise_ge_50pct);
+    print_confusion(
+        "confusion, runs with raise ≥ 50%",
+        &s.confusion_raise_ge_50pct,
+    );
     println!(
         "\nfalse-positive rate on clean data: {:.1}%",
         s.false_positive_rate * 100.0
@@ -529,7 +536,10 @@ pub fn run(a: &Args) -> Result<()> {
             if b.n == 0 {
                 print!(" {:>14}", "–");
             } else {
-                print!(" {:>14}", format!("{:.0}% ({})", b.correct_rate * 100.0, b.n));
+                print!(
+                    " {:>14}",
+                    format!("{:.0}% ({})", b.correct_rate * 100.0, b.n)
+                );
             }
         }
         println!();

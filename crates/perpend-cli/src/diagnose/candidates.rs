@@ -30,6 +30,7 @@ use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 
 use crate::exchange::PoseTable;
+use crate::paramfile::{Identifiability, SensorParams, Triples};
 
 /// The names the diagnosis can give (the catalogue plus `none` and
 /// `unexplained`).
@@ -230,6 +231,12 @@ pub struct SensorFit {
     pub rms: f64,
     /// Readings used.
     pub used: usize,
+    /// 1σ of the zero point [mm].
+    pub sigma_zero: [f64; 3],
+    /// 1σ of the unit direction's components.
+    pub sigma_dir: [f64; 3],
+    /// The solver's identifiability verdict.
+    pub diagnostic: perpend_core::calib::Diagnostic<f64>,
 }
 
 fn convert<const P: usize>(
@@ -248,7 +255,26 @@ fn convert<const P: usize>(
         sigma,
         rms: f.rms,
         used: f.used,
+        sigma_zero: f.sigma_zero().into(),
+        sigma_dir: f.sigma_dir().into(),
+        diagnostic: f.diagnostic,
     })
+}
+
+/// The parameter-file entry of sensor `idx` (0-based) fitted as `fit`
+/// from `nominal`: geometry and extension, their 1σ, residual RMS and
+/// identifiability.
+pub fn params_of(idx: usize, fit: &SensorFit, nominal: &Sensor<f64>) -> SensorParams {
+    let mut p = SensorParams::from_sensor(idx + 1, &fit.sensor, Some(nominal));
+    p.sigma = Some(Triples {
+        zero_mm: fit.sigma_zero,
+        dir: fit.sigma_dir,
+    });
+    p.sigma_ext = fit.sigma.clone();
+    p.residual_rms_mm = Some(fit.rms);
+    p.readings = fit.used;
+    p.identifiability = Some(Identifiability::from(&fit.diagnostic));
+    p
 }
 
 /// Fits sensor `idx` with the regressors `terms` (0 to 3 columns).
@@ -367,6 +393,10 @@ mod tests {
     fn line_angle_ignores_orientation() {
         let a = Vector3::new(0.0, 0.0, 1.0);
         let b = Vector3::new(0.0, 1e-3f64.sin(), -(1e-3f64.cos()));
-        approx::assert_relative_eq!(line_angle_deg(&a, &b), 1e-3f64.to_degrees(), epsilon = 1e-12);
+        approx::assert_relative_eq!(
+            line_angle_deg(&a, &b),
+            1e-3f64.to_degrees(),
+            epsilon = 1e-12
+        );
     }
 }

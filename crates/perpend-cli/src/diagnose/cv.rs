@@ -19,7 +19,7 @@
 use nalgebra::Vector3;
 use perpend_core::calib::{LsqConfig, Poses};
 use perpend_core::head::{Head, Sensor};
-use perpend_core::normal::{fit, plane, spots, Method};
+use perpend_core::normal::{plane, Method};
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -52,12 +52,16 @@ impl Folds {
 
     /// Training poses (all but fold `f`).
     pub fn train(&self, f: usize) -> Vec<usize> {
-        (0..self.of_pose.len()).filter(|&p| self.of_pose[p] != f).collect()
+        (0..self.of_pose.len())
+            .filter(|&p| self.of_pose[p] != f)
+            .collect()
     }
 
     /// Held-out poses of fold `f`.
     pub fn test(&self, f: usize) -> Vec<usize> {
-        (0..self.of_pose.len()).filter(|&p| self.of_pose[p] == f).collect()
+        (0..self.of_pose.len())
+            .filter(|&p| self.of_pose[p] == f)
+            .collect()
     }
 }
 
@@ -175,27 +179,14 @@ pub fn measure_normal(
         ctx: &perpend_core::ext::Context<f64>,
         method: Method,
     ) -> Result<Vector3<f64>, String> {
-        let arr: [Sensor<f64>; N] =
-            core::array::from_fn(|i| s.get(i).copied().unwrap_or(s[0]));
+        let arr: [Sensor<f64>; N] = core::array::from_fn(|i| s.get(i).copied().unwrap_or(s[0]));
         let rr: [Option<f64>; N] = core::array::from_fn(|i| r.get(i).copied().flatten());
         let head = Head::new(arr);
-        let mut n = plane(&head, &rr, ctx, method)
+        // perpend-core iterates the incidence angle to its fixed point, as
+        // the board does.
+        plane(&head, &rr, ctx, method)
             .map(|p| p.normal)
-            .map_err(|e| e.to_string())?;
-        if !head.sensors.iter().any(|s| s.ext.needs_incidence()) {
-            return Ok(n);
-        }
-        for _ in 0..4 {
-            let cg: [f64; N] = core::array::from_fn(|i| n.dot(&head.sensors[i].dir).abs());
-            let (sp, _) = spots(&head, &rr, ctx, &cg).map_err(|e| e.to_string())?;
-            let next = fit(&head, &sp, method).map_err(|e| e.to_string())?.normal;
-            let moved = next.cross(&n).norm();
-            n = next;
-            if moved < 1e-10 {
-                break;
-            }
-        }
-        Ok(n)
+            .map_err(|e| e.to_string())
     }
     if sensors.is_empty() || readings.len() != sensors.len() {
         return Err("readings and sensors differ in number".into());
@@ -207,7 +198,9 @@ pub fn measure_normal(
         6 => go::<6>(sensors, readings, ctx, method),
         7 => go::<7>(sensors, readings, ctx, method),
         8 => go::<8>(sensors, readings, ctx, method),
-        n => Err(format!("normals need a head of 3 to 8 sensors, this one has {n}")),
+        n => Err(format!(
+            "normals need a head of 3 to 8 sensors, this one has {n}"
+        )),
     }
 }
 

@@ -291,7 +291,10 @@ pub fn expect(
     use rand::SeedableRng;
     let mut analyses = Vec::with_capacity(draws);
     for j in 0..draws {
-        let mut rng = StdRng::seed_from_u64(seed.wrapping_add(j as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut rng = StdRng::seed_from_u64(
+            seed.wrapping_add(j as u64)
+                .wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
         let table = null_table(truth, poses, noise, &mut rng);
         if let Ok(a) = analyse(&table, plan, true) {
             analyses.push(a);
@@ -302,7 +305,11 @@ pub fn expect(
         .models
         .iter()
         .map(|&e| {
-            let v: Vec<f64> = analyses.iter().filter_map(|a| a.cv_of(e)).map(|c| c.rms).collect();
+            let v: Vec<f64> = analyses
+                .iter()
+                .filter_map(|a| a.cv_of(e))
+                .map(|c| c.rms)
+                .collect();
             (e, Spread::of(&v))
         })
         .collect();
@@ -342,5 +349,56 @@ pub fn expect(
         runs_z: Spread::of(&runs),
         r2,
         normal_err_deg: Spread::of(&nerr),
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::sim::{paper_head, simulate, SimConfig};
+    use rand::SeedableRng;
+
+    #[test]
+    fn null_table_keeps_planes_and_missing_readings() {
+        let head = paper_head().unwrap();
+        let mut cfg = SimConfig::paper();
+        cfg.poses = 20;
+        cfg.dropout = 0.1;
+        let data = simulate(&head, &cfg, &[], &mut StdRng::seed_from_u64(3)).unwrap();
+        let noise = NoiseModel {
+            sigma: vec![0.0; 4],
+            tracker: None,
+        };
+        let t = null_table(
+            &head.truth,
+            &data.poses,
+            &noise,
+            &mut StdRng::seed_from_u64(4),
+        );
+        assert_eq!(t.rows.len(), 20);
+        for (a, b) in t.rows.iter().zip(&data.poses.rows) {
+            assert_eq!(a.plane, b.plane);
+            for (i, (x, y)) in a.readings.iter().zip(&b.readings).enumerate() {
+                assert_eq!(x.is_some(), y.is_some());
+                if let Some(x) = x {
+                    // noise-free: exactly the true head's distance
+                    let d = distance(&head.truth[i], &b.plane, i).unwrap();
+                    approx::assert_relative_eq!(*x, d, epsilon = 1e-12);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn predictive_spread_golden() {
+        let s = Spread::of(&[1.0, 2.0, 3.0, 4.0]);
+        approx::assert_relative_eq!(s.mean, 2.5);
+        approx::assert_relative_eq!(
+            s.predictive_sd(0.0),
+            (5.0f64 / 3.0).sqrt() * 1.25f64.sqrt(),
+            epsilon = 1e-12
+        );
+        approx::assert_relative_eq!(s.predictive_sd(10.0), 10.0);
     }
 }

@@ -29,6 +29,14 @@
 //! 5. **Gain.** The named extension's held-out RMS and held-out normal
 //!    error (normals through `perpend-core` with the extension applied, as
 //!    on the board) against the base model's.
+//! 6. **Storage.** `--out` writes the named model fitted on all poses as
+//!    the parameter JSON of [`crate::paramfile`], extension coefficients
+//!    and their 1σ included, for the board's stored calibration.
+//!
+//! Limits: the expectation is only as good as the stated noise (datasheet
+//! σ, tracker ξ / points / patch: pass your tracker's with `--xi-mm`,
+//! `--tracker-points`, `--tracker-patch-mm`); one effect is named at a
+//! time; heads of 3 to 8 sensors for the normal errors.
 //!
 //! Everything is seeded: the same files and options give the same report.
 
@@ -52,6 +60,7 @@ use perpend_core::normal::Method;
 use serde::{Deserialize, Serialize};
 
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
+use crate::paramfile::ParamFile;
 use crate::sim::Tracker;
 use candidates::{available, fit, Effect, Refs, SensorFit};
 use cv::{normal_errors, Folds};
@@ -95,6 +104,11 @@ pub struct Args {
     /// Write SVG plots into this directory.
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// Write the calibration of the named model (all poses; the paper's
+    /// model for none / unexplained) as parameter JSON here, extension
+    /// coefficients included.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Tracker point noise ξ (1σ per coordinate) [mm]; 0: planes exact.
     #[arg(long, default_value_t = 0.02)]
     pub xi_mm: f64,
@@ -289,6 +303,10 @@ pub struct Diagnosis {
     pub skipped: Vec<(Effect, String)>,
     /// Comparisons with the simulation.
     pub checks: Vec<Check>,
+    /// For `unexplained` without a partial winner: the factor on the
+    /// datasheet σ that would make the simulation match the measured
+    /// residual RMS (the tracker's share kept), if one exists.
+    pub sigma_factor: Option<f64>,
     /// Term references.
     pub refs: Refs,
     /// Folds used.
@@ -304,10 +322,7 @@ impl Diagnosis {
     pub fn json(&self) -> DiagnoseJson {
         DiagnoseJson {
             effect: self.effect.name().into(),
-            expected_rms_mm: self
-                .expected
-                .rms_of(Effect::None)
-                .map_or(0.0, |s| s.mean),
+            expected_rms_mm: self.expected.rms_of(Effect::None).map_or(0.0, |s| s.mean),
             base: self.base,
             extended: self.extended,
             candidates: self
@@ -469,6 +484,26 @@ pub fn diagnose(sensors: &SensorTable, poses: &PoseTable, s: &Settings) -> Resul
         None => None,
     };
     let checks = report::checks(&measured, &expected, &fitted, &decision);
+    let sigma_factor = if effect == Effect::Unexplained && decision.winner.is_none() {
+        // Expected RMS² ≈ T² + f²·(E² − T²): T from draws without reading
+        // noise, E the expectation at the datasheet σ.
+        let quiet = NoiseModel {
+            sigma: vec![0.0; noise.sigma.len()],
+            tracker: s.tracker,
+        };
+        let base_only = Plan {
+            models: &[Effect::None],
+            ..plan
+        };
+        let t = expect(&truth, poses, &quiet, &base_only, s.draws, s.seed)
+            .rms_of(Effect::None)
+            .map_or(0.0, |x| x.mean);
+        let e = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
+        let m = base_cv.rms;
+        (e > t && m > t).then(|| ((m * m - t * t) / (e * e - t * t)).sqrt())
+    } else {
+        None
+    };
     Ok(Diagnosis {
         effect,
         decision,
@@ -483,11 +518,43 @@ pub fn diagnose(sensors: &SensorTable, poses: &PoseTable, s: &Settings) -> Resul
         refit,
         skipped,
         checks,
+        sigma_factor,
         refs,
         folds,
         nominal,
         poses: poses.clone(),
     })
+}
+
+/// The parameter file of the named model: every sensor fitted on all
+/// poses with the named extension (the paper's model for `none` and
+/// `unexplained`), with 1σ, residual RMS and identifiability.
+///
+/// # Errors
+/// A sensor that cannot be fitted.
+pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
+    let model = d.ext_model;
+    let mut f = ParamFile::new(
+        "lsq",
+        if model == Effect::None {
+            "base"
+        } else {
+            model.name()
+        },
+        d.poses.rows.len(),
+    );
+    for (i, s) in d.nominal.iter().enumerate() {
+        let fit = match (&d.refit, model) {
+            (Some((e, fits)), m) if *e == m => fits[i].clone(),
+            (_, Effect::None) => d.measured.base_fit[i].clone(),
+            _ => fit(s, i, &d.poses, d.refs.terms(model, i), lsq)
+                .map_err(|e| anyhow!("sensor {}: {e}", i + 1))?,
+        };
+        let p = candidates::params_of(i, &fit, s);
+        f.sensors.push(p);
+    }
+    f.validate()?;
+    Ok(f)
 }
 
 /// Runs `perpend diagnose`.
@@ -504,12 +571,22 @@ pub fn run(a: &Args) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         plot::write_all(&d, dir)?;
     }
+    if let Some(out) = &a.out {
+        param_file(&d, &settings.lsq)?.write(out)?;
+    }
     if a.json {
         println!("{}", serde_json::to_string(&d.json())?);
     } else {
         print!("{}", report::text(&d, &a.sensors, &a.poses, &settings));
         if let Some(dir) = &a.plot {
             println!("\nplots written to {}", dir.display());
+        }
+        if let Some(out) = &a.out {
+            println!(
+                "parameters ({} model) written to {}",
+                d.ext_model.name(),
+                out.display()
+            );
         }
     }
     Ok(())

@@ -136,10 +136,9 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
             let areas = root.split_evenly((1, 2));
             scatter_panel(&areas[0], "before: paper's model", label, &before, xr, yr)?;
             let title = match d.effect {
-                Effect::Unexplained => format!(
-                    "after: with {} (explains only part)",
-                    axis_effect.name()
-                ),
+                Effect::Unexplained => {
+                    format!("after: with {} (explains only part)", axis_effect.name())
+                }
                 e => format!("after: with {}", e.name()),
             };
             scatter_panel(&areas[1], &title, label, a, xr, yr)?;
@@ -149,7 +148,8 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
             scatter_panel(&root, &title, label, &before, xr, yr)?;
         }
     }
-    root.present().map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
+    root.present()
+        .map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
     Ok(())
 }
 
@@ -215,9 +215,14 @@ pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
             }))
             .map_err(|e| anyhow!("plot: {e}"))?
             .label(format!("{name}: mean {mean:.4}°"))
-            .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 12, y + 5)], c.mix(0.6).filled()));
+            .legend(move |(x, y)| {
+                Rectangle::new([(x, y - 5), (x + 12, y + 5)], c.mix(0.6).filled())
+            });
         chart
-            .draw_series(LineSeries::new([(mean, 0.0), (mean, ymax)], c.stroke_width(2)))
+            .draw_series(LineSeries::new(
+                [(mean, 0.0), (mean, ymax)],
+                c.stroke_width(2),
+            ))
             .map_err(|e| anyhow!("plot: {e}"))?;
     }
     chart
@@ -226,7 +231,8 @@ pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
         .border_style(BLACK)
         .draw()
         .map_err(|e| anyhow!("plot: {e}"))?;
-    root.present().map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
+    root.present()
+        .map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
     Ok(())
 }
 

@@ -122,7 +122,9 @@ pub fn statements(d: &Diagnosis) -> Vec<String> {
         } else if c.what.starts_with("held-out RMS, sensor") {
             format!(
                 "{}: {:.4} mm measured vs {:.4} ± {:.4} mm simulated (z = {:.1}).",
-                c.what.trim_end_matches(" [mm]").replace("held-out RMS, s", "S"),
+                c.what
+                    .trim_end_matches(" [mm]")
+                    .replace("held-out RMS, s", "S"),
                 c.measured,
                 c.expected,
                 c.spread,
@@ -131,7 +133,11 @@ pub fn statements(d: &Diagnosis) -> Vec<String> {
         } else if c.what.starts_with("lag-1") || c.what.starts_with("runs") {
             format!(
                 "The residuals are not white in acquisition order ({} = {:.2}, simulated {:.2} ± {:.2}): something changes slowly during the run.",
-                c.what.split(' ').next().unwrap_or(""),
+                if c.what.starts_with("lag-1") {
+                    "lag-1 r"
+                } else {
+                    "runs-test z"
+                },
                 c.measured,
                 c.expected,
                 c.spread
@@ -249,8 +255,8 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
     );
     let _ = writeln!(
         o,
-        "  {:<14} {:>6}  {:>13}  {:>17}  {:>7}  {:>7}  {}",
-        "model", "params", "held-out RMS", "simulated floor", "gain z", "rank z", "beats base"
+        "  {:<14} {:>6}  {:>13}  {:>17}  {:>7}  {:>7}  beats base",
+        "model", "params", "held-out RMS", "simulated floor", "gain z", "rank z"
     );
     for v in &d.decision.verdicts {
         let _ = writeln!(
@@ -300,6 +306,19 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             t.join(", ")
         );
     }
+    if let Some(f) = d.sigma_factor {
+        let sig: Vec<String> = d
+            .noise
+            .sigma
+            .iter()
+            .map(|x| format!("{:.4}", x * f))
+            .collect();
+        let _ = writeln!(
+            o,
+            "  the residuals would match a reading noise {f:.2}× the datasheet's (σ = {} mm); if the checks above show no structure (white in acquisition order, no regressor explains them), the datasheet σ is optimistic for this cell; otherwise an effect outside the catalogue is at work",
+            sig.join(" / ")
+        );
+    }
     if let Some(f) = d.decision.explained_fraction {
         if d.effect == Effect::Unexplained {
             let _ = writeln!(
@@ -329,7 +348,12 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
                 .zip(&f.sigma)
                 .enumerate()
                 .map(|(j, (c, s))| {
-                    format!("{} {:+.4e} ± {:.1e}", units.get(j).copied().unwrap_or("c"), c, s)
+                    format!(
+                        "{} {:+.4e} ± {:.1e}",
+                        units.get(j).copied().unwrap_or("c"),
+                        c,
+                        s
+                    )
                 })
                 .collect();
             let _ = writeln!(
@@ -343,8 +367,7 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
         if d.effect != Effect::Unexplained {
             let _ = writeln!(
                 o,
-                "  store them with: perpend calibrate --model {} --sensors {} --poses {} --out params.json",
-                e.name(),
+                "  store them: perpend diagnose --sensors {} --poses {} --out params.json (parameter JSON with the extension)",
                 sensors.display(),
                 poses.display()
             );
@@ -391,6 +414,12 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
     }
     if d.ext_model == Effect::None {
         let _ = writeln!(o, "  nothing named: the extended model is the base model");
+    }
+    if d.ext_model == Effect::Incidence {
+        let _ = writeln!(
+            o,
+            "  (incidence: the normal iterates the beam-to-surface angle to convergence; perpend-core's normal::plane stops after two passes, which costs accuracy when the coefficients reach millimetres)"
+        );
     }
     o
 }

@@ -313,3 +313,144 @@ pub fn decide(measured: &Analysis, exp: &Expectation, n_sensors: usize, rule: &R
         reasons,
     }
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::diagnose::expect::{Analysis, Expectation, Spread};
+
+    fn cv(effect: Effect, losses: &[f64]) -> CvResult {
+        let n = losses.len() * 4;
+        let rms = (losses.iter().sum::<f64>() / n as f64).sqrt();
+        CvResult {
+            effect,
+            resid: vec![vec![None; 4]; losses.len()],
+            heads: vec![],
+            rms,
+            rms_sensor: vec![rms; 4],
+            pose_loss: losses.to_vec(),
+            n,
+        }
+    }
+
+    fn analysis(cvs: Vec<CvResult>) -> Analysis {
+        Analysis {
+            cv: cvs.into_iter().map(|c| (c.effect, Ok(c))).collect(),
+            base_fit: vec![],
+            insample: vec![],
+            lag1: (0.0, 0),
+            runs_z: 0.0,
+            r2: vec![],
+            base_normal: vec![],
+        }
+    }
+
+    fn expectation(models: &[(Effect, f64)]) -> Expectation {
+        Expectation {
+            draws: 8,
+            rms: models
+                .iter()
+                .map(|&(e, m)| {
+                    (
+                        e,
+                        Spread {
+                            mean: m,
+                            sd: 0.02 * m,
+                            n: 8,
+                        },
+                    )
+                })
+                .collect(),
+            ..Expectation::default()
+        }
+    }
+
+    /// Per-pose losses around `level` (4 readings per pose), deterministic
+    /// pseudo-noise.
+    fn losses(level: f64, k: usize, seed: u64) -> Vec<f64> {
+        (0..k)
+            .map(|i| {
+                let u = ((i as u64 * 2654435761 + seed * 97) % 1000) as f64 / 1000.0;
+                4.0 * level * level * (0.5 + u)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn clean_data_is_none() {
+        let base = cv(Effect::None, &losses(0.01, 100, 1));
+        // a candidate that only over-fits: slightly worse everywhere
+        let g: Vec<f64> = base.pose_loss.iter().map(|l| l * 1.01).collect();
+        let a = analysis(vec![base.clone(), cv(Effect::Gain, &g)]);
+        let e = expectation(&[(Effect::None, base.rms), (Effect::Gain, base.rms)]);
+        let d = decide(&a, &e, 4, &Rule::default());
+        assert_eq!(d.effect, Effect::None);
+        assert!(!d.above);
+        assert_eq!(d.verdicts.len(), 2);
+        assert!(!d.verdicts[1].beats_base);
+    }
+
+    #[test]
+    fn a_candidate_that_reaches_the_floor_is_named() {
+        let floor = 0.01;
+        let base = cv(Effect::None, &losses(0.02, 100, 1));
+        let good = cv(Effect::Thermal, &losses(floor, 100, 2));
+        let a = analysis(vec![base, good]);
+        let e = expectation(&[(Effect::None, floor), (Effect::Thermal, floor)]);
+        let d = decide(&a, &e, 4, &Rule::default());
+        assert_eq!(d.effect, Effect::Thermal);
+        assert!(d.above);
+        assert!(d.verdicts[1].z > d.z_star);
+        assert!(d.explained_fraction.unwrap() > 0.9);
+    }
+
+    #[test]
+    fn a_partial_explanation_is_unexplained() {
+        let floor = 0.01;
+        let base = cv(Effect::None, &losses(0.03, 100, 1));
+        let half = cv(Effect::Gain, &losses(0.02, 100, 2));
+        let a = analysis(vec![base, half]);
+        let e = expectation(&[(Effect::None, floor), (Effect::Gain, floor)]);
+        let d = decide(&a, &e, 4, &Rule::default());
+        assert_eq!(d.effect, Effect::Unexplained);
+        assert_eq!(d.winner, Some(Effect::Gain));
+    }
+
+    #[test]
+    fn excess_without_a_candidate_is_unexplained() {
+        let floor = 0.01;
+        let base = cv(Effect::None, &losses(0.02, 100, 1));
+        let g: Vec<f64> = base.pose_loss.iter().map(|l| l * 1.01).collect();
+        let a = analysis(vec![base, cv(Effect::Drift, &g)]);
+        let e = expectation(&[(Effect::None, floor), (Effect::Drift, floor)]);
+        let d = decide(&a, &e, 4, &Rule::default());
+        assert_eq!(d.effect, Effect::Unexplained);
+        assert_eq!(d.winner, None);
+    }
+
+    #[test]
+    fn the_simpler_of_two_equal_models_is_named() {
+        let floor = 0.01;
+        let base = cv(Effect::None, &losses(0.02, 100, 1));
+        let gain = cv(Effect::Gain, &losses(floor, 100, 2));
+        // nonlinearity (more parameters) marginally better on average, by
+        // far less than the pose-to-pose spread of the difference
+        let nl: Vec<f64> = gain
+            .pose_loss
+            .iter()
+            .enumerate()
+            .map(|(i, l)| l * (0.999 + 0.05 * (i as f64 * 1.7).sin()))
+            .collect();
+        assert!(nl.iter().sum::<f64>() < gain.pose_loss.iter().sum::<f64>());
+        let a = analysis(vec![base, gain, cv(Effect::Nonlinearity, &nl)]);
+        let e = expectation(&[
+            (Effect::None, floor),
+            (Effect::Gain, floor),
+            (Effect::Nonlinearity, floor),
+        ]);
+        let d = decide(&a, &e, 4, &Rule::default());
+        assert_eq!(d.effect, Effect::Gain);
+        assert_eq!(d.verdicts[2].n_params, 32);
+    }
+}

@@ -171,7 +171,11 @@ pub fn runs_z(seq: &[Option<f64>]) -> f64 {
         return 0.0;
     }
     let med = quantile(&vals, 0.5);
-    let signs: Vec<bool> = vals.iter().filter(|&&v| v != med).map(|&v| v > med).collect();
+    let signs: Vec<bool> = vals
+        .iter()
+        .filter(|&&v| v != med)
+        .map(|&v| v > med)
+        .collect();
     let n1 = signs.iter().filter(|&&s| s).count() as f64;
     let n2 = signs.len() as f64 - n1;
     let n = n1 + n2;
@@ -193,7 +197,11 @@ pub fn runs_z(seq: &[Option<f64>]) -> f64 {
 /// the tie-corrected variance): the z statistic, positive when the
 /// differences are mostly positive. 0 with fewer than two non-zero values.
 pub fn signed_rank_z(d: &[f64]) -> f64 {
-    let mut v: Vec<f64> = d.iter().copied().filter(|x| *x != 0.0 && x.is_finite()).collect();
+    let mut v: Vec<f64> = d
+        .iter()
+        .copied()
+        .filter(|x| *x != 0.0 && x.is_finite())
+        .collect();
     let n = v.len();
     if n < 2 {
         return 0.0;
@@ -261,7 +269,11 @@ pub fn explained(y: &[f64], xs: &[Vec<f64>]) -> (f64, f64) {
         }
     });
     let yc = nalgebra::DVector::from_fn(n, |k, _| y[k] - my);
-    let Ok(b) = x.clone().svd(true, true).solve(&yc, 1e-9 * (n as f64).sqrt()) else {
+    let Ok(b) = x
+        .clone()
+        .svd(true, true)
+        .solve(&yc, 1e-9 * (n as f64).sqrt())
+    else {
         return (0.0, total);
     };
     let fit = &x * b;
@@ -301,13 +313,21 @@ mod tests {
         let x: Vec<f64> = (0..20).map(|i| i as f64).collect();
         let y: Vec<f64> = x.iter().map(|v| 3.0 * v + 1.0).collect();
         assert_relative_eq!(pearson(&x, &y), 1.0, epsilon = 1e-12);
-        assert_relative_eq!(r_squared(&y, &[x.clone()]), 1.0, epsilon = 1e-12);
+        assert_relative_eq!(
+            r_squared(&y, std::slice::from_ref(&x)),
+            1.0,
+            epsilon = 1e-12
+        );
         // y = x² on symmetric x: uncorrelated with x, explained by x².
         let xs: Vec<f64> = (-10..=10).map(|i| i as f64).collect();
         let y2: Vec<f64> = xs.iter().map(|v| v * v).collect();
         let x2: Vec<f64> = xs.iter().map(|v| v * v).collect();
         assert_relative_eq!(pearson(&xs, &y2), 0.0, epsilon = 1e-12);
-        assert_relative_eq!(r_squared(&y2, &[xs.clone()]), 0.0, epsilon = 1e-12);
+        assert_relative_eq!(
+            r_squared(&y2, std::slice::from_ref(&xs)),
+            0.0,
+            epsilon = 1e-12
+        );
         assert_relative_eq!(r_squared(&y2, &[xs.clone(), x2]), 1.0, epsilon = 1e-9);
     }
 
@@ -328,13 +348,17 @@ mod tests {
     #[test]
     fn lag1_and_runs_detect_a_slow_pattern() {
         // Alternating signs: r1 = -1 (minus end effects), many runs.
-        let alt: Vec<Option<f64>> = (0..40).map(|i| Some(if i % 2 == 0 { 1.0 } else { -1.0 })).collect();
-        let (r, pairs) = lag1(&[alt.clone()]);
+        let alt: Vec<Option<f64>> = (0..40)
+            .map(|i| Some(if i % 2 == 0 { 1.0 } else { -1.0 }))
+            .collect();
+        let (r, pairs) = lag1(std::slice::from_ref(&alt));
         assert_eq!(pairs, 39);
         assert_relative_eq!(r, -39.0 / 40.0, epsilon = 1e-12);
         assert!(runs_z(&alt) > 5.0);
         // Two blocks: one run each, far fewer runs than chance.
-        let blocks: Vec<Option<f64>> = (0..40).map(|i| Some(if i < 20 { 1.0 } else { -1.0 })).collect();
+        let blocks: Vec<Option<f64>> = (0..40)
+            .map(|i| Some(if i < 20 { 1.0 } else { -1.0 }))
+            .collect();
         assert!(runs_z(&blocks) < -5.0);
         // Missing values break the chain.
         let gap = vec![Some(1.0), None, Some(-1.0), Some(1.0)];

@@ -1,0 +1,192 @@
+//! Extension coefficients belong to the stored calibration (issue 5, item
+//! 2): fitted per sensor with the diagnosis' candidate terms, written to
+//! the parameter JSON, read back, and applied by `perpend-core` when it
+//! turns readings into spots — and a head with them measures the normal of
+//! held-out poses better than the paper's model.
+#![allow(clippy::unwrap_used)]
+
+use perpend_cli::diagnose::candidates::{fit, line_angle_deg, Effect, Refs};
+use perpend_cli::diagnose::scenario::{generate, Hidden, Scenario};
+use perpend_cli::exchange::PoseTable;
+use perpend_cli::paramfile::{ParamFile, SensorParams};
+use perpend_core::calib::{LsqConfig, Poses};
+use perpend_core::normal::{measure, Method};
+
+fn split(p: &PoseTable, at: usize) -> (PoseTable, PoseTable) {
+    let a = PoseTable {
+        n_sensors: p.n_sensors,
+        rows: p.rows[..at].to_vec(),
+    };
+    let b = PoseTable {
+        n_sensors: p.n_sensors,
+        rows: p.rows[at..].to_vec(),
+    };
+    (a, b)
+}
+
+/// Mean normal error [deg] over `test` of the head stored in `file`,
+/// against the true planes.
+fn stored_head_error(
+    file: &ParamFile,
+    test: &PoseTable,
+    truth: &[perpend_core::geometry::Plane<f64>],
+) -> f64 {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("params.json");
+    file.write(&path).unwrap();
+    let head = ParamFile::read(&path).unwrap().to_head::<4>().unwrap();
+    let mut sum = 0.0;
+    for (k, plane) in truth.iter().enumerate().take(test.len()) {
+        let r = &test.rows[k].readings;
+        let r4 = [r[0], r[1], r[2], r[3]];
+        let m = measure(&head, &r4, &test.context(k), Method::LeastSquares).unwrap();
+        sum += line_angle_deg(&m.plane.normal, &plane.n);
+    }
+    sum / test.len() as f64
+}
+
+#[test]
+fn stored_extensions_measure_held_out_normals_better() {
+    let cases = [
+        (Hidden::Gain, Effect::Gain),
+        (Hidden::Nonlinearity, Effect::Nonlinearity),
+        (Hidden::Incidence, Effect::Incidence),
+        (Hidden::Crosstalk, Effect::Crosstalk),
+        (Hidden::Thermal, Effect::Thermal),
+        (Hidden::Drift, Effect::Drift),
+    ];
+    for (k, (hidden, effect)) in cases.into_iter().enumerate() {
+        let sc = Scenario {
+            seed: 40 + k as u64,
+            hidden,
+            magnitude: 3.0,
+            poses: 120,
+            sigma_mm: 0.008,
+            with_time: true,
+            with_temp: true,
+        };
+        let g = generate(&sc).unwrap();
+        // Calibrate on the first 80 poses, measure the last 40.
+        let (train, test) = split(&g.data.poses, 80);
+        let truth = &g.data.true_planes[80..];
+        let nominal = g.data.sensors.sensors().unwrap();
+        let refs = Refs::of(&train);
+        let cfg = LsqConfig::default();
+        let mut base = ParamFile::new("lsq", "base", train.len());
+        let mut ext = ParamFile::new("lsq", effect.name(), train.len());
+        for (i, s) in nominal.iter().enumerate() {
+            let b = fit(s, i, &train, refs.terms(Effect::None, i), &cfg).unwrap();
+            let e = fit(s, i, &train, refs.terms(effect, i), &cfg).unwrap();
+            base.sensors
+                .push(SensorParams::from_sensor(i + 1, &b.sensor, Some(s)));
+            let mut p = SensorParams::from_sensor(i + 1, &e.sensor, Some(s));
+            p.sigma_ext = e.sigma.clone();
+            ext.sensors.push(p);
+        }
+        // The JSON carries the coefficients.
+        let json = serde_json::to_string(&ext).unwrap();
+        let back = ParamFile::parse(&json, "mem").unwrap();
+        assert_eq!(back, ext);
+        assert!(back.sensors.iter().any(|s| s.ext != base.sensors[0].ext));
+
+        let eb = stored_head_error(&base, &test, truth);
+        let ee = stored_head_error(&ext, &test, truth);
+        // The true head with the true extension, through the same stored
+        // path: what perfect calibration of the extended model achieves on
+        // the same readings. (For incidence this is limited by the core's
+        // two-pass γ in `normal::plane`: 0.040° here against 0.012° with γ
+        // iterated to convergence; see the diagnosis report.)
+        let mut tf = ParamFile::new("truth", effect.name(), 0);
+        for (i, s) in g.head.truth.iter().enumerate() {
+            let mut s = *s;
+            s.ext = g.ext[i];
+            tf.sensors.push(SensorParams::from_sensor(i + 1, &s, None));
+        }
+        let floor = if hidden == Hidden::Crosstalk {
+            // Injected by the ADC model, not as an Extension: no stored truth.
+            None
+        } else {
+            Some(stored_head_error(&tf, &test, truth))
+        };
+        assert!(
+            ee < eb,
+            "{}: extended {ee:.4}° vs base {eb:.4}° (floor {floor:?})",
+            effect.name()
+        );
+        if let Some(f) = floor {
+            assert!(
+                ee < 1.3 * f,
+                "{}: extended {ee:.4}° vs floor {f:.4}°",
+                effect.name()
+            );
+        }
+    }
+}
+
+/// As a user would: `perpend diagnose --out` on the calibration files
+/// stores the named extension; `perpend calibrate --out` stores the
+/// paper's model; the stored extended head measures held-out normals
+/// better.
+#[test]
+fn diagnose_out_stores_the_named_extension() {
+    let sc = Scenario {
+        seed: 77,
+        hidden: Hidden::Gain,
+        magnitude: 3.0,
+        poses: 120,
+        sigma_mm: 0.008,
+        with_time: true,
+        with_temp: true,
+    };
+    let g = generate(&sc).unwrap();
+    let (train, test) = split(&g.data.poses, 80);
+    let dir = tempfile::tempdir().unwrap();
+    perpend_cli::exchange::write_dataset(dir.path(), &g.data.sensors, &train, &[]).unwrap();
+    let s = dir.path().join("sensors.csv");
+    let p = dir.path().join("poses.csv");
+    let ext_json = dir.path().join("ext.json");
+    let base_json = dir.path().join("base.json");
+    let run = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_perpend"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let (s, p) = (s.to_str().unwrap(), p.to_str().unwrap());
+    let text = run(&[
+        "diagnose",
+        "--sensors",
+        s,
+        "--poses",
+        p,
+        "--out",
+        ext_json.to_str().unwrap(),
+    ]);
+    assert!(text.contains("Verdict: gain"), "{text}");
+    run(&[
+        "calibrate",
+        "--sensors",
+        s,
+        "--poses",
+        p,
+        "--out",
+        base_json.to_str().unwrap(),
+    ]);
+    let ext = ParamFile::read(&ext_json).unwrap();
+    assert_eq!(ext.model, "gain");
+    assert!(ext
+        .sensors
+        .iter()
+        .all(|x| x.ext.gain != 0.0 && x.sigma_ext.len() == 1));
+    let base = ParamFile::read(&base_json).unwrap();
+    let truth = &g.data.true_planes[80..];
+    let eb = stored_head_error(&base, &test, truth);
+    let ee = stored_head_error(&ext, &test, truth);
+    assert!(ee < 0.6 * eb, "extended {ee:.4}° vs base {eb:.4}°");
+}
