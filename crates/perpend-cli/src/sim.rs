@@ -606,9 +606,7 @@ pub fn simulate(
         planes.push(plane);
     }
     Ok(Dataset {
-        // The datasheet σ written is the reading noise actually simulated,
-        // so that a diagnosis of clean simulated data expects what it gets.
-        sensors: SensorTable::from_sensors(&head.nominal, head.sigma_mm.map(|_| cfg.zeta_mm)),
+        sensors: SensorTable::from_sensors(&head.nominal, head.sigma_mm),
         poses: PoseTable { n_sensors: n, rows },
         true_planes: planes,
         truth: head.truth.clone(),
@@ -759,7 +757,10 @@ pub fn setup(a: &Args, rng: &mut StdRng) -> Result<(SimHead, SimConfig)> {
 /// Invalid arguments, I/O errors.
 pub fn run(a: &Args) -> Result<()> {
     let mut rng = StdRng::seed_from_u64(a.seed);
-    let (head, cfg) = setup(a, &mut rng)?;
+    let (mut head, cfg) = setup(a, &mut rng)?;
+    // The datasheet σ written is the reading noise actually simulated, so
+    // that a diagnosis of clean simulated data expects what it gets.
+    head.sigma_mm = (a.zeta > 0.0).then_some(a.zeta);
     let data = simulate(&head, &cfg, &[], &mut rng)?;
     let s = &cfg.spread;
     let comments = vec![
