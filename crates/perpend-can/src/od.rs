@@ -285,7 +285,8 @@ pub const SAVE_SIGNATURE: u32 = 0x6576_6173;
 pub const LOAD_SIGNATURE: u32 = 0x6461_6F6C;
 /// Value written to 0x2010 to unlock calibration writes: ASCII "ucal"
 /// read as a little-endian UNSIGNED32 (bytes `75 63 61 6C` on the bus).
-/// Writing 0 locks again; any other value is refused (0x06090030) and locks.
+/// Writing 0 locks again; any other value is refused (0x06090030) and, like
+/// every refused write, changes nothing (an unlocked device stays unlocked).
 /// The unlock is cleared by every NMT state change and reset.
 pub const UNLOCK_SIGNATURE: u32 = 0x6C61_6375;
 

@@ -22,10 +22,17 @@ pub fn unit<T: Real>(v: Vector3<T>, what: &'static str) -> Result<Vector3<T>> {
         finite(*c, what)?;
     }
     let n2 = v.norm_squared();
-    if !(n2 > zero_len_sq::<T>()) {
-        return Err(Error::ZeroLength(what));
+    if n2.is_finite_real() {
+        if !(n2 > zero_len_sq::<T>()) {
+            return Err(Error::ZeroLength(what));
+        }
+        return Ok(v / n2.fast_sqrt());
     }
-    Ok(v / n2.fast_sqrt())
+    // Components so large that their squares overflow (|v| > ~1.8e19 in
+    // f32): scale by the largest component first.
+    let m = v.x.abs().max(v.y.abs()).max(v.z.abs());
+    let w = v / m;
+    Ok(w / w.norm_squared().fast_sqrt())
 }
 
 /// A plane `n·x + d = 0` in the TCS with unit normal `n` (Chen eq. 1).
@@ -48,17 +55,18 @@ impl<T: Real> Plane<T> {
     pub fn from_abcd(a: T, b: T, c: T, d: T) -> Result<Self> {
         let d = finite(d, "plane offset d")?;
         let raw = Vector3::new(a, b, c);
-        for x in raw.iter() {
-            finite(*x, "plane normal")?;
-        }
-        let len2 = raw.norm_squared();
-        if !(len2 > zero_len_sq::<T>()) {
-            return Err(Error::ZeroLength("plane normal"));
-        }
-        let len = len2.fast_sqrt();
+        let n = unit(raw, "plane normal")?;
+        // |raw| from the unit vector, without squaring (no overflow).
+        let k = if n.x.abs() >= n.y.abs() && n.x.abs() >= n.z.abs() {
+            raw.x / n.x
+        } else if n.y.abs() >= n.z.abs() {
+            raw.y / n.y
+        } else {
+            raw.z / n.z
+        };
         Ok(Self {
-            n: raw / len,
-            d: d / len,
+            n,
+            d: finite(d / k, "plane offset d")?,
         })
     }
 
@@ -142,6 +150,20 @@ mod tests {
         assert_relative_eq!(p.n, Vector3::new(0.0, 0.0, 1.0));
         assert_relative_eq!(p.d, -5.0);
         assert_relative_eq!(p.signed_distance(&Vector3::new(1.0, 2.0, 5.0)), 0.0);
+    }
+
+    #[test]
+    fn huge_components_do_not_overflow() {
+        let u = unit(Vector3::new(3e30f32, 4e30, 0.0), "v").unwrap();
+        assert_relative_eq!(u, Vector3::new(0.6f32, 0.8, 0.0), epsilon = 1e-6);
+        let p = Plane::from_abcd(0.0f64, 3e200, 4e200, 5e200).unwrap();
+        assert_relative_eq!(p.n, Vector3::new(0.0, 0.6, 0.8), epsilon = 1e-12);
+        assert_relative_eq!(p.d, 1.0, epsilon = 1e-12);
+        // an offset that overflows when normalised is an error, not inf
+        assert_eq!(
+            Plane::from_abcd(0.0f32, 0.0, 1e-9, 1e30),
+            Err(Error::NonFinite("plane offset d"))
+        );
     }
 
     #[test]

@@ -209,7 +209,7 @@ mod tests {
     }
 
     /// One SDO upload request of 0x1000 to node 0x10 (22 bytes).
-    const REQ: &[u8] = b"t6108400010000000000000\r";
+    const REQ: &[u8] = b"t61084000100000000000\r";
 
     /// Reads until `n` frames came in; returns the frames of each turn.
     fn read_all(c: &mut Client, n: usize) -> Vec<usize> {
