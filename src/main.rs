@@ -281,6 +281,16 @@ async fn main(_spawner: Spawner) {
                 warn!("CAN receive error");
             }
             Either3::Third(()) => {
+                // FDCAN "Rx FIFO 0 message lost" (IR.RF0L, RM0440 §44.4.16):
+                // frames were dropped because the FIFO was full. The HAL does
+                // not report it; the App turns it into EMCY 0x8110. The flag
+                // is cleared by writing 1 (other bits written 0 are kept).
+                let ir = embassy_stm32::pac::FDCAN1.ir();
+                if ir.read().rfl(0) {
+                    ir.write(|w| w.set_rfl(0, true));
+                    warn!("CAN receive FIFO overrun");
+                    app.rx_overrun();
+                }
                 app.poll(now_us(), &mut push);
                 let now = Instant::now();
                 match (props.bus_error_mode(), bus_off_since) {
