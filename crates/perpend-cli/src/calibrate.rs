@@ -13,8 +13,8 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use nalgebra::Vector3;
 use perpend_core::calib::{
-    assess, ekf_sensor, fit_sensor_base, CovarianceUpdate, Diagnostic, EkfConfig, EkfFit,
-    Innovation, LsqConfig, LsqError, LsqFit, Poses, Status,
+    assess, ekf_sensor, CovarianceUpdate, Diagnostic, EkfConfig, EkfFit, Innovation, LsqConfig,
+    Poses, Status,
 };
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
@@ -170,19 +170,6 @@ fn ident_json(d: &Diagnostic<f64>) -> Identifiability {
     Identifiability::from(d)
 }
 
-/// Least squares on every sensor.
-pub fn run_lsq(
-    nominal: &[Sensor<f64>],
-    poses: &PoseTable,
-    cfg: &LsqConfig<f64>,
-) -> Vec<Result<LsqFit<f64, 5>, Box<LsqError<f64>>>> {
-    nominal
-        .iter()
-        .enumerate()
-        .map(|(i, s)| fit_sensor_base(s, i, poses, cfg).map_err(Box::new))
-        .collect()
-}
-
 /// The paper's EKF on every sensor.
 pub fn run_ekf(
     nominal: &[Sensor<f64>],
@@ -194,19 +181,6 @@ pub fn run_ekf(
         .enumerate()
         .map(|(i, s)| ekf_sensor(s, i, poses, cfg))
         .collect()
-}
-
-/// Parameters of an LSQ fit for the JSON file.
-pub fn lsq_params(idx: usize, fit: &LsqFit<f64, 5>, nominal: &Sensor<f64>) -> SensorParams {
-    let mut p = SensorParams::from_sensor(idx + 1, &fit.sensor, Some(nominal));
-    p.sigma = Some(Triples {
-        zero_mm: fit.sigma_zero().into(),
-        dir: fit.sigma_dir().into(),
-    });
-    p.residual_rms_mm = Some(fit.rms);
-    p.readings = fit.used;
-    p.identifiability = Some(ident_json(&fit.diagnostic));
-    p
 }
 
 /// Parameters of an EKF fit for the JSON file (1σ from the filter's `P`).
@@ -300,14 +274,16 @@ pub fn run(a: &Args) -> Result<()> {
         }
     );
     match a.method {
-        Method::Lsq if model != Effect::None => {
+        Method::Lsq => {
             let refs = Refs::of(&poses);
-            let _ = writeln!(
-                report,
-                "model: zero point + beam direction + {} ({})",
-                model.name(),
-                model.regressor_label()
-            );
+            if model != Effect::None {
+                let _ = writeln!(
+                    report,
+                    "model: zero point + beam direction + {} ({})",
+                    model.name(),
+                    model.regressor_label()
+                );
+            }
             for (i, s) in nominal.iter().enumerate() {
                 let _ = writeln!(report);
                 match candidates::fit(s, i, &poses, refs.terms(model, i), &LsqConfig::default()) {
@@ -339,43 +315,6 @@ pub fn run(a: &Args) -> Result<()> {
                         let _ = writeln!(report, "sensor {}: FAILED", i + 1);
                         let _ = writeln!(report, "  {e}");
                         failures.push(format!("sensor {}: {e}", i + 1));
-                    }
-                }
-            }
-        }
-        Method::Lsq => {
-            let fits = run_lsq(&nominal, &poses, &LsqConfig::default());
-            for (i, r) in fits.iter().enumerate() {
-                let _ = writeln!(report);
-                match r {
-                    Ok(fit) => {
-                        let _ = writeln!(
-                            report,
-                            "sensor {}: {} readings, residual RMS {:.4} mm",
-                            i + 1,
-                            fit.used,
-                            fit.rms
-                        );
-                        fmt_sensor_table(
-                            &mut report,
-                            &nominal[i],
-                            &fit.sensor,
-                            (fit.sigma_zero().into(), fit.sigma_dir().into()),
-                        );
-                        let _ = writeln!(report, "  {}", fit.diagnostic);
-                        if fit.skipped > 0 {
-                            let _ = writeln!(
-                                report,
-                                "  note: {} readings skipped (beam misses the plane at the estimate)",
-                                fit.skipped
-                            );
-                        }
-                        file.sensors.push(lsq_params(i, fit, &nominal[i]));
-                    }
-                    Err(e) => {
-                        let _ = writeln!(report, "sensor {}: FAILED", i + 1);
-                        let _ = writeln!(report, "  {e}");
-                        failures.push(e.to_string());
                     }
                 }
             }

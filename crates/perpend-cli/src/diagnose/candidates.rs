@@ -176,37 +176,27 @@ pub fn available(effect: Effect, poses: &PoseTable) -> Result<(), String> {
         hi - lo
     };
     match effect {
-        Effect::Thermal => {
-            let t: Vec<f64> = poses.rows.iter().filter_map(|r| r.temp_c).collect();
+        Effect::Thermal | Effect::Drift => {
+            let (name, t): (&str, Vec<f64>) = if effect == Effect::Thermal {
+                (
+                    "temp_c",
+                    poses.rows.iter().filter_map(|r| r.temp_c).collect(),
+                )
+            } else {
+                ("t_s", poses.rows.iter().filter_map(|r| r.t_s).collect())
+            };
             if t.is_empty() {
-                return Err("no temp_c column in the poses file".into());
+                return Err(format!("no {name} column in the poses file"));
             }
             if t.len() < poses.rows.len() {
                 return Err(format!(
-                    "temp_c is missing on {} of {} poses",
+                    "{name} is missing on {} of {} poses",
                     poses.rows.len() - t.len(),
                     poses.rows.len()
                 ));
             }
             if !(spread(&t) > 0.0) {
-                return Err("temp_c does not vary over the run".into());
-            }
-            Ok(())
-        }
-        Effect::Drift => {
-            let t: Vec<f64> = poses.rows.iter().filter_map(|r| r.t_s).collect();
-            if t.is_empty() {
-                return Err("no t_s column in the poses file".into());
-            }
-            if t.len() < poses.rows.len() {
-                return Err(format!(
-                    "t_s is missing on {} of {} poses",
-                    poses.rows.len() - t.len(),
-                    poses.rows.len()
-                ));
-            }
-            if !(spread(&t) > 0.0) {
-                return Err("t_s does not vary over the run".into());
+                return Err(format!("{name} does not vary over the run"));
             }
             Ok(())
         }
