@@ -8,6 +8,12 @@
 //! the channel is open (`O`). The board keeps running without a client
 //! (frames are then dropped, as on a bus with nobody listening).
 //!
+//! Latency: for every TPDO 1 (θ1/θ2) handed to the socket the server notes
+//! the time since the acquisition of the sample it carries, and prints the
+//! distribution (median, 99th percentile, max) when the client disconnects:
+//! the acquisition-to-frame latency as far as it can be measured on the
+//! host (it includes the wait for the controller's SYNC).
+//!
 //! Limits: the loop sleeps at most 200 µs when idle, so timestamps are
 //! accurate to a fraction of a millisecond; if it falls more than 50
 //! samples behind (machine overloaded) it skips the missed samples.
@@ -119,6 +125,47 @@ impl Client {
     }
 }
 
+/// Acquisition-to-frame latencies [µs] of the TPDO 1 frames sent to one
+/// client (at most [`Latency::CAP`] kept).
+#[derive(Debug, Default)]
+pub struct Latency {
+    us: Vec<u64>,
+}
+
+impl Latency {
+    /// Most latencies kept per client.
+    pub const CAP: usize = 1 << 20;
+
+    /// Notes one frame's latency.
+    pub fn note(&mut self, us: u64) {
+        if self.us.len() < Self::CAP {
+            self.us.push(us);
+        }
+    }
+
+    /// `(count, median, p99, max)` [µs], `None` without frames.
+    pub fn summary(&mut self) -> Option<(usize, u64, u64, u64)> {
+        if self.us.is_empty() {
+            return None;
+        }
+        self.us.sort_unstable();
+        let n = self.us.len();
+        let at = |q: f64| self.us[((n - 1) as f64 * q).round() as usize];
+        Some((n, at(0.5), at(0.99), self.us[n - 1]))
+    }
+
+    /// Prints the summary to stderr and forgets the frames.
+    fn report(&mut self) {
+        if let Some((n, med, p99, max)) = self.summary() {
+            eprintln!(
+                "perpend board: acquisition-to-frame latency over {n} TPDO 1 frames: \
+                 median {med} µs, p99 {p99} µs, max {max} µs"
+            );
+        }
+        self.us.clear();
+    }
+}
+
 /// Serves the board on `listener` until the process is stopped.
 ///
 /// # Errors
@@ -130,6 +177,8 @@ pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
     let start = Instant::now();
     let mut client: Option<Client> = None;
     let mut next_sample = 0u64;
+    let mut last_sample = 0u64;
+    let mut latency = Latency::default();
     let mut produced: Vec<Frame> = Vec::new();
     loop {
         let now = start.elapsed().as_micros() as u64;
@@ -157,6 +206,7 @@ pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
                 }
                 None => {
                     eprintln!("perpend board: client disconnected");
+                    latency.report();
                     client = None;
                 }
             }
@@ -165,6 +215,7 @@ pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
         let mut k = 0;
         while next_sample <= now && k < MAX_CATCH_UP {
             board.sample(next_sample);
+            last_sample = next_sample;
             next_sample += period;
             k += 1;
         }
@@ -173,16 +224,24 @@ pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
         }
         board.poll(now, &mut |o| produced.push(o));
         if let Some(c) = client.as_mut() {
+            let mut tpdo1 = 0usize;
             if c.open {
                 for f in &produced {
                     if c.out.len() < MAX_BACKLOG {
                         slcan::format_frame(f, &mut c.out);
+                        tpdo1 += usize::from(f.id & 0x780 == 0x180 && f.id != 0x180);
                     }
                 }
             }
             busy |= !c.out.is_empty();
-            if !c.flush() {
+            let ok = c.flush();
+            let sent = start.elapsed().as_micros() as u64;
+            for _ in 0..tpdo1 {
+                latency.note(sent.saturating_sub(last_sample));
+            }
+            if !ok {
                 eprintln!("perpend board: client disconnected");
+                latency.report();
                 client = None;
             }
         }
@@ -198,6 +257,16 @@ pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn latency_summary_quantiles() {
+        let mut l = Latency::default();
+        assert_eq!(l.summary(), None);
+        for us in (1..=100).rev() {
+            l.note(us);
+        }
+        assert_eq!(l.summary(), Some((100, 51, 99, 100)));
+    }
     use std::net::TcpListener;
 
     /// A connected (server-side client, peer) pair on loopback.
