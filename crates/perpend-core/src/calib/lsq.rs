@@ -631,7 +631,10 @@ mod tests {
         // Gaussian puts 68% within 1σ).
         assert_eq!(total, 800);
         let frac1 = inside1 as f64 / total as f64;
-        assert!((0.55..=0.80).contains(&frac1), "{inside1}/{total} within 1σ");
+        assert!(
+            (0.55..=0.80).contains(&frac1),
+            "{inside1}/{total} within 1σ"
+        );
     }
 
     #[test]
