@@ -271,17 +271,7 @@ pub fn accuracy(cfg: &AccuracyConfig) -> Result<AccuracyErrors> {
         test_cfg.dropout = 0.0;
         for t in 0..cfg.test_planes {
             let p = cfg.test_spread.draw(&mut rng);
-            let r = readings(
-                &head,
-                &test_cfg,
-                &[],
-                &p,
-                Moment {
-                    pose: t,
-                    ..Moment::default()
-                },
-                &mut rng,
-            );
+            let r = test_readings(&head, &test_cfg, &p, t, &mut rng);
             if r.iter().any(Option::is_none) {
                 bail!(
                     "seed {seed}: test plane {} is out of the sensors' reach",
@@ -608,17 +598,7 @@ pub fn ident_row(tilt_x: f64, tilt_y: f64, standoff: f64, seeds: u64) -> Result<
         let h = head4(&fitted)?;
         for t in 0..20 {
             let p = test.draw(&mut rng);
-            let r = readings(
-                &head,
-                &cal,
-                &[],
-                &p,
-                Moment {
-                    pose: t,
-                    ..Moment::default()
-                },
-                &mut rng,
-            );
+            let r = test_readings(&head, &cal, &p, t, &mut rng);
             if r.iter().any(Option::is_none) {
                 continue;
             }
@@ -684,4 +664,25 @@ pub fn run(a: &Args) -> Result<()> {
         Bench::Ident(x) => run_ident(x),
         Bench::Diagnose(x) => crate::diagnose::bench::run(x),
     }
+}
+
+/// Readings of test plane `t` (no effects), drawn like any pose.
+fn test_readings(
+    head: &SimHead,
+    cfg: &SimConfig,
+    plane: &Plane<f64>,
+    t: usize,
+    rng: &mut StdRng,
+) -> Vec<Option<f64>> {
+    readings(
+        head,
+        cfg,
+        &[],
+        plane,
+        Moment {
+            pose: t,
+            ..Moment::default()
+        },
+        rng,
+    )
 }
