@@ -2,7 +2,8 @@
 //! diagnose what the model misses, benchmark, and run a virtual board.
 
 use clap::{Parser, Subcommand};
-use perpend_cli::*;
+use perpend_cli::{board, demo};
+use perpend_lab::{bench, calibrate, diagnose, sim};
 
 #[derive(Parser)]
 #[command(name = "perpend", version, about, long_about = None)]

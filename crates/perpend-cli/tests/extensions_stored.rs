@@ -5,12 +5,12 @@
 //! held-out poses better than the paper's model.
 #![allow(clippy::unwrap_used)]
 
-use perpend_cli::diagnose::candidates::{fit, line_angle_deg, Effect, Refs};
-use perpend_cli::diagnose::scenario::{generate, Hidden, Scenario};
-use perpend_cli::exchange::PoseTable;
-use perpend_cli::paramfile::{ParamFile, SensorParams};
 use perpend_core::calib::{LsqConfig, Poses};
 use perpend_core::normal::{measure, Method};
+use perpend_lab::diagnose::candidates::{fit, line_angle_deg, Effect, Refs};
+use perpend_lab::diagnose::scenario::{generate, Hidden, Scenario};
+use perpend_lab::exchange::PoseTable;
+use perpend_lab::paramfile::{ParamFile, SensorParams};
 
 fn split(p: &PoseTable, at: usize) -> (PoseTable, PoseTable) {
     let a = PoseTable {
@@ -141,7 +141,7 @@ fn diagnose_out_stores_the_named_extension() {
     let g = generate(&sc).unwrap();
     let (train, test) = split(&g.data.poses, 80);
     let dir = tempfile::tempdir().unwrap();
-    perpend_cli::exchange::write_dataset(dir.path(), &g.data.sensors, &train, &[]).unwrap();
+    perpend_lab::exchange::write_dataset(dir.path(), &g.data.sensors, &train, &[]).unwrap();
     let s = dir.path().join("sensors.csv");
     let p = dir.path().join("poses.csv");
     let ext_json = dir.path().join("ext.json");

@@ -12,8 +12,8 @@
 use std::path::Path;
 use std::process::Command;
 
-use perpend_cli::diagnose::scenario::{generate, write, Hidden, Scenario};
-use perpend_cli::diagnose::DiagnoseJson;
+use perpend_lab::diagnose::scenario::{generate, write, Hidden, Scenario};
+use perpend_lab::diagnose::DiagnoseJson;
 
 fn perpend(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_perpend"))

@@ -104,14 +104,14 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
     let plane = parse_plane(&a.plane)?;
     let head = match &a.sensors {
         Some(p) => {
-            let t = crate::exchange::read_sensors(p)?;
+            let t = perpend_lab::exchange::read_sensors(p)?;
             Some(head4(t.sensors()?, &p.display().to_string())?)
         }
         None => None,
     };
     let calibration = match &a.params {
         Some(p) => {
-            let f = crate::paramfile::ParamFile::read(p)?;
+            let f = perpend_lab::paramfile::ParamFile::read(p)?;
             Some(head4(f.sensors()?, &p.display().to_string())?)
         }
         None => None,
@@ -152,7 +152,7 @@ pub fn run(a: &Args) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::exchange::{write_sensors, SensorTable};
+    use perpend_lab::exchange::{write_sensors, SensorTable};
 
     fn args() -> Args {
         Args {

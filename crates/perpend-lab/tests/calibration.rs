@@ -4,11 +4,11 @@
 
 use std::path::Path;
 
-use perpend_cli::bench::{accuracy, AccuracyConfig, Stats};
-use perpend_cli::calibrate::{self, angle_deg, EkfPreset, Method, Model};
-use perpend_cli::exchange::{read_poses, read_sensors, write_dataset};
-use perpend_cli::paramfile::ParamFile;
-use perpend_cli::sim::{
+use perpend_lab::bench::{accuracy, AccuracyConfig, Stats};
+use perpend_lab::calibrate::{self, angle_deg, EkfPreset, Method, Model};
+use perpend_lab::exchange::{read_poses, read_sensors, write_dataset};
+use perpend_lab::paramfile::ParamFile;
+use perpend_lab::sim::{
     paper_head, plane_from_tilts, simulate, HeadKind, PoseSpread, SimConfig, Tracker,
 };
 use rand::rngs::StdRng;
@@ -204,7 +204,7 @@ fn parameter_file_rejects_malformed_files() {
 fn simulate_command_writes_readable_files() {
     let dir = tempfile::tempdir().unwrap();
     for head in [HeadKind::Paper, HeadKind::Experiment, HeadKind::Random] {
-        let a = perpend_cli::sim::Args {
+        let a = perpend_lab::sim::Args {
             out: dir.path().to_path_buf(),
             head,
             seed: 9,
@@ -225,7 +225,7 @@ fn simulate_command_writes_readable_files() {
             temp_rate: 0.01,
             truth: Some(dir.path().join("truth.json")),
         };
-        perpend_cli::sim::run(&a).unwrap();
+        perpend_lab::sim::run(&a).unwrap();
         let s = read_sensors(&dir.path().join("sensors.csv")).unwrap();
         let p = read_poses(&dir.path().join("poses.csv"), Some(s.len())).unwrap();
         assert_eq!(p.rows.len(), 30);
@@ -271,8 +271,8 @@ fn tracker_without_noise_is_exact() {
 /// stay within 3σ of zero.
 #[test]
 fn calibrate_model_gain_stores_the_coefficient() {
-    use perpend_cli::sim::{random_head, ExtensionEffect};
     use perpend_core::ext::Extension;
+    use perpend_lab::sim::{random_head, ExtensionEffect};
     let dir = tempfile::tempdir().unwrap();
     let mut rng = StdRng::seed_from_u64(11);
     let head = random_head(&mut rng, 1.0, 0.05).unwrap();

@@ -1,8 +1,8 @@
 //! The exchange-format reader and writer on hand-written files.
 #![allow(clippy::unwrap_used)]
 
-use perpend_cli::exchange::{parse_poses, parse_sensors, write_poses, write_sensors};
 use perpend_core::calib::Poses;
+use perpend_lab::exchange::{parse_poses, parse_sensors, write_poses, write_sensors};
 
 const SENSORS: &str = "\
 # nominal head, written by hand
