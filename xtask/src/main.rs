@@ -1,6 +1,8 @@
 //! `cargo xtask ...`: project automation that needs no tool beyond cargo.
 //!
-//! * `ci` — everything CI checks, in order (the README's test command).
+//! * `ci [--no-fuzz] [--verbose]` — everything CI checks, in order (the
+//!   README's test command), after the prerequisite checks of `setup`.
+//! * `setup [--no-fuzz]` — check and install the prerequisites only.
 //! * `demo` — build and run `perpend demo`.
 //! * `fw` — build the release firmware image; `size` — its flash and static
 //!   RAM use against the budget (128 KiB / 48 KiB); `mcu-bench [--json]` —
@@ -11,7 +13,9 @@
 //!
 //! Each step prints a banner and stops the run at the first failure.
 
+mod ci;
 mod fw;
+mod setup;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
@@ -44,99 +48,19 @@ fn run(program: &str, args: &[&str]) -> Result<()> {
     }
 }
 
-fn have(program: &str) -> bool {
-    Command::new("sh")
-        .args(["-c", &format!("command -v {program} >/dev/null 2>&1")])
-        .status()
-        .map(|s| s.success())
-        .unwrap_or(false)
-}
-
-/// Installs Debian packages that are missing (CI and developer machines are
-/// Debian and we are root there; elsewhere say what to install).
+/// Installs Debian packages that are missing, never removing another
+/// package (see [`setup::apt_install`]); `pkgs` pairs a program with the
+/// package that provides it.
 pub fn ensure_debian_packages(pkgs: &[(&str, &str)]) -> Result<()> {
     let missing: Vec<&str> = pkgs
         .iter()
-        .filter(|(bin, _)| !have(bin))
+        .filter(|(bin, _)| !setup::have(bin))
         .map(|(_, pkg)| *pkg)
         .collect();
     if missing.is_empty() {
         return Ok(());
     }
-    if !have("apt-get") {
-        return Err(format!("please install: {}", missing.join(" ")));
-    }
-    run("apt-get", &["update", "-qq"])?;
-    let mut args = vec!["install", "-y", "-qq", "--no-install-recommends"];
-    args.extend(missing.iter().copied());
-    run("apt-get", &args)
-}
-
-fn ci() -> Result<()> {
-    let c = cargo();
-    run(&c, &["fmt", "--all", "--", "--check"])?;
-    run(&c, &["clippy", "--all-targets", "--", "-D", "warnings"])?;
-    run(&c, &["test"])?;
-    // no_std, no alloc: the pure crates build for the board's target.
-    run(
-        &c,
-        &[
-            "build",
-            "-p",
-            "perpend-core",
-            "-p",
-            "perpend-can",
-            "-p",
-            "perpend-board",
-            "--target",
-            "thumbv7em-none-eabihf",
-        ],
-    )?;
-    // The firmware: lints, release image and its flash/RAM budget.
-    run(
-        &c,
-        &[
-            "clippy",
-            "-p",
-            "perpend-fw",
-            "--target",
-            "thumbv7em-none-eabihf",
-            "--",
-            "-D",
-            "warnings",
-        ],
-    )?;
-    fw::size(&[])?;
-    // Instructions per update on an emulated Cortex-M4F.
-    fw::mcu_bench(&["--json".to_string()])?;
-    // Peer tests: python-canopen against the virtual board over slcan.
-    run("bash", &["host-tests/peer/run.sh"])?;
-    // Fuzz smoke: every parser and protocol handler, briefly. cargo-fuzz
-    // needs a nightly toolchain: the machines have one; if one cannot be
-    // had, say so loudly rather than fail every other check.
-    let secs = std::env::var("PERPEND_FUZZ_SECONDS").unwrap_or_else(|_| "15".to_string());
-    if have_nightly() {
-        fuzz(&["--seconds".to_string(), secs])?;
-    } else {
-        eprintln!("\nWARNING: no nightly toolchain could be installed: fuzz smoke SKIPPED");
-    }
-    eprintln!("\nci: all steps passed");
-    Ok(())
-}
-
-/// Whether a nightly toolchain is there, installing a minimal one if not.
-fn have_nightly() -> bool {
-    let ok = |args: &[&str]| {
-        Command::new("rustup")
-            .args(args)
-            .current_dir(root())
-            .status()
-            .map(|s| s.success())
-            .unwrap_or(false)
-    };
-    ok(&["run", "nightly", "rustc", "--version"])
-        || (ok(&["toolchain", "install", "nightly", "--profile", "minimal"])
-            && ok(&["run", "nightly", "rustc", "--version"]))
+    setup::apt_install(&missing)
 }
 
 /// The fuzz targets of `fuzz/fuzz_targets/`, one per parser or protocol
@@ -168,7 +92,8 @@ fn fuzz(args: &[String]) -> Result<()> {
     if targets.is_empty() {
         targets = FUZZ_TARGETS.iter().map(|s| s.to_string()).collect();
     }
-    if !have("cargo-fuzz") {
+    setup::nightly()?;
+    if !setup::have("cargo-fuzz") {
         run(
             &cargo(),
             &["install", "cargo-fuzz", "--locked", "--version", "0.13.2"],
@@ -245,13 +170,14 @@ fn demo() -> Result<()> {
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let res = match args.first().map(String::as_str) {
-        Some("ci") => ci(),
+        Some("ci") => ci::ci(&args[1..]),
+        Some("setup") => ci::setup_only(&args[1..]),
         Some("demo") => demo(),
         Some("fuzz") => fuzz(&args[1..]),
         Some("fw") => fw::fw(&args[1..]),
         Some("size") => fw::size(&args[1..]),
         Some("mcu-bench") => fw::mcu_bench(&args[1..]),
-        _ => Err("usage: cargo xtask <ci|demo|fw|size|mcu-bench [--json]|fuzz [--seconds N] [TARGET...]>".to_string()),
+        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|fw|size|mcu-bench [--json]|fuzz [--seconds N] [TARGET...]>".to_string()),
     };
     match res {
         Ok(()) => ExitCode::SUCCESS,
