@@ -5,8 +5,26 @@ use clap::{Parser, Subcommand};
 use perpend_cli::{board, demo};
 use perpend_lab::{bench, calibrate, diagnose, sim};
 
+/// The conventions every command's output follows.
+const CONVENTIONS: &str = "\
+Conventions: TCS origin at the tool centre point, +z along the spindle feed.
+The normal is a unit vector pointing towards the head. θ1 = atan2(n_y, -n_z) is
+the rotation about +x, θ2 = atan2(-n_x, -n_z) about +y, θ the total angle
+between spindle and normal (Tian eq. 1-5). Pitch (about x) and yaw (about y)
+bring the spindle onto the normal: Rot(y, yaw)·Rot(x, pitch)·e_z = -n (Chen eq. 22).
+Files: sensors.csv and poses.csv as in docs/data-format.md (`perpend calibrate --help`).";
+
+/// The files the analysis commands read.
+const FILES: &str = "\
+Files (CSV, header names in any order, `#` comments, empty or NaN = missing; docs/data-format.md):
+  sensors.csv  sensor, x_mm, y_mm, z_mm [mm, zero point E_i], m, n, q [beam direction],
+               optional sigma_mm [mm, datasheet 1σ: a prior]
+  poses.csv    pose, a, b, c, d_mm [plane a·x+b·y+c·z+d=0 in the TCS], d1_mm..dN_mm [readings, mm],
+               optional t_s [s], temp_c [°C], s1_mm..sN_mm [mm, sample std], n_samples,
+               plane_rms_mm [mm], plane_points";
+
 #[derive(Parser)]
-#[command(name = "perpend", version, about, long_about = None)]
+#[command(name = "perpend", version, about, long_about = None, after_help = CONVENTIONS)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -19,8 +37,10 @@ enum Cmd {
     /// Simulate a calibration run (Chen §5): write sensors.csv and poses.csv.
     Simulate(sim::Args),
     /// Calibrate a head from sensors.csv + poses.csv (least squares or the paper's EKF).
+    #[command(after_help = FILES)]
     Calibrate(calibrate::Args),
     /// Find what the model misses in a calibration run: name the effect, extend the model, measure the gain.
+    #[command(after_help = FILES)]
     Diagnose(diagnose::Args),
     /// Studies: `study paper` puts the paper's simulation beside its experiment.
     Study(diagnose::study::Args),
@@ -45,8 +65,26 @@ fn main() -> std::process::ExitCode {
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            if std::env::args().any(|a| a == "--json") {
+                println!("{}", error_json(&e));
+            } else {
+                eprintln!("error: {e:#}");
+            }
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// An error as the JSON object `--json` promises: `{"error", "file", "line"}`
+/// (file and line when a data file is at fault, else null).
+fn error_json(e: &anyhow::Error) -> String {
+    let at = e
+        .chain()
+        .find_map(|c| c.downcast_ref::<perpend_lab::exchange::ExchangeError>());
+    let v = serde_json::json!({
+        "error": format!("{e:#}"),
+        "file": at.map(|x| x.file.clone()),
+        "line": at.and_then(|x| x.line),
+    });
+    v.to_string()
 }

@@ -324,7 +324,13 @@ fn require_columns(
 ) -> Result<(), ExchangeError> {
     for n in names {
         if !header.iter().any(|h| h == *n) {
-            return Err(err(file, Some(line), format!("missing column {n}")));
+            let hint = if header.len() == 1 && header.iter().any(|h| h.contains(';')) {
+                " (the header is one column holding `;`: this file is separated by `;`, \
+                 perhaps with decimal commas; write `,` between columns and `.` as the decimal point)"
+            } else {
+                ""
+            };
+            return Err(err(file, Some(line), format!("missing column {n}{hint}")));
         }
     }
     Ok(())
