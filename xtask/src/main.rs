@@ -149,9 +149,12 @@ fn fuzz(args: &[String]) -> Result<()> {
             .to_string();
         if !out.status.success() {
             eprintln!("{log}");
-            return Err(format!(
-                "fuzz target {t} found a crash (artifact under fuzz/artifacts/{t}/)"
-            ));
+            let crashed = log.contains("==ERROR: libFuzzer") || log.contains("deadly signal");
+            return Err(if crashed {
+                format!("fuzz target {t} found a crash (artifact under fuzz/artifacts/{t}/)")
+            } else {
+                format!("fuzz target {t} did not run (build or start failed, see above)")
+            });
         }
         summary.push(format!("{t:>14}: {done}, coverage {cov} edges, 0 crashes"));
     }

@@ -284,6 +284,7 @@ pub fn run(a: &Args) -> Result<()> {
                     model.regressor_label()
                 );
             }
+            let mut geometry = Vec::new();
             for (i, s) in nominal.iter().enumerate() {
                 let _ = writeln!(report);
                 match candidates::fit(s, i, &poses, refs.terms(model, i), &LsqConfig::default()) {
@@ -310,6 +311,7 @@ pub fn run(a: &Args) -> Result<()> {
                         }
                         let _ = writeln!(report, "  {}", fit.diagnostic);
                         file.sensors.push(candidates::params_of(i, &fit, s));
+                        geometry.push(fit.sensor);
                     }
                     Err(e) => {
                         let _ = writeln!(report, "sensor {}: FAILED", i + 1);
@@ -317,6 +319,9 @@ pub fn run(a: &Args) -> Result<()> {
                         failures.push(format!("sensor {}: {e}", i + 1));
                     }
                 }
+            }
+            if failures.is_empty() {
+                expected_accuracy(&mut report, &geometry, &nominal, &poses, model);
             }
         }
         Method::Ekf => {
@@ -363,7 +368,9 @@ pub fn run(a: &Args) -> Result<()> {
                         );
                         let _ = writeln!(
                             report,
-                            "  (1σ from the filter's covariance P; m, n, q before normalisation)"
+                            "  (1σ column: the filter's internal covariance P, m, n, q before normalisation;\n   \
+                             not a confidence: the paper's filter stops early and its P does not cover the\n   \
+                             estimate's actual error; `--method lsq` gives 1σ and an expected accuracy to plan with)"
                         );
                         if let Some(d) = &diag {
                             let _ = writeln!(report, "  {d}");
@@ -394,6 +401,48 @@ pub fn run(a: &Args) -> Result<()> {
         println!("\nwrote {}", out.display());
     }
     Ok(())
+}
+
+/// Appends the expected angular accuracy of the calibrated head over the
+/// run's poses ([`crate::accuracy`]) to the report: pose resamples refitted
+/// with the same model as the calibration.
+fn expected_accuracy(
+    report: &mut String,
+    fitted: &[Sensor<f64>],
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    model: Effect,
+) {
+    const DRAWS: usize = 100;
+    // The references (mean reading, mean temperature) stay the run's, as
+    // the stored calibration's do.
+    let refs = Refs::of(poses);
+    let refit = |sub: &candidates::Subset<'_>| -> Option<Vec<Sensor<f64>>> {
+        nominal
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                candidates::fit(s, i, sub, refs.terms(model, i), &LsqConfig::default())
+                    .ok()
+                    .map(|f| f.sensor)
+            })
+            .collect()
+    };
+    let _ = writeln!(report);
+    match crate::accuracy::expected_normal_error(fitted, poses, &refit, DRAWS, 1) {
+        Ok(e) => {
+            let _ = writeln!(
+                report,
+                "expected normal error from the calibration's uncertainty over this run's {} poses: \
+                 {:.4}° RMS (1σ), {:.4}° at 95 %\n  (bootstrap over poses, {} refits; the reading \
+                 noise at measurement time adds to this)",
+                e.poses, e.rms_deg, e.p95_deg, e.draws
+            );
+        }
+        Err(e) => {
+            let _ = writeln!(report, "expected normal error: not computed ({e})");
+        }
+    }
 }
 
 /// Angle [deg] between two unit vectors, accurate near 0.

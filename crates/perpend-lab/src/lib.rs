@@ -8,6 +8,7 @@
 //! `run`, so that the binary and the host tests drive the same code.
 #![deny(missing_docs)]
 
+pub mod accuracy;
 pub mod bench;
 pub mod calibrate;
 pub mod diagnose;
