@@ -26,6 +26,9 @@ Files (CSV, header names in any order, `#` comments, empty or NaN = missing; doc
 #[derive(Parser)]
 #[command(name = "perpend", version, about, long_about = None, after_help = CONVENTIONS)]
 struct Cli {
+    /// No progress bars (they are drawn on stderr, and only on a terminal).
+    #[arg(long, global = true)]
+    quiet: bool,
     #[command(subcommand)]
     cmd: Cmd,
 }
@@ -53,6 +56,7 @@ enum Cmd {
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    perpend_lab::progress::set_quiet(cli.quiet);
     let res = match cli.cmd {
         Cmd::Demo(a) => demo::run(&a),
         Cmd::Simulate(a) => sim::run(&a),

@@ -251,7 +251,9 @@ pub fn accuracy(cfg: &AccuracyConfig) -> Result<AccuracyErrors> {
     let mut out = AccuracyErrors::default();
     let nominal = head4(&head.nominal)?;
     let truth = head4(&head.truth)?;
+    let bar = crate::progress::Progress::new(cfg.seeds.len() as u64, "accuracy: seeds");
     for &seed in &cfg.seeds {
+        bar.inc();
         let mut rng = StdRng::seed_from_u64(seed);
         let data = simulate(&head, &cfg.cal, &[], &mut rng)?;
         let c = calibrate_both(&head, &data, cfg.ekf, &cfg.lsq)?;

@@ -14,4 +14,5 @@ pub mod calibrate;
 pub mod diagnose;
 pub mod exchange;
 pub mod paramfile;
+pub mod progress;
 pub mod sim;
