@@ -213,9 +213,9 @@ fn fmt_sensor_table(
         ("x", "mm", nominal.zero.x, fitted.zero.x, sigma.0[0]),
         ("y", "mm", nominal.zero.y, fitted.zero.y, sigma.0[1]),
         ("z", "mm", nominal.zero.z, fitted.zero.z, sigma.0[2]),
-        ("m", "- ", nominal.dir.x, fitted.dir.x, sigma.1[0]),
-        ("n", "- ", nominal.dir.y, fitted.dir.y, sigma.1[1]),
-        ("q", "- ", nominal.dir.z, fitted.dir.z, sigma.1[2]),
+        ("m", "-", nominal.dir.x, fitted.dir.x, sigma.1[0]),
+        ("n", "-", nominal.dir.y, fitted.dir.y, sigma.1[1]),
+        ("q", "-", nominal.dir.z, fitted.dir.z, sigma.1[2]),
     ];
     let _ = writeln!(
         out,
@@ -224,7 +224,8 @@ fn fmt_sensor_table(
     for (name, unit, n, f, s) in rows {
         let _ = writeln!(
             out,
-            "  {name} [{unit}]  {n:>10.4}  {f:>12.6}  {:>+12.6}  {s:>9.6}",
+            "  {:<6}  {n:>10.4}  {f:>12.6}  {:>+12.6}  {s:>9.6}",
+            format!("{name} [{unit}]"),
             f - n
         );
     }
