@@ -11,9 +11,12 @@
 //!
 //! Every violation is reported as an [`ExchangeError`] naming the file, the
 //! line (1-based, comments counted) and the problem: missing column,
-//! non-numeric or non-finite value, fewer than three valid readings in a
-//! pose, degenerate plane normal, duplicate or missing sensor numbers, pose
-//! numbers that do not increase, negative readings.
+//! non-numeric or non-finite value, no pose with three valid readings,
+//! degenerate plane normal, duplicate or missing sensor numbers, a pose
+//! number that appears twice, negative readings. Rows may come in any
+//! order (they are sorted by pose); a pose with fewer than three valid
+//! readings is kept (it calibrates the sensors that read; wherever a normal
+//! is computed from it, it is skipped).
 
 use std::collections::HashMap;
 use std::fmt;
@@ -141,6 +144,23 @@ pub struct PoseRow {
     pub t_s: Option<f64>,
     /// Head temperature [°C], if given.
     pub temp_c: Option<f64>,
+    /// What the row says about its own noise (optional columns).
+    pub noise: RowNoise,
+}
+
+/// The optional noise columns of a pose row: what the acquisition and the
+/// tracker measured about their own scatter.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RowNoise {
+    /// `s1_mm … sN_mm`: standard deviation of the samples averaged into
+    /// each reading [mm] (empty when the file has none of these columns).
+    pub sd_mm: Vec<Option<f64>>,
+    /// `n_samples`: samples averaged into each reading.
+    pub n_samples: Option<u32>,
+    /// `plane_rms_mm`: RMS residual of the tracker's plane fit [mm].
+    pub plane_rms_mm: Option<f64>,
+    /// `plane_points`: points in that plane fit.
+    pub plane_points: Option<u32>,
 }
 
 /// The poses of a run.
@@ -148,7 +168,8 @@ pub struct PoseRow {
 pub struct PoseTable {
     /// Number of reading columns `d1_mm … dN_mm`.
     pub n_sensors: usize,
-    /// The rows in file order.
+    /// The rows, ordered by pose number (the reader sorts them; pose
+    /// numbers are unique).
     pub rows: Vec<PoseRow>,
 }
 
@@ -482,6 +503,12 @@ struct PoseRecord {
     t_s: Option<f64>,
     #[serde(default)]
     temp_c: Option<f64>,
+    #[serde(default)]
+    n_samples: Option<u32>,
+    #[serde(default)]
+    plane_rms_mm: Option<f64>,
+    #[serde(default)]
+    plane_points: Option<u32>,
 }
 
 /// Parses a reading cell: empty / NaN = missing.
@@ -586,10 +613,26 @@ pub fn parse_poses<R: Read>(
         ));
     }
     let cols: Vec<usize> = (1..=n).map(|i| dcols[&i]).collect();
+    // Optional per-reading standard deviations s<i>_mm: all or none.
+    let scols: Vec<Option<usize>> = (1..=n)
+        .map(|i| header.iter().position(|h| h == format!("s{i}_mm")))
+        .collect();
+    let with_sd = scols.iter().any(Option::is_some);
+    if with_sd {
+        if let Some(i) = scols.iter().position(Option::is_none) {
+            return Err(err(
+                file,
+                Some(hline),
+                format!(
+                    "missing column s{}_mm: give s1_mm … s{n}_mm together",
+                    i + 1
+                ),
+            ));
+        }
+    }
 
-    let mut rows = Vec::new();
+    let mut rows: Vec<PoseRow> = Vec::new();
     let mut rec = csv::StringRecord::new();
-    let mut last_pose: Option<(i64, u64)> = None;
     loop {
         match rdr.read_record(&mut rec) {
             Ok(true) => {}
@@ -600,19 +643,6 @@ pub fn parse_poses<R: Read>(
         let r: PoseRecord = rec
             .deserialize(Some(&header))
             .map_err(|e| de_error(file, &text, line, &header, &rec, &e))?;
-        if let Some((p, l)) = last_pose {
-            if r.pose <= p {
-                return Err(err(
-                    file,
-                    Some(line),
-                    format!(
-                        "pose numbers must increase in acquisition order: {} follows {} (line {l})",
-                        r.pose, p
-                    ),
-                ));
-            }
-        }
-        last_pose = Some((r.pose, line));
         let abcd = [
             check_finite(file, line, "a", r.a)?,
             check_finite(file, line, "b", r.b)?,
@@ -634,16 +664,11 @@ pub fn parse_poses<R: Read>(
             let name = format!("d{}_mm", i + 1);
             readings.push(parse_reading(file, line, &name, rec.get(c).unwrap_or(""))?);
         }
-        let valid = readings.iter().filter(|r| r.is_some()).count();
-        if valid < 3 {
-            return Err(err(
-                file,
-                Some(line),
-                format!(
-                    "pose {}: {valid} valid readings, a pose needs at least 3",
-                    r.pose
-                ),
-            ));
+        let mut sd_mm = Vec::new();
+        for (i, c) in scols.iter().enumerate().filter(|_| with_sd) {
+            let name = format!("s{}_mm", i + 1);
+            let v = parse_reading(file, line, &name, c.and_then(|c| rec.get(c)).unwrap_or(""))?;
+            sd_mm.push(v);
         }
         rows.push(PoseRow {
             line,
@@ -653,12 +678,48 @@ pub fn parse_poses<R: Read>(
             readings,
             t_s: optional_finite(file, line, "t_s", r.t_s)?,
             temp_c: optional_finite(file, line, "temp_c", r.temp_c)?,
+            noise: RowNoise {
+                sd_mm,
+                n_samples: r.n_samples,
+                plane_rms_mm: optional_finite(file, line, "plane_rms_mm", r.plane_rms_mm)?,
+                plane_points: r.plane_points,
+            },
         });
     }
+    order_rows(file, &mut rows)?;
     if rows.is_empty() {
         return Err(err(file, None, "no pose rows"));
     }
+    if !rows
+        .iter()
+        .any(|r| r.readings.iter().filter(|x| x.is_some()).count() >= 3)
+    {
+        return Err(err(
+            file,
+            None,
+            "no pose has three valid readings: a normal needs three",
+        ));
+    }
     Ok(PoseTable { n_sensors: n, rows })
+}
+
+/// Sorts the rows by pose number (rows may come in any order) and refuses
+/// a pose number that appears twice, naming both lines.
+fn order_rows(file: &str, rows: &mut [PoseRow]) -> Result<(), ExchangeError> {
+    rows.sort_by_key(|r| (r.pose, r.line));
+    for w in rows.windows(2) {
+        if w[0].pose == w[1].pose {
+            return Err(err(
+                file,
+                Some(w[1].line),
+                format!(
+                    "pose {} appears twice (also on line {}): pose numbers are unique",
+                    w[1].pose, w[0].line
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Reads `poses.csv` from a file (see [`parse_poses`]).
@@ -743,6 +804,22 @@ pub fn write_poses<W: Write>(
     if htemp {
         head.push("temp_c".into());
     }
+    let hsd = table.rows.iter().any(|r| !r.noise.sd_mm.is_empty());
+    if hsd {
+        head.extend((1..=table.n_sensors).map(|i| format!("s{i}_mm")));
+    }
+    let hn = table.rows.iter().any(|r| r.noise.n_samples.is_some());
+    let hp = table.rows.iter().any(|r| r.noise.plane_rms_mm.is_some());
+    let hpp = table.rows.iter().any(|r| r.noise.plane_points.is_some());
+    for (on, name) in [
+        (hn, "n_samples"),
+        (hp, "plane_rms_mm"),
+        (hpp, "plane_points"),
+    ] {
+        if on {
+            head.push(name.into());
+        }
+    }
     cw.write_record(&head)?;
     for r in &table.rows {
         let mut rec: Vec<String> = vec![r.pose.to_string()];
@@ -753,6 +830,19 @@ pub fn write_poses<W: Write>(
         }
         if htemp {
             rec.push(opt(r.temp_c));
+        }
+        if hsd {
+            rec.extend((0..table.n_sensors).map(|i| opt(r.noise.sd_mm.get(i).copied().flatten())));
+        }
+        let int = |x: Option<u32>| x.map(|v| v.to_string()).unwrap_or_default();
+        if hn {
+            rec.push(int(r.noise.n_samples));
+        }
+        if hp {
+            rec.push(opt(r.noise.plane_rms_mm));
+        }
+        if hpp {
+            rec.push(int(r.noise.plane_points));
         }
         cw.write_record(&rec)?;
     }

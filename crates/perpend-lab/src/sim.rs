@@ -602,6 +602,7 @@ pub fn simulate(
             readings: r,
             t_s,
             temp_c,
+            noise: Default::default(),
         });
         planes.push(plane);
     }

@@ -133,7 +133,7 @@ fn poses_errors_name_file_line_and_problem() {
     let h = "pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm,d4_mm\n";
     assert_eq!(
         poses_err(&format!("{h}1,0,0,1,-30,40,40,,\n"), Some(4)),
-        "poses.csv, line 2: pose 1: 2 valid readings, a pose needs at least 3"
+        "poses.csv: no pose has three valid readings: a normal needs three"
     );
     assert_eq!(
         poses_err(
@@ -152,10 +152,12 @@ fn poses_errors_name_file_line_and_problem() {
     );
     assert_eq!(
         poses_err(
-            &format!("{h}2,0,0,1,-30,40,40,40,40\n1,0,0,1,-30,40,40,40,40\n"),
+            &format!(
+                "{h}2,0,0,1,-30,40,40,40,40\n1,0,0,1,-30,40,40,40,40\n2,0,0,1,-31,40,40,40,40\n"
+            ),
             Some(4)
         ),
-        "poses.csv, line 3: pose numbers must increase in acquisition order: 1 follows 2 (line 2)"
+        "poses.csv, line 4: pose 2 appears twice (also on line 2): pose numbers are unique"
     );
     assert_eq!(
         poses_err(&format!("{h}1,0,0,1,-30,40,-1,40,40\n"), Some(4)),
@@ -204,4 +206,46 @@ fn write_then_read_round_trips() {
     assert!(String::from_utf8(sb)
         .unwrap()
         .starts_with("# a comment\nsensor,"));
+}
+
+/// `../shared/data-format.md`: rows in any order (sorted by pose), a pose
+/// with fewer than three valid readings kept, the optional noise columns
+/// read and written back.
+#[test]
+fn unsorted_rows_short_poses_and_noise_columns() {
+    let text = "\
+pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm,d4_mm,s1_mm,s2_mm,s3_mm,s4_mm,n_samples,plane_rms_mm,plane_points
+3,0,0,1,-30,40,40,40,40,0.01,0.02,0.01,0.01,16,0.012,20
+1,0,0,1,-31,41,41,,,0.01,0.02,,,16,0.011,20
+2,0,0,1,-32,42,42,42,42,0.01,0.02,0.01,0.01,16,0.013,20
+";
+    let t = parse_poses(text.as_bytes(), "p", Some(4)).unwrap();
+    let order: Vec<i64> = t.rows.iter().map(|r| r.pose).collect();
+    assert_eq!(order, vec![1, 2, 3]);
+    assert_eq!(t.rows[0].readings, vec![Some(41.0), Some(41.0), None, None]);
+    assert_eq!(t.rows[0].line, 3);
+    assert_eq!(
+        t.rows[2].noise.sd_mm,
+        vec![Some(0.01), Some(0.02), Some(0.01), Some(0.01)]
+    );
+    assert_eq!(t.rows[0].noise.sd_mm[2], None);
+    assert_eq!(t.rows[1].noise.n_samples, Some(16));
+    assert_eq!(t.rows[1].noise.plane_rms_mm, Some(0.013));
+    assert_eq!(t.rows[1].noise.plane_points, Some(20));
+    let mut out = Vec::new();
+    write_poses(&mut out, &t, &[]).unwrap();
+    let back = parse_poses(out.as_slice(), "back", Some(4)).unwrap();
+    assert_eq!(back.rows.len(), 3);
+    for (a, b) in t.rows.iter().zip(&back.rows) {
+        assert_eq!(
+            (a.pose, &a.readings, &a.noise),
+            (b.pose, &b.readings, &b.noise)
+        );
+    }
+    // s columns come all or none
+    let partial = "pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm,s1_mm\n1,0,0,1,-30,40,40,40,0.01\n";
+    let e = parse_poses(partial.as_bytes(), "p", Some(3))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("missing column s2_mm"), "{e}");
 }

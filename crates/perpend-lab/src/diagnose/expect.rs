@@ -71,6 +71,7 @@ pub fn null_table(
                 readings,
                 t_s: row.t_s,
                 temp_c: row.temp_c,
+                noise: Default::default(),
             }
         })
         .collect();
