@@ -405,14 +405,17 @@ impl Effect for ExtensionEffect {
         for _ in 0..8 {
             let prev = cur.clone();
             for i in 0..n {
-                let (Some(d), Some(r)) = (base[i], prev[i]) else {
+                let (Some(d), Some(_)) = (base[i], prev[i]) else {
                     continue;
                 };
                 let Some(e) = self.ext.get(i) else {
                     continue;
                 };
                 let p = prev[(i + n - 1) % n];
-                cur[i] = Some(d + e.excess(r, p, cosg[i], &ctx));
+                // The reading model of `perpend_core::ext`: the excess is a
+                // function of the true distance and the previous channel's
+                // reading (iterated because the channels form a ring).
+                cur[i] = Some(d + e.excess(d, p, cosg[i], &ctx));
             }
         }
         readings.copy_from_slice(&cur);

@@ -170,11 +170,7 @@ impl SimHead {
         let s = &self.truth.sensors[i];
         let cos_g = self.plane.n.dot(&s.dir).abs();
         let ctx = Context::default();
-        let mut d = d_true;
-        for _ in 0..2 {
-            d = d_true + s.ext.excess(d, d_prev, cos_g, &ctx);
-        }
-        d
+        d_true + s.ext.excess(d_true, d_prev, cos_g, &ctx)
     }
 
     /// One ADC scan: the counts of the four channels for the board's

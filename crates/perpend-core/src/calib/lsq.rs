@@ -785,8 +785,8 @@ mod tests {
         let g = 3e-3;
         for p in poses.iter_mut() {
             let d = p.readings[0].unwrap();
-            // reading r with r − g (r − 32) = d
-            p.readings[0] = Some((d - g * 32.0) / (1.0 - g));
+            // the reading model of `ext`: r = d + g (d − 32)
+            p.readings[0] = Some(d + g * (d - 32.0));
         }
         let fit: LsqFit<f64, 6> = fit_sensor(
             &nominal.sensors[0],

@@ -16,14 +16,30 @@
 //! [`Extension`] that the board applies with
 //! [`crate::ext::Extension::correct`]; [`NoExtra`] is the paper's model.
 //!
-//! Limits: regressors are evaluated on measured quantities (the readings,
-//! time and temperature of the pose) and, for incidence, on the current
-//! geometric estimate; a missing input (previous channel, temperature,
-//! time) contributes 0, as in [`crate::ext`].
+//! **No target leakage.** A regressor never contains the reading it helps
+//! predict: gain, linearity and crosstalk use the distance `f` the current
+//! geometric estimate predicts for the pose (crosstalk: the *previous*
+//! channel's measured reading minus `f`), incidence the estimate's beam
+//! direction, thermal and drift the pose's temperature and time. With the
+//! measured reading in its own regressor, a fit could lower the residuals
+//! by shrinking that reading's noise (a negative "crosstalk" of `d_prev −
+//! d` does exactly that) and a held-out prediction would see the value it
+//! predicts.
+//!
+//! On the board the plane is what is being measured, so
+//! [`Extension::correct`] evaluates the same terms on the measured reading:
+//! the two differ by `c·(d − f)`, second order in the (small) coefficient
+//! and the noise.
+//!
+//! Limits: a missing input (previous channel, temperature, time)
+//! contributes 0, as in [`crate::ext`]; the solver's Jacobian treats the
+//! regressors as constants within one step (their dependence on the
+//! geometry is first order in the coefficients).
 
 use super::Poses;
 use crate::ext::Extension;
 use crate::head::Sensor;
+use crate::model::distance;
 use crate::Real;
 
 /// Supplier of the extra columns of one sensor's least-squares problem.
@@ -181,7 +197,16 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
         geom: &Sensor<T>,
         out: &mut [T],
     ) {
-        let d = poses.reading(k, sensor).unwrap_or_else(T::zero);
+        // The distance the current geometry predicts, never the reading
+        // being predicted: a regressor built from that reading lets the fit
+        // shrink the reading's own noise instead of explaining anything
+        // (target leakage). Where the beam misses the plane at the estimate
+        // the reading stands in (the solver skips that observation anyway).
+        let plane = poses.plane(k);
+        let d = distance(geom, &plane, sensor)
+            .ok()
+            .or_else(|| poses.reading(k, sensor))
+            .unwrap_or_else(T::zero);
         let x = d - self.d_ref;
         let n = poses.sensors().max(1);
         let ctx = poses.context(k);
@@ -191,7 +216,7 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
                 Term::Quadratic => x * x,
                 Term::Cubic => x * x * x,
                 Term::Incidence => {
-                    let c = poses.plane(k).n.dot(&geom.dir).abs();
+                    let c = plane.n.dot(&geom.dir).abs();
                     if c > T::zero() {
                         T::one() / c - T::one()
                     } else {
@@ -244,8 +269,16 @@ mod tests {
             let lin: f64 = x.iter().zip(c.iter()).map(|(a, b)| a * b).sum();
             let prev = pose.readings[(i + 3) % 4];
             let cg = p.n.dot(&truth.sensors[i].dir).abs();
-            let want = ext.excess(pose.readings[i].unwrap(), prev, cg, &pose.ctx);
+            // The excess evaluated at the predicted distance, not the reading.
+            let f = distance(&truth.sensors[i], &p, i).unwrap();
+            let want = ext.excess(f, prev, cg, &pose.ctx);
             assert_relative_eq!(lin, want, epsilon = 1e-12);
+            // ... so the pose's own reading does not enter its regressors.
+            let mut moved = poses;
+            moved[0].readings[i] = Some(pose.readings[i].unwrap() + 0.7);
+            let mut y = [0.0; 7];
+            terms.fill(moved.as_slice(), 0, i, &truth.sensors[i], &mut y);
+            assert_eq!(x, y);
         }
         assert_eq!(Regressors::<f64>::name(&terms, 4), "crosstalk");
         let only = ExtTerms::new(&[Term::Thermal, Term::Gain], 30.0, 20.0);
