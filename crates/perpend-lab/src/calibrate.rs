@@ -128,6 +128,10 @@ pub struct Args {
     /// EKF: Joseph-form covariance update instead of eq. 15.
     #[arg(long)]
     pub ekf_joseph: bool,
+    /// Keep every pose: do not leave out poses that disagree with every
+    /// model (tracker blunders), which are otherwise reported and dropped.
+    #[arg(long)]
+    pub keep_outliers: bool,
 }
 
 /// The EKF configuration from the arguments.
@@ -237,11 +241,37 @@ fn fmt_sensor_table(
 /// Malformed input, unidentifiable pose sets, estimator failures, I/O.
 pub fn run(a: &Args) -> Result<()> {
     let table = read_sensors(&a.sensors)?;
-    let poses = read_poses(&a.poses, Some(table.len()))?;
+    let all_poses = read_poses(&a.poses, Some(table.len()))?;
     let nominal = table
         .sensors()
         .map_err(|e| anyhow::anyhow!("{}: {e}", a.sensors.display()))?;
     let mut report = String::new();
+    // The same rejection as `perpend diagnose`: poses that disagree with
+    // the paper's model and every candidate are reported and left out.
+    let outliers = if a.keep_outliers {
+        Vec::new()
+    } else {
+        crate::diagnose::noise::reject(
+            &nominal,
+            &all_poses,
+            &LsqConfig::default(),
+            &crate::diagnose::available_models(&all_poses),
+        )
+    };
+    let poses = crate::diagnose::noise::without(&all_poses, &outliers);
+    if !outliers.is_empty() {
+        let p: Vec<String> = outliers
+            .iter()
+            .map(|o| format!("pose {} ({:.3} mm RMS)", o.pose, o.residual_mm))
+            .collect();
+        let _ = writeln!(
+            report,
+            "left out {} of {} poses that disagree with every model (tracker blunder, spatter; --keep-outliers keeps them): {}",
+            outliers.len(),
+            all_poses.rows.len(),
+            p.join(", ")
+        );
+    }
     let mut failures: Vec<String> = Vec::new();
     let method = match a.method {
         Method::Lsq => "lsq",

@@ -27,6 +27,7 @@ fn args(dir: &Path, method: Method, out: Option<&Path>) -> calibrate::Args {
         ekf_delta: None,
         ekf_nonlinear: false,
         ekf_joseph: false,
+        keep_outliers: false,
     }
 }
 

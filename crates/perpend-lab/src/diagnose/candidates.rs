@@ -206,6 +206,64 @@ pub fn available(effect: Effect, poses: &PoseTable) -> Result<(), String> {
     }
 }
 
+/// Physical bounds of each candidate's coefficients: a fit outside them is
+/// reported as implausible, never named and never stored. `Err` says which
+/// sensor and coefficient left which bound. `span` is the largest
+/// `|d − d_ref|` of the run [mm].
+///
+/// | effect | bound |
+/// |---|---|
+/// | gain | `|g| ≤ 10 %` |
+/// | nonlinearity | `|g| ≤ 10 %`, quadratic + cubic excess `≤ 1 mm` at the run's range ends |
+/// | incidence | `|c| ≤ 5 mm` per unit of `1/cos γ − 1` (0.8 mm at 30°) |
+/// | crosstalk | carry-over in `[0, 0.5)`, a negative value allowed within 2σ of 0 |
+/// | thermal | `|c| ≤ 0.1 mm/°C` |
+/// | drift | `|c| ≤ 5 mm/h` |
+///
+/// The size bounds are gross (ten times what laser triangulation sensors'
+/// datasheets allow): they catch absurd fits, not merely poor sensors; the
+/// sign bound of the carry-over is physics (a sample-and-hold carries a
+/// fraction of the previous charge over, never a negative one), and it is
+/// the one that stops a fit from shrinking noise.
+pub fn plausible(effect: Effect, fits: &[SensorFit], span: f64) -> Result<(), String> {
+    for (i, f) in fits.iter().enumerate() {
+        let e = &f.sensor.ext;
+        let sd = |j: usize| f.sigma.get(j).copied().unwrap_or(0.0);
+        let bad = match effect {
+            Effect::Gain | Effect::Nonlinearity if e.gain.abs() > 0.1 => {
+                Some(format!("gain {:+.2} % (bound ±10 %)", 100.0 * e.gain))
+            }
+            Effect::Nonlinearity => {
+                let x = span;
+                let nl = (e.nonlinearity[0] * x * x).abs() + (e.nonlinearity[1] * x * x * x).abs();
+                (nl > 1.0).then(|| format!("linearity error {nl:.3} mm at ±{x:.1} mm (bound 1 mm)"))
+            }
+            Effect::Incidence if e.incidence.abs() > 5.0 => Some(format!(
+                "incidence bias {:+.3} mm per unit (bound ±5 mm)",
+                e.incidence
+            )),
+            Effect::Crosstalk if e.crosstalk >= 0.5 || e.crosstalk < -2.0 * sd(0) => Some(format!(
+                "carry-over {:+.2} % ± {:.2} % (bound [0, 50 %))",
+                100.0 * e.crosstalk,
+                100.0 * sd(0)
+            )),
+            Effect::Thermal if e.thermal.abs() > 0.1 => Some(format!(
+                "thermal {:+.1} µm/°C (bound ±100 µm/°C)",
+                1000.0 * e.thermal
+            )),
+            Effect::Drift if e.drift.abs() > 5.0 / 3600.0 => Some(format!(
+                "drift {:+.2} mm/h (bound ±5 mm/h)",
+                3600.0 * e.drift
+            )),
+            _ => None,
+        };
+        if let Some(b) = bad {
+            return Err(format!("sensor {}: {b}", i + 1));
+        }
+    }
+    Ok(())
+}
+
 /// One sensor fitted with a candidate model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SensorFit {

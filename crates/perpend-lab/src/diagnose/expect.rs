@@ -102,6 +102,9 @@ pub struct Analysis {
     /// Held-out normal errors of the base model [deg] (simulated runs
     /// only when asked).
     pub base_normal: Vec<Option<f64>>,
+    /// Structure z of each model's held-out residuals along each axis of
+    /// [`super::noise::AXES`] (keys from the base fit's geometry).
+    pub structure: Vec<(Effect, Vec<Option<f64>>)>,
 }
 
 impl Analysis {
@@ -116,6 +119,14 @@ impl Analysis {
     /// Pooled R² of candidate `e`.
     pub fn r2_of(&self, e: Effect) -> Option<f64> {
         self.r2.iter().find(|(x, _)| *x == e).map(|(_, r)| *r)
+    }
+
+    /// Structure z per axis of model `e`'s held-out residuals.
+    pub fn structure_of(&self, e: Effect) -> Option<&[Option<f64>]> {
+        self.structure
+            .iter()
+            .find(|(x, _)| *x == e)
+            .map(|(_, v)| v.as_slice())
     }
 }
 
@@ -207,6 +218,16 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         (true, Some((_, Ok(b)))) => normal_errors(b, poses, plan.folds, plan.method),
         _ => Vec::new(),
     };
+    let geom: Vec<Sensor<f64>> = base_fit.iter().map(|f| f.sensor).collect();
+    let structure = cv
+        .iter()
+        .filter_map(|(e, r)| {
+            Some((
+                *e,
+                super::noise::structure(&geom, poses, &r.as_ref().ok()?.resid),
+            ))
+        })
+        .collect();
     Ok(Analysis {
         cv,
         base_fit,
@@ -215,6 +236,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         runs_z,
         r2,
         base_normal,
+        structure,
     })
 }
 
@@ -264,6 +286,13 @@ pub struct Expectation {
     pub r2: Vec<(Effect, Spread)>,
     /// Held-out normal error of the base model, mean over poses [deg].
     pub normal_err_deg: Spread,
+    /// Paired z of each candidate's held-out gain over the base model on
+    /// effect-free data: what the candidate "gains" from noise alone.
+    pub gain_z: Vec<(Effect, Spread)>,
+    /// Structure z of each model's held-out residuals per axis: what a
+    /// model that captures the run leaves (cross-validation's own fold
+    /// errors are smooth in the geometry, more so with more parameters).
+    pub structure: Vec<(Effect, Vec<Spread>)>,
 }
 
 impl Expectation {
@@ -275,6 +304,19 @@ impl Expectation {
     /// R² spread of candidate `e`.
     pub fn r2_of(&self, e: Effect) -> Option<Spread> {
         self.r2.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
+    }
+
+    /// Structure spreads per axis of model `e`.
+    pub fn structure_of(&self, e: Effect) -> &[Spread] {
+        self.structure
+            .iter()
+            .find(|(x, _)| *x == e)
+            .map_or(&[], |(_, v)| v.as_slice())
+    }
+
+    /// Null spread of candidate `e`'s paired gain z.
+    pub fn gain_z_of(&self, e: Effect) -> Option<Spread> {
+        self.gain_z.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
     }
 }
 
@@ -342,6 +384,34 @@ pub fn expect(
             stats::mean(&v)
         })
         .collect();
+    let gain_z = plan
+        .models
+        .iter()
+        .filter(|e| **e != Effect::None)
+        .map(|&e| {
+            let v: Vec<f64> = analyses
+                .iter()
+                .filter_map(|a| Some(super::select::paired(a.cv_of(Effect::None)?, a.cv_of(e)?).1))
+                .collect();
+            (e, Spread::of(&v))
+        })
+        .collect();
+    let structure = plan
+        .models
+        .iter()
+        .map(|&e| {
+            let per_axis = (0..super::noise::AXES.len())
+                .map(|x| {
+                    let v: Vec<f64> = analyses
+                        .iter()
+                        .filter_map(|a| a.structure_of(e)?.get(x).copied().flatten())
+                        .collect();
+                    Spread::of(&v)
+                })
+                .collect();
+            (e, per_axis)
+        })
+        .collect();
     Expectation {
         draws: analyses.len(),
         rms,
@@ -350,6 +420,8 @@ pub fn expect(
         runs_z: Spread::of(&runs),
         r2,
         normal_err_deg: Spread::of(&nerr),
+        gain_z,
+        structure,
     }
 }
 

@@ -44,6 +44,7 @@ pub mod bench;
 pub mod candidates;
 pub mod cv;
 pub mod expect;
+pub mod noise;
 pub mod plot;
 pub mod report;
 pub mod scenario;
@@ -65,6 +66,7 @@ use crate::sim::Tracker;
 use candidates::{available, fit, Effect, Refs, SensorFit};
 use cv::{normal_errors, Folds};
 use expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
+use noise::{NoiseEstimate, Outlier};
 use select::{decide, Decision, Rule};
 
 /// Which micro-plane normal the held-out normal error uses.
@@ -240,12 +242,60 @@ pub struct CandidateJson {
     pub n_params: usize,
 }
 
+/// A pose left out of the diagnosis, in the JSON output.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OutlierJson {
+    /// Pose number.
+    pub pose: i64,
+    /// RMS of its residuals under the model fitted on the rest [mm].
+    pub residual_mm: f64,
+}
+
+/// An effect named, in the JSON output.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EffectJson {
+    /// Its name.
+    pub effect: String,
+    /// Sensors (1-based) whose coefficients differ from 0 by more than 2σ.
+    pub sensors: Vec<usize>,
+    /// Per sensor: the coefficients (column order of the extension's terms).
+    pub coefficients: Vec<Vec<f64>>,
+    /// Their 1σ.
+    pub sigma: Vec<Vec<f64>>,
+    /// Per sensor, in words and physical units.
+    pub physical: Vec<String>,
+}
+
+/// The noise the diagnosis worked with, in the JSON output.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NoiseJson {
+    /// Declared reading noise per sensor [mm], if any.
+    pub declared_mm: Option<Vec<f64>>,
+    /// Estimated from the run [mm].
+    pub estimated_mm: Vec<f64>,
+    /// How: `residuals`, `sample_scatter` or `residual_rms`.
+    pub source: String,
+    /// RMS datum-plane error at the spots [mm].
+    pub plane_mm: f64,
+}
+
 /// The `--json` output: exactly these keys.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DiagnoseJson {
-    /// The name given.
+    /// The name given: the first effect selected, `none` or `unexplained`.
     pub effect: String,
+    /// Every effect selected, in order (empty for `none`; for
+    /// `unexplained`, what explains part of it).
+    pub effects: Vec<EffectJson>,
+    /// Poses left out as disagreeing with every model.
+    pub outlier_poses: Vec<OutlierJson>,
+    /// The noise used.
+    pub noise: NoiseJson,
+    /// Candidates fitted outside their physical bounds, with the reason.
+    pub implausible: Vec<(String, String)>,
+    /// Warnings (excess white noise, ...).
+    pub warnings: Vec<String>,
     /// Simulated held-out RMS of the base model on effect-free data [mm].
     pub expected_rms_mm: f64,
     /// Base model.
@@ -303,25 +353,78 @@ pub struct Diagnosis {
     pub skipped: Vec<(Effect, String)>,
     /// Comparisons with the simulation.
     pub checks: Vec<Check>,
-    /// For `unexplained` without a partial winner: the factor on the
-    /// datasheet σ that would make the simulation match the measured
-    /// residual RMS (the tracker's share kept), if one exists.
-    pub sigma_factor: Option<f64>,
+    /// The run's own noise (what the expectation was simulated with).
+    pub estimate: NoiseEstimate,
+    /// Poses left out as disagreeing with every model.
+    pub outliers: Vec<Outlier>,
+    /// Candidates whose fit left the physical bounds, and why.
+    pub implausible: Vec<(Effect, String)>,
+    /// Warnings for the user (excess white noise, ...).
+    pub warnings: Vec<String>,
     /// Term references.
     pub refs: Refs,
     /// Folds used.
     pub folds: Folds,
     /// Nominal head.
     pub nominal: Vec<Sensor<f64>>,
-    /// The run.
+    /// The run, without the outlying poses.
     pub poses: PoseTable,
 }
 
 impl Diagnosis {
     /// The `--json` object.
     pub fn json(&self) -> DiagnoseJson {
+        use noise::Source;
+        let span = reading_span(&self.poses, &self.refs);
+        let effects = self
+            .refit
+            .iter()
+            .map(|(e, fits)| EffectJson {
+                effect: e.name().into(),
+                sensors: fits
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, f)| {
+                        f.coeffs
+                            .iter()
+                            .zip(&f.sigma)
+                            .any(|(c, s)| c.abs() > 2.0 * s)
+                    })
+                    .map(|(i, _)| i + 1)
+                    .collect(),
+                coefficients: fits.iter().map(|f| f.coeffs.clone()).collect(),
+                sigma: fits.iter().map(|f| f.sigma.clone()).collect(),
+                physical: fits.iter().map(|f| report::physical(*e, f, span)).collect(),
+            })
+            .collect();
         DiagnoseJson {
             effect: self.effect.name().into(),
+            effects,
+            outlier_poses: self
+                .outliers
+                .iter()
+                .map(|o| OutlierJson {
+                    pose: o.pose,
+                    residual_mm: o.residual_mm,
+                })
+                .collect(),
+            noise: NoiseJson {
+                declared_mm: self.estimate.declared_mm.clone(),
+                estimated_mm: self.estimate.reading_mm.clone(),
+                source: match self.estimate.source {
+                    Source::Residuals => "residuals",
+                    Source::SampleScatter => "sample_scatter",
+                    Source::ResidualRms => "residual_rms",
+                }
+                .into(),
+                plane_mm: self.estimate.plane_mm,
+            },
+            implausible: self
+                .implausible
+                .iter()
+                .map(|(e, w)| (e.name().to_string(), w.clone()))
+                .collect(),
+            warnings: self.warnings.clone(),
             expected_rms_mm: self.expected.rms_of(Effect::None).map_or(0.0, |s| s.mean),
             base: self.base,
             extended: self.extended,
@@ -339,28 +442,17 @@ impl Diagnosis {
     }
 }
 
-/// The reading noise of each sensor: the override or the `sigma_mm` column.
-///
-/// # Errors
-/// When neither gives a positive value for every sensor.
-pub fn reading_sigma(sensors: &SensorTable, sigma_mm: Option<f64>) -> Result<Vec<f64>> {
+/// The declared reading noise of each sensor: the override or the
+/// `sigma_mm` column; `None` when neither gives a positive value for every
+/// sensor (the diagnosis then relies on its own estimate alone).
+pub fn declared_sigma(sensors: &SensorTable, sigma_mm: Option<f64>) -> Option<Vec<f64>> {
     if let Some(s) = sigma_mm {
-        return Ok(vec![s; sensors.len()]);
+        return Some(vec![s; sensors.len()]);
     }
     sensors
         .rows
         .iter()
-        .map(|r| match r.sigma_mm {
-            Some(s) if s > 0.0 => Ok(s),
-            Some(s) => Err(anyhow!(
-                "sensor {}: sigma_mm = {s}: the expectation needs a positive reading noise (pass --sigma-mm)",
-                r.sensor
-            )),
-            None => Err(anyhow!(
-                "sensor {} has no sigma_mm: the expected residuals need the datasheet reading noise; add a sigma_mm column to sensors.csv or pass --sigma-mm",
-                r.sensor
-            )),
-        })
+        .map(|r| r.sigma_mm.filter(|s| *s > 0.0))
         .collect()
 }
 
@@ -369,23 +461,101 @@ fn mean_opt(v: &[Option<f64>]) -> Option<f64> {
     (!x.is_empty()).then(|| stats::mean(&x))
 }
 
-/// Runs the diagnosis on a run read from the exchange format.
+/// The paper's model and every candidate the run has the inputs for.
+pub fn available_models(poses: &PoseTable) -> Vec<Effect> {
+    std::iter::once(Effect::None)
+        .chain(
+            Effect::CATALOG
+                .into_iter()
+                .filter(|e| available(*e, poses).is_ok()),
+        )
+        .collect()
+}
+
+/// The largest `|d − d_ref|` of the run [mm] (for the plausibility bounds).
+fn reading_span(poses: &PoseTable, refs: &Refs) -> f64 {
+    poses
+        .rows
+        .iter()
+        .flat_map(|r| {
+            r.readings
+                .iter()
+                .enumerate()
+                .filter_map(|(i, d)| Some((d.as_ref()? - refs.d_ref.get(i)?).abs()))
+        })
+        .fold(0.0, f64::max)
+}
+
+/// Candidates whose fit on all poses leaves the physical bounds.
+fn implausible_fits(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    models: &[Effect],
+    lsq: &LsqConfig<f64>,
+) -> Vec<(Effect, String)> {
+    let span = reading_span(poses, refs);
+    models
+        .iter()
+        .filter(|e| **e != Effect::None)
+        .filter_map(|&e| {
+            let fits: Vec<SensorFit> = nominal
+                .iter()
+                .enumerate()
+                .map(|(i, sn)| fit(sn, i, poses, refs.terms(e, i), lsq).ok())
+                .collect::<Option<_>>()?;
+            candidates::plausible(e, &fits, span)
+                .err()
+                .map(|why| (e, why))
+        })
+        .collect()
+}
+
+/// Warnings about the noise: excess white noise over the declared value.
+fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
+    let mut w = Vec::new();
+    if let Some(decl) = &est.declared_mm {
+        let d = stats::mean(decl);
+        let e = stats::mean(&est.reading_mm);
+        if e > 1.5 * d && effect == Effect::None {
+            w.push(format!(
+                "the residuals carry no structure but their noise, {:.1} µm, is {:.1}× the declared {:.1} µm: white excess noise (sensor, electronics or vibration), not a model effect",
+                1000.0 * e,
+                e / d,
+                1000.0 * d
+            ));
+        } else if e > 1.5 * d {
+            w.push(format!(
+                "the run's reading noise, {:.1} µm, is {:.1}× the declared {:.1} µm",
+                1000.0 * e,
+                e / d,
+                1000.0 * d
+            ));
+        }
+    }
+    w
+}
+
+/// Runs the diagnosis on a run read from the exchange format, in one pass:
+/// load → bad poses → noise → nominal fit → candidates → held-out scores →
+/// decision.
 ///
 /// # Errors
-/// Missing reading noise, a base model that cannot be fitted (the pose set
-/// does not identify it), too few poses for the folds.
-pub fn diagnose(sensors: &SensorTable, poses: &PoseTable, s: &Settings) -> Result<Diagnosis> {
+/// A base model that cannot be fitted (the pose set does not identify it),
+/// too few poses for the folds.
+pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> Result<Diagnosis> {
     let nominal = sensors
         .sensors()
         .map_err(|e| anyhow!("nominal head: {e}"))?;
-    if poses.n_sensors != nominal.len() {
+    if all_poses.n_sensors != nominal.len() {
         bail!(
             "the poses have {} reading columns, the head {} sensors",
-            poses.n_sensors,
+            all_poses.n_sensors,
             nominal.len()
         );
     }
-    let sigma = reading_sigma(sensors, s.sigma_mm)?;
+    let outliers = noise::reject(&nominal, all_poses, &s.lsq, &available_models(all_poses));
+    let poses = &noise::without(all_poses, &outliers);
     let n = poses.rows.len();
     if n < 2 * s.folds.max(2) {
         bail!(
@@ -434,16 +604,28 @@ pub fn diagnose(sensors: &SensorTable, poses: &PoseTable, s: &Settings) -> Resul
         models: &fitted,
         ..plan
     };
+    let estimate = noise::estimate(
+        &nominal,
+        poses,
+        &refs,
+        &s.lsq,
+        &measured.base_fit,
+        &measured.insample,
+        declared_sigma(sensors, s.sigma_mm),
+        s.tracker,
+    );
     let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
     let noise = NoiseModel {
-        sigma,
-        tracker: s.tracker,
+        sigma: estimate.reading_mm.clone(),
+        tracker: estimate.tracker,
     };
     let expected = expect(&truth, poses, &noise, &plan, s.draws, s.seed);
     if expected.draws < 2 {
         bail!("the simulated expectation failed: the base model could not be fitted on the simulated runs");
     }
-    let decision = decide(&measured, &expected, nominal.len(), &s.rule);
+    let implausible = implausible_fits(&nominal, poses, &refs, &fitted, &s.lsq);
+    let bad: Vec<Effect> = implausible.iter().map(|(e, _)| *e).collect();
+    let decision = decide(&measured, &expected, nominal.len(), &s.rule, &bad);
     let effect = decision.effect;
     let base_normals = measured.base_normal.clone();
     let base = Perf {
@@ -472,44 +654,26 @@ pub fn diagnose(sensors: &SensorTable, poses: &PoseTable, s: &Settings) -> Resul
         Effect::Unexplained => decision.winner,
         e => Some(e),
     };
-    let refit = match refit_model {
-        Some(e) => {
-            let fits: std::result::Result<Vec<SensorFit>, String> = nominal
-                .iter()
-                .enumerate()
-                .map(|(i, sn)| fit(sn, i, poses, refs.terms(e, i), &s.lsq))
-                .collect();
-            fits.ok().map(|f| (e, f))
-        }
-        None => None,
-    };
+    let refit = refit_model.and_then(|e| {
+        let fits: std::result::Result<Vec<SensorFit>, String> = nominal
+            .iter()
+            .enumerate()
+            .map(|(i, sn)| fit(sn, i, poses, refs.terms(e, i), &s.lsq))
+            .collect();
+        fits.ok().map(|f| (e, f))
+    });
     let checks = report::checks(&measured, &expected, &fitted, &decision);
-    let sigma_factor = if effect == Effect::Unexplained && decision.winner.is_none() {
-        // Expected RMS² ≈ T² + f²·(E² − T²): T from draws without reading
-        // noise, E the expectation at the datasheet σ.
-        let quiet = NoiseModel {
-            sigma: vec![0.0; noise.sigma.len()],
-            tracker: s.tracker,
-        };
-        let base_only = Plan {
-            models: &[Effect::None],
-            ..plan
-        };
-        let t = expect(&truth, poses, &quiet, &base_only, s.draws, s.seed)
-            .rms_of(Effect::None)
-            .map_or(0.0, |x| x.mean);
-        let e = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
-        let m = base_cv.rms;
-        (e > t && m > t).then(|| ((m * m - t * t) / (e * e - t * t)).sqrt())
-    } else {
-        None
-    };
+    let warnings = noise_warnings(&estimate, effect);
     Ok(Diagnosis {
         effect,
         decision,
         expected,
         measured,
         noise,
+        estimate,
+        outliers,
+        implausible,
+        warnings,
         base,
         extended,
         base_normals,
@@ -518,7 +682,6 @@ pub fn diagnose(sensors: &SensorTable, poses: &PoseTable, s: &Settings) -> Resul
         refit,
         skipped,
         checks,
-        sigma_factor,
         refs,
         folds,
         nominal,

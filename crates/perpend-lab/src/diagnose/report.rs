@@ -40,7 +40,8 @@ fn check(what: String, measured: f64, exp: Spread, floor: f64, t: f64) -> Check 
 pub fn checks(m: &Analysis, e: &Expectation, models: &[Effect], dec: &Decision) -> Vec<Check> {
     // Two-sided, Bonferroni over the checks, Student t with draws − 1
     // degrees of freedom: a flag is a finding, not one of many chances.
-    let n_checks = 3 + m.insample.first().map_or(0, Vec::len) + models.len();
+    let n_checks =
+        3 + m.insample.first().map_or(0, Vec::len) + models.len() + super::noise::AXES.len();
     let alpha = dec.alpha / (2.0 * n_checks as f64);
     let t = stats::t_quantile(1.0 - alpha, (e.draws.max(2) - 1) as f64);
     let mut out = Vec::new();
@@ -78,6 +79,19 @@ pub fn checks(m: &Analysis, e: &Expectation, models: &[Effect], dec: &Decision) 
         1.0,
         t,
     ));
+    if let Some(z) = m.structure_of(Effect::None) {
+        for (x, v) in z.iter().enumerate() {
+            if let (Some(v), Some(sp)) = (v, e.structure_of(Effect::None).get(x)) {
+                out.push(check(
+                    format!("structure z along {}", super::noise::AXES[x]),
+                    *v,
+                    *sp,
+                    1.0,
+                    t,
+                ));
+            }
+        }
+    }
     let n = m.insample.iter().flatten().flatten().count().max(1) as f64;
     for &eff in models.iter().filter(|x| **x != Effect::None) {
         if let (Some(r), Some(s)) = (m.r2_of(eff), e.r2_of(eff)) {
@@ -100,7 +114,7 @@ pub fn statements(d: &Diagnosis) -> Vec<String> {
     let flagged: Vec<&Check> = d.checks.iter().filter(|c| c.flagged).collect();
     if flagged.is_empty() {
         out.push(
-            "Nothing measured lies outside the simulated spread: the paper's model with the datasheet noise and the tracker noise reproduces these residuals."
+            "Nothing measured lies outside the simulated spread: the paper's model with this run's own noise reproduces these residuals."
                 .into(),
         );
         return out;
@@ -129,6 +143,11 @@ pub fn statements(d: &Diagnosis) -> Vec<String> {
                 c.expected,
                 c.spread,
                 c.z
+            )
+        } else if c.what.starts_with("structure") {
+            format!(
+                "The residuals have a smooth pattern ({} = {:.1}, simulated {:.1} ± {:.1}).",
+                c.what, c.measured, c.expected, c.spread
             )
         } else if c.what.starts_with("lag-1") || c.what.starts_with("runs") {
             format!(
@@ -161,18 +180,6 @@ fn pct(a: f64, b: f64) -> String {
     }
 }
 
-fn coeff_unit(e: Effect) -> &'static [&'static str] {
-    match e {
-        Effect::Gain => &["gain [-]"],
-        Effect::Nonlinearity => &["gain [-]", "quadratic [1/mm]", "cubic [1/mm²]"],
-        Effect::Incidence => &["incidence [mm]"],
-        Effect::Crosstalk => &["crosstalk [-]"],
-        Effect::Thermal => &["thermal [mm/°C]"],
-        Effect::Drift => &["drift [mm/s]"],
-        Effect::None | Effect::Unexplained => &[],
-    }
-}
-
 /// The readable report.
 pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String {
     let mut o = String::new();
@@ -202,24 +209,9 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             format!("; columns {}", cols.join(", "))
         }
     );
-    let sig: Vec<String> = d.noise.sigma.iter().map(|x| format!("{x:.4}")).collect();
-    let _ = writeln!(
-        o,
-        "noise assumed: reading σ = {} mm ({}), {}",
-        sig.join(" / "),
-        if s.sigma_mm.is_some() {
-            "--sigma-mm"
-        } else {
-            "sigma_mm column"
-        },
-        match &d.noise.tracker {
-            Some(t) => format!(
-                "tracker ξ = {} mm on {} points over a {} mm patch",
-                t.xi_mm, t.points, t.patch_mm
-            ),
-            None => "planes exact (no tracker noise)".into(),
-        }
-    );
+    for line in noise_lines(d, s) {
+        let _ = writeln!(o, "{line}");
+    }
     let _ = writeln!(
         o,
         "expectation: {} Monte-Carlo draws of this head (the paper's model fitted to this run, as truth) on these planes; {}-fold cross-validation by pose (seed {})",
@@ -306,18 +298,18 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             t.join(", ")
         );
     }
-    if let Some(f) = d.sigma_factor {
-        let sig: Vec<String> = d
-            .noise
-            .sigma
-            .iter()
-            .map(|x| format!("{:.4}", x * f))
-            .collect();
+    for (e, why) in &d.implausible {
         let _ = writeln!(
             o,
-            "  the residuals would match a reading noise {f:.2}× the datasheet's (σ = {} mm); if the checks above show no structure (white in acquisition order, no regressor explains them), the datasheet σ is optimistic for this cell; otherwise an effect outside the catalogue is at work",
-            sig.join(" / ")
+            "  {} fits outside its physical bounds ({why}): implausible, not named and never stored",
+            e.name()
         );
+    }
+    for r in reconcile(d) {
+        let _ = writeln!(o, "  {r}");
+    }
+    for w in &d.warnings {
+        let _ = writeln!(o, "  warning: {w}");
     }
     if let Some(f) = d.decision.explained_fraction {
         if d.effect == Effect::Unexplained {
@@ -340,28 +332,24 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
                 ""
             }
         );
-        let units = coeff_unit(*e);
+        let span = d
+            .poses
+            .rows
+            .iter()
+            .flat_map(|r| {
+                r.readings
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, x)| Some((x.as_ref()? - d.refs.d_ref.get(i)?).abs()))
+            })
+            .fold(0.0, f64::max);
         for (i, f) in fits.iter().enumerate() {
-            let parts: Vec<String> = f
-                .coeffs
-                .iter()
-                .zip(&f.sigma)
-                .enumerate()
-                .map(|(j, (c, s))| {
-                    format!(
-                        "{} {:+.4e} ± {:.1e}",
-                        units.get(j).copied().unwrap_or("c"),
-                        c,
-                        s
-                    )
-                })
-                .collect();
             let _ = writeln!(
                 o,
-                "  sensor {}: {}   (residual RMS {:.4} mm)",
+                "  sensor {}: {}   (residual RMS {:.1} µm)",
                 i + 1,
-                parts.join(", "),
-                f.rms
+                physical(*e, f, span),
+                1000.0 * f.rms
             );
         }
         if d.effect != Effect::Unexplained {
@@ -415,11 +403,134 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
     if d.ext_model == Effect::None {
         let _ = writeln!(o, "  nothing named: the extended model is the base model");
     }
-    if d.ext_model == Effect::Incidence {
-        let _ = writeln!(
-            o,
-            "  (incidence: the normal iterates the beam-to-surface angle to convergence; perpend-core's normal::plane stops after two passes, which costs accuracy when the coefficients reach millimetres)"
-        );
-    }
     o
+}
+
+/// The noise lines of the report: estimated against declared, the
+/// tracker, the poses left out.
+fn noise_lines(d: &Diagnosis, s: &Settings) -> Vec<String> {
+    use super::noise::Source;
+    let e = &d.estimate;
+    let um = |v: &[f64]| {
+        v.iter()
+            .map(|x| format!("{:.1}", 1000.0 * x))
+            .collect::<Vec<_>>()
+            .join(" / ")
+    };
+    let how = match e.source {
+        Source::Residuals => "from the within-pose scatter of the residuals",
+        Source::SampleScatter => {
+            "from the s_i_mm / n_samples columns (at least the residuals' within-pose scatter)"
+        }
+        Source::ResidualRms => {
+            "the residual RMS (too few readings per pose to separate plane and reading noise)"
+        }
+    };
+    let declared = match &e.declared_mm {
+        Some(v) => format!(
+            "declared {} µm ({})",
+            um(v),
+            if s.sigma_mm.is_some() {
+                "--sigma-mm"
+            } else {
+                "sigma_mm column"
+            }
+        ),
+        None => "none declared".into(),
+    };
+    let mut out = vec![format!(
+        "noise of this run: reading σ = {} µm {how}; {declared}",
+        um(&e.reading_mm)
+    )];
+    out.push(match &e.tracker {
+        Some(t) => format!(
+            "  datum-plane error {:.1} µm RMS at the spots: tracker simulated as ξ = {:.1} µm on {} points over a {} mm patch",
+            1000.0 * e.plane_mm,
+            1000.0 * t.xi_mm,
+            t.points,
+            t.patch_mm
+        ),
+        None => "  no datum-plane error resolved above the reading noise: planes taken as exact".into(),
+    });
+    if !d.outliers.is_empty() {
+        let p: Vec<String> = d
+            .outliers
+            .iter()
+            .map(|o| format!("pose {} ({:.3} mm)", o.pose, o.residual_mm))
+            .collect();
+        out.push(format!(
+            "  left out {} pose(s) that disagree with every model (tracker blunder, spatter): {}; the verdict is on the other {}",
+            d.outliers.len(),
+            p.join(", "),
+            d.poses.rows.len()
+        ));
+    }
+    out
+}
+
+/// Sentences that reconcile flagged statistics with the verdict, so the
+/// report never says two things without saying how they fit.
+fn reconcile(d: &Diagnosis) -> Vec<String> {
+    let flagged: Vec<&Check> = d.checks.iter().filter(|c| c.flagged).collect();
+    if flagged.is_empty() || d.effect == Effect::Unexplained {
+        return Vec::new();
+    }
+    let what: Vec<&str> = flagged.iter().map(|c| c.what.as_str()).collect();
+    let gain_um = 1000.0 * (d.base.heldout_rms_mm - d.extended.heldout_rms_mm).max(0.0);
+    vec![if d.effect == Effect::None {
+        format!(
+            "the statistics flagged above ({}) differ from the simulation, but no candidate turns that into a better held-out prediction and no structure remains: below the level that matters for the normal",
+            what.join("; ")
+        )
+    } else {
+        format!(
+            "the statistics flagged above ({}) are what {} explains: held-out RMS {:.1} µm lower with it",
+            what.join("; "),
+            d.effect.name(),
+            gain_um
+        )
+    }]
+}
+
+/// A fitted extension in units a metrology engineer reads: gain in %,
+/// linearity as µm at the run's range ends, incidence in µm at 30°,
+/// carry-over in %, thermal in µm/°C, drift in µm/min.
+pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> String {
+    let x = &f.sensor.ext;
+    let sd = |j: usize| f.sigma.get(j).copied().unwrap_or(0.0);
+    let inc30 = 1.0 / (30f64.to_radians().cos()) - 1.0;
+    match e {
+        Effect::Gain => format!("gain {:+.3} % ± {:.3} %", 100.0 * x.gain, 100.0 * sd(0)),
+        Effect::Nonlinearity => {
+            let at = |s: f64| 1000.0 * (x.nonlinearity[0] * s * s + x.nonlinearity[1] * s * s * s);
+            format!(
+                "gain {:+.3} % ± {:.3} %, linearity error {:+.1} µm at −{span:.1} mm and {:+.1} µm at +{span:.1} mm",
+                100.0 * x.gain,
+                100.0 * sd(0),
+                at(-span),
+                at(span)
+            )
+        }
+        Effect::Incidence => format!(
+            "incidence bias {:+.1} µm ± {:.1} µm at 30°",
+            1000.0 * x.incidence * inc30,
+            1000.0 * sd(0) * inc30
+        ),
+        Effect::Crosstalk => format!(
+            "carry-over {:+.2} % ± {:.2} %",
+            100.0 * x.crosstalk,
+            100.0 * sd(0)
+        ),
+        Effect::Thermal => format!(
+            "thermal {:+.2} µm/°C ± {:.2}",
+            1000.0 * x.thermal,
+            1000.0 * sd(0)
+        ),
+        Effect::Drift => format!(
+            "drift {:+.3} µm/min ± {:.3}",
+            60_000.0 * x.drift,
+            60_000.0 * sd(0)
+        ),
+        Effect::None | Effect::Unexplained => String::new(),
+    }
 }

@@ -1,43 +1,39 @@
-//! Which effect to name: held-out prediction error with a parsimony rule,
-//! judged against the simulated noise floor.
+//! Which effect to name: held-out prediction error, calibrated against
+//! effect-free re-simulations of the same run, and structure left in the
+//! residuals.
 //!
 //! For every candidate `c` the per-pose held-out losses
 //! `L(k) = Σ_i e_ki²` of the base model and of `c` are paired
 //! (`D_k = L_base(k) − L_c(k)`), and the candidate's gain is tested with the
-//! paired z statistic `z_c = mean(D) / (sd(D)/√K)` (K poses): the
-//! fold-to-fold and pose-to-pose spread of the gain sets the scale, and the
-//! held-out error already charges each extra parameter its over-fitting
-//! cost. A candidate **clearly beats the base model** when
+//! paired z statistic `z_c = mean(D) / (sd(D)/√K)` (K poses). A candidate
+//! **clearly beats the base model** when
 //!
-//! 1. `z_c > z*` **or** the Wilcoxon signed-rank z of the same `D_k`
-//!    exceeds `z*`, the one-sided normal quantile at the family level `α`
-//!    split over the `2m` tests of the `m` candidates (Bonferroni,
-//!    `z* = Φ⁻¹(1 − α/2m)`), so that on data without an effect all
-//!    candidates together are named wrongly with probability ≤ `α`. The
-//!    mean test has the power when a few poses carry the effect; the rank
-//!    test when the base model fails badly on a few poses and the squared
-//!    losses are too heavy-tailed for the mean; and
-//! 2. the held-out mean square error drops by at least `ε = 2%` of the
-//!    simulated noise floor's (an effect below that changes nothing a user
-//!    can measure).
+//! 1. `z_c` exceeds both `z*`, the one-sided normal quantile at the family
+//!    level `α` split over the `m` candidates (Bonferroni), and what the
+//!    same candidate gains on the effect-free re-simulations of this run at
+//!    the estimated noise (`μ_c + z*·max(s_c, 1)·√(1 + 1/n)` over the `n`
+//!    draws): a candidate that "gains" from noise alone on this pose set,
+//!    as crosstalk can on a narrow spread, has to beat its own null;
+//!    or the Wilcoxon signed-rank z exceeds `z*` while `z_c` is above the
+//!    null mean (the rank test has the power when a few poses carry the
+//!    effect);
+//! 2. the held-out mean square error drops by at least `ε = 2 %` of the
+//!    simulated floor's; and
+//! 3. its coefficients are physically plausible ([`super::candidates`]).
 //!
-//! Among the candidates that clearly beat the base model the one with the
-//! lowest held-out error wins, unless one with fewer parameters is within
-//! one standard error of it (the one-standard-error rule: prefer the
-//! simpler model when the data cannot tell them apart).
+//! Among those the one with the lowest held-out error wins, unless one with
+//! fewer parameters is within one standard error of it (parsimony).
 //!
-//! The winner **explains** the data when its held-out RMS is not clearly
-//! above what the simulation predicts for that model on effect-free data:
-//! `rms_c ≤ μ_c + t·s_c`, with `μ_c, s_c` the mean and predictive spread
-//! of the model's held-out RMS over the Monte-Carlo draws and `t` the
-//! Student-t quantile at level `α` with `draws − 1` degrees of freedom. The
-//! same test on the base model says whether the residuals are **above
-//! expectation** at all. The verdict:
+//! **Structure.** The residuals of a model that captures the run are
+//! white along every axis of [`super::noise::AXES`]; the structure z of a
+//! model's held-out residuals is compared with the base model's on the
+//! re-simulations (Bonferroni over the axes at `α`). The verdict:
 //!
-//! * a winner that explains the data → its name;
-//! * a winner that does not, or no winner while the base model is above
-//!   expectation → `unexplained`;
-//! * otherwise → `none`.
+//! * a winner whose residuals carry no structure → its name;
+//! * a winner that leaves structure, or no winner while the base model's
+//!   residuals are structured → `unexplained`;
+//! * otherwise → `none` (residuals above the *declared* noise but white
+//!   are excess noise, reported as a warning, not an effect).
 
 use super::candidates::Effect;
 use super::cv::CvResult;
@@ -76,6 +72,10 @@ pub struct Verdict {
     pub z: f64,
     /// Wilcoxon signed-rank z of the same differences.
     pub z_rank: f64,
+    /// The threshold its z had to pass (`z*` or its effect-free null).
+    pub z_threshold: f64,
+    /// Whether its coefficients are within the physical bounds.
+    pub plausible: bool,
     /// Drop of the held-out mean square error [mm²].
     pub gain_mse: f64,
     /// Whether it clearly beats the base model.
@@ -148,13 +148,156 @@ fn rms_floor(mean: f64, n: usize) -> f64 {
     mean / (2.0 * n.max(1) as f64).sqrt()
 }
 
-/// Decides.
-pub fn decide(measured: &Analysis, exp: &Expectation, n_sensors: usize, rule: &Rule) -> Decision {
-    let mut reasons = Vec::new();
+/// The structure flags of model `e`'s residuals: the axes whose z is
+/// beyond the same model's effect-free spread, as `(axis, z, threshold)`.
+pub fn structured(
+    e: Effect,
+    measured: &Analysis,
+    exp: &Expectation,
+    alpha: f64,
+) -> Vec<(usize, f64, f64)> {
+    let z = measured.structure_of(e).unwrap_or(&[]);
+    let nulls = exp.structure_of(e);
+    let axes = z.iter().filter(|x| x.is_some()).count().max(1);
+    let z_star = stats::normal_quantile(1.0 - alpha / axes as f64);
+    z.iter()
+        .enumerate()
+        .filter_map(|(x, v)| {
+            let v = (*v)?;
+            let null = nulls.get(x).copied().unwrap_or_default();
+            let thr = null.mean + z_star * null.predictive_sd(1.0);
+            (v > thr).then_some((x, v, thr))
+        })
+        .collect()
+}
+
+/// Evaluates every candidate against the base model (module docs, 1-3).
+fn verdicts(
+    measured: &Analysis,
+    exp: &Expectation,
+    n_sensors: usize,
+    rule: &Rule,
+    implausible: &[Effect],
+) -> (Vec<Verdict>, f64) {
     let base = measured.cv_of(Effect::None);
+    let cands: Vec<&CvResult> = measured
+        .cv
+        .iter()
+        .filter(|(e, _)| *e != Effect::None)
+        .filter_map(|(_, r)| r.as_ref().ok())
+        .collect();
+    let m = cands.len().max(1);
+    let z_star = stats::normal_quantile(1.0 - rule.alpha / m as f64);
+    let base_exp = exp.rms_of(Effect::None).unwrap_or_default();
+    let floor_ms = base_exp.mean * base_exp.mean;
+    let mut out = Vec::new();
+    if let Some(b) = base {
+        out.push(Verdict {
+            effect: Effect::None,
+            rms: b.rms,
+            n_params: 5 * n_sensors,
+            z: 0.0,
+            z_rank: 0.0,
+            z_threshold: z_star,
+            gain_mse: 0.0,
+            beats_base: false,
+            plausible: true,
+            expected: base_exp,
+        });
+    }
+    for c in cands {
+        let (gain, z, _) = base.map_or((0.0, 0.0, 0.0), |b| paired(b, c));
+        let z_rank = base.map_or(0.0, |b| paired_rank(b, c));
+        let null = exp.gain_z_of(c.effect).unwrap_or_default();
+        let n = null.n.max(1) as f64;
+        let thr = z_star.max(null.mean + z_star * null.sd.max(1.0) * (1.0 + 1.0 / n).sqrt());
+        let plausible = !implausible.contains(&c.effect);
+        let significant = z > thr || (z_rank > z_star && z > null.mean);
+        out.push(Verdict {
+            effect: c.effect,
+            rms: c.rms,
+            n_params: (5 + c.effect.terms().len()) * n_sensors,
+            z,
+            z_rank,
+            z_threshold: thr,
+            gain_mse: gain,
+            beats_base: significant && gain >= rule.min_gain * floor_ms && plausible,
+            plausible,
+            expected: exp.rms_of(c.effect).unwrap_or_default(),
+        });
+    }
+    (out, z_star)
+}
+
+/// The best verdict that beats the base model, preferring a simpler one
+/// within one standard error; with the ties and the reasons.
+fn choose<'a>(
+    verdicts: &'a [Verdict],
+    measured: &Analysis,
+    reasons: &mut Vec<String>,
+) -> (Option<&'a Verdict>, Vec<Effect>) {
+    let winners: Vec<&Verdict> = verdicts.iter().filter(|v| v.beats_base).collect();
+    let Some(best) = winners
+        .iter()
+        .min_by(|a, b| a.rms.total_cmp(&b.rms))
+        .copied()
+    else {
+        return (None, Vec::new());
+    };
+    let within_se =
+        |v: &Verdict, w: &Verdict| match (measured.cv_of(v.effect), measured.cv_of(w.effect)) {
+            (Some(cv), Some(cw)) => {
+                let (g, _, se) = paired(cv, cw);
+                g <= se * cv.pose_loss.len() as f64 / cv.n.max(1) as f64
+            }
+            _ => false,
+        };
+    let simpler = winners
+        .iter()
+        .filter(|v| v.n_params < best.n_params && within_se(v, best))
+        .min_by(|a, b| a.rms.total_cmp(&b.rms))
+        .copied();
+    let chosen = simpler.unwrap_or(best);
+    if !std::ptr::eq(chosen, best) {
+        reasons.push(format!(
+            "{} ({} parameters) is within one standard error of {} ({} parameters): the simpler model is named",
+            chosen.effect.name(),
+            chosen.n_params,
+            best.effect.name(),
+            best.n_params
+        ));
+    }
+    let ties = winners
+        .iter()
+        .filter(|v| v.effect != chosen.effect && v.n_params == chosen.n_params)
+        .filter(|v| within_se(v, chosen))
+        .map(|v| v.effect)
+        .collect();
+    (Some(chosen), ties)
+}
+
+fn axis_list(flags: &[(usize, f64, f64)]) -> String {
+    flags
+        .iter()
+        .map(|(x, z, t)| format!("{} (z = {z:.1} > {t:.1})", super::noise::AXES[*x]))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Decides (module docs). `implausible` are candidates whose fit on all
+/// poses left the physical bounds.
+pub fn decide(
+    measured: &Analysis,
+    exp: &Expectation,
+    n_sensors: usize,
+    rule: &Rule,
+    implausible: &[Effect],
+) -> Decision {
+    let mut reasons = Vec::new();
     let draws = exp.draws.max(2);
     let t_star = stats::t_quantile(1.0 - rule.alpha, (draws - 1) as f64);
     let base_exp = exp.rms_of(Effect::None).unwrap_or_default();
+    let base = measured.cv_of(Effect::None);
     let (base_rms, base_n) = base.map_or((0.0, 0), |b| (b.rms, b.n));
     let s0 = base_exp.predictive_sd(rms_floor(base_exp.mean, base_n));
     let base_excess_z = if s0 > 0.0 {
@@ -163,142 +306,55 @@ pub fn decide(measured: &Analysis, exp: &Expectation, n_sensors: usize, rule: &R
         0.0
     };
     let above = base_excess_z > t_star;
-    let cands: Vec<&CvResult> = measured
-        .cv
-        .iter()
-        .filter(|(e, _)| *e != Effect::None)
-        .filter_map(|(_, r)| r.as_ref().ok())
-        .collect();
-    let m = cands.len().max(1);
-    let z_star = stats::normal_quantile(1.0 - rule.alpha / (2 * m) as f64);
+    let (verdicts, z_star) = verdicts(measured, exp, n_sensors, rule, implausible);
+    let (winner, ties) = choose(&verdicts, measured, &mut reasons);
+    let winner = winner.cloned();
+    let base_struct = structured(Effect::None, measured, exp, rule.alpha);
     let floor_ms = base_exp.mean * base_exp.mean;
-    let mut verdicts = Vec::new();
-    if let Some(b) = base {
-        verdicts.push(Verdict {
-            effect: Effect::None,
-            rms: b.rms,
-            n_params: 5 * n_sensors,
-            z: 0.0,
-            z_rank: 0.0,
-            gain_mse: 0.0,
-            beats_base: false,
-            expected: base_exp,
-        });
-    }
-    for c in &cands {
-        let (gain, z, _) = base.map_or((0.0, 0.0, 0.0), |b| paired(b, c));
-        let z_rank = base.map_or(0.0, |b| paired_rank(b, c));
-        let beats = (z > z_star || z_rank > z_star) && gain >= rule.min_gain * floor_ms;
-        verdicts.push(Verdict {
-            effect: c.effect,
-            rms: c.rms,
-            n_params: (5 + c.effect.terms().len()) * n_sensors,
-            z,
-            z_rank,
-            gain_mse: gain,
-            beats_base: beats,
-            expected: exp.rms_of(c.effect).unwrap_or_default(),
-        });
-    }
-    // Best among those that beat the base model, then the 1-SE rule.
-    let winners: Vec<&Verdict> = verdicts.iter().filter(|v| v.beats_base).collect();
-    let best = winners
-        .iter()
-        .min_by(|a, b| a.rms.total_cmp(&b.rms))
-        .copied();
-    let mut ties = Vec::new();
-    let winner = best.map(|b| {
-        let cv_of = |e: Effect| cands.iter().find(|c| c.effect == e).copied();
-        let simpler = winners
-            .iter()
-            .filter(|v| v.n_params < b.n_params)
-            .filter(|v| match (cv_of(v.effect), cv_of(b.effect)) {
-                (Some(cv), Some(cb)) => {
-                    // g: how much worse v is than b per reading; within
-                    // one standard error?
-                    let (g, _, se) = paired(cv, cb);
-                    let se_per_reading = se * cv.pose_loss.len() as f64 / cv.n.max(1) as f64;
-                    g <= se_per_reading
-                }
-                _ => false,
-            })
-            .min_by(|a, b| a.rms.total_cmp(&b.rms));
-        let chosen = simpler.copied().unwrap_or(b);
-        if !std::ptr::eq(chosen, b) {
-            reasons.push(format!(
-                "{} ({} parameters) is within one standard error of {} ({} parameters): the simpler model is named",
-                chosen.effect.name(),
-                chosen.n_params,
-                b.effect.name(),
-                b.n_params
-            ));
-        }
-        for v in &winners {
-            if v.effect == chosen.effect || v.n_params != chosen.n_params {
-                continue;
-            }
-            if let (Some(cv), Some(cc)) = (cv_of(v.effect), cv_of(chosen.effect)) {
-                let (g, _, se) = paired(cv, cc);
-                let se_per_reading = se * cv.pose_loss.len() as f64 / cv.n.max(1) as f64;
-                if g <= se_per_reading {
-                    ties.push(v.effect);
-                }
-            }
-        }
-        chosen.clone()
-    });
     let mut explained_fraction = None;
     let effect = match &winner {
         Some(w) => {
-            let sc = w.expected.predictive_sd(rms_floor(w.expected.mean, base_n));
-            let excess_z = if sc > 0.0 {
-                (w.rms - w.expected.mean) / sc
-            } else {
-                0.0
-            };
-            let ex0 = base_rms * base_rms - floor_ms;
+            let ex0 = base_rms * base_rms - w.expected.mean * w.expected.mean;
             if ex0 > 0.0 {
                 explained_fraction =
                     Some(((base_rms * base_rms - w.rms * w.rms) / ex0).clamp(0.0, 1.0));
             }
             reasons.push(format!(
-                "{} beats the base model: held-out RMS {:.4} → {:.4} mm, paired z = {:.1}, signed-rank z = {:.1} (threshold {:.2})",
-                w.effect.name(),
-                base_rms,
-                w.rms,
-                w.z,
-                w.z_rank,
-                z_star
+                "{} beats the base model: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from the effect-free re-simulations), signed-rank z = {:.1}",
+                w.effect.name(), base_rms, w.rms, w.z, w.z_threshold, w.z_rank
             ));
-            if excess_z > t_star {
+            let left = structured(w.effect, measured, exp, rule.alpha);
+            if left.is_empty() {
                 reasons.push(format!(
-                    "but its held-out RMS {:.4} mm stays above the simulated {:.4} ± {:.4} mm (z = {:.1} > {:.2}): it explains only part of the excess",
-                    w.rms, w.expected.mean, sc, excess_z, t_star
-                ));
-                Effect::Unexplained
-            } else {
-                reasons.push(format!(
-                    "with it the held-out RMS {:.4} mm matches the simulated {:.4} ± {:.4} mm (z = {:.1})",
-                    w.rms, w.expected.mean, sc, excess_z
+                    "with it the held-out residuals carry no structure along {}",
+                    axes_seen(measured, w.effect)
                 ));
                 w.effect
+            } else {
+                reasons.push(format!(
+                    "but its held-out residuals still follow {}: it explains only part of what the model misses",
+                    axis_list(&left)
+                ));
+                Effect::Unexplained
             }
         }
-        None if above => {
+        None if !base_struct.is_empty() => {
             reasons.push(format!(
-                "the base model's held-out RMS {:.4} mm is above the simulated {:.4} ± {:.4} mm (z = {:.1} > {:.2}) and no candidate beats it clearly (z* = {:.2})",
-                base_rms, base_exp.mean, s0, base_excess_z, t_star, z_star
+                "the base model's held-out residuals follow {} and no candidate removes it (thresholds z* = {:.2} and each candidate's null)",
+                axis_list(&base_struct),
+                z_star
             ));
             Effect::Unexplained
         }
         None => {
             reasons.push(format!(
-                "the base model's held-out RMS {:.4} mm is consistent with the simulated {:.4} ± {:.4} mm (z = {:.1}) and no candidate beats it clearly (z* = {:.2})",
-                base_rms, base_exp.mean, s0, base_excess_z, z_star
+                "no candidate beats the base model beyond what it gains on effect-free re-simulations (z* = {z_star:.2}), and the residuals carry no structure along {}",
+                axes_seen(measured, Effect::None)
             ));
             Effect::None
         }
     };
+    let _ = floor_ms;
     Decision {
         effect,
         winner: winner.map(|w| w.effect),
@@ -312,6 +368,18 @@ pub fn decide(measured: &Analysis, exp: &Expectation, n_sensors: usize, rule: &R
         explained_fraction,
         reasons,
     }
+}
+
+fn axes_seen(measured: &Analysis, e: Effect) -> String {
+    measured
+        .structure_of(e)
+        .unwrap_or(&[])
+        .iter()
+        .enumerate()
+        .filter(|(_, z)| z.is_some())
+        .map(|(x, _)| super::noise::AXES[x])
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 #[cfg(test)]
@@ -334,9 +402,14 @@ mod tests {
         }
     }
 
-    fn analysis(cvs: Vec<CvResult>) -> Analysis {
+    /// An analysis of `cvs`, each with the structure z `z` along the first axis.
+    fn analysis(cvs: Vec<(CvResult, f64)>) -> Analysis {
         Analysis {
-            cv: cvs.into_iter().map(|c| (c.effect, Ok(c))).collect(),
+            structure: cvs
+                .iter()
+                .map(|(c, z)| (c.effect, vec![Some(*z), None, None, None]))
+                .collect(),
+            cv: cvs.into_iter().map(|(c, _)| (c.effect, Ok(c))).collect(),
             base_fit: vec![],
             insample: vec![],
             lag1: (0.0, 0),
@@ -346,21 +419,24 @@ mod tests {
         }
     }
 
+    fn spread(mean: f64, sd: f64) -> Spread {
+        Spread { mean, sd, n: 8 }
+    }
+
     fn expectation(models: &[(Effect, f64)]) -> Expectation {
         Expectation {
             draws: 8,
             rms: models
                 .iter()
-                .map(|&(e, m)| {
-                    (
-                        e,
-                        Spread {
-                            mean: m,
-                            sd: 0.02 * m,
-                            n: 8,
-                        },
-                    )
-                })
+                .map(|&(e, m)| (e, spread(m, 0.02 * m)))
+                .collect(),
+            gain_z: models
+                .iter()
+                .map(|&(e, _)| (e, spread(-0.5, 1.0)))
+                .collect(),
+            structure: models
+                .iter()
+                .map(|&(e, _)| (e, vec![spread(0.0, 1.0); 4]))
                 .collect(),
             ..Expectation::default()
         }
@@ -382,51 +458,73 @@ mod tests {
         let base = cv(Effect::None, &losses(0.01, 100, 1));
         // a candidate that only over-fits: slightly worse everywhere
         let g: Vec<f64> = base.pose_loss.iter().map(|l| l * 1.01).collect();
-        let a = analysis(vec![base.clone(), cv(Effect::Gain, &g)]);
+        let a = analysis(vec![(base.clone(), 0.3), (cv(Effect::Gain, &g), 0.2)]);
         let e = expectation(&[(Effect::None, base.rms), (Effect::Gain, base.rms)]);
-        let d = decide(&a, &e, 4, &Rule::default());
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
         assert_eq!(d.effect, Effect::None);
-        assert!(!d.above);
         assert_eq!(d.verdicts.len(), 2);
         assert!(!d.verdicts[1].beats_base);
     }
 
     #[test]
-    fn a_candidate_that_reaches_the_floor_is_named() {
+    fn a_candidate_that_leaves_white_residuals_is_named() {
         let floor = 0.01;
         let base = cv(Effect::None, &losses(0.02, 100, 1));
         let good = cv(Effect::Thermal, &losses(floor, 100, 2));
-        let a = analysis(vec![base, good]);
+        let a = analysis(vec![(base, 9.0), (good, 0.4)]);
         let e = expectation(&[(Effect::None, floor), (Effect::Thermal, floor)]);
-        let d = decide(&a, &e, 4, &Rule::default());
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
         assert_eq!(d.effect, Effect::Thermal);
-        assert!(d.above);
-        assert!(d.verdicts[1].z > d.z_star);
+        assert!(d.verdicts[1].z > d.verdicts[1].z_threshold);
         assert!(d.explained_fraction.unwrap() > 0.9);
+        // The same fit outside its physical bounds is not named.
+        let d = decide(&a, &e, 4, &Rule::default(), &[Effect::Thermal]);
+        assert_ne!(d.effect, Effect::Thermal);
+        assert!(!d.verdicts[1].plausible);
     }
 
     #[test]
-    fn a_partial_explanation_is_unexplained() {
+    fn a_winner_that_leaves_structure_is_unexplained() {
         let floor = 0.01;
         let base = cv(Effect::None, &losses(0.03, 100, 1));
         let half = cv(Effect::Gain, &losses(0.02, 100, 2));
-        let a = analysis(vec![base, half]);
+        let a = analysis(vec![(base, 12.0), (half, 7.0)]);
         let e = expectation(&[(Effect::None, floor), (Effect::Gain, floor)]);
-        let d = decide(&a, &e, 4, &Rule::default());
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
         assert_eq!(d.effect, Effect::Unexplained);
         assert_eq!(d.winner, Some(Effect::Gain));
     }
 
     #[test]
-    fn excess_without_a_candidate_is_unexplained() {
+    fn structure_without_a_candidate_is_unexplained() {
         let floor = 0.01;
         let base = cv(Effect::None, &losses(0.02, 100, 1));
         let g: Vec<f64> = base.pose_loss.iter().map(|l| l * 1.01).collect();
-        let a = analysis(vec![base, cv(Effect::Drift, &g)]);
+        let a = analysis(vec![(base, 6.0), (cv(Effect::Drift, &g), 6.0)]);
         let e = expectation(&[(Effect::None, floor), (Effect::Drift, floor)]);
-        let d = decide(&a, &e, 4, &Rule::default());
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
         assert_eq!(d.effect, Effect::Unexplained);
         assert_eq!(d.winner, None);
+    }
+
+    /// A candidate that gains as much on effect-free re-simulations of the
+    /// run as on the run itself is noise shrinkage, not an effect.
+    #[test]
+    fn a_gain_no_larger_than_on_clean_data_is_not_an_effect() {
+        let floor = 0.01;
+        let base = cv(Effect::None, &losses(floor, 100, 1));
+        let shrink: Vec<f64> = base.pose_loss.iter().map(|l| l * 0.97).collect();
+        let a = analysis(vec![(base, 0.0), (cv(Effect::Crosstalk, &shrink), 0.0)]);
+        let mut e = expectation(&[(Effect::None, floor), (Effect::Crosstalk, floor)]);
+        let z = a
+            .cv_of(Effect::None)
+            .map(|b| paired(b, a.cv_of(Effect::Crosstalk).unwrap()).1)
+            .unwrap();
+        assert!(z > 4.0, "{z}");
+        e.gain_z = vec![(Effect::Crosstalk, spread(z, 1.0))];
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
+        assert_eq!(d.effect, Effect::None);
+        assert!(d.verdicts[1].z_threshold > z);
     }
 
     #[test]
@@ -443,13 +541,17 @@ mod tests {
             .map(|(i, l)| l * (0.999 + 0.05 * (i as f64 * 1.7).sin()))
             .collect();
         assert!(nl.iter().sum::<f64>() < gain.pose_loss.iter().sum::<f64>());
-        let a = analysis(vec![base, gain, cv(Effect::Nonlinearity, &nl)]);
+        let a = analysis(vec![
+            (base, 9.0),
+            (gain, 0.0),
+            (cv(Effect::Nonlinearity, &nl), 0.0),
+        ]);
         let e = expectation(&[
             (Effect::None, floor),
             (Effect::Gain, floor),
             (Effect::Nonlinearity, floor),
         ]);
-        let d = decide(&a, &e, 4, &Rule::default());
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
         assert_eq!(d.effect, Effect::Gain);
         assert_eq!(d.verdicts[2].n_params, 32);
     }

@@ -1,0 +1,666 @@
+//! The run's own noise, bad poses, and structure in residuals.
+//!
+//! **Noise.** A datum-plane error (the tracker's plane fit, Chen §5 step 1)
+//! moves the readings of one pose together: a change `δd` of the plane's
+//! offset and `δn` of its normal changes reading `i` by
+//! `−(δd + δn·S_i)/(n·u_i)` (Chen eq. 3 differentiated), three columns
+//! `A_i = [1, S_ix, S_iy]/(n·u_i)` shared by the sensors of the pose. The
+//! reading noise is independent between sensors. So the part of a pose's
+//! residual vector orthogonal to those columns (`n_k − 3` degrees of
+//! freedom for `n_k` readings) holds reading noise only, and its energy
+//! estimates the reading variance σ²; what the columns carry beyond `3σ²`
+//! is the plane error. The residuals are the paper's model fitted on all
+//! poses (its `5N` parameters deflate them by `m/(m − 5N)`, corrected).
+//! With four sensors a pose gives one degree of freedom: σ is pooled over
+//! sensors; per-sensor values come from the `s1_mm …` columns when present
+//! (`s_i/√n_samples`), and the larger of the two is used, so that slow
+//! noise the sample scatter does not see is not taken for an effect.
+//!
+//! The tracker is re-scaled to the plane error found: its point noise ξ is
+//! multiplied by the ratio of the measured plane energy to that of a
+//! simulated run with the nominal tracker and no reading noise (the same
+//! decomposition on both); with `plane_rms_mm` / `plane_points` columns the
+//! tracker's own figures are used instead.
+//!
+//! **Bad poses.** A pose whose residuals are far beyond the run's scatter
+//! (a tracker blunder, spatter on the datum plane) is flagged when its sum
+//! of squared residuals, in units of a robust (median-based) variance, has
+//! a χ² tail probability below `10⁻³/K` for K poses, under the paper's
+//! model **and** under every candidate (a pose only the paper's model
+//! cannot explain, such as the far end of a linearity error, is evidence,
+//! not a blunder); at most a tenth of the poses can be flagged (beyond that
+//! the run is not "mostly good"). The models are refitted without them and
+//! the search repeated, because a blunder pulls the first fit.
+//!
+//! **Structure.** White residuals have no memory along any axis. The
+//! statistic is the lag-1 autocorrelation of each sensor's residuals sorted
+//! along an axis (predicted distance, acquisition order, temperature,
+//! incidence), pooled over sensors as `z = r·√pairs`; any smooth function
+//! of the axis (a ripple, a warm-up, a settling drift) makes it positive.
+//! It is compared with the same statistic on the effect-free re-simulations.
+//!
+//! Limits: σ is pooled over sensors when the file has no sample scatter;
+//! three sensors leave no within-pose degree of freedom (then the reading
+//! noise is the residual RMS itself, plane error included); the structure
+//! test sees smooth patterns, not high-frequency ones.
+
+use perpend_core::calib::{LsqConfig, Poses};
+use perpend_core::head::Sensor;
+use perpend_core::model::distance;
+
+use super::candidates::{fit, Effect, Refs, SensorFit};
+use super::stats;
+use crate::exchange::PoseTable;
+use crate::sim::Tracker;
+
+/// Within-pose and common (plane) energy of a run's residuals.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Split {
+    /// Estimated reading variance [mm²] (within-pose part).
+    pub reading_var: f64,
+    /// Degrees of freedom behind it.
+    pub dof: usize,
+    /// Mean plane-error energy per pose beyond the reading noise [mm²]
+    /// (may be negative by chance when there is none).
+    pub plane_energy: f64,
+    /// Its standard error when there is no plane error (`σ²·√(6/K)`: the
+    /// three inside components are χ²₃·σ² per pose).
+    pub plane_se: f64,
+}
+
+/// The three plane-error columns of the sensors `idx` of a pose.
+fn plane_columns(
+    sensors: &[Sensor<f64>],
+    poses: &PoseTable,
+    k: usize,
+    idx: &[usize],
+) -> Option<Vec<[f64; 3]>> {
+    let plane = poses.plane(k);
+    idx.iter()
+        .map(|&i| {
+            let s = sensors.get(i)?;
+            let d = distance(s, &plane, i).ok()?;
+            let p = s.spot(d);
+            let c = plane.n.dot(&s.dir);
+            (c.abs() > 1e-6).then(|| [1.0 / c, p.x / c, p.y / c])
+        })
+        .collect()
+}
+
+/// Energy of `r` outside and inside the span of the columns `a`
+/// (Gram-Schmidt; columns that are numerically dependent are dropped).
+fn project(a: &[[f64; 3]], r: &[f64]) -> (f64, f64, usize) {
+    let n = r.len();
+    let mut basis: Vec<Vec<f64>> = Vec::new();
+    for j in 0..3 {
+        let mut v: Vec<f64> = a.iter().map(|row| row[j]).collect();
+        for b in &basis {
+            let dot: f64 = v.iter().zip(b).map(|(x, y)| x * y).sum();
+            v.iter_mut().zip(b).for_each(|(x, y)| *x -= dot * y);
+        }
+        let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if norm > 1e-9 {
+            basis.push(v.iter().map(|x| x / norm).collect());
+        }
+    }
+    let inside: f64 = basis
+        .iter()
+        .map(|b| b.iter().zip(r).map(|(x, y)| x * y).sum::<f64>().powi(2))
+        .sum();
+    let total: f64 = r.iter().map(|x| x * x).sum();
+    (
+        (total - inside).max(0.0),
+        inside,
+        n.saturating_sub(basis.len()),
+    )
+}
+
+/// Splits the residuals `resid[pose][sensor]` of the geometry `sensors`.
+pub fn split(
+    sensors: &[Sensor<f64>],
+    poses: &PoseTable,
+    resid: &[Vec<Option<f64>>],
+    params: usize,
+) -> Split {
+    let (mut within, mut dof, mut inside, mut poses_in, mut m) = (0.0, 0usize, 0.0, 0usize, 0usize);
+    for (k, row) in resid.iter().enumerate() {
+        let idx: Vec<usize> = (0..row.len()).filter(|&i| row[i].is_some()).collect();
+        m += idx.len();
+        if idx.len() < 4 {
+            continue;
+        }
+        let Some(a) = plane_columns(sensors, poses, k, &idx) else {
+            continue;
+        };
+        let r: Vec<f64> = idx.iter().filter_map(|&i| row[i]).collect();
+        let (w, i, d) = project(&a, &r);
+        within += w;
+        dof += d;
+        inside += i;
+        poses_in += 1;
+    }
+    if dof == 0 || poses_in == 0 {
+        return Split::default();
+    }
+    // The fit's parameters took their share of every part.
+    let deflation = m as f64 / (m.saturating_sub(params)).max(1) as f64;
+    let reading_var = within / dof as f64 * deflation;
+    let plane_energy = inside * deflation / poses_in as f64 - 3.0 * reading_var;
+    Split {
+        reading_var,
+        dof,
+        plane_energy,
+        plane_se: reading_var * (6.0 / poses_in as f64).sqrt(),
+    }
+}
+
+/// Where the reading noise came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Source {
+    /// The within-pose scatter of the residuals.
+    Residuals,
+    /// The `s1_mm …` and `n_samples` columns (or the residuals, if larger).
+    SampleScatter,
+    /// Too few readings per pose to separate plane and reading noise: the
+    /// residual RMS, plane error included.
+    ResidualRms,
+}
+
+/// The noise the expectation is simulated with, and where it came from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NoiseEstimate {
+    /// Reading noise 1σ per sensor [mm].
+    pub reading_mm: Vec<f64>,
+    /// How it was estimated.
+    pub source: Source,
+    /// What `sensors.csv` / `--sigma-mm` declared, if anything.
+    pub declared_mm: Option<Vec<f64>>,
+    /// The tracker model (ξ re-scaled to the run), `None` for exact planes.
+    pub tracker: Option<Tracker>,
+    /// RMS plane error at the spots [mm] (0 when not resolved).
+    pub plane_mm: f64,
+}
+
+fn sample_scatter(poses: &PoseTable) -> Option<Vec<f64>> {
+    let n = poses.n_sensors;
+    let any = poses.rows.iter().any(|r| !r.noise.sd_mm.is_empty());
+    if !any {
+        return None;
+    }
+    Some(
+        (0..n)
+            .map(|i| {
+                let v: Vec<f64> = poses
+                    .rows
+                    .iter()
+                    .filter_map(|r| {
+                        let s = r.noise.sd_mm.get(i).copied().flatten()?;
+                        let ns = r.noise.n_samples.unwrap_or(1).max(1) as f64;
+                        Some(s / ns.sqrt())
+                    })
+                    .collect();
+                if v.is_empty() {
+                    0.0
+                } else {
+                    stats::quantile(&v, 0.5)
+                }
+            })
+            .collect(),
+    )
+}
+
+/// The tracker the run's own columns describe (`plane_rms_mm`,
+/// `plane_points`), keeping the nominal patch.
+fn tracker_from_columns(poses: &PoseTable, nominal: &Tracker) -> Option<Tracker> {
+    let rms: Vec<f64> = poses
+        .rows
+        .iter()
+        .filter_map(|r| r.noise.plane_rms_mm)
+        .collect();
+    if rms.is_empty() {
+        return None;
+    }
+    let pts: Vec<f64> = poses
+        .rows
+        .iter()
+        .filter_map(|r| r.noise.plane_points.map(f64::from))
+        .collect();
+    let points = if pts.is_empty() {
+        nominal.points as f64
+    } else {
+        stats::quantile(&pts, 0.5)
+    };
+    let dof = (points - 3.0).max(1.0);
+    Some(Tracker {
+        xi_mm: stats::quantile(&rms, 0.5) * (points / dof).sqrt(),
+        points: points.round().max(3.0) as usize,
+        patch_mm: nominal.patch_mm,
+    })
+}
+
+/// The plane energy a tracker `t` leaves in a run like `poses` read by
+/// `truth` without reading noise (mean over a few seeded draws).
+fn tracker_energy(
+    truth: &[Sensor<f64>],
+    poses: &PoseTable,
+    t: &Tracker,
+    nominal: &[Sensor<f64>],
+    refs: &Refs,
+    lsq: &LsqConfig<f64>,
+) -> f64 {
+    use rand::SeedableRng;
+    let noise = super::expect::NoiseModel {
+        sigma: vec![0.0; truth.len()],
+        tracker: Some(*t),
+    };
+    let mut e = Vec::new();
+    for j in 0..4u64 {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(0x7A11 + j);
+        let table = super::expect::null_table(truth, poses, &noise, &mut rng);
+        if let Some((fits, resid)) = base_residuals(nominal, &table, refs, lsq) {
+            let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
+            e.push(split(&geom, &table, &resid, 5 * geom.len()).plane_energy);
+        }
+    }
+    if e.is_empty() {
+        0.0
+    } else {
+        stats::mean(&e)
+    }
+}
+
+/// Residuals `[pose][sensor]` [mm], `None` where a reading is missing.
+pub type Residuals = Vec<Vec<Option<f64>>>;
+
+/// The paper's model fitted on all poses and its in-sample residuals.
+pub fn base_residuals(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    lsq: &LsqConfig<f64>,
+) -> Option<(Vec<SensorFit>, Residuals)> {
+    let fits: Vec<SensorFit> = nominal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| fit(s, i, poses, refs.terms(Effect::None, i), lsq).ok())
+        .collect::<Option<_>>()?;
+    let resid = (0..poses.len())
+        .map(|k| {
+            (0..nominal.len())
+                .map(|i| {
+                    let d = poses.reading(k, i)?;
+                    super::candidates::predict(&fits[i], poses, k, i).map(|p| d - p)
+                })
+                .collect()
+        })
+        .collect();
+    Some((fits, resid))
+}
+
+/// Estimates the run's noise from the base fit's residuals (module docs).
+#[allow(clippy::too_many_arguments)]
+pub fn estimate(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    lsq: &LsqConfig<f64>,
+    fits: &[SensorFit],
+    resid: &[Vec<Option<f64>>],
+    declared_mm: Option<Vec<f64>>,
+    nominal_tracker: Option<Tracker>,
+) -> NoiseEstimate {
+    let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
+    let ns = nominal.len();
+    let s = split(&geom, poses, resid, 5 * ns);
+    let (pooled, mut source) = if s.dof >= 5 {
+        (s.reading_var.sqrt(), Source::Residuals)
+    } else {
+        let all: Vec<f64> = resid.iter().flatten().flatten().copied().collect();
+        (stats::rms(&all), Source::ResidualRms)
+    };
+    let reading_mm = match sample_scatter(poses) {
+        Some(sc) => {
+            source = Source::SampleScatter;
+            sc.iter().map(|&x| x.max(pooled)).collect()
+        }
+        None => vec![pooled; ns],
+    };
+    let truth = geom;
+    let tracker = match (
+        tracker_from_columns(poses, &nominal_tracker.unwrap_or(Tracker::paper())),
+        nominal_tracker,
+    ) {
+        (Some(t), _) => Some(t),
+        (None, Some(t0)) if source != Source::ResidualRms => {
+            let e0 = tracker_energy(&truth, poses, &t0, nominal, refs, lsq);
+            // A plane error not resolved above the reading noise's own
+            // scatter (2 standard errors) is taken as none.
+            if s.plane_energy > 2.0 * s.plane_se && e0 > 0.0 {
+                let f = (s.plane_energy / e0).sqrt().min(50.0);
+                Some(Tracker {
+                    xi_mm: t0.xi_mm * f,
+                    ..t0
+                })
+            } else {
+                None
+            }
+        }
+        _ => None,
+    };
+    NoiseEstimate {
+        reading_mm,
+        source,
+        declared_mm,
+        tracker,
+        plane_mm: (s.plane_energy.max(0.0) / 3.0).sqrt(),
+    }
+}
+
+/// A pose left out because it disagrees with the run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Outlier {
+    /// Pose number.
+    pub pose: i64,
+    /// RMS of its residuals under the paper's model fitted on the rest [mm].
+    pub residual_mm: f64,
+}
+
+/// χ² upper tail `P(X > x)` for `k` degrees of freedom (Wilson-Hilferty).
+fn chi2_tail(x: f64, k: usize) -> f64 {
+    let k = k.max(1) as f64;
+    let z = ((x / k).cbrt() - (1.0 - 2.0 / (9.0 * k))) / (2.0 / (9.0 * k)).sqrt();
+    0.5 * libm_erfc(z / std::f64::consts::SQRT_2)
+}
+
+/// erfc by the Abramowitz-Stegun 7.1.26 rational approximation (|ε| < 1.5e-7).
+fn libm_erfc(x: f64) -> f64 {
+    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+    let y = t
+        * (0.254_829_592
+            + t * (-0.284_496_736
+                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    let e = y * (-x * x).exp();
+    if x >= 0.0 {
+        e
+    } else {
+        2.0 - e
+    }
+}
+
+/// The poses of `resid` that disagree with the rest (module docs).
+pub fn outliers(poses: &PoseTable, resid: &[Vec<Option<f64>>]) -> Vec<Outlier> {
+    let sq: Vec<f64> = resid.iter().flatten().flatten().map(|r| r * r).collect();
+    if sq.len() < 20 {
+        return Vec::new();
+    }
+    // median of r² for a Gaussian is 0.4549 σ².
+    let var = stats::quantile(&sq, 0.5) / 0.4549;
+    if !(var > 0.0) {
+        return Vec::new();
+    }
+    let k = resid.len();
+    let level = 1e-3 / k as f64;
+    let mut out: Vec<Outlier> = resid
+        .iter()
+        .enumerate()
+        .filter_map(|(j, row)| {
+            let r: Vec<f64> = row.iter().flatten().copied().collect();
+            if r.is_empty() {
+                return None;
+            }
+            let s: f64 = r.iter().map(|x| x * x).sum::<f64>() / var;
+            (chi2_tail(s, r.len()) < level).then(|| Outlier {
+                pose: poses.rows[j].pose,
+                residual_mm: stats::rms(&r),
+            })
+        })
+        .collect();
+    if out.len() * 10 > k {
+        out.clear();
+    }
+    out
+}
+
+/// The run without the poses in `out`.
+pub fn without(poses: &PoseTable, out: &[Outlier]) -> PoseTable {
+    PoseTable {
+        n_sensors: poses.n_sensors,
+        rows: poses
+            .rows
+            .iter()
+            .filter(|r| !out.iter().any(|o| o.pose == r.pose))
+            .cloned()
+            .collect(),
+    }
+}
+
+/// Residuals of every pose of `poses` under model `e` fitted on `kept`.
+fn residuals_under(
+    e: Effect,
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    kept: &PoseTable,
+    lsq: &LsqConfig<f64>,
+) -> Option<Vec<Vec<Option<f64>>>> {
+    let refs = Refs::of(kept);
+    let fits: Vec<SensorFit> = nominal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| fit(s, i, kept, refs.terms(e, i), lsq).ok())
+        .collect::<Option<_>>()?;
+    Some(
+        (0..poses.len())
+            .map(|k| {
+                (0..nominal.len())
+                    .map(|i| {
+                        let d = poses.reading(k, i)?;
+                        super::candidates::predict(&fits[i], poses, k, i).map(|p| d - p)
+                    })
+                    .collect()
+            })
+            .collect(),
+    )
+}
+
+/// Finds the poses that disagree with every model of `models` (the
+/// paper's and each available candidate): fit each on the poses kept so
+/// far, flag, keep the poses flagged under all of them, refit without them
+/// until nothing changes (at most three rounds). A pose that only the
+/// paper's model cannot explain (the far end of a linearity error) is not
+/// a bad pose.
+pub fn reject(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    lsq: &LsqConfig<f64>,
+    models: &[Effect],
+) -> Vec<Outlier> {
+    let mut found: Vec<Outlier> = Vec::new();
+    for _ in 0..3 {
+        let kept = without(poses, &found);
+        let mut now: Option<Vec<Outlier>> = None;
+        for &e in models {
+            let Some(resid) = residuals_under(e, nominal, poses, &kept, lsq) else {
+                continue;
+            };
+            let flagged = outliers(poses, &resid);
+            now = Some(match now {
+                None => flagged,
+                Some(prev) => prev
+                    .into_iter()
+                    .filter(|o| flagged.iter().any(|f| f.pose == o.pose))
+                    .collect(),
+            });
+        }
+        let now = now.unwrap_or_default();
+        let same =
+            now.len() == found.len() && now.iter().all(|o| found.iter().any(|f| f.pose == o.pose));
+        found = now;
+        if same {
+            break;
+        }
+    }
+    found
+}
+
+/// Axes along which residual structure is sought.
+pub const AXES: [&str; 4] = [
+    "predicted distance",
+    "acquisition order",
+    "temperature",
+    "incidence",
+];
+
+/// Structure z of residuals `resid[pose][sensor]` along each axis of
+/// [`AXES`] (`None` where the run lacks the axis).
+pub fn structure(
+    geom: &[Sensor<f64>],
+    poses: &PoseTable,
+    resid: &[Vec<Option<f64>>],
+) -> Vec<Option<f64>> {
+    let ns = geom.len();
+    let key = |axis: usize, k: usize, i: usize| -> Option<f64> {
+        let plane = poses.plane(k);
+        match axis {
+            0 => distance(&geom[i], &plane, i).ok(),
+            1 => Some(k as f64),
+            2 => poses.rows[k].temp_c,
+            _ => {
+                let c = plane.n.dot(&geom[i].dir).abs();
+                (c > 0.0).then(|| 1.0 / c)
+            }
+        }
+    };
+    (0..AXES.len())
+        .map(|axis| {
+            let seqs: Vec<Vec<Option<f64>>> = (0..ns)
+                .map(|i| {
+                    let mut v: Vec<(f64, f64)> = (0..resid.len())
+                        .filter_map(|k| {
+                            Some((key(axis, k, i)?, resid[k].get(i).copied().flatten()?))
+                        })
+                        .collect();
+                    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+                    v.into_iter().map(|(_, r)| Some(r)).collect()
+                })
+                .collect();
+            if seqs.iter().all(|s| s.len() < 10) {
+                return None;
+            }
+            let (r, pairs) = stats::lag1(&seqs);
+            Some(r * (pairs as f64).sqrt())
+        })
+        .collect()
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::sim::{paper_head, simulate, SimConfig};
+    use rand::SeedableRng;
+
+    fn run(zeta: f64, xi: Option<f64>, seed: u64) -> (Vec<Sensor<f64>>, PoseTable) {
+        let head = paper_head().unwrap();
+        let mut cfg = SimConfig::paper();
+        cfg.zeta_mm = zeta;
+        cfg.tracker = xi.map(|x| Tracker {
+            xi_mm: x,
+            ..Tracker::paper()
+        });
+        cfg.dt_s = Some(3.0);
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let d = simulate(&head, &cfg, &[], &mut rng).unwrap();
+        (head.nominal, d.poses)
+    }
+
+    fn est(nominal: &[Sensor<f64>], poses: &PoseTable) -> NoiseEstimate {
+        let refs = Refs::of(poses);
+        let lsq = LsqConfig::default();
+        let (fits, resid) = base_residuals(nominal, poses, &refs, &lsq).unwrap();
+        estimate(
+            nominal,
+            poses,
+            &refs,
+            &lsq,
+            &fits,
+            &resid,
+            None,
+            Some(Tracker::paper()),
+        )
+    }
+
+    /// The reading noise is found whatever the tracker does, and the
+    /// tracker's scale follows the plane error, on runs whose noise the
+    /// estimator was not told.
+    #[test]
+    fn reading_and_plane_noise_are_told_apart() {
+        for (zeta, xi) in [(0.01, 0.02), (0.03, 0.02), (0.005, 0.06), (0.02, 0.0)] {
+            let mut got = Vec::new();
+            let mut xis = Vec::new();
+            for seed in 0..4 {
+                let (nominal, poses) = run(zeta, (xi > 0.0).then_some(xi), 50 + seed);
+                let e = est(&nominal, &poses);
+                assert_eq!(e.source, Source::Residuals);
+                got.push(e.reading_mm[0]);
+                xis.push(e.tracker.map_or(0.0, |t| t.xi_mm));
+            }
+            let m = stats::mean(&got);
+            assert!(
+                (m / zeta - 1.0).abs() < 0.2,
+                "ζ = {zeta}, ξ = {xi}: estimated {m:.4}"
+            );
+            let mx = stats::mean(&xis);
+            if xi > 0.0 {
+                assert!(
+                    (mx / xi - 1.0).abs() < 0.45,
+                    "ζ = {zeta}, ξ = {xi}: ξ estimated {mx:.4}"
+                );
+            } else {
+                assert!(mx < 0.5 * 0.02, "no tracker error, ξ estimated {mx:.4}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_blunder_is_found_and_only_it() {
+        let (nominal, mut poses) = run(0.01, Some(0.02), 7);
+        let lsq = LsqConfig::default();
+        let models = [Effect::None, Effect::Gain, Effect::Drift];
+        assert!(reject(&nominal, &poses, &lsq, &models).is_empty());
+        for k in [12usize, 60] {
+            let r = &mut poses.rows[k];
+            // the tracker reported the plane 0.4 mm off
+            r.plane.d += 0.4;
+        }
+        let out = reject(&nominal, &poses, &lsq, &models);
+        let mut p: Vec<i64> = out.iter().map(|o| o.pose).collect();
+        p.sort();
+        assert_eq!(p, vec![poses.rows[12].pose, poses.rows[60].pose]);
+        assert!(out.iter().all(|o| o.residual_mm > 0.2));
+    }
+
+    #[test]
+    fn white_residuals_have_no_structure_and_a_ripple_has() {
+        let (nominal, poses) = run(0.01, Some(0.02), 9);
+        let refs = Refs::of(&poses);
+        let lsq = LsqConfig::default();
+        let (fits, resid) = base_residuals(&nominal, &poses, &refs, &lsq).unwrap();
+        let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
+        let z = structure(&geom, &poses, &resid);
+        assert!(z[2].is_none(), "no temperature column");
+        assert!(z.iter().flatten().all(|z| z.abs() < 4.0), "{z:?}");
+        let mut rippled = poses.clone();
+        for (k, r) in rippled.rows.iter_mut().enumerate() {
+            for (i, x) in r.readings.iter_mut().enumerate() {
+                let f = distance(&geom[i], &poses.plane(k), i).unwrap();
+                if let Some(x) = x {
+                    *x += 0.02 * (2.0 * std::f64::consts::PI * f / 2.0 + i as f64).sin();
+                }
+            }
+        }
+        let (fits, resid) = base_residuals(&nominal, &rippled, &refs, &lsq).unwrap();
+        let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
+        let z = structure(&geom, &rippled, &resid);
+        assert!(z[0].unwrap() > 4.0, "{z:?}");
+    }
+}
