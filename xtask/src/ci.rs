@@ -199,7 +199,7 @@ pub fn ci(args: &[String]) -> Result<()> {
         logs,
         verbose,
         n: 0,
-        total: if no_fuzz { 8 } else { 9 },
+        total: if no_fuzz { 9 } else { 10 },
         passed: 0,
         failed: 0,
     };
@@ -260,6 +260,11 @@ pub fn ci(args: &[String]) -> Result<()> {
                 figures: format!("{p} passed, {f} failed"),
             }
         },
+    )?;
+    r.step(
+        "blind diagnosis",
+        &mut cmd("bash", &["host-tests/blind/run.sh"]),
+        line_starting("blind:"),
     )?;
     if !no_fuzz {
         let secs = std::env::var("PERPEND_FUZZ_SECONDS").unwrap_or_else(|_| "15".to_string());

@@ -536,6 +536,53 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     w
 }
 
+/// The candidate with the lowest held-out RMS among those whose raw paired
+/// z passes `z*` and that are plausible (before the null calibration);
+/// `None` when none does.
+fn raw_best(d: &Decision, implausible: &[Effect]) -> Option<Effect> {
+    d.verdicts
+        .iter()
+        .filter(|v| v.effect != Effect::None && v.z > d.z_star && !implausible.contains(&v.effect))
+        .min_by(|a, b| a.rms.total_cmp(&b.rms))
+        .map(|v| v.effect)
+}
+
+/// One round of noise → expectation → decision, with the noise estimated
+/// from the residuals of model `from` fitted on all poses.
+#[allow(clippy::too_many_arguments)]
+fn settle(
+    from: Effect,
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    plan: &Plan,
+    measured: &Analysis,
+    declared: Option<Vec<f64>>,
+    s: &Settings,
+    implausible: &[Effect],
+) -> Result<(NoiseEstimate, NoiseModel, Expectation, Decision)> {
+    let (fits, resid) = if from == Effect::None {
+        (measured.base_fit.clone(), measured.insample.clone())
+    } else {
+        noise::model_residuals(from, nominal, poses, refs, &s.lsq)
+            .ok_or_else(|| anyhow!("{} cannot be fitted on all poses", from.name()))?
+    };
+    let estimate = noise::estimate(
+        nominal, poses, refs, &s.lsq, &fits, &resid, declared, s.tracker,
+    );
+    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
+    let noise = NoiseModel {
+        sigma: estimate.reading_mm.clone(),
+        tracker: estimate.tracker,
+    };
+    let expected = expect(&truth, poses, &noise, plan, s.draws, s.seed);
+    if expected.draws < 2 {
+        bail!("the simulated expectation failed: the base model could not be fitted on the simulated runs");
+    }
+    let decision = decide(measured, &expected, nominal.len(), &s.rule, implausible);
+    Ok((estimate, noise, expected, decision))
+}
+
 /// Runs the diagnosis on a run read from the exchange format, in one pass:
 /// load → bad poses → noise → nominal fit → candidates → held-out scores →
 /// decision.
@@ -604,28 +651,30 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         models: &fitted,
         ..plan
     };
-    let estimate = noise::estimate(
-        &nominal,
-        poses,
-        &refs,
-        &s.lsq,
-        &measured.base_fit,
-        &measured.insample,
-        declared_sigma(sensors, s.sigma_mm),
-        s.tracker,
-    );
-    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
-    let noise = NoiseModel {
-        sigma: estimate.reading_mm.clone(),
-        tracker: estimate.tracker,
-    };
-    let expected = expect(&truth, poses, &noise, &plan, s.draws, s.seed);
-    if expected.draws < 2 {
-        bail!("the simulated expectation failed: the base model could not be fitted on the simulated runs");
-    }
     let implausible = implausible_fits(&nominal, poses, &refs, &fitted, &s.lsq);
     let bad: Vec<Effect> = implausible.iter().map(|(e, _)| *e).collect();
-    let decision = decide(&measured, &expected, nominal.len(), &s.rule, &bad);
+    let declared = declared_sigma(sensors, s.sigma_mm);
+    let mut noise_from = Effect::None;
+    let (estimate, noise, expected, decision) = loop {
+        let round = settle(
+            noise_from,
+            &nominal,
+            poses,
+            &refs,
+            &plan,
+            &measured,
+            declared.clone(),
+            s,
+            &bad,
+        )?;
+        // The noise is re-estimated once from the residuals of the model
+        // that clearly beats the base one (a large effect inflates the
+        // base model's within-pose scatter, and with it every null).
+        match raw_best(&round.3, &bad) {
+            Some(b) if noise_from == Effect::None && b != Effect::None => noise_from = b,
+            _ => break round,
+        }
+    };
     let effect = decision.effect;
     let base_normals = measured.base_normal.clone();
     let base = Perf {

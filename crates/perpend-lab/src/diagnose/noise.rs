@@ -279,10 +279,21 @@ pub fn base_residuals(
     refs: &Refs,
     lsq: &LsqConfig<f64>,
 ) -> Option<(Vec<SensorFit>, Residuals)> {
+    model_residuals(Effect::None, nominal, poses, refs, lsq)
+}
+
+/// Model `e` fitted on all poses and its in-sample residuals.
+pub fn model_residuals(
+    e: Effect,
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    lsq: &LsqConfig<f64>,
+) -> Option<(Vec<SensorFit>, Residuals)> {
     let fits: Vec<SensorFit> = nominal
         .iter()
         .enumerate()
-        .map(|(i, s)| fit(s, i, poses, refs.terms(Effect::None, i), lsq).ok())
+        .map(|(i, s)| fit(s, i, poses, refs.terms(e, i), lsq).ok())
         .collect::<Option<_>>()?;
     let resid = (0..poses.len())
         .map(|k| {
@@ -297,7 +308,9 @@ pub fn base_residuals(
     Some((fits, resid))
 }
 
-/// Estimates the run's noise from the base fit's residuals (module docs).
+/// Estimates the run's noise from the in-sample residuals `resid` of the
+/// model fitted as `fits` (module docs; the parameters it fitted are
+/// counted from `fits`).
 #[allow(clippy::too_many_arguments)]
 pub fn estimate(
     nominal: &[Sensor<f64>],
@@ -311,7 +324,8 @@ pub fn estimate(
 ) -> NoiseEstimate {
     let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
     let ns = nominal.len();
-    let s = split(&geom, poses, resid, 5 * ns);
+    let params = fits.iter().map(|f| 5 + f.coeffs.len()).sum();
+    let s = split(&geom, poses, resid, params);
     let (pooled, mut source) = if s.dof >= 5 {
         (s.reading_var.sqrt(), Source::Residuals)
     } else {

@@ -30,7 +30,10 @@
 //! re-simulations (Bonferroni over the axes at `α`). The verdict:
 //!
 //! * a winner whose residuals carry no structure → its name;
-//! * a winner that leaves structure, or no winner while the base model's
+//! * a winner that leaves structure but removes at least [`MOSTLY`] of the
+//!   base model's excess over the floor → its name, with the structure
+//!   left reported (the shape differs from the candidate's);
+//! * a winner that removes less, or no winner while the base model's
 //!   residuals are structured → `unexplained`;
 //! * otherwise → `none` (residuals above the *declared* noise but white
 //!   are excess noise, reported as a warning, not an effect).
@@ -39,6 +42,13 @@ use super::candidates::Effect;
 use super::cv::CvResult;
 use super::expect::{Analysis, Expectation, Spread};
 use super::stats;
+
+/// Share of the base model's held-out excess mean square over the floor a
+/// winner must remove to be named although its residuals keep some
+/// structure (an effect whose shape is not exactly the candidate's: an
+/// S-shaped linearity error fitted by a cubic, a lagged thermal response
+/// fitted by a linear one). Below it the verdict is `unexplained`.
+pub const MOSTLY: f64 = 0.75;
 
 /// Decision thresholds.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -328,6 +338,13 @@ pub fn decide(
                 reasons.push(format!(
                     "with it the held-out residuals carry no structure along {}",
                     axes_seen(measured, w.effect)
+                ));
+                w.effect
+            } else if explained_fraction.is_some_and(|f| f >= MOSTLY) {
+                reasons.push(format!(
+                    "its held-out residuals still follow {}, but it removes {:.0} % of the base model's excess over the floor: the effect is named, its shape differs from the candidate's (or a second, smaller effect is present)",
+                    axis_list(&left),
+                    100.0 * explained_fraction.unwrap_or(0.0)
                 ));
                 w.effect
             } else {

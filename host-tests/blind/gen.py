@@ -1,0 +1,526 @@
+#!/usr/bin/env python3
+"""Independent generator of calibration runs for testing `perpend diagnose`.
+
+This file shares no code, no formula source and no constants with the Rust
+crates: its geometry (beam/plane intersection), its tracker (a plane fitted
+to noisy points by its own least squares), its noise and every effect are
+written here from the physics, in functional forms that differ on purpose
+from the diagnosis candidates' exact regressors:
+
+| effect            | reading error added (mm)                                   |
+|-------------------|------------------------------------------------------------|
+| gain              | g_i * (d - d_lo): scale about the range start, not the mean |
+| linearity_s       | A_i * sin(pi * x), x = (d - mid) / half-span (S-shaped)      |
+| linearity_cubic   | A_i * (x^3 - 0.4 x) (S-shaped cubic, zero-mean-ish)          |
+| incidence_tan     | k * tan(gamma), gamma = angle(beam, surface normal)         |
+| incidence_sec     | k * (1 / cos(gamma) - 1)                                    |
+| crosstalk         | c * (d_prev - d), prev in a scan order drawn per case       |
+| thermal_lag       | k_i * (T_sensor - T0), T_sensor lags the logged head T      |
+| drift_settle      | A_i * (1 - exp(-t / tau)), exponential settling             |
+| ripple            | A * sin(2 pi d / lambda), out of every catalogue            |
+| blunder           | the tracker's plane of 2 poses is off by 0.4 mm              |
+
+Temperatures are monotonic (a warm-up, no swing), so thermal and drift are
+time-like and may only be told apart when the lag bends the relation.
+
+Usage: gen.py CASE.json OUTDIR   (CASE: the parameters of one run, see
+`draw_case` in score.py) writes OUTDIR/sensors.csv, OUTDIR/poses.csv and
+OUTDIR/truth.json (the hidden truth; the tool under test never reads it).
+Only the standard library is used.
+"""
+
+import json
+import math
+import os
+import random
+import sys
+
+# --------------------------------------------------------------- vectors
+
+
+def add(a, b):
+    return [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+
+
+def sub(a, b):
+    return [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+
+
+def scale(a, s):
+    return [a[0] * s, a[1] * s, a[2] * s]
+
+
+def dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def cross(a, b):
+    return [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+
+
+def norm(a):
+    return math.sqrt(dot(a, a))
+
+
+def unit(a):
+    n = norm(a)
+    return [a[0] / n, a[1] / n, a[2] / n]
+
+
+def rot_x(v, t):
+    c, s = math.cos(t), math.sin(t)
+    return [v[0], c * v[1] - s * v[2], s * v[1] + c * v[2]]
+
+
+def rot_y(v, t):
+    c, s = math.cos(t), math.sin(t)
+    return [c * v[0] + s * v[2], v[1], -s * v[0] + c * v[2]]
+
+
+def tilt(v, ax, ay):
+    """Small rotation of a direction by ax about x, then ay about y."""
+    return unit(rot_y(rot_x(v, ax), ay))
+
+
+# --------------------------------------------------------------- heads
+
+# Two head geometries, neither the project's own: the spindle looks along
+# +z; zero points sit on a ring, beams lean towards the axis by `cone`.
+GEOMETRIES = {
+    # ring of 45 mm, sensors at 45/135/225/315 deg, 25 deg cone, zero
+    # points 20 mm behind the TCP plane; planes around z = 40 mm.
+    "ring45": {"radius": 45.0, "phase": 45.0, "cone": 25.0, "z0": -20.0,
+               "standoff": 40.0, "clockwise": False},
+    # Tian-like: ring of 30 mm, 20 deg cone, numbered clockwise from +y.
+    "tian30": {"radius": 30.0, "phase": 90.0, "cone": 20.0, "z0": 0.0,
+               "standoff": 55.0, "clockwise": True},
+}
+
+
+def nominal_head(name):
+    g = GEOMETRIES[name]
+    sensors = []
+    for i in range(4):
+        phi = math.radians(g["phase"] + (-90.0 if g["clockwise"] else 90.0) * i)
+        e = [g["radius"] * math.cos(phi), g["radius"] * math.sin(phi), g["z0"]]
+        c = math.radians(g["cone"])
+        u = [-math.sin(c) * math.cos(phi), -math.sin(c) * math.sin(phi), math.cos(c)]
+        sensors.append((e, u))
+    return sensors
+
+
+def true_head(nominal, rng, zero_mm, dir_rad):
+    out = []
+    for e, u in nominal:
+        e2 = [x + rng.uniform(-zero_mm, zero_mm) for x in e]
+        u2 = tilt(u, rng.uniform(-dir_rad, dir_rad), rng.uniform(-dir_rad, dir_rad))
+        out.append((e2, u2))
+    return out
+
+
+# --------------------------------------------------------------- planes
+
+
+def plane_through(n, p):
+    """Plane n.x + d = 0 through p, n unit (towards the head: -z side)."""
+    return n, -dot(n, p)
+
+
+def beam_distance(e, u, plane):
+    n, d = plane
+    c = dot(n, u)
+    return -(dot(n, e) + d) / c
+
+
+def tracker_fit(plane, rng, xi, points, patch, centre):
+    """Plane fitted to `points` noisy points of `plane` on a square patch:
+    z = a x + b y + c by ordinary least squares in the plane's own frame
+    (normal equations solved by Cramer's rule)."""
+    if xi <= 0.0 or points < 3:
+        return plane
+    n, _ = plane
+    t1 = unit(cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    t2 = cross(n, t1)
+    sxx = sxy = syy = sx = sy = sz = sxz = syz = 0.0
+    m = float(points)
+    for _ in range(points):
+        a = rng.uniform(-patch / 2, patch / 2)
+        b = rng.uniform(-patch / 2, patch / 2)
+        p = add(add(centre, scale(t1, a)), scale(t2, b))
+        p = add(p, [rng.gauss(0, xi), rng.gauss(0, xi), rng.gauss(0, xi)])
+        q = sub(p, centre)
+        x, y, z = dot(q, t1), dot(q, t2), dot(q, n)
+        sxx += x * x
+        sxy += x * y
+        syy += y * y
+        sx += x
+        sy += y
+        sz += z
+        sxz += x * z
+        syz += y * z
+    mat = [[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, m]]
+    rhs = [sxz, syz, sz]
+
+    def det3(k):
+        return (k[0][0] * (k[1][1] * k[2][2] - k[1][2] * k[2][1])
+                - k[0][1] * (k[1][0] * k[2][2] - k[1][2] * k[2][0])
+                + k[0][2] * (k[1][0] * k[2][1] - k[1][1] * k[2][0]))
+
+    dm = det3(mat)
+    sol = []
+    for j in range(3):
+        k = [row[:] for row in mat]
+        for r in range(3):
+            k[r][j] = rhs[r]
+        sol.append(det3(k) / dm)
+    a, b, c = sol
+    # local surface z = a x + b y + c: normal ~ n - a t1 - b t2
+    n2 = unit(sub(sub(n, scale(t1, a)), scale(t2, b)))
+    p0 = add(centre, scale(n, c))
+    return plane_through(n2, p0)
+
+
+# --------------------------------------------------------------- effects
+
+
+def effect_error(kind, par, i, ctx):
+    """Reading error [mm] of sensor i (0-based) for one effect."""
+    d = ctx["d"][i]
+    if kind == "gain":
+        return par["g"][i] * (d - ctx["d_lo"][i])
+    if kind == "linearity_s":
+        x = (d - ctx["mid"][i]) / ctx["half"][i]
+        return par["A"][i] * math.sin(math.pi * max(-1.2, min(1.2, x)))
+    if kind == "linearity_cubic":
+        x = (d - ctx["mid"][i]) / ctx["half"][i]
+        return par["A"][i] * (x ** 3 - 0.4 * x)
+    if kind == "incidence_tan":
+        return par["k"] * math.tan(ctx["gamma"][i])
+    if kind == "incidence_sec":
+        return par["k"] * (1.0 / math.cos(ctx["gamma"][i]) - 1.0)
+    if kind == "crosstalk":
+        order = par["order"]
+        pos = order.index(i)
+        prev = order[pos - 1]  # the first in a scan follows the last of the previous scan
+        return par["c"] * (ctx["d"][prev] - d)
+    if kind == "thermal_lag":
+        return par["k"][i] * (ctx["t_sensor"] - ctx["T0"])
+    if kind == "drift_settle":
+        return par["A"][i] * (1.0 - math.exp(-ctx["t"] / par["tau"]))
+    if kind == "ripple":
+        return par["A"] * math.sin(2 * math.pi * d / par["lam"] + par["ph"][i])
+    raise ValueError(kind)
+
+
+def draw_effect(kind, rng, size_mm, span_mm):
+    """Coefficients giving a reading error of about `size_mm` at the range
+    ends (signs and per-sensor factors drawn)."""
+
+    def per_sensor():
+        return [size_mm * rng.choice([-1, 1]) * rng.uniform(0.6, 1.4) for _ in range(4)]
+
+    if kind == "gain":
+        return {"g": [a / span_mm for a in per_sensor()]}
+    if kind in ("linearity_s", "linearity_cubic"):
+        return {"A": per_sensor()}
+    if kind in ("incidence_tan", "incidence_sec"):
+        return {"k": None, "size": size_mm}  # scaled once the angles are known
+    if kind == "crosstalk":
+        order = list(range(4))
+        if rng.random() < 0.5:
+            rng.shuffle(order)
+        return {"c": None, "size": size_mm, "order": order}
+    if kind == "thermal_lag":
+        return {"k": None, "size": size_mm, "signs": per_sensor()}
+    if kind == "drift_settle":
+        return {"A": per_sensor(), "tau": rng.uniform(600.0, 2400.0)}
+    if kind == "ripple":
+        return {"A": size_mm, "lam": rng.uniform(0.8, 2.0),
+                "ph": [rng.uniform(0, 2 * math.pi) for _ in range(4)]}
+    raise ValueError(kind)
+
+
+# Largest effect drawn: a poor sensor or head, several times what the
+# datasheets of triangulation sensors allow, and inside the diagnosis's
+# own plausibility bounds (so a miss is a miss, not a refusal).
+PHYSICAL = {
+    "gain": 0.05,            # |g| <= 5 % of reading
+    "linearity": 0.005,      # amplitude <= 0.5 % of the run's span
+    "incidence": 0.10,       # bias change over the run <= 100 um
+    "crosstalk": 0.10,       # carry-over <= 10 %
+    "thermal": 0.020,        # <= 20 um/C
+    "drift": 0.10,           # settling amplitude <= 100 um
+    "ripple": 0.03,          # <= 30 um
+}
+
+
+def physical_cap(kind, par, span, gammas, temps):
+    """The largest factor on the effect's current size that stays within
+    PHYSICAL."""
+    def cap(value, limit):
+        return limit / value if value > 1e-15 else float("inf")
+
+    if kind == "gain":
+        return cap(max(abs(g) for g in par["g"]), PHYSICAL["gain"])
+    if kind.startswith("linearity"):
+        return cap(max(abs(a) for a in par["A"]), PHYSICAL["linearity"] * span)
+    if kind.startswith("incidence"):
+        f = math.tan if kind == "incidence_tan" else (lambda x: 1 / math.cos(x) - 1)
+        v = [f(g) for g in gammas]
+        return cap(abs(par["k"]) * (max(v) - min(v)), PHYSICAL["incidence"])
+    if kind == "crosstalk":
+        return cap(par["c"], PHYSICAL["crosstalk"])
+    if kind == "thermal_lag":
+        return cap(max(abs(k) for k in par["k"]), PHYSICAL["thermal"])
+    if kind == "drift_settle":
+        return cap(max(abs(a) for a in par["A"]), PHYSICAL["drift"])
+    if kind == "ripple":
+        return cap(abs(par["A"]), PHYSICAL["ripple"])
+    return float("inf")
+
+
+def rescale(kind, par, f):
+    """Multiplies an effect's size by f."""
+    for key in ("g", "A", "k", "c"):
+        v = par.get(key)
+        if isinstance(v, list):
+            par[key] = [x * f for x in v]
+        elif isinstance(v, float):
+            par[key] = v * f
+
+
+# --------------------------------------------------------------- refit
+
+
+def solve(a, b):
+    """Gaussian elimination with partial pivoting (small dense systems)."""
+    n = len(b)
+    m = [row[:] + [b[i]] for i, row in enumerate(a)]
+    for c in range(n):
+        p = max(range(c, n), key=lambda r: abs(m[r][c]))
+        if abs(m[p][c]) < 1e-300:
+            return None
+        m[c], m[p] = m[p], m[c]
+        for r in range(c + 1, n):
+            f = m[r][c] / m[c][c]
+            for k in range(c, n + 1):
+                m[r][k] -= f * m[c][k]
+    x = [0.0] * n
+    for r in range(n - 1, -1, -1):
+        x[r] = (m[r][n] - sum(m[r][k] * x[k] for k in range(r + 1, n))) / m[r][r]
+    return x
+
+
+def refit_residuals(e, u, planes, target):
+    """Residuals of the best zero point + beam direction (5 parameters:
+    E moves in 3-D, u tilts about two axes normal to it) for readings
+    `target` of `planes`: Gauss-Newton, numerical derivatives."""
+    t1 = unit(cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    t2 = cross(u, t1)
+
+    def model(p):
+        e2 = add(e, p[:3])
+        u2 = unit(add(add(u, scale(t1, p[3])), scale(t2, p[4])))
+        return [beam_distance(e2, u2, pl) for pl in planes]
+
+    p = [0.0] * 5
+    for _ in range(6):
+        f0 = model(p)
+        r = [t - f for t, f in zip(target, f0)]
+        jac = []
+        for j in range(5):
+            h = 1e-6 if j < 3 else 1e-8
+            q = p[:]
+            q[j] += h
+            jac.append([(a - b) / h for a, b in zip(model(q), f0)])
+        ata = [[sum(x * y for x, y in zip(jac[a], jac[b])) for b in range(5)] for a in range(5)]
+        atr = [sum(x * y for x, y in zip(jac[a], r)) for a in range(5)]
+        step = solve(ata, atr)
+        if step is None:
+            break
+        p = [a + b for a, b in zip(p, step)]
+    return [t - f for t, f in zip(target, model(p))]
+
+
+def visible_rms(head, planes, true_d, errs):
+    """RMS of an effect's noise-free reading error left after the best
+    geometric refit of every sensor."""
+    acc, n = 0.0, 0
+    for i, (e, u) in enumerate(head):
+        target = [true_d[k][i] + errs[k][i] for k in range(len(planes))]
+        res = refit_residuals(e, u, planes, target)
+        acc += sum(x * x for x in res)
+        n += len(res)
+    return math.sqrt(acc / max(1, n))
+
+
+# --------------------------------------------------------------- a run
+
+
+def generate(case):
+    rng = random.Random(case["seed"])
+    geom = case["geometry"]
+    g = GEOMETRIES[geom]
+    nominal = nominal_head(geom)
+    truth = true_head(nominal, rng, 1.0, 0.035)
+    sigma = case["sigma_mm"]
+    sig_i = [sigma * rng.uniform(0.7, 1.3) for _ in range(4)]
+    n_poses = case["poses"]
+    spread = math.radians(case["spread_deg"])
+    std_range = case.get("standoff_range_mm", 6.0)
+    xi = 0.02 * case.get("tracker_factor", 1.0)
+
+    # poses: tilt about x and y, standoff along the axis
+    planes, times = [], []
+    t = 0.0
+    for _ in range(n_poses):
+        ax, ay = rng.uniform(-spread, spread), rng.uniform(-spread, spread)
+        n = tilt([0.0, 0.0, -1.0], ax, ay)
+        s = g["standoff"] + rng.uniform(-std_range / 2, std_range / 2)
+        planes.append(plane_through(n, [0.0, 0.0, s]))
+        t += rng.uniform(20.0, 45.0)
+        times.append(t)
+    t_end = times[-1]
+    # head temperature: warm-up (monotonic), logged with 0.05 C noise
+    T0 = rng.uniform(20.0, 23.0)
+    dT = rng.uniform(4.0, 9.0)
+    tau_h = rng.uniform(0.4, 0.9) * t_end
+    tau_lag = rng.uniform(0.15, 0.35) * t_end
+    head_T, sensor_T = [], []
+    ts = T0
+    prev_t = 0.0
+    for t in times:
+        th = T0 + dT * (1.0 - math.exp(-t / tau_h))
+        # first-order lag of the sensor body behind the head (exact step)
+        a = math.exp(-(t - prev_t) / tau_lag)
+        ts = a * ts + (1 - a) * th
+        prev_t = t
+        head_T.append(th)
+        sensor_T.append(ts)
+
+    true_d = [[beam_distance(e, u, p) for (e, u) in truth] for p in planes]
+    gam = [[math.acos(min(1.0, abs(dot(p[0], u)))) for (_, u) in truth] for p in planes]
+    d_lo = [min(r[i] for r in true_d) for i in range(4)]
+    d_hi = [max(r[i] for r in true_d) for i in range(4)]
+    span = max(1e-6, max(d_hi[i] - d_lo[i] for i in range(4)))
+    mid = [(d_lo[i] + d_hi[i]) / 2 for i in range(4)]
+    half = [max(1e-6, (d_hi[i] - d_lo[i]) / 2) for i in range(4)]
+
+    def context(k):
+        return {"d": true_d[k], "d_lo": d_lo, "mid": mid, "half": half, "gamma": gam[k],
+                "t": times[k], "t_sensor": sensor_T[k], "T0": sensor_T[0]}
+
+    effects, visible = [], []
+    for kind, size in case["effects"]:
+        par = draw_effect(kind, rng, size, span)
+        if kind in ("incidence_tan", "incidence_sec"):
+            f = (lambda x: math.tan(x)) if kind == "incidence_tan" else (lambda x: 1 / math.cos(x) - 1)
+            vals = [f(x) for r in gam for x in r]
+            par["k"] = size / max(1e-9, max(vals) - min(vals)) * rng.choice([-1, 1])
+        if kind == "crosstalk":
+            # the size is the carry-over's typical error: c * |d_prev - d|
+            diffs = [abs(r[par["order"][j - 1]] - r[par["order"][j]]) for r in true_d for j in range(4)]
+            par["c"] = min(0.3, size / max(1e-9, sum(diffs) / len(diffs)))
+        if kind == "thermal_lag":
+            rise = max(1e-9, sensor_T[-1] - sensor_T[0])
+            par["k"] = [s / rise for s in par["signs"]]
+        effects.append((kind, par))
+
+    # Scale every effect so that what the paper's model cannot absorb (the
+    # RMS of its noise-free error after the best refit of zero points and
+    # beam directions, `visible_rms`) is the size the case asks for: an
+    # effect the geometry absorbs whole does not bias the calibration
+    # within the run and cannot be seen by any diagnosis.
+    for j, (kind, par) in enumerate(effects):
+        errs = [[effect_error(kind, par, i, context(k)) for i in range(4)] for k in range(n_poses)]
+        vis = visible_rms(truth, planes, true_d, errs)
+        want = case["effects"][j][1]
+        f = want / vis if vis > 1e-12 else 0.0
+        # ... within what real sensors and heads show (PHYSICAL): an effect
+        # the geometry absorbs almost whole stays small and barely visible.
+        f = min(f, physical_cap(kind, par, span, [g for r in gam for g in r], sensor_T))
+        rescale(kind, par, f)
+        visible.append(vis * f)
+
+    blunders = set()
+    if case.get("blunders", 0):
+        blunders = set(rng.sample(range(n_poses), case["blunders"]))
+
+    n_samples = case.get("n_samples")
+    rows = []
+    for k, p in enumerate(planes):
+        ctx = context(k)
+        reads, sds = [], []
+        for i in range(4):
+            err = sum(effect_error(kind, par, i, ctx) for kind, par in effects)
+            if n_samples:
+                # n samples of per-sample noise sigma*sqrt(n): their mean has sigma
+                per = sig_i[i] * math.sqrt(n_samples)
+                xs = [rng.gauss(0, per) for _ in range(n_samples)]
+                m = sum(xs) / n_samples
+                sd = math.sqrt(sum((x - m) ** 2 for x in xs) / (n_samples - 1))
+                reads.append(true_d[k][i] + err + m)
+                sds.append(sd)
+            else:
+                reads.append(true_d[k][i] + err + rng.gauss(0, sig_i[i]))
+        centre = [0.0, 0.0, -p[1] / p[0][2]]
+        meas = tracker_fit(p, rng, xi, 20, 150.0, centre)
+        if k in blunders:
+            meas = (meas[0], meas[1] + 0.4 * rng.choice([-1, 1]))
+        rows.append({"pose": k + 1, "plane": meas, "reads": reads, "sds": sds,
+                     "t": times[k], "T": head_T[k] + rng.gauss(0, 0.05)})
+    return nominal, rows, {"effects": [[k, s] for k, s in case["effects"]],
+                           "visible_rms_mm": visible,
+                           "crosstalk_order": [p.get("order") for _, p in effects if "order" in p],
+                           "blunder_poses": sorted(b + 1 for b in blunders),
+                           "sigma_mm": sig_i, "tracker_xi_mm": xi,
+                           "temp_rise_c": dT, "run_s": t_end}
+
+
+def write(case, out):
+    os.makedirs(out, exist_ok=True)
+    nominal, rows, truth = generate(case)
+    decl = case.get("declared")  # factor on the true sigma, or None: no column
+    rng = random.Random(case["seed"] + 7)
+    order = list(range(len(rows)))
+    if case.get("shuffle"):
+        rng.shuffle(order)
+    with open(os.path.join(out, "sensors.csv"), "w") as f:
+        f.write("# written by host-tests/blind/gen.py (independent of perpend)\n")
+        cols = ["sensor", "x_mm", "y_mm", "z_mm", "m", "n", "q"]
+        if decl is not None:
+            cols.append("sigma_mm")
+        f.write(",".join(cols) + "\n")
+        for i, (e, u) in enumerate(nominal):
+            vals = [str(i + 1)] + ["%.6f" % x for x in e] + ["%.8f" % x for x in u]
+            if decl is not None:
+                vals.append("%.6f" % (case["sigma_mm"] * decl))
+            f.write(",".join(vals) + "\n")
+    with open(os.path.join(out, "poses.csv"), "w") as f:
+        cols = ["pose", "a", "b", "c", "d_mm", "d1_mm", "d2_mm", "d3_mm", "d4_mm", "t_s", "temp_c"]
+        if case.get("n_samples"):
+            cols += ["s1_mm", "s2_mm", "s3_mm", "s4_mm", "n_samples"]
+        f.write(",".join(cols) + "\n")
+        for j in order:
+            r = rows[j]
+            n, d = r["plane"]
+            vals = [str(r["pose"])] + ["%.9f" % x for x in n] + ["%.6f" % d]
+            vals += ["%.6f" % x for x in r["reads"]]
+            vals += ["%.1f" % r["t"], "%.3f" % r["T"]]
+            if case.get("n_samples"):
+                vals += ["%.6f" % x for x in r["sds"]] + [str(case["n_samples"])]
+            f.write(",".join(vals) + "\n")
+    truth["case"] = case
+    with open(os.path.join(out, "truth.json"), "w") as f:
+        json.dump(truth, f, indent=1)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        sys.exit("usage: gen.py CASE.json OUTDIR")
+    with open(sys.argv[1]) as f:
+        write(json.load(f), sys.argv[2])

@@ -1,0 +1,329 @@
+#!/usr/bin/env python3
+"""Scores `perpend diagnose` on runs written by the independent generator
+gen.py (which shares no code with perpend), over a grid of regimes.
+
+Each cell of the grid is one regime (reading noise, declared noise, tracker
+noise, pose spread, pose count, head geometry) and one class of truth
+(nothing, a single effect, a pair, tracker blunders). The diagnosis sees
+only sensors.csv and poses.csv; the truth is read after it answered.
+
+    score.py --perpend target/release/perpend [--quick] [--json OUT] [--md OUT]
+             [--check]
+
+--quick runs a reduced grid (CI); --check exits 1 when a goal is missed:
+false positives <= 5 % per regime, singles named >= 90 %, pairs both named
+>= 80 %, blunders found >= 95 %, extended held-out RMS <= 1.15x floor
+where effects are named. Only the standard library is used.
+"""
+
+import argparse
+import concurrent.futures as cf
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+import gen  # noqa: E402
+
+BASE = {"sigma_mm": 0.01, "declared": 1.0, "tracker_factor": 1.0,
+        "spread_deg": 5.0, "poses": 60}
+
+# one factor at a time around the base regime
+REGIMES = [
+    ("base", {}),
+    ("sigma 0.002", {"sigma_mm": 0.002}),
+    ("sigma 0.03", {"sigma_mm": 0.03}),
+    ("sigma 0.05", {"sigma_mm": 0.05}),
+    ("declared x0.5", {"declared": 0.5}),
+    ("declared x2", {"declared": 2.0}),
+    ("declared missing", {"declared": None}),
+    ("sample columns", {"n_samples": 16}),
+    ("tracker x3", {"tracker_factor": 3.0}),
+    ("spread 2 deg", {"spread_deg": 2.0}),
+    ("spread 15 deg", {"spread_deg": 15.0}),
+    ("30 poses", {"poses": 30}),
+    ("120 poses", {"poses": 120}),
+]
+
+SINGLES = ["gain", "linearity_s", "linearity_cubic", "incidence_tan", "incidence_sec",
+           "crosstalk", "thermal_lag", "drift_settle"]
+PAIRS = [("gain", "thermal_lag"), ("gain", "drift_settle"), ("crosstalk", "gain"),
+         ("incidence_tan", "gain")]
+
+# what a right answer names, per generated effect
+ACCEPT = {
+    "gain": {"gain", "nonlinearity"},
+    "linearity_s": {"nonlinearity"},
+    "linearity_cubic": {"nonlinearity"},
+    "incidence_tan": {"incidence"},
+    "incidence_sec": {"incidence"},
+    "crosstalk": {"crosstalk"},
+    # monotonic temperature: time-like effects, thermal and drift both fit
+    "thermal_lag": {"thermal", "drift"},
+    "drift_settle": {"drift", "thermal"},
+}
+
+
+# An effect is graded when what the paper's model cannot absorb of it is at
+# least this many times the visible noise (the 50 % detection limit of the
+# base regime is about 0.5: see the limit rows); a smaller one, capped by
+# the physical bounds of gen.py, is reported as `small`, not graded.
+VISIBLE_MIN = 1.0
+
+
+def noise_scale(case):
+    """The visible noise of a reading [mm]: reading noise and the tracker's
+    share at the spots (about 6.5 um at xi = 0.02 mm, 20 points, 150 mm)."""
+    return math.hypot(case["sigma_mm"], 0.0065 * case["tracker_factor"])
+
+
+def make_case(regime, truth, seed, size_sigma, geometry):
+    case = dict(BASE)
+    case.update(regime[1])
+    case.update({"seed": seed, "geometry": geometry, "effects": [], "blunders": 0,
+                 "shuffle": seed % 3 == 0})
+    s = noise_scale(case) * size_sigma
+    if truth == "none":
+        pass
+    elif truth == "blunders":
+        case["blunders"] = 2
+    elif truth == "ripple":
+        case["effects"] = [["ripple", s]]
+    elif isinstance(truth, tuple):
+        case["effects"] = [[truth[0], s], [truth[1], s]]
+    else:
+        case["effects"] = [[truth, s]]
+    return case
+
+
+def run_one(args):
+    perpend, case = args
+    with tempfile.TemporaryDirectory() as d:
+        gen.write(case, d)
+        p = subprocess.run(
+            [perpend, "--quiet", "diagnose", "--sensors", os.path.join(d, "sensors.csv"),
+             "--poses", os.path.join(d, "poses.csv"), "--json"],
+            capture_output=True, text=True, timeout=120)
+        with open(os.path.join(d, "truth.json")) as f:
+            truth = json.load(f)
+    if p.returncode != 0:
+        return {"case": case, "error": p.stdout.strip() or p.stderr.strip()}
+    return {"case": case, "out": json.loads(p.stdout), "truth": truth}
+
+
+def grade(r):
+    """Whether the answer is right, per class."""
+    case = r["case"]
+    if "error" in r:
+        return {"ok": False, "why": "error: " + r["error"][:200]}
+    out = r["out"]
+    named = [e["effect"] for e in out.get("effects", [])]
+    effect = out["effect"]
+    g = {"effect": effect, "named": named}
+    kinds = [k for k, _ in case["effects"]]
+    if not kinds:
+        g["ok"] = effect == "none"
+        if case["blunders"]:
+            found = {o["pose"] for o in out.get("outlier_poses", [])}
+            want = set(r["truth"]["blunder_poses"])
+            g["blunders_found"] = want <= found
+            g["extra_outliers"] = len(found - want)
+        else:
+            g["extra_outliers"] = len(out.get("outlier_poses", []))
+        return g
+    if kinds == ["ripple"]:
+        g["ok"] = effect == "unexplained"
+        return g
+    hit = [bool(ACCEPT[k] & set(named)) for k in kinds]
+    if len(kinds) == 2 and ACCEPT[kinds[0]] & ACCEPT[kinds[1]]:
+        hit = [len(named) >= 2 and all(hit)]
+    g["ok"] = all(hit) and effect not in ("none", "unexplained")
+    g["partial"] = any(hit)
+    # what the paper's model cannot absorb, in units of the visible noise
+    g["visible"] = min(r["truth"]["visible_rms_mm"]) / noise_scale(case)
+    ext = out["extended"]["heldout_rms_mm"]
+    floor = out["expected_rms_mm"]
+    g["rms_ratio"] = ext / floor if floor > 0 else None
+    return g
+
+
+def plan(quick):
+    regimes = REGIMES[:1] + [r for r in REGIMES[1:] if not quick or r[0] in (
+        "sigma 0.03", "declared x0.5", "declared missing", "tracker x3", "spread 2 deg", "30 poses")]
+    n_null = 12 if quick else 20
+    n_eff = 2 if quick else 5
+    jobs = []
+    seed = 1000
+    for reg in regimes:
+        for j in range(n_null):
+            seed += 1
+            jobs.append((reg[0], "none", make_case(reg, "none", seed, 0, ["ring45", "tian30"][j % 2])))
+        for j in range(n_eff):
+            for truth in SINGLES + PAIRS + ["blunders", "ripple"]:
+                seed += 1
+                geo = ["ring45", "tian30"][(j + seed) % 2]
+                jobs.append((reg[0], truth, make_case(reg, truth, seed, 2.0, geo)))
+    if not quick:
+        # detection limit: base regime, sizes in units of the visible noise
+        for size in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0):
+            for j in range(6):
+                for truth in SINGLES:
+                    seed += 1
+                    jobs.append(("limit %.1f" % size, truth,
+                                 make_case(REGIMES[0], truth, seed, size, ["ring45", "tian30"][j % 2])))
+    return jobs
+
+
+def summarise(results):
+    cells = {}
+    for reg, truth, r in results:
+        g = grade(r)
+        cls = ("none" if truth == "none" else "blunders" if truth == "blunders"
+               else "ripple" if truth == "ripple" else "pair" if isinstance(truth, tuple) else "single")
+        if cls in ("single", "pair") and g.get("visible", 1.0) < VISIBLE_MIN:
+            # physically capped below reach: reported, not graded
+            cls = "small " + cls
+        if reg.startswith("limit") and "visible" in g:
+            v = g["visible"]
+            reg = "limit %.2f" % min((0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0), key=lambda b: abs(math.log(max(v, 1e-3) / b)))
+        c = cells.setdefault(reg, {})
+        k = c.setdefault(cls, {"n": 0, "ok": 0, "found": 0, "rms_max": 0.0, "wrong": []})
+        k["n"] += 1
+        k["ok"] += int(g.get("ok", False))
+        if cls == "blunders":
+            k["found"] += int(g.get("blunders_found", False))
+        if g.get("rms_ratio"):
+            k["rms_max"] = max(k["rms_max"], g["rms_ratio"])
+        if not g.get("ok", False):
+            t = truth if isinstance(truth, str) else "+".join(truth)
+            k["wrong"].append("%s (seed %d) -> %s %s" % (t, r["case"]["seed"], g.get("effect"),
+                                                        g.get("named", g.get("why", ""))))
+    return cells
+
+
+def pooled_check(cells):
+    """The CI gates on the reduced grid, pooled over its regimes (a dozen
+    null runs per regime cannot resolve 5 % per cell): false positives
+    <= 5 %, blunders found >= 90 %, ripple unexplained >= 75 %, graded
+    singles named >= 80 %, no run that errors."""
+    tot = {}
+    for reg, c in cells.items():
+        for cls, k in c.items():
+            t = tot.setdefault(cls, {"n": 0, "ok": 0, "found": 0})
+            for x in ("n", "ok", "found"):
+                t[x] += k.get(x, 0)
+    fails = []
+
+    def rate(cls, key="ok"):
+        t = tot.get(cls)
+        return None if not t or not t["n"] else t[key] / t["n"]
+
+    if rate("none") is not None and rate("none") < 0.95:
+        fails.append("false positives %.1f %% (> 5 %%)" % (100 * (1 - rate("none"))))
+    if rate("blunders", "found") is not None and rate("blunders", "found") < 0.90:
+        fails.append("blunders found %.0f %% (< 90 %%)" % (100 * rate("blunders", "found")))
+    if rate("ripple") is not None and rate("ripple") < 0.75:
+        fails.append("ripple unexplained %.0f %% (< 75 %%)" % (100 * rate("ripple")))
+    if rate("single") is not None and rate("single") < 0.80:
+        fails.append("graded singles named %.0f %% (< 80 %%)" % (100 * rate("single")))
+    summary = ", ".join("%s %d/%d" % (cls, t["ok"], t["n"]) for cls, t in sorted(tot.items()))
+    return fails, summary
+
+
+def check(cells):
+    fails = []
+    for reg, c in cells.items():
+        if reg.startswith("limit"):
+            continue
+        for cls, k in c.items():
+            rate = k["ok"] / k["n"]
+            if cls == "none" and rate < 0.95:
+                fails.append("%s: false positives %.0f %% (> 5 %%)" % (reg, 100 * (1 - rate)))
+            if cls == "single" and rate < 0.90:
+                fails.append("%s: singles named %.0f %% (< 90 %%)" % (reg, 100 * rate))
+            if cls == "pair" and rate < 0.80:
+                fails.append("%s: pairs both named %.0f %% (< 80 %%)" % (reg, 100 * rate))
+            if cls == "blunders" and k["found"] / k["n"] < 0.95:
+                fails.append("%s: blunders found %.0f %% (< 95 %%)" % (reg, 100 * k["found"] / k["n"]))
+            if cls in ("single", "pair") and k["rms_max"] > 1.15:
+                fails.append("%s: %s extended RMS %.2fx floor (> 1.15)" % (reg, cls, k["rms_max"]))
+    return fails
+
+
+def markdown(cells):
+    lines = ["| regime | false positives (none) | singles named | pairs both named | blunders found (verdict none) | ripple unexplained | max ext. RMS / floor | small singles / pairs named (not graded) |",
+             "|---|---|---|---|---|---|---|---|"]
+
+    def cell(c, cls, key="ok"):
+        k = c.get(cls)
+        return "–" if not k else "%d/%d" % (k[key], k["n"])
+
+    for reg, c in cells.items():
+        if reg.startswith("limit"):
+            continue
+        fp = c.get("none")
+        fps = "–" if not fp else "%d/%d" % (fp["n"] - fp["ok"], fp["n"])
+        rm = max(c.get("single", {}).get("rms_max", 0), c.get("pair", {}).get("rms_max", 0))
+        lines.append("| %s | %s | %s | %s | %s (%s) | %s | %.2f | %s / %s |" % (
+            reg, fps, cell(c, "single"), cell(c, "pair"), cell(c, "blunders", "found"),
+            cell(c, "blunders"), cell(c, "ripple"), rm, cell(c, "small single"), cell(c, "small pair")))
+    lim = [(reg, c) for reg, c in cells.items() if reg.startswith("limit")]
+    if lim:
+        lines += ["", "| visible effect (RMS the paper's model cannot absorb, × noise) | singles named |", "|---|---|"]
+        for reg, c in sorted(lim, key=lambda x: float(x[0].split()[1])):
+            k = {"n": 0, "ok": 0}
+            for cls in ("single", "small single"):
+                k["n"] += c.get(cls, {}).get("n", 0)
+                k["ok"] += c.get(cls, {}).get("ok", 0)
+            lines.append("| %s | %d/%d |" % (reg.split()[1], k["ok"], k["n"]))
+    return "\n".join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--perpend", required=True)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--json")
+    ap.add_argument("--md")
+    ap.add_argument("--check", action="store_true")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
+    a = ap.parse_args()
+    jobs = plan(a.quick)
+    with cf.ThreadPoolExecutor(a.jobs) as ex:
+        outs = list(ex.map(run_one, [(a.perpend, j[2]) for j in jobs]))
+    results = [(j[0], j[1], o) for j, o in zip(jobs, outs)]
+    cells = summarise(results)
+    md = markdown(cells)
+    print(md)
+    for reg, c in cells.items():
+        for cls, k in c.items():
+            for w in k["wrong"][:6]:
+                print("  %s / %s: %s" % (reg, cls, w), file=sys.stderr)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump({r: {c: {x: y for x, y in k.items()} for c, k in v.items()}
+                       for r, v in cells.items()}, f, indent=1)
+    if a.md:
+        with open(a.md, "w") as f:
+            f.write(md + "\n")
+    n = len(results)
+    errors = [r for _, _, r in results if "error" in r]
+    if a.quick:
+        fails, summary = pooled_check(cells)
+        print("blind: %d runs (%s), %d goals missed" % (n, summary, len(fails)))
+    else:
+        fails = check(cells)
+        print("blind: %d runs, %d per-regime goals missed" % (n, len(fails)))
+    fails += ["%d runs ended in an error, e.g. %s" % (len(errors), errors[0]["error"][:300])] if errors else []
+    for f in fails:
+        print("  missed: " + f)
+    if a.check and fails:
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()
