@@ -209,7 +209,8 @@ def pooled_check(cells):
     """The CI gates on the reduced grid, pooled over its regimes (a dozen
     null runs per regime cannot resolve 5 % per cell): false positives
     <= 5 %, blunders found >= 90 %, ripple unexplained >= 75 %, graded
-    singles named >= 80 %, no run that errors."""
+    singles named >= 80 %, graded pairs both named >= 75 %, no run that
+    errors."""
     tot = {}
     for reg, c in cells.items():
         for cls, k in c.items():
@@ -228,6 +229,8 @@ def pooled_check(cells):
         fails.append("blunders found %.0f %% (< 90 %%)" % (100 * rate("blunders", "found")))
     if rate("ripple") is not None and rate("ripple") < 0.75:
         fails.append("ripple unexplained %.0f %% (< 75 %%)" % (100 * rate("ripple")))
+    if rate("pair") is not None and tot["pair"]["n"] >= 4 and rate("pair") < 0.75:
+        fails.append("graded pairs both named %.0f %% (< 75 %%)" % (100 * rate("pair")))
     if rate("single") is not None and rate("single") < 0.80:
         fails.append("graded singles named %.0f %% (< 80 %%)" % (100 * rate("single")))
     summary = ", ".join("%s %d/%d" % (cls, t["ok"], t["n"]) for cls, t in sorted(tot.items()))

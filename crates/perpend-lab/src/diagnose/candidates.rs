@@ -19,8 +19,8 @@
 //! temperature: both only re-parameterise the fit (a constant is the zero
 //! point's job) and keep the columns well conditioned.
 //!
-//! Limits: at most three extension terms per sensor (the solver's
-//! parameter count is a compile-time constant, dispatched here for 5..8).
+//! Limits: at most five extension terms per sensor (the solver's
+//! parameter count is a compile-time constant, dispatched here for 5..10).
 
 use nalgebra::Vector3;
 use perpend_core::calib::{fit_sensor, ExtTerms, LsqConfig, Poses, Regressors, Term};
@@ -131,6 +131,9 @@ pub struct Refs {
     pub d_ref: Vec<f64>,
     /// Mean head temperature [°C] (20 when the run has none).
     pub temp_ref: f64,
+    /// Effects already selected (forward selection): their terms are added
+    /// to every model, the paper's model included.
+    pub extra: Vec<Effect>,
 }
 
 impl Refs {
@@ -154,13 +157,21 @@ impl Refs {
             } else {
                 super::stats::mean(&temps)
             },
+            extra: Vec::new(),
         }
     }
 
-    /// The regressors of `effect` for sensor `idx`.
+    /// The regressors of `effect` (with those of [`Refs::extra`]) for
+    /// sensor `idx`.
     pub fn terms(&self, effect: Effect, idx: usize) -> ExtTerms<f64> {
+        let terms: Vec<Term> = effect
+            .terms()
+            .iter()
+            .chain(self.extra.iter().flat_map(|e| e.terms()))
+            .copied()
+            .collect();
         ExtTerms::new(
-            effect.terms(),
+            &terms,
             self.d_ref.get(idx).copied().unwrap_or(0.0),
             self.temp_ref,
         )
@@ -343,7 +354,9 @@ pub fn fit<PS: Poses<f64> + ?Sized>(
         1 => convert::<6>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
         2 => convert::<7>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
         3 => convert::<8>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
-        n => Err(format!("{n} extension terms: at most 3 are supported")),
+        4 => convert::<9>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        5 => convert::<10>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        n => Err(format!("{n} extension terms: at most 5 are supported")),
     }
 }
 

@@ -349,6 +349,9 @@ pub struct Diagnosis {
     /// All poses fitted with the named extension (or, for `unexplained`,
     /// the partial winner), with coefficients and 1σ.
     pub refit: Option<(Effect, Vec<SensorFit>)>,
+    /// Further effects selected on top of `effect` (forward selection), in
+    /// order; empty when one effect explains the run.
+    pub also: Vec<Step>,
     /// Candidates not tested and why.
     pub skipped: Vec<(Effect, String)>,
     /// Comparisons with the simulation.
@@ -372,13 +375,30 @@ pub struct Diagnosis {
 }
 
 impl Diagnosis {
+    /// Every effect named, in the order selected (empty for `none` and
+    /// `unexplained`).
+    pub fn effects(&self) -> Vec<Effect> {
+        match self.effect {
+            Effect::None | Effect::Unexplained => Vec::new(),
+            e => std::iter::once(e)
+                .chain(self.also.iter().map(|st| st.effect))
+                .collect(),
+        }
+    }
+
     /// The `--json` object.
     pub fn json(&self) -> DiagnoseJson {
         use noise::Source;
         let span = reading_span(&self.poses, &self.refs);
+        let steps = self.also.iter().map(|st| {
+            let own: Vec<SensorFit> = st.fits.iter().map(|f| own_columns(st.effect, f)).collect();
+            (st.effect, own)
+        });
         let effects = self
             .refit
-            .iter()
+            .clone()
+            .into_iter()
+            .chain(steps)
             .map(|(e, fits)| EffectJson {
                 effect: e.name().into(),
                 sensors: fits
@@ -394,7 +414,7 @@ impl Diagnosis {
                     .collect(),
                 coefficients: fits.iter().map(|f| f.coeffs.clone()).collect(),
                 sigma: fits.iter().map(|f| f.sigma.clone()).collect(),
-                physical: fits.iter().map(|f| report::physical(*e, f, span)).collect(),
+                physical: fits.iter().map(|f| report::physical(e, f, span)).collect(),
             })
             .collect();
         DiagnoseJson {
@@ -535,6 +555,141 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     }
     w
 }
+
+/// A further effect of the forward selection: named by the same
+/// calibrated decision as the first, with the effects before it added to
+/// every model (the paper's model included) and the noise and the
+/// effect-free re-simulations taken from that model.
+#[derive(Debug, Clone)]
+pub struct Step {
+    /// The effect added.
+    pub effect: Effect,
+    /// Every effect selected up to and including this one.
+    pub with: Vec<Effect>,
+    /// Its evaluation against the model before it.
+    pub verdict: select::Verdict,
+    /// Held-out RMS of the model before it [mm].
+    pub before_rms_mm: f64,
+    /// Held-out cross-validation of the model with it.
+    pub cv: cv::CvResult,
+    /// All poses fitted with every effect up to this one.
+    pub fits: Vec<SensorFit>,
+}
+
+/// Forward selection after `first` was named (module docs): adds the
+/// candidate that the calibrated decision names on top of the effects
+/// selected so far, refits, repeats; stops when nothing more is named or
+/// after [`MAX_EFFECTS`] effects.
+fn forward(
+    first: Effect,
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    folds: &Folds,
+    declared: Option<Vec<f64>>,
+    s: &Settings,
+) -> Result<Vec<Step>> {
+    let mut with = vec![first];
+    let mut steps = Vec::new();
+    while with.len() < MAX_EFFECTS {
+        let r = Refs {
+            extra: with.clone(),
+            ..refs.clone()
+        };
+        let models: Vec<Effect> = available_models(poses)
+            .into_iter()
+            .filter(|e| {
+                !(with.contains(e) || (*e == Effect::Gain && with.contains(&Effect::Nonlinearity)))
+            })
+            .collect();
+        if models.len() < 2 {
+            break;
+        }
+        let plan = Plan {
+            nominal,
+            refs: &r,
+            folds,
+            models: &models,
+            lsq: &s.lsq,
+            method: s.method,
+        };
+        let measured = analyse(poses, &plan, false).map_err(|e| anyhow!("{e}"))?;
+        let fitted: Vec<Effect> = measured
+            .cv
+            .iter()
+            .filter(|(_, x)| x.is_ok())
+            .map(|(e, _)| *e)
+            .collect();
+        let plan = Plan {
+            models: &fitted,
+            ..plan
+        };
+        let bad: Vec<Effect> = implausible_fits(nominal, poses, &r, &fitted, &s.lsq)
+            .into_iter()
+            .map(|(e, _)| e)
+            .collect();
+        let (_, _, _, d) = settle(
+            Effect::None,
+            nominal,
+            poses,
+            &r,
+            &plan,
+            &measured,
+            declared.clone(),
+            s,
+            &bad,
+        )?;
+        let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
+            break;
+        };
+        if d.effect != e {
+            break;
+        }
+        let fits: Vec<SensorFit> = nominal
+            .iter()
+            .enumerate()
+            .map(|(i, sn)| fit(sn, i, poses, r.terms(e, i), &s.lsq))
+            .collect::<std::result::Result<_, _>>()
+            .map_err(|why| anyhow!("{}: {why}", e.name()))?;
+        with.push(e);
+        steps.push(Step {
+            effect: e,
+            with: with.clone(),
+            verdict: d
+                .verdicts
+                .iter()
+                .find(|v| v.effect == e)
+                .cloned()
+                .ok_or_else(|| anyhow!("no verdict"))?,
+            before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
+            cv: cv.clone(),
+            fits,
+        });
+    }
+    Ok(steps)
+}
+
+/// The fit `f` (of several effects) reduced to the coefficients and 1σ of
+/// `e`'s own terms (columns in the extension's term order).
+pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
+    use perpend_core::calib::Term;
+    let cols: Vec<usize> = Term::ALL
+        .into_iter()
+        .filter(|t| f.terms.mask & t.bit() != 0)
+        .enumerate()
+        .filter(|(_, t)| e.terms().contains(t))
+        .map(|(j, _)| j)
+        .collect();
+    let pick = |v: &[f64]| cols.iter().filter_map(|&j| v.get(j).copied()).collect();
+    SensorFit {
+        coeffs: pick(&f.coeffs),
+        sigma: pick(&f.sigma),
+        ..f.clone()
+    }
+}
+
+/// Most effects named together.
+pub const MAX_EFFECTS: usize = 3;
 
 /// The candidate with the lowest held-out RMS among those whose raw paired
 /// z passes `z*` and that are plausible (before the null calibration);
@@ -685,7 +840,13 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         Effect::None | Effect::Unexplained => Effect::None,
         e => e,
     };
-    let (extended, ext_normals) = match measured.cv_of(ext_model) {
+    let also = if ext_model == Effect::None {
+        Vec::new()
+    } else {
+        forward(ext_model, &nominal, poses, &refs, &folds, declared, s)?
+    };
+    let ext_cv = also.last().map(|st| &st.cv).or(measured.cv_of(ext_model));
+    let (extended, ext_normals) = match ext_cv {
         Some(c) if ext_model != Effect::None => {
             let ne = normal_errors(c, poses, &folds, s.method);
             (
@@ -729,6 +890,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         ext_normals,
         ext_model,
         refit,
+        also,
         skipped,
         checks,
         refs,
@@ -746,17 +908,23 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
 /// A sensor that cannot be fitted.
 pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
     let model = d.ext_model;
-    let mut f = ParamFile::new(
-        "lsq",
-        if model == Effect::None {
-            "base"
-        } else {
-            model.name()
-        },
-        d.poses.rows.len(),
-    );
+    let name = if model == Effect::None {
+        "base".to_string()
+    } else {
+        d.effects()
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join("+")
+    };
+    let mut f = ParamFile::new("lsq", &name, d.poses.rows.len());
     for (i, s) in d.nominal.iter().enumerate() {
         let fit = match (&d.refit, model) {
+            _ if !d.also.is_empty() => d
+                .also
+                .last()
+                .map(|st| st.fits[i].clone())
+                .ok_or_else(|| anyhow!("no fit"))?,
             (Some((e, fits)), m) if *e == m => fits[i].clone(),
             (_, Effect::None) => d.measured.base_fit[i].clone(),
             _ => fit(s, i, &d.poses, d.refs.terms(model, i), lsq)

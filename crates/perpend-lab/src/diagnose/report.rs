@@ -286,9 +286,35 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
         let _ = writeln!(o, "  skipped: {} ({why})", e.name());
     }
 
-    let _ = writeln!(o, "\nVerdict: {}", d.effect.name());
+    let names: Vec<&str> = d.effects().iter().map(|e| e.name()).collect();
+    let _ = writeln!(
+        o,
+        "\nVerdict: {}",
+        if names.len() > 1 {
+            names.join(" + ")
+        } else {
+            d.effect.name().to_string()
+        }
+    );
     for r in &d.decision.reasons {
         let _ = writeln!(o, "  {r}");
+    }
+    for st in &d.also {
+        let before: Vec<&str> = st.with[..st.with.len() - 1]
+            .iter()
+            .map(|e| e.name())
+            .collect();
+        let _ = writeln!(
+            o,
+            "  then {} on top of {}: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from effect-free re-simulations of the model with {})",
+            st.effect.name(),
+            before.join(" + "),
+            st.before_rms_mm,
+            st.cv.rms,
+            st.verdict.z,
+            st.verdict.z_threshold,
+            before.join(" + ")
+        );
     }
     if !d.decision.ties.is_empty() {
         let t: Vec<&str> = d.decision.ties.iter().map(|e| e.name()).collect();
