@@ -843,7 +843,29 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     let also = if ext_model == Effect::None {
         Vec::new()
     } else {
-        forward(ext_model, &nominal, poses, &refs, &folds, declared, s)?
+        forward(
+            ext_model,
+            &nominal,
+            poses,
+            &refs,
+            &folds,
+            declared.clone(),
+            s,
+        )?
+    };
+    // The noise reported is the one left by every effect named.
+    let estimate = match also.last() {
+        Some(st) => noise::estimate(
+            &nominal,
+            poses,
+            &refs,
+            &s.lsq,
+            &st.fits,
+            &noise::residuals_of(&st.fits, poses),
+            declared,
+            s.tracker,
+        ),
+        None => estimate,
     };
     let ext_cv = also.last().map(|st| &st.cv).or(measured.cv_of(ext_model));
     let (extended, ext_normals) = match ext_cv {

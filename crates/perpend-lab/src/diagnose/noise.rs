@@ -295,17 +295,22 @@ pub fn model_residuals(
         .enumerate()
         .map(|(i, s)| fit(s, i, poses, refs.terms(e, i), lsq).ok())
         .collect::<Option<_>>()?;
-    let resid = (0..poses.len())
+    let resid = residuals_of(&fits, poses);
+    Some((fits, resid))
+}
+
+/// In-sample residuals `[pose][sensor]` of the sensors fitted as `fits`.
+pub fn residuals_of(fits: &[SensorFit], poses: &PoseTable) -> Residuals {
+    (0..poses.len())
         .map(|k| {
-            (0..nominal.len())
+            (0..fits.len())
                 .map(|i| {
                     let d = poses.reading(k, i)?;
                     super::candidates::predict(&fits[i], poses, k, i).map(|p| d - p)
                 })
                 .collect()
         })
-        .collect();
-    Some((fits, resid))
+        .collect()
 }
 
 /// Estimates the run's noise from the in-sample residuals `resid` of the
