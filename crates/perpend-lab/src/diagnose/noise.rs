@@ -28,9 +28,10 @@
 //! a χ² tail probability below `10⁻³/K` for K poses, under the paper's
 //! model **and** under every candidate (a pose only the paper's model
 //! cannot explain, such as the far end of a linearity error, is evidence,
-//! not a blunder); at most a tenth of the poses can be flagged (beyond that
-//! the run is not "mostly good"). The models are refitted without them and
-//! the search repeated, because a blunder pulls the first fit.
+//! not a blunder). One pose goes a round, the worst, and the models are
+//! refitted without it before the next search, because a blunder pulls the
+//! first fit and drags other poses beyond the threshold with it; at most a
+//! tenth of the poses can go (beyond that the run is not "mostly good").
 //!
 //! **Structure.** White residuals have no memory along any axis. The
 //! statistic is the lag-1 autocorrelation of each sensor's residuals sorted
@@ -419,7 +420,7 @@ pub fn outliers(poses: &PoseTable, resid: &[Vec<Option<f64>>]) -> Vec<Outlier> {
     }
     let k = resid.len();
     let level = 1e-3 / k as f64;
-    let mut out: Vec<Outlier> = resid
+    let out: Vec<Outlier> = resid
         .iter()
         .enumerate()
         .filter_map(|(j, row)| {
@@ -434,9 +435,6 @@ pub fn outliers(poses: &PoseTable, resid: &[Vec<Option<f64>>]) -> Vec<Outlier> {
             })
         })
         .collect();
-    if out.len() * 10 > k {
-        out.clear();
-    }
     out
 }
 
@@ -494,7 +492,9 @@ pub fn reject(
     models: &[Effect],
 ) -> Vec<Outlier> {
     let mut found: Vec<Outlier> = Vec::new();
-    for _ in 0..3 {
+    // One pose a round, the worst: a blunder pulls the first fit, and the
+    // poses it drags along are not flagged once it is out.
+    while (found.len() + 1) * 10 <= poses.len() {
         let kept = without(poses, &found);
         let mut now: Option<Vec<Outlier>> = None;
         for &e in models {
@@ -510,14 +510,17 @@ pub fn reject(
                     .collect(),
             });
         }
-        let now = now.unwrap_or_default();
-        let same =
-            now.len() == found.len() && now.iter().all(|o| found.iter().any(|f| f.pose == o.pose));
-        found = now;
-        if same {
-            break;
+        let worst = now
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|o| !found.iter().any(|f| f.pose == o.pose))
+            .max_by(|a, b| a.residual_mm.total_cmp(&b.residual_mm));
+        match worst {
+            Some(o) => found.push(o),
+            None => break,
         }
     }
+    found.sort_by_key(|o| o.pose);
     found
 }
 

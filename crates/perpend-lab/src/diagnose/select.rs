@@ -34,7 +34,10 @@
 //!   base model's excess over the floor → its name, with the structure
 //!   left reported (the shape differs from the candidate's);
 //! * a winner that removes less, or no winner while the base model's
-//!   residuals are structured → `unexplained`;
+//!   residuals are structured → `unexplained` (no excess over the floor is
+//!   asked: the floor is simulated at the noise estimated from the run, and
+//!   a pattern that varies between the sensors of a pose, like a ripple,
+//!   enters that estimate);
 //! * otherwise → `none` (residuals above the *declared* noise but white
 //!   are excess noise, reported as a warning, not an effect).
 
@@ -175,7 +178,10 @@ pub fn structured(
         .filter_map(|(x, v)| {
             let v = (*v)?;
             let null = nulls.get(x).copied().unwrap_or_default();
-            let thr = null.mean + z_star * null.predictive_sd(1.0);
+            // White residuals have a lag-1 z near 0 (slightly below); a
+            // negative mean from a few draws is their scatter, not a
+            // looser threshold.
+            let thr = null.mean.max(0.0) + z_star * null.predictive_sd(1.0);
             (v > thr).then_some((x, v, thr))
         })
         .collect()
