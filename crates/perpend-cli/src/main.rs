@@ -45,6 +45,8 @@ enum Cmd {
     /// Find what the model misses in a calibration run: name the effect, extend the model, measure the gain.
     #[command(after_help = FILES)]
     Diagnose(diagnose::Args),
+    /// Plan the fewest datum-plane poses that calibrate a head (D-optimal), with the expected accuracy.
+    Plan(perpend_lab::plan::Args),
     /// Studies: `study paper` puts the paper's simulation beside its experiment.
     Study(diagnose::study::Args),
     /// Benchmarks: the paper's simulation (accuracy), calibration speed, identifiability study.
@@ -62,6 +64,7 @@ fn main() -> std::process::ExitCode {
         Cmd::Simulate(a) => sim::run(&a),
         Cmd::Calibrate(a) => calibrate::run(&a),
         Cmd::Diagnose(a) => diagnose::run(&a),
+        Cmd::Plan(a) => perpend_lab::plan::run(&a),
         Cmd::Study(a) => diagnose::study::run(&a),
         Cmd::Bench(a) => bench::run(&a),
         Cmd::Board(a) => board::run(&a),

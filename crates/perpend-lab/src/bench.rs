@@ -62,6 +62,8 @@ pub enum Bench {
     /// Diagnosis over many seeds and magnitudes: confusion matrix, false
     /// positives on clean data, detection rate against effect size.
     Diagnose(crate::diagnose::bench::Args),
+    /// Planned (D-optimal) against random calibration poses, 8-100 poses.
+    Plan(crate::plan::BenchArgs),
 }
 
 /// Arguments of `perpend bench accuracy`.
@@ -665,6 +667,7 @@ pub fn run(a: &Args) -> Result<()> {
         Bench::Speed(x) => run_speed(x),
         Bench::Ident(x) => run_ident(x),
         Bench::Diagnose(x) => crate::diagnose::bench::run(x),
+        Bench::Plan(x) => crate::plan::run_bench(x),
     }
 }
 

@@ -14,5 +14,6 @@ pub mod calibrate;
 pub mod diagnose;
 pub mod exchange;
 pub mod paramfile;
+pub mod plan;
 pub mod progress;
 pub mod sim;
