@@ -180,12 +180,14 @@ pub fn scenarios(a: &Args) -> Vec<Scenario> {
 pub fn run_all(sc: &[Scenario], settings: &Settings, jobs: usize) -> Result<Vec<Record>> {
     let next = AtomicUsize::new(0);
     let out: Mutex<Vec<(usize, Result<Record>)>> = Mutex::new(Vec::with_capacity(sc.len()));
+    let bar = crate::progress::Progress::new(sc.len() as u64, "bench diagnose: runs");
     std::thread::scope(|scope| {
         for _ in 0..jobs.max(1) {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(s) = sc.get(i) else { break };
                 let r = run_one(s, settings, &i.to_string());
+                bar.inc();
                 if let Ok(mut v) = out.lock() {
                     v.push((i, r));
                 }

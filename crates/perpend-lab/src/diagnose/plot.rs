@@ -1,11 +1,14 @@
 //! SVG plots of a diagnosis (`perpend diagnose --plot DIR`):
 //!
-//! * `residuals.svg` — held-out residual of every reading against the
-//!   regressor of the named effect (the reading's offset from its mean for
-//!   `none` / `unexplained` / `nonlinearity`), with the paper's model
-//!   (before) and with the extension (after), one colour per sensor;
-//! * `normal_errors.svg` — distributions of the held-out normal errors of
-//!   the base and the extended model, means marked.
+//! * `residuals.svg` — one row per sensor: held-out residual of every
+//!   reading against the regressor of the named effect (the reading's
+//!   offset from its mean for `none` / `unexplained` / `nonlinearity`),
+//!   with the paper's model (left) and with the extension (right), over
+//!   the expected reading noise band (±1σ estimated from the run) and the
+//!   simulated held-out RMS floor; the legend sits in a strip above;
+//! * `normal_errors.svg` — histograms (integer pose counts) of the held-out
+//!   normal errors of the base and the extended model, means marked, the
+//!   legend beside the data.
 //!
 //! Limits: text is laid out with the SVG backend's font estimate (no font
 //! files are read), so labels may sit a little off in some viewers.
@@ -64,48 +67,103 @@ fn range(v: impl Iterator<Item = f64>) -> (f64, f64) {
     (lo - pad, hi + pad)
 }
 
+/// What one residual panel shows besides its points.
+struct Panel<'a> {
+    title: String,
+    xlabel: &'a str,
+    colour: RGBColor,
+    /// Expected reading noise of this sensor (1σ) [mm].
+    sigma: f64,
+    /// Simulated held-out RMS floor of this model [mm].
+    floor: f64,
+}
+
 fn scatter_panel(
     area: &DrawingArea<SVGBackend<'_>, plotters::coord::Shift>,
-    title: &str,
-    xlabel: &str,
-    pts: &[Vec<(f64, f64)>],
+    p: &Panel<'_>,
+    pts: &[(f64, f64)],
     xr: (f64, f64),
     yr: (f64, f64),
 ) -> Result<()> {
+    let e = |e: DrawingAreaErrorKind<std::io::Error>| anyhow!("plot: {e}");
     let mut chart = ChartBuilder::on(area)
-        .caption(title, ("sans-serif", 18))
-        .margin(12)
-        .x_label_area_size(45)
-        .y_label_area_size(70)
+        .caption(&p.title, ("sans-serif", 15))
+        .margin(8)
+        .x_label_area_size(40)
+        .y_label_area_size(62)
         .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
-        .map_err(|e| anyhow!("plot: {e}"))?;
+        .map_err(e)?;
     chart
         .configure_mesh()
-        .x_desc(xlabel)
+        .x_desc(p.xlabel)
         .y_desc("held-out residual [mm]")
+        .max_light_lines(0)
         .draw()
-        .map_err(|e| anyhow!("plot: {e}"))?;
-    for (i, s) in pts.iter().enumerate() {
-        let c = COLOURS[i % COLOURS.len()];
+        .map_err(e)?;
+    // The expected noise band (±1σ, shaded) and the simulated floor
+    // (±RMS, dashed), drawn under the points.
+    chart
+        .draw_series([Rectangle::new(
+            [(xr.0, -p.sigma), (xr.1, p.sigma)],
+            RGBColor(200, 200, 200).mix(0.5).filled(),
+        )])
+        .map_err(e)?;
+    for y in [-p.floor, p.floor] {
         chart
-            .draw_series(s.iter().map(|&(x, y)| Circle::new((x, y), 2, c.filled())))
-            .map_err(|e| anyhow!("plot: {e}"))?
-            .label(format!("sensor {}", i + 1))
-            .legend(move |(x, y)| Circle::new((x, y), 4, c.filled()));
+            .draw_series(DashedLineSeries::new(
+                [(xr.0, y), (xr.1, y)],
+                6,
+                4,
+                BLACK.mix(0.7).into(),
+            ))
+            .map_err(e)?;
     }
     chart
-        .draw_series(LineSeries::new([(xr.0, 0.0), (xr.1, 0.0)], BLACK.mix(0.5)))
-        .map_err(|e| anyhow!("plot: {e}"))?;
+        .draw_series(LineSeries::new([(xr.0, 0.0), (xr.1, 0.0)], BLACK.mix(0.4)))
+        .map_err(e)?;
+    let c = p.colour;
     chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| anyhow!("plot: {e}"))?;
+        .draw_series(pts.iter().map(|&(x, y)| Circle::new((x, y), 2, c.filled())))
+        .map_err(e)?;
     Ok(())
 }
 
-/// Writes `residuals.svg`.
+/// A legend strip above the panels (outside every data area).
+fn legend_strip(
+    area: &DrawingArea<SVGBackend<'_>, plotters::coord::Shift>,
+    text: &str,
+) -> Result<()> {
+    let e = |e: DrawingAreaErrorKind<std::io::Error>| anyhow!("plot: {e}");
+    area.draw(&Rectangle::new(
+        [(10, 8), (34, 20)],
+        RGBColor(200, 200, 200).mix(0.5).filled(),
+    ))
+    .map_err(e)?;
+    area.draw(&Text::new(
+        "expected reading noise ±1σ (estimated from the run)",
+        (40, 8),
+        ("sans-serif", 13),
+    ))
+    .map_err(e)?;
+    area.draw(&PathElement::new(
+        vec![(360, 14), (384, 14)],
+        BLACK.mix(0.7).stroke_width(1),
+    ))
+    .map_err(e)?;
+    area.draw(&Text::new(
+        "simulated held-out RMS floor (±)",
+        (390, 8),
+        ("sans-serif", 13),
+    ))
+    .map_err(e)?;
+    area.draw(&Text::new(text, (620, 8), ("sans-serif", 13)))
+        .map_err(e)?;
+    Ok(())
+}
+
+/// Writes `residuals.svg`: one row of panels per sensor, the paper's model
+/// on the left and, when an effect is named, the extended model on the
+/// right, each with the expected noise band and the simulated floor.
 ///
 /// # Errors
 /// I/O and drawing errors.
@@ -121,31 +179,64 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
         .cv_of(Effect::None)
         .ok_or_else(|| anyhow!("no base cross-validation"))?;
     let before = residual_points(d, axis_effect, base_cv);
-    let after = shown
-        .and_then(|e| d.measured.cv_of(e))
-        .map(|c| residual_points(d, axis_effect, c));
+    // After: the model with every effect named (the last forward step).
+    let after_cv = d
+        .also
+        .last()
+        .map(|st| &st.cv)
+        .or(shown.and_then(|e| d.measured.cv_of(e)));
+    let after = after_cv.map(|c| residual_points(d, axis_effect, c));
+    let names = effects_label(d);
     let all = before.iter().chain(after.iter().flatten()).flatten();
     let xr = range(all.clone().map(|p| p.0));
     let yr = range(all.map(|p| p.1));
-    let width = if after.is_some() { 1200 } else { 700 };
-    let root = SVGBackend::new(path, (width, 480)).into_drawing_area();
+    let ns = before.len().max(1);
+    let cols = if after.is_some() { 2 } else { 1 };
+    let root = SVGBackend::new(path, (560 * cols as u32, 30 + 260 * ns as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
-    let label = axis_effect.regressor_label();
-    match &after {
-        Some(a) => {
-            let areas = root.split_evenly((1, 2));
-            scatter_panel(&areas[0], "before: paper's model", label, &before, xr, yr)?;
+    let (top, body) = root.split_vertically(30);
+    let verdict = if names.is_empty() {
+        d.effect.name().to_string()
+    } else {
+        names.clone()
+    };
+    legend_strip(
+        &top,
+        &format!("points: held-out residuals; verdict: {verdict}"),
+    )?;
+    let areas = body.split_evenly((ns, cols));
+    let floor = |e: Effect| d.expected.rms_of(e).map_or(0.0, |s| s.mean);
+    for (i, pts) in before.iter().enumerate() {
+        let panel = Panel {
+            title: format!("sensor {}: paper's model", i + 1),
+            xlabel: axis_effect.regressor_label(),
+            colour: COLOURS[i % COLOURS.len()],
+            sigma: d.estimate.reading_mm.get(i).copied().unwrap_or(0.0),
+            floor: floor(Effect::None),
+        };
+        scatter_panel(&areas[i * cols], &panel, pts, xr, yr)?;
+        if let (Some(a), Some(e)) = (&after, shown) {
             let title = match d.effect {
                 Effect::Unexplained => {
-                    format!("after: with {} (explains only part)", axis_effect.name())
+                    format!("sensor {}: with {} (explains only part)", i + 1, e.name())
                 }
-                e => format!("after: with {}", e.name()),
+                _ => format!("sensor {}: with {names}", i + 1),
             };
-            scatter_panel(&areas[1], &title, label, a, xr, yr)?;
-        }
-        None => {
-            let title = format!("paper's model (verdict: {})", d.effect.name());
-            scatter_panel(&root, &title, label, &before, xr, yr)?;
+            let p = Panel {
+                title,
+                floor: d
+                    .also
+                    .last()
+                    .map_or(floor(e), |st| st.verdict.expected.mean),
+                ..panel
+            };
+            scatter_panel(
+                &areas[i * cols + 1],
+                &p,
+                a.get(i).map_or(&[][..], |v| &v[..]),
+                xr,
+                yr,
+            )?;
         }
     }
     root.present()
@@ -178,15 +269,17 @@ pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
         h
     };
     let (hb, he) = (hist(&base), hist(&ext));
-    let ymax = hb.iter().chain(&he).copied().max().unwrap_or(1).max(1) as f64 * 1.15;
+    let ymax = (hb.iter().chain(&he).copied().max().unwrap_or(1).max(1) as f64 * 1.15).ceil();
     let root = SVGBackend::new(path, (800, 480)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
+    // The legend goes in a strip to the right of the data.
+    let (root, side) = root.split_horizontally(590);
     let title = if d.ext_model == Effect::None {
         "held-out normal error: paper's model".to_string()
     } else {
         format!(
             "held-out normal error: paper's model vs with {}",
-            d.ext_model.name()
+            effects_label(d)
         )
     };
     let mut chart = ChartBuilder::on(&root)
@@ -200,40 +293,54 @@ pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
         .configure_mesh()
         .x_desc("angle between measured and plane normal [deg]")
         .y_desc("poses")
+        .max_light_lines(0)
+        .y_label_formatter(&|v| format!("{v:.0}"))
+        .y_labels((ymax as usize).clamp(2, 10))
         .draw()
         .map_err(|e| anyhow!("plot: {e}"))?;
     let mut series = vec![("paper's model", &hb, &base, COLOURS[0])];
     if d.ext_model != Effect::None {
-        series.push(("extended", &he, &ext, COLOURS[1]));
+        series.push(("extended model", &he, &ext, COLOURS[1]));
     }
-    for (name, h, v, c) in series {
+    for (j, (name, h, v, c)) in series.into_iter().enumerate() {
         let mean = super::stats::mean(v);
         chart
             .draw_series(h.iter().enumerate().map(|(b, &n)| {
                 let x0 = b as f64 * w;
                 Rectangle::new([(x0, 0.0), (x0 + w, n as f64)], c.mix(0.35).filled())
             }))
-            .map_err(|e| anyhow!("plot: {e}"))?
-            .label(format!("{name}: mean {mean:.4}°"))
-            .legend(move |(x, y)| {
-                Rectangle::new([(x, y - 5), (x + 12, y + 5)], c.mix(0.6).filled())
-            });
+            .map_err(|e| anyhow!("plot: {e}"))?;
         chart
             .draw_series(LineSeries::new(
                 [(mean, 0.0), (mean, ymax)],
                 c.stroke_width(2),
             ))
             .map_err(|e| anyhow!("plot: {e}"))?;
-    }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
+        // Legend entry in the strip right of the data.
+        let y = 50 + 40 * j as i32;
+        side.draw(&Rectangle::new([(8, y), (22, y + 12)], c.mix(0.6).filled()))
+            .map_err(|e| anyhow!("plot: {e}"))?;
+        side.draw(&Text::new(name.to_string(), (28, y), ("sans-serif", 13)))
+            .map_err(|e| anyhow!("plot: {e}"))?;
+        side.draw(&Text::new(
+            format!("mean {mean:.4}° (line)"),
+            (28, y + 16),
+            ("sans-serif", 13),
+        ))
         .map_err(|e| anyhow!("plot: {e}"))?;
+    }
     root.present()
         .map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
     Ok(())
+}
+
+/// The effects named, joined by ` + `.
+fn effects_label(d: &Diagnosis) -> String {
+    d.effects()
+        .iter()
+        .map(|e| e.name())
+        .collect::<Vec<_>>()
+        .join(" + ")
 }
 
 /// Writes every plot into `dir`.

@@ -81,8 +81,9 @@ pub struct PaperArgs {
     /// Seeds (simulated calibrations, 20 test planes each).
     #[arg(long, default_value_t = 20)]
     pub seeds: u64,
-    /// Write the report here.
-    #[arg(long, default_value = "docs/sim-vs-measured.md")]
+    /// Write the report here (the repository's copy is
+    /// `--out docs/sim-vs-measured.md`).
+    #[arg(long, default_value = "sim-vs-measured.md")]
     pub out: PathBuf,
 }
 
