@@ -6,7 +6,10 @@ board process over slcan/TCP:
   before and after;
 * load: SYNC at 1 kHz plus SDO requests at the bus's full frame rate for a
   few seconds, with a 0x1010 store in the middle; counts only (no timing
-  asserts), generous bounds; the store reads back after NMT reset node.
+  asserts), generous bounds; the store reads back after NMT reset node;
+* a bus without acknowledge (``--fault bus:noack:SECONDS``): acquisition
+  goes on, the transmit queue counts what it drops, no reset, SDO answered
+  right after.
 
 The exact figures of the load (missed SYNC responses, frame rates) are
 measured by ``cargo run -p host-tests --example load_tcp`` and the
@@ -40,8 +43,9 @@ STORE = 0x08000020
 LOCKED = 0x08000021
 STATE = 0x08000022
 
-# Measurement outputs change with every sample: not part of the dump.
-LIVE = range(0x2001, 0x2008)
+# Measurement outputs and the transmit-queue counters (0x2008) change
+# while the board runs: not part of the dump.
+LIVE = range(0x2001, 0x2009)
 
 F32_NAN = struct.pack("<I", 0x7FC00000)
 F32_SNAN = struct.pack("<I", 0x7F800001)
@@ -319,3 +323,57 @@ def test_store_during_sync_and_sdo_flood(board):
     for (i, s), v in values.items():
         assert sdo[i][s].raw == pytest.approx(v, rel=1e-7)
     assert sdo[0x2010].raw == 0
+
+
+NOACK_S = 2.0
+
+
+@pytest.mark.board_args("--fault", f"bus:noack:{NOACK_S}")
+def test_bus_without_acknowledge_keeps_acquiring_and_answers_after(board):
+    """For the first NOACK_S seconds nothing the board sends is
+    acknowledged (a node alone on the bus): the board still receives (NMT
+    start, SYNCs) and samples; its frames wait in the transmit queue or are
+    dropped and counted. Afterwards: no reset (the sample counter covers
+    the whole run), the EMCY 0x8110 [1, count] of the overflow arrives, and
+    SDO is answered at once."""
+    t0 = time.time()  # the board's clock started just before
+    net = board.network
+    nid = board.node_id
+    lock = threading.Lock()
+    got = []
+
+    def on_frame(can_id, data, ts):
+        with lock:
+            got.append((time.time() - t0, can_id))
+
+    for base in (0x80, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700):
+        net.subscribe(base + nid, on_frame)
+    board.node.nmt.state = "OPERATIONAL"
+    syncs = 0
+    while time.time() - t0 < NOACK_S - 0.5:
+        net.sync.transmit()
+        syncs += 1
+        time.sleep(0.002)
+    time.sleep(max(0.0, NOACK_S + 0.3 - (time.time() - t0)))
+    with lock:
+        during = [c for t, c in got if t < NOACK_S - 0.4]
+    assert during == [], [hex(c) for c in during]
+    assert syncs > 200
+    # Answered right after, counted since the start: no reset.
+    resp = board.raw.request(bytes([0x40, 0x07, 0x20, 0, 0, 0, 0, 0]), 1.0)
+    elapsed = time.time() - t0
+    assert resp is not None and resp[0] == 0x43, resp
+    samples = struct.unpack_from("<I", resp, 4)[0]
+    assert samples >= 0.9 * elapsed * 1000, (samples, elapsed)
+    assert board.proc.poll() is None
+    dropped = board.node.sdo[0x2008][1].raw
+    peak = board.node.sdo[0x2008][2].raw
+    # 4 TPDOs per SYNC; 3 in the controller, 32 in the queue.
+    assert dropped >= 4 * syncs - 35 - 8, (dropped, syncs)
+    assert peak == 32
+    emcy = [e for e in board.node.emcy.log if e.code == 0x8110]
+    assert emcy and emcy[0].data[0] == 1, board.node.emcy.log
+    print(
+        f"\nno acknowledge for {NOACK_S} s: {syncs} SYNC received, {samples} samples "
+        f"after {elapsed:.2f} s, {dropped} frames dropped, peak {peak}"
+    )

@@ -43,12 +43,15 @@
 //! | configuration invalid (bit 21), boot record rejected | 0x6300 | generic | 0 |
 //! | bus-off recovered ([`App::bus_off_recovered`]) | 0x8140 | communication | 0 |
 //! | receive overrun ([`App::rx_overrun`]) | 0x8110 | communication | 0 |
+//! | transmit queue full, frames dropped ([`App::tx_stats`]) | 0x8110 | communication | 1, dropped count (u32 LE) |
 //!
 //! A condition raises its EMCY on the first sample that shows it; it is
 //! cleared only after [`EMCY_CLEAR_SAMPLES`] samples without it, so a
 //! flickering fault does not flood the bus. Bus events are raised and
 //! cleared at once (one EMCY, then the "error reset" when nothing else is
-//! active).
+//! active). The transmit-queue EMCY is sent when frames start being dropped
+//! after [`TX_EMCY_QUIET_US`] without drops: once per congestion episode,
+//! however long it lasts (0x2008 counts every frame).
 
 use perpend_can::status::{emcy, error_register};
 use perpend_can::{
@@ -70,6 +73,10 @@ use crate::storage::{clear, load_with_tail, save_with_tail, Boot, ParamStore};
 /// 1 kHz).
 pub const EMCY_CLEAR_SAMPLES: u16 = 100;
 
+/// Time without dropped transmit frames after which a new drop raises
+/// EMCY 0x8110 again \[µs\].
+pub const TX_EMCY_QUIET_US: u64 = 1_000_000;
+
 /// OD code of the least-squares method in 0x2300 sub 3.
 const OD_METHOD_CHEN: u8 = perpend_can::config::METHOD_CHEN;
 const OD_METHOD_LS: u8 = perpend_can::config::METHOD_LEAST_SQUARES;
@@ -90,6 +97,7 @@ pub fn defaults_for(p: &Params) -> Defaults {
         residual_limit_mm: p.acq.max_rms_mm,
     };
     d.bit_rate_kbps = (p.can.bitrate.bps() / 1000) as u16;
+    d.adc_scan_ns = crate::scan::SCAN_NS;
     d
 }
 
@@ -135,7 +143,8 @@ fn transfer_from_od(t: &TransferFunction, extra: &Transfer) -> Result<Transfer, 
 /// # Errors
 /// A zero-length beam direction or non-finite value
 /// ([`perpend_core::Error`]), an unknown transfer kind, oversampling or bit
-/// rate, or any error of [`Params::validate`].
+/// rate, a period shorter than one ADC scan at the oversampling
+/// ([`crate::scan`]), or any error of [`Params::validate`].
 pub fn params_from_device(dev: &Device, extra: &Params) -> Result<Params, Error> {
     let mut p = *extra;
     for i in 0..4 {
@@ -149,6 +158,9 @@ pub fn params_from_device(dev: &Device, extra: &Params) -> Result<Params, Error>
     let a = dev.acquisition();
     if !a.oversampling.is_power_of_two() || a.oversampling > 256 {
         return Err(Error::OutOfRange("oversampling ratio"));
+    }
+    if !crate::scan::fits(a.period_us, a.oversampling as u32) {
+        return Err(Error::OutOfRange("sample period shorter than the ADC scan"));
     }
     let log2 = a.oversampling.trailing_zeros() as u8;
     p.acq.period_us = a.period_us;
@@ -247,6 +259,8 @@ pub struct App<S: ParamStore> {
     start_us: Option<u64>,
     last: Output,
     stores: u32,
+    tx_dropped: u32,
+    tx_last_drop_us: Option<u64>,
 }
 
 impl<S: ParamStore> App<S> {
@@ -283,6 +297,8 @@ impl<S: ParamStore> App<S> {
             start_us: None,
             last: Output::default(),
             stores: 0,
+            tx_dropped: 0,
+            tx_last_drop_us: None,
         };
         app.reload();
         // Nothing to drain: the events of the boot itself are handled.
@@ -422,9 +438,34 @@ impl<S: ParamStore> App<S> {
         self.pulse(emcy::CAN_OVERRUN);
     }
 
+    /// The transmit queue's counters ([`crate::txq::TxStats`]) at
+    /// `now_us`: published in 0x2008; frames dropped after
+    /// [`TX_EMCY_QUIET_US`] without drops raise EMCY 0x8110 with data
+    /// `[1, dropped LE]` (raised and cleared at once, like the bus events).
+    /// Call it after every [`crate::txq::TxQueue::service`].
+    pub fn tx_stats(&mut self, s: crate::txq::TxStats, now_us: u64) {
+        self.dev.set_tx_counters(s.dropped, s.peak as u32);
+        if s.dropped == self.tx_dropped {
+            return;
+        }
+        self.tx_dropped = s.dropped;
+        let quiet = self
+            .tx_last_drop_us
+            .is_none_or(|t| now_us.saturating_sub(t) >= TX_EMCY_QUIET_US);
+        self.tx_last_drop_us = Some(now_us);
+        if quiet {
+            let d = s.dropped.to_le_bytes();
+            self.pulse_with(emcy::CAN_OVERRUN, [1, d[0], d[1], d[2], d[3]]);
+        }
+    }
+
     fn pulse(&mut self, code: u16) {
+        self.pulse_with(code, [0; 5]);
+    }
+
+    fn pulse_with(&mut self, code: u16, data: [u8; 5]) {
         self.dev
-            .signal_emcy(code, error_register::COMMUNICATION, [0; 5]);
+            .signal_emcy(code, error_register::COMMUNICATION, data);
         self.dev.clear_emcy(code);
     }
 

@@ -154,14 +154,14 @@ fn calibration_write_store_reboot() {
     b.write_f32(0x2101, 1, 50.5).unwrap();
     assert_eq!(b.app.pipeline().params().head.sensors[0].zero.x, 50.5);
     assert!(b.app.pipeline().calibrated());
-    // acquisition: 2 kHz, 64x oversampling
-    b.write(0x2300, 1, &500u32.to_le_bytes()).unwrap();
+    // acquisition: 1.25 kHz, 64x oversampling (scan 753 µs)
+    b.write(0x2300, 1, &800u32.to_le_bytes()).unwrap();
     b.write(0x2300, 2, &64u16.to_le_bytes()).unwrap();
     assert_eq!(
         b.app
             .take_acq_change()
             .map(|a| (a.period_us, a.os_log2, a.os_shift)),
-        Some((500, 6, 2))
+        Some((800, 6, 2))
     );
     assert_eq!(b.app.take_acq_change(), None);
     // store
@@ -171,7 +171,7 @@ fn calibration_write_store_reboot() {
     let b = b.reboot();
     assert_eq!(b.app.boot(), Boot::Stored);
     assert_eq!(b.app.pipeline().params().head, before.head);
-    assert_eq!(b.app.pipeline().params().acq.period_us, 500);
+    assert_eq!(b.app.pipeline().params().acq.period_us, 800);
     assert!(b.app.pipeline().calibrated());
     assert_eq!(b.app.pipeline().params().stamp, 1);
     let mut b = b;
@@ -383,4 +383,180 @@ fn rejected_record_raises_data_set_emcy() {
         b.sample(good_counts(&b.app));
     }
     assert!(!b.app.device().emcy_active(emcy::DATA_SET));
+}
+
+#[test]
+fn period_and_oversampling_are_checked_together() {
+    const RANGE: u32 = 0x0609_0030;
+    let mut b = Bench::new(HostFlash::new());
+    // factory 1000 µs, 16x: 256x would take 3012 µs per scan
+    assert_eq!(b.write(0x2300, 2, &256u16.to_le_bytes()), Err(RANGE));
+    // 16x needs 189 µs
+    assert_eq!(b.write(0x2300, 1, &188u32.to_le_bytes()), Err(RANGE));
+    assert_eq!(*b.app.pipeline().params(), Params::factory());
+    assert_eq!(b.app.take_acq_change(), None);
+    b.write(0x2300, 1, &189u32.to_le_bytes()).unwrap();
+    // period first, then the ratio
+    b.write(0x2300, 1, &3012u32.to_le_bytes()).unwrap();
+    b.write(0x2300, 2, &256u16.to_le_bytes()).unwrap();
+    assert_eq!(b.write(0x2300, 1, &3011u32.to_le_bytes()), Err(RANGE));
+    let a = b.app.take_acq_change().expect("change");
+    assert_eq!((a.period_us, a.os_log2), (3012, 8));
+    b.write(0x2300, 2, &1u16.to_le_bytes()).unwrap();
+    b.write(0x2300, 1, &100u32.to_le_bytes()).unwrap();
+    assert!(b.app.pipeline().config_ok());
+    assert_eq!(b.app.acquisition().period_us, 100);
+}
+
+#[test]
+fn a_dictionary_with_a_scan_longer_than_the_period_is_invalid() {
+    // A device without the check (nominal defaults) accepts 100 µs at
+    // 256x; the board refuses to run it.
+    let mut dev = Device::new(NODE as u8, &Defaults::nominal());
+    let mut out = Vec::new();
+    dev.poll(0, &mut |f| out.push(f));
+    let mut write = |index: u16, sub: u8, v: &[u8]| {
+        let mut p = [0x2B, 0, 0, sub, 0, 0, 0, 0];
+        p[1..3].copy_from_slice(&index.to_le_bytes());
+        p[4..4 + v.len()].copy_from_slice(v);
+        p[0] = 0x23 | ((4 - v.len() as u8) << 2);
+        dev.handle(&Frame::new(0x600 + NODE, &p), 1, &mut |f| out.push(f));
+    };
+    write(0x2300, 1, &100u32.to_le_bytes());
+    write(0x2300, 2, &256u16.to_le_bytes());
+    assert_eq!(dev.acquisition().oversampling, 256);
+    assert_eq!(
+        params_from_device(&dev, &Params::factory()),
+        Err(Error::OutOfRange("sample period shorter than the ADC scan"))
+    );
+    assert_eq!(defaults_for(&Params::factory()).adc_scan_ns, 11_765);
+}
+
+/// Drives the app like the firmware's loop: every frame into the transmit
+/// queue, the queue serviced into `ctrl`, the counters back to the app.
+fn run_with_controller(
+    b: &mut Bench,
+    q: &mut crate::txq::TxQueue<{ crate::txq::TX_QUEUE_LEN }>,
+    ctrl: &mut impl crate::txq::TxController,
+    samples: usize,
+    pushed: &mut Vec<Frame>,
+) {
+    let counts = good_counts(&b.app);
+    for _ in 0..samples {
+        b.t += 1000;
+        b.app.on_sample(
+            &Sample {
+                counts,
+                ..Sample::default()
+            },
+            b.t,
+        );
+        let mut push = |f: Frame| {
+            pushed.push(f);
+            q.push(f);
+        };
+        b.app.poll(b.t, &mut push);
+        b.app.handle(&Frame::new(0x80, &[]), b.t, &mut push);
+        q.service(ctrl);
+        b.app.tx_stats(q.stats(), b.t);
+    }
+}
+
+#[test]
+fn acquisition_goes_on_without_acknowledge_and_counts_the_overflow() {
+    // Alone on the bus: the controller's three slots never free.
+    struct NoAck(usize);
+    impl crate::txq::TxController for NoAck {
+        fn try_write(&mut self, _: &Frame) -> crate::txq::TryWrite {
+            if self.0 < 3 {
+                self.0 += 1;
+                crate::txq::TryWrite::Accepted
+            } else {
+                crate::txq::TryWrite::Full
+            }
+        }
+    }
+    let mut b = Bench::new(HostFlash::new());
+    b.nmt(0x01);
+    let mut q = crate::txq::TxQueue::new();
+    let mut pushed = Vec::new();
+    // (1500 samples: identical counts for 2000 would look stuck)
+    run_with_controller(&mut b, &mut q, &mut NoAck(0), 1500, &mut pushed);
+    // 1500 samples, 4 TPDOs per SYNC, heartbeats: never held up
+    assert_eq!(b.app.device().sample_counter(), 1500);
+    let st = q.stats();
+    assert_eq!(q.len(), crate::txq::TX_QUEUE_LEN);
+    assert_eq!(st.dropped as usize, pushed.len() - 3 - q.len());
+    let dev = b.app.device();
+    assert_eq!(dev.read_u32(0x2008, 1), Some(st.dropped));
+    assert_eq!(
+        dev.read_u32(0x2008, 2),
+        Some(crate::txq::TX_QUEUE_LEN as u32)
+    );
+    // One EMCY 0x8110 [1, dropped] (and its error reset) for the whole
+    // episode; both kept, being the highest-priority frames.
+    let emcy: Vec<&Frame> = pushed.iter().filter(|f| f.id == 0x80 + NODE).collect();
+    assert_eq!(emcy.len(), 2, "{emcy:?}");
+    assert_eq!(
+        u16::from_le_bytes([emcy[0].data[0], emcy[0].data[1]]),
+        0x8110
+    );
+    assert_eq!(emcy[0].data[3], 1);
+    assert_eq!(q.frames()[..2], [*emcy[0], *emcy[1]]);
+    assert!(q.frames().iter().all(|f| f.id <= 0x180 + NODE));
+}
+
+#[test]
+fn a_slow_bus_delivers_every_frame_in_order() {
+    // Three slots, one frame leaves every 200 µs (a loaded 1 Mbit/s bus),
+    // the same identifier is never pending twice.
+    #[derive(Default)]
+    struct Slow {
+        slots: Vec<Frame>,
+        sent: Vec<Frame>,
+    }
+    impl crate::txq::TxController for Slow {
+        fn try_write(&mut self, f: &Frame) -> crate::txq::TryWrite {
+            if self.slots.len() == 3 || self.slots.iter().any(|p| p.id == f.id) {
+                return crate::txq::TryWrite::Full;
+            }
+            self.slots.push(*f);
+            crate::txq::TryWrite::Accepted
+        }
+    }
+    impl Slow {
+        fn frames(&mut self, n: usize) {
+            for _ in 0..n {
+                self.slots.sort_by_key(|f| f.id);
+                if !self.slots.is_empty() {
+                    let f = self.slots.remove(0);
+                    self.sent.push(f);
+                }
+            }
+        }
+    }
+    let mut b = Bench::new(HostFlash::new());
+    b.nmt(0x01);
+    let mut q = crate::txq::TxQueue::new();
+    let mut bus = Slow::default();
+    let mut pushed = Vec::new();
+    for _ in 0..500 {
+        run_with_controller(&mut b, &mut q, &mut bus, 1, &mut pushed);
+        for _ in 0..5 {
+            bus.frames(1);
+            q.service(&mut bus);
+        }
+    }
+    for _ in 0..20 {
+        bus.frames(1);
+        q.service(&mut bus);
+    }
+    assert_eq!(q.stats().dropped, 0);
+    assert_eq!(bus.sent.len(), pushed.len());
+    for id in [0x180, 0x280, 0x380, 0x480, 0x700] {
+        let a: Vec<_> = pushed.iter().filter(|f| f.id == id + NODE).collect();
+        let s: Vec<_> = bus.sent.iter().filter(|f| f.id == id + NODE).collect();
+        assert_eq!(a, s, "{id:#x}");
+    }
+    assert_eq!(b.app.device().read_u32(0x2008, 1), Some(0));
 }

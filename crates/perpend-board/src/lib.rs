@@ -12,7 +12,12 @@
 //!   boot-time loading with factory fallback, a fault-injecting flash;
 //! * [`status`] — the status-word bits;
 //! * [`app`] — [`app::App`]: pipeline + storage + the CANopen device of
-//!   `perpend-can`, frames in / frames out, time passed in.
+//!   `perpend-can`, frames in / frames out, time passed in;
+//! * [`txq`] — the software transmit queue in CAN priority order between
+//!   the application and the controller (never blocks the acquisition);
+//! * [`bittiming`] — the FDCAN nominal bit timing of the four bit rates;
+//! * [`scan`] — the ADC scan time and the shortest sample period an
+//!   oversampling ratio allows.
 //!
 //! `no_std`, no allocator; every buffer is sized in its type.
 #![cfg_attr(not(any(test, feature = "std")), no_std)]
@@ -20,9 +25,12 @@
 
 pub mod acq;
 pub mod app;
+pub mod bittiming;
 pub mod pipeline;
+pub mod scan;
 pub mod status;
 pub mod storage;
+pub mod txq;
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]

@@ -222,6 +222,13 @@ pub struct Defaults {
     pub heartbeat_ms: u16,
     /// SDO server timeout of a segmented transfer \[µs\] (not an object).
     pub sdo_timeout_us: u64,
+    /// Duration of one ADC scan without oversampling \[ns\] (not an
+    /// object): a write to 0x2300 sub 1 (period) or sub 2 (oversampling)
+    /// is refused with SDO abort 0x06090030 when `oversampling ·
+    /// adc_scan_ns` would exceed the period (the scan would not finish
+    /// before the next trigger). 0 = no such check (the nominal defaults:
+    /// the board sets its figure, `perpend_board::scan::SCAN_NS`).
+    pub adc_scan_ns: u32,
     /// 0x2101..0x2104 calibration of sensors 1..4.
     pub calibration: [SensorCalibration; 4],
     /// 0x2201..0x2204 transfer functions of sensors 1..4.
@@ -290,7 +297,8 @@ pub const fn bitrate_of(kbps: u16) -> Option<Bitrate> {
 impl Defaults {
     /// The product's nominal defaults: [`Defaults::from_params`] of
     /// [`Params::factory`] (the design head, 4-20 mA sensors, 1 kHz, least
-    /// squares; see there), heartbeat 1000 ms, SDO timeout 1 s, identity
+    /// squares; see there), heartbeat 1000 ms, SDO timeout 1 s, no ADC
+    /// scan-time check (`adc_scan_ns` 0), identity
     /// with vendor-ID 0 (none assigned by CiA), product code "PERP" and
     /// serial 0 (the firmware sets it from the MCU UID).
     pub fn nominal() -> Self {
@@ -315,6 +323,7 @@ impl Defaults {
             },
             heartbeat_ms: 1000,
             sdo_timeout_us: 1_000_000,
+            adc_scan_ns: 0,
             calibration: p.head.sensors.map(|s| SensorCalibration::from_sensor(&s)),
             transfer: p.transfer.map(|t| TransferFunction::from_transfer(&t)),
             acquisition: Acquisition::from_params(&p.acq),

@@ -598,6 +598,7 @@ impl Core {
                 }
                 Ok(None)
             }
+            0x2300 => self.check_scan(sub, v).map(|()| None),
             0x2010 => {
                 if v == UNLOCK_SIGNATURE {
                     self.unlocked = true;
@@ -611,6 +612,25 @@ impl Core {
                 Ok(Some(Written::Done))
             }
             _ => Ok(None),
+        }
+    }
+
+    /// 0x2300 sub 1 (period) and sub 2 (oversampling) are checked
+    /// together: one scan at the oversampling ratio must fit into the
+    /// period ([`Defaults::adc_scan_ns`]); otherwise 0x06090030 (the value
+    /// is outside the range the other sub-index allows; 0x08000022 is kept
+    /// for the NMT state). Raise the period before the oversampling.
+    fn check_scan(&self, sub: u8, v: u32) -> Result<(), SdoAbort> {
+        let (period_us, ratio) = match sub {
+            1 => (v, self.get(0x2300, 2)),
+            2 => (self.get(0x2300, 1), v),
+            _ => return Ok(()),
+        };
+        let scan_ns = self.defaults.adc_scan_ns as u64;
+        if scan_ns == 0 || ratio as u64 * scan_ns <= period_us as u64 * 1000 {
+            Ok(())
+        } else {
+            Err(SdoAbort::Range)
         }
     }
 
@@ -1020,6 +1040,14 @@ impl Device {
     /// The sample counter 0x2007.
     pub fn sample_counter(&self) -> u32 {
         self.core.get(0x2007, 0)
+    }
+
+    /// Sets the transmit-queue counters 0x2008 (sub 1 frames dropped
+    /// because the software queue was full, sub 2 its peak fill, both
+    /// since power-on). They are not measurements: no TPDO event.
+    pub fn set_tx_counters(&mut self, dropped: u32, peak: u32) {
+        self.core.set(0x2008, 1, dropped);
+        self.core.set(0x2008, 2, peak);
     }
 
     // ------------------------------------------------------------------

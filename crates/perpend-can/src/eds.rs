@@ -18,9 +18,9 @@ use crate::od::{self, Access, DataType, Init, Kind, Limits, Object, Text};
 
 /// Date written to `[FileInfo]` (`MM-DD-YYYY`): the date of the dictionary
 /// layout, changed by hand together with [`FILE_VERSION`].
-pub const FILE_DATE: &str = "01-15-2025";
+pub const FILE_DATE: &str = "11-24-2026";
 /// `FileVersion` of the EDS: increment when the dictionary changes.
-pub const FILE_VERSION: u32 = 1;
+pub const FILE_VERSION: u32 = 2;
 
 fn access(a: Access) -> &'static str {
     match a {

@@ -128,10 +128,11 @@
 //! | 0x2005 | 0 | status, UNSIGNED32 ([`status`]) | ro, PDO |
 //! | 0x2006 | 0 | plane RMS residual \[mm\] | ro, PDO |
 //! | 0x2007 | 0 | sample counter, UNSIGNED32 | ro, PDO |
+//! | 0x2008 | 1, 2 | CAN transmit queue: frames dropped (queue full), peak fill; UNSIGNED32, since power-on | ro, PDO |
 //! | 0x2010 | 0 | calibration unlock, UNSIGNED32: write "ucal" 0x6C616375 to unlock, 0 to lock; reads 1/0 | rw, pre-op |
 //! | 0x2101..4 | 1..15 | sensor calibration: zero x,y,z \[mm\], direction x,y,z, d_ref \[mm\], gain, nl2, nl3, incidence \[mm\], crosstalk, thermal [mm/°C], temp_ref [°C], drift [mm/s] | rw, pre-op + unlock |
 //! | 0x2201..4 | 1..4 | transfer function: kind U8 (0 = 4-20 mA shunt, 1 = 0-10 V divider), shunt \[Ω\] / divider ratio, mm at 4 mA / 0 V, mm at 20 mA / 10 V | rw, pre-op + unlock |
-//! | 0x2300 | 1..4 | period \[µs\] U32 100..100000, oversampling U16 1..256 power of 2, method U8 (0 Chen, 1 LS), residual limit \[mm\] | rw, pre-op |
+//! | 0x2300 | 1..4 | period \[µs\] U32 100..100000, oversampling U16 1..256 power of 2, method U8 (0 Chen, 1 LS), residual limit \[mm\]; period and oversampling together: oversampling × [`Defaults::adc_scan_ns`] ≤ period, else 0x06090030 | rw, pre-op |
 //! | 0x2400 | 1, 2 | node-id U8 1..127, bit rate [kbit/s] U16 125/250/500/1000 | rw, pre-op |
 //!
 //! Default TPDOs, all transmission type 1 (every SYNC), 8 bytes each:

@@ -604,6 +604,15 @@ pub const OBJECTS: &[Object] = &[
         "Sample counter",
         &[Entry::new(0, "Sample counter", U32, Ro, Class::Measurement).pdo()],
     ),
+    rec(
+        0x2008,
+        "CAN transmit queue",
+        &[
+            sub0m(2),
+            Entry::new(1, "Frames dropped", U32, Ro, Class::Measurement).pdo(),
+            Entry::new(2, "Peak fill", U32, Ro, Class::Measurement).pdo(),
+        ],
+    ),
     var(
         0x2010,
         "Calibration unlock",

@@ -94,8 +94,11 @@ pub mod emcy {
     /// CAN controller recovered from bus-off, class 0x81xx "communication".
     /// Error register: communication.
     pub const BUS_OFF_RECOVERED: u16 = 0x8140;
-    /// CAN receive overrun (frames lost), class 0x81xx. Error register:
-    /// communication.
+    /// CAN overrun, objects lost, class 0x81xx. Error register:
+    /// communication. Data `[0, 0, 0, 0, 0]`: the receive FIFO lost
+    /// frames; `[1, dropped (UNSIGNED32, little-endian)]`: the software
+    /// transmit queue was full and dropped frames (the count since
+    /// power-on, as in 0x2008 sub 1).
     pub const CAN_OVERRUN: u16 = 0x8110;
 }
 

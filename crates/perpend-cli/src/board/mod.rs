@@ -22,6 +22,12 @@
 //!   look stuck after the stuck detector's 2 s).
 //! * `--fault SENSOR:KIND` (repeatable): `open`, `overcurrent`,
 //!   `saturated`, `stuck`, `noisy` (see [`sim`]).
+//! * `--fault bus:noack:SECONDS`: for the first SECONDS of the run nothing
+//!   the board sends is acknowledged (a node alone on the bus): its frames
+//!   stay in the transmit queue or are dropped and counted (0x2008, EMCY
+//!   0x8110 `[1, count]`), acquisition goes on (0x2007 advances), frames it
+//!   receives are handled; afterwards it sends the queue and answers at
+//!   once (see [`node`]).
 //! * Port 0 picks a free port. The first line on stdout is
 //!   `perpend board: node N on HOST:PORT` once the port accepts clients.
 //!
@@ -35,6 +41,7 @@ pub mod sim;
 use std::io::Write as _;
 use std::net::TcpListener;
 use std::path::PathBuf;
+use std::str::FromStr;
 
 use anyhow::{anyhow, bail, Context as _, Result};
 use perpend_core::head::Head4;
@@ -67,12 +74,39 @@ pub struct Args {
     #[arg(long, default_value_t = 0.002)]
     pub noise_mm: f64,
     /// Fault `SENSOR:KIND` (1-based sensor; open, overcurrent, saturated,
-    /// stuck, noisy); repeatable.
+    /// stuck, noisy) or `bus:noack:SECONDS` (nothing the board sends is
+    /// acknowledged for the first SECONDS); repeatable.
     #[arg(long)]
-    pub fault: Vec<Fault>,
+    pub fault: Vec<FaultArg>,
     /// Seed of the noise generator.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+}
+
+/// One `--fault`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FaultArg {
+    /// `SENSOR:KIND`: a sensor fault.
+    Sensor(Fault),
+    /// `bus:noack:SECONDS`: no acknowledge for the first SECONDS.
+    BusNoAck(f64),
+}
+
+impl FromStr for FaultArg {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        let Some(rest) = s.strip_prefix("bus:") else {
+            return Ok(FaultArg::Sensor(s.parse()?));
+        };
+        let secs = rest
+            .strip_prefix("noack:")
+            .and_then(|t| t.trim().parse::<f64>().ok())
+            .filter(|t| t.is_finite() && (0.0..=86_400.0).contains(t));
+        match secs {
+            Some(t) => Ok(FaultArg::BusNoAck(t)),
+            None => bail!("--fault '{s}': expected bus:noack:SECONDS (0..86400)"),
+        }
+    }
 }
 
 /// Parses a node-id: decimal or `0x` hex, 1..=127.
@@ -120,15 +154,21 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
         .or(head)
         .unwrap_or_else(|| Params::factory().head.cast());
     let mut sim = SimHead::new(truth, plane, a.noise_mm, a.seed)?;
+    let mut noack_us = None;
     for f in &a.fault {
-        sim.set_fault(f.sensor, Some(f.kind));
+        match *f {
+            FaultArg::Sensor(f) => sim.set_fault(f.sensor, Some(f.kind)),
+            FaultArg::BusNoAck(t) => noack_us = Some((t * 1e6) as u64),
+        }
     }
     let cfg = BoardConfig {
         node_id: a.node_id,
         head,
         calibration,
     };
-    VirtualBoard::new(&cfg, sim)
+    let mut board = VirtualBoard::new(&cfg, sim)?;
+    board.set_bus_noack(noack_us);
+    Ok(board)
 }
 
 /// Runs `perpend board` until killed.
@@ -199,6 +239,35 @@ mod tests {
         a.sensors = Some(path3);
         let e = build(&a).err().unwrap().to_string();
         assert!(e.contains("4 sensors"), "{e}");
+    }
+
+    #[test]
+    fn faults_parse() {
+        assert_eq!(
+            "bus:noack:2.5".parse::<FaultArg>().unwrap(),
+            FaultArg::BusNoAck(2.5)
+        );
+        assert!(matches!(
+            "3:open".parse::<FaultArg>().unwrap(),
+            FaultArg::Sensor(Fault { sensor: 2, .. })
+        ));
+        for bad in [
+            "bus:noack:",
+            "bus:noack:-1",
+            "bus:noack:nan",
+            "bus:off:1",
+            "5:open",
+        ] {
+            assert!(bad.parse::<FaultArg>().is_err(), "{bad}");
+        }
+        let mut a = args();
+        a.fault = vec![FaultArg::BusNoAck(1.0)];
+        let mut b = build(&a).unwrap();
+        let mut sent = Vec::new();
+        b.poll(999_999, &mut |f| sent.push(f));
+        assert!(sent.is_empty(), "boot-up held back");
+        b.poll(1_000_000, &mut |f| sent.push(f));
+        assert_eq!(sent.len(), 1);
     }
 
     #[test]

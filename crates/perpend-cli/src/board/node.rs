@@ -11,6 +11,14 @@
 //! state: they survive NMT resets; 0x1011 "load" followed by a reset node
 //! brings the firmware's factory state back (node-id 0x20, nominal head).
 //!
+//! Transmit: as on the board, every frame the application produces goes
+//! through the software queue ([`perpend_board::txq::TxQueue`]) into a
+//! controller with three transmit slots ([`VirtualCan`]); the virtual bus
+//! sends them at once (no bus time), lowest identifier first, unless a
+//! "no acknowledge" fault is active ([`VirtualBoard::set_bus_noack`]):
+//! then the slots stay full, the queue fills and counts what it drops
+//! (0x2008, EMCY 0x8110), and acquisition and SDO handling go on.
+//!
 //! Limits: no temperature input; the bit rate in 0x2400 has no effect on
 //! the virtual bus.
 
@@ -18,6 +26,7 @@ use anyhow::{anyhow, Result};
 use perpend_board::app::{defaults_for, App};
 use perpend_board::pipeline::{Output, Sample};
 use perpend_board::storage::{host_store, save_with_tail, HostFlash, SeqStore};
+use perpend_board::txq::{TryWrite, TxController, TxQueue, TX_QUEUE_LEN};
 use perpend_can::{Device, Frame, IMAGE_LEN};
 use perpend_core::head::Head4;
 use perpend_core::params::Params;
@@ -62,10 +71,53 @@ fn seed_record(cfg: &BoardConfig) -> Result<Option<(Params, [u8; IMAGE_LEN])>> {
     Ok(Some((p, img)))
 }
 
+/// The virtual CAN controller: three transmit slots, like the FDCAN.
+#[derive(Debug, Default)]
+pub struct VirtualCan {
+    slots: Vec<Frame>,
+    noack_until_us: Option<u64>,
+}
+
+impl VirtualCan {
+    /// Transmit slots.
+    pub const SLOTS: usize = 3;
+
+    /// Whether the bus acknowledges at `now_us`.
+    pub fn acked(&self, now_us: u64) -> bool {
+        self.noack_until_us.is_none_or(|t| now_us >= t)
+    }
+
+    /// Sends the pending frames to `out` (lowest identifier first, equal
+    /// identifiers in write order) if the bus acknowledges; returns how
+    /// many.
+    fn transmit(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) -> usize {
+        if !self.acked(now_us) {
+            return 0;
+        }
+        self.slots.sort_by_key(|f| f.id);
+        let n = self.slots.len();
+        self.slots.drain(..).for_each(&mut *out);
+        n
+    }
+}
+
+impl TxController for VirtualCan {
+    fn try_write(&mut self, f: &Frame) -> TryWrite {
+        if self.slots.len() < Self::SLOTS {
+            self.slots.push(*f);
+            TryWrite::Accepted
+        } else {
+            TryWrite::Full
+        }
+    }
+}
+
 /// The virtual board.
 pub struct VirtualBoard {
     app: HostApp,
     sim: SimHead,
+    txq: TxQueue<TX_QUEUE_LEN>,
+    can: VirtualCan,
 }
 
 impl VirtualBoard {
@@ -83,7 +135,12 @@ impl VirtualBoard {
                 .map_err(|e| anyhow!("writing the start-up record: {e:?}"))?;
         }
         let app = App::new(store);
-        Ok(Self { app, sim })
+        Ok(Self {
+            app,
+            sim,
+            txq: TxQueue::new(),
+            can: VirtualCan::default(),
+        })
     }
 
     /// The application (device, pipeline, storage).
@@ -106,14 +163,46 @@ impl VirtualBoard {
         self.app.acquisition().period_us.max(1) as u64
     }
 
-    /// Handles a frame received from the bus at `now_us`.
-    pub fn handle(&mut self, f: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
-        self.app.handle(f, now_us, out);
+    /// The transmit queue (frames waiting for the controller).
+    pub fn tx_queue(&self) -> &TxQueue<TX_QUEUE_LEN> {
+        &self.txq
     }
 
-    /// Runs the timers at `now_us`.
+    /// From now until `until_us` (board time) nothing the board sends is
+    /// acknowledged (`None`: the bus works).
+    pub fn set_bus_noack(&mut self, until_us: Option<u64>) {
+        self.can.noack_until_us = until_us;
+    }
+
+    /// Handles a frame received from the bus at `now_us`; frames put on
+    /// the bus go to `out`.
+    pub fn handle(&mut self, f: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
+        let q = &mut self.txq;
+        self.app.handle(f, now_us, &mut |o| {
+            q.push(o);
+        });
+        self.transmit(now_us, out);
+    }
+
+    /// Runs the timers at `now_us`; frames put on the bus go to `out`.
     pub fn poll(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
-        self.app.poll(now_us, out);
+        let q = &mut self.txq;
+        self.app.poll(now_us, &mut |o| {
+            q.push(o);
+        });
+        self.transmit(now_us, out);
+    }
+
+    /// Moves the queue through the controller onto the bus as far as the
+    /// bus takes it; the counters go to the application.
+    fn transmit(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        loop {
+            self.txq.service(&mut self.can);
+            if self.can.transmit(now_us, out) == 0 || self.txq.is_empty() {
+                break;
+            }
+        }
+        self.app.tx_stats(self.txq.stats(), now_us);
     }
 
     /// Takes and processes one ADC scan at `now_us`.
@@ -256,6 +345,40 @@ mod tests {
         assert_eq!(status::sensor_nibble(st, 2), status::SENSOR_OPEN_LOOP);
         assert_ne!(st & status::DEGRADED, 0);
         assert_eq!(st & status::NO_PLANE, 0);
+    }
+
+    #[test]
+    fn a_bus_without_acknowledge_holds_nothing_up() {
+        let mut r = Rig::new(plane(), cfg());
+        r.send(Frame::new(0, &[1, NODE]));
+        let n0 = r.b.app().device().sample_counter();
+        r.b.set_bus_noack(Some(r.t + 2_000_500));
+        r.sent.clear();
+        for _ in 0..2000 {
+            r.run(1);
+            r.send(Frame::new(0x80, &[]));
+        }
+        assert!(r.sent.is_empty(), "{} frames acknowledged", r.sent.len());
+        assert_eq!(r.b.app().device().sample_counter() - n0, 2000);
+        let st = r.b.tx_queue().stats();
+        assert_eq!(r.b.tx_queue().len(), TX_QUEUE_LEN);
+        // 4 TPDOs per SYNC, 2 heartbeats, 2 EMCY (overflow, error reset)
+        let produced = 2000 * 4 + 2 + 2;
+        assert_eq!(
+            st.dropped as usize,
+            produced - VirtualCan::SLOTS - TX_QUEUE_LEN
+        );
+        // the fault is over: the queue drains, the next request is answered
+        r.run(1);
+        let got = r.sdo([0x40, 0x08, 0x20, 1, 0, 0, 0, 0]);
+        assert_eq!(got[0], 0x43);
+        assert_eq!(u32::from_le_bytes(got[4..].try_into().unwrap()), st.dropped);
+        let emcy: Vec<_> = r
+            .sent
+            .iter()
+            .filter(|f| f.id == 0x80 + NODE as u16)
+            .collect();
+        assert_eq!(emcy[0].data[..4], [0x10, 0x81, 0x11, 1]);
     }
 
     #[test]

@@ -1,0 +1,111 @@
+//! (Re)starting the acquisition chain TIM3 → ADC1 → DMA1 channel 1 with a
+//! new period and oversampling (object 0x2300), or after an overrun.
+//!
+//! embassy-stm32 0.6's `RingBufferedAdc::stop()` only clears the DMA
+//! channel's EN bit; the ADC keeps converting, and its `start()` sets EN and
+//! ADSTART again. That leaves three problems this module fixes with PAC
+//! calls: CFGR2 (oversampling) may only be written while ADSTART = 0
+//! (RM0440 §21.4.30, register notes of ADC_CFGR2), a DMA channel disabled
+//! and re-enabled without being reprogrammed is not supported (RM0440
+//! §12.4.3 "Channel state and disabling a channel": "suspend and resume"),
+//! and a scan interrupted halfway leaves the ring off its scan boundary.
+//! The sequence, each step in [`restart`]:
+//!
+//! 1. stop TIM3 (CR1.CEN = 0, §29.4.1): no more TRGO, no new scan;
+//! 2. stop the ADC: ADSTP = 1, wait for ADSTART = 0 (§21.4.17 "Stopping an
+//!    ongoing conversion"); the conversion in progress is discarded;
+//! 3. stop and reset the DMA ring: CCR.EN = 0 after the ADC stopped
+//!    requesting, CNDTR reloaded with the ring length (§12.4.3 "abort and
+//!    restart"), the ring's read position back to 0;
+//! 4. write CFGR2 (ROVSE, OVSR, OVSS; §21.4.30);
+//! 5. clear OVR, EOC, EOS (ADC_ISR, write 1 to clear, §21.7.1);
+//! 6. restart: TIM3 period, an update event to load the prescaler (the ADC
+//!    is stopped, so its TRGO is ignored), counter 0; DMA EN = 1, ADSTART = 1
+//!    (the ADC waits for the trigger, §21.4.18); TIM3 CEN = 1: the first
+//!    scan one period later.
+
+use embassy_stm32::adc::RingBufferedAdc;
+use embassy_stm32::pac;
+use embassy_stm32::peripherals::{ADC1, TIM3};
+use embassy_stm32::timer::low_level::{RoundTo, Timer};
+use perpend_core::params::Acquisition;
+
+/// Channels per scan: four sensors, then the temperature sensor.
+pub const SCAN: usize = 5;
+/// Length of the DMA ring: two scans (half-transfer and transfer-complete
+/// interrupts each mark one scan).
+pub const RING_LEN: usize = 2 * SCAN;
+
+/// Polls of ADC_CR.ADSTART before giving up (≈ 1 ms at 170 MHz; the stop
+/// takes a few ADC clocks).
+const ADSTP_SPINS: u32 = 100_000;
+
+/// Restarts the acquisition with `acq` (the steps of the module docs).
+/// Returns `false` if the ADC did not acknowledge the stop (it is then
+/// restarted anyway; CFGR2 may have kept its old value).
+pub fn restart(
+    ring: &mut RingBufferedAdc<'_, ADC1>,
+    tim: &Timer<'_, TIM3>,
+    acq: &Acquisition,
+) -> bool {
+    // 1. No more triggers.
+    tim.stop();
+    // 2. ADC stopped, no DMA request pending.
+    let stopped = stop_adc();
+    // 3. DMA channel disabled, reprogrammed, ring position reset.
+    ring.stop();
+    let ch = pac::DMA1.ch(0);
+    for _ in 0..ADSTP_SPINS {
+        if !ch.cr().read().en() {
+            break;
+        }
+    }
+    ch.ndtr().write(|w| w.set_ndt(RING_LEN as u16));
+    ring.clear();
+    // 4. Oversampling.
+    set_oversampling(acq);
+    // 5. Stale flags.
+    pac::ADC1.isr().write(|w| {
+        w.set_ovr(true);
+        w.set_eoc(true);
+        w.set_eos(true);
+    });
+    // 6. Period, then DMA + ADC armed, then the trigger.
+    tim.set_period_us(acq.period_us, RoundTo::Slower);
+    tim.generate_update_event();
+    tim.reset();
+    ring.start();
+    tim.start();
+    stopped
+}
+
+/// Whether the ADC reports an overrun (ISR.OVR, §21.4.27): its DMA requests
+/// stop until the flag is cleared, so the chain must be restarted.
+pub fn overrun() -> bool {
+    pac::ADC1.isr().read().ovr()
+}
+
+/// ADSTP and wait for ADSTART = 0; `false` on timeout.
+fn stop_adc() -> bool {
+    let cr = pac::ADC1.cr();
+    let r = cr.read();
+    if r.adstart() && !r.addis() {
+        cr.modify(|w| w.set_adstp(pac::adc::vals::Adstp::STOP));
+    }
+    for _ in 0..ADSTP_SPINS {
+        if !cr.read().adstart() {
+            return true;
+        }
+    }
+    false
+}
+
+/// Writes the ADC1 oversampling fields of CFGR2 (ADSTART must be 0).
+fn set_oversampling(acq: &Acquisition) {
+    let ratio = acq.os_log2.clamp(1, 8) - 1; // OVSR: 0 = 2x .. 7 = 256x
+    pac::ADC1.cfgr2().modify(|w| {
+        w.set_rovse(acq.os_log2 > 0);
+        w.set_ovsr(ratio);
+        w.set_ovss(acq.os_shift.min(8));
+    });
+}
