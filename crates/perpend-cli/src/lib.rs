@@ -1,9 +1,12 @@
 //! The `perpend` binary as a library: the commands that are not analysis
-//! (the demo, the virtual board, the CAN transports), so that host tests
-//! drive the same code as the command line. The analysis commands live in
-//! `perpend-lab`.
+//! (the demo, the virtual board, the CAN buses and the CANopen master of
+//! `perpend node`), so that host tests drive the same code as the command
+//! line. The analysis commands live in `perpend-lab`.
 #![deny(missing_docs)]
 
 pub mod board;
+pub mod bus;
+pub mod canopen;
 pub mod demo;
+pub mod node;
 pub mod slcan;

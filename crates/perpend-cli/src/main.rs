@@ -2,8 +2,8 @@
 //! diagnose what the model misses, benchmark, and run a virtual board.
 
 use clap::{Parser, Subcommand};
-use perpend_cli::{board, demo};
-use perpend_lab::{bench, calibrate, diagnose, sim};
+use perpend_cli::{board, demo, node};
+use perpend_lab::{bench, calibrate, diagnose, measure, sim};
 
 /// The conventions every command's output follows.
 const CONVENTIONS: &str = "\
@@ -45,6 +45,9 @@ enum Cmd {
     /// Find what the model misses in a calibration run: name the effect, extend the model, measure the gain.
     #[command(after_help = FILES)]
     Diagnose(diagnose::Args),
+    /// Measure every row of a readings file: normal, θ1/θ2/θ, pitch/yaw, residual (plane, sphere or cylinder).
+    #[command(after_help = FILES)]
+    Measure(measure::Args),
     /// Plan the fewest datum-plane poses that calibrate a head (D-optimal), with the expected accuracy.
     Plan(perpend_lab::plan::Args),
     /// Studies: `study paper` puts the paper's simulation beside its experiment.
@@ -54,6 +57,8 @@ enum Cmd {
     /// Run a virtual board: the firmware's application on a simulated head,
     /// CANopen served as slcan over TCP.
     Board(board::Args),
+    /// A board on a CAN bus: info, status, nmt, monitor, push/pull calibration, capture poses.
+    Node(node::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -64,10 +69,12 @@ fn main() -> std::process::ExitCode {
         Cmd::Simulate(a) => sim::run(&a),
         Cmd::Calibrate(a) => calibrate::run(&a),
         Cmd::Diagnose(a) => diagnose::run(&a),
+        Cmd::Measure(a) => measure::run(&a),
         Cmd::Plan(a) => perpend_lab::plan::run(&a),
         Cmd::Study(a) => diagnose::study::run(&a),
         Cmd::Bench(a) => bench::run(&a),
         Cmd::Board(a) => board::run(&a),
+        Cmd::Node(a) => node::run(&a),
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -32,7 +32,7 @@ fn top_level_help_states_the_conventions() {
 
 #[test]
 fn commands_that_read_files_name_their_columns() {
-    for cmd in ["calibrate", "diagnose"] {
+    for cmd in ["calibrate", "diagnose", "measure"] {
         let h = help(&[cmd, "--help"]);
         for needle in [
             "sensors.csv",

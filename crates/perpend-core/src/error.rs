@@ -51,6 +51,19 @@ pub enum Error {
     Decode(&'static str),
     /// An output buffer was too small for the encoded record.
     BufferTooSmall,
+    /// The spindle axis does not meet the fitted curved surface: it passes
+    /// beside the sphere or cylinder, or runs parallel to the cylinder's
+    /// axis ([`crate::surface`]), so there is no point to take the normal at.
+    AxisMissesSurface,
+    /// The surface's radius is too small for the spread of the spots
+    /// ([`crate::surface`]): a spot lies farther from the spot pattern's
+    /// centre, across the surface, than half the radius (30° of arc), where
+    /// the nominal shape is not a height field over the micro-plane that
+    /// starts the fit.
+    SurfaceTooCurved,
+    /// The beam of sensor `.0` (0-based) misses the curved surface
+    /// ([`crate::surface::CurvedSurface::distance`]).
+    BeamMissesSurface(usize),
 }
 
 impl fmt::Display for Error {
@@ -82,6 +95,16 @@ impl fmt::Display for Error {
             Error::NoConvergence => write!(f, "solver did not converge"),
             Error::Decode(w) => write!(f, "cannot decode parameter record: {w}"),
             Error::BufferTooSmall => write!(f, "output buffer too small"),
+            Error::AxisMissesSurface => {
+                write!(f, "the spindle axis does not meet the fitted surface")
+            }
+            Error::BeamMissesSurface(i) => {
+                write!(f, "beam of sensor {} misses the surface", i + 1)
+            }
+            Error::SurfaceTooCurved => write!(
+                f,
+                "surface radius too small for the spot spread (a spot beyond half the radius)"
+            ),
         }
     }
 }

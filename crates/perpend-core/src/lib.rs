@@ -35,6 +35,8 @@
 //! * [`model`] — the beam/plane measurement model and its Jacobians.
 //! * [`ext`] — model extensions: corrections of the reading beyond the paper.
 //! * [`normal`] — spots, micro-plane normal (two methods), three-sensor mode.
+//! * [`surface`] — the normal at the spindle-axis point of a sphere or
+//!   cylinder of known radius (the micro-plane's bias on curved skins).
 //! * [`angles`] — deviation and attitude angles, Euler solutions.
 //! * [`calib`] — calibration: the paper's EKF and batch least squares.
 //! * [`params`] — the stored-parameter record (versioned, checksummed).
@@ -50,6 +52,7 @@ pub mod head;
 pub mod model;
 pub mod normal;
 pub mod params;
+pub mod surface;
 
 pub use error::Error;
 

@@ -73,7 +73,7 @@ pub struct Measurement<T: Real> {
 
 /// Relative tolerance for collinearity tests: `sqrt(ε)` of the float type
 /// (3.5·10⁻⁴ for `f32`, 1.5·10⁻⁸ for `f64`).
-fn degenerate_tol<T: Real>() -> T {
+pub(crate) fn degenerate_tol<T: Real>() -> T {
     if T::default_epsilon() > T::lit(1e-10) {
         T::lit(3.452_669_8e-4)
     } else {
@@ -278,6 +278,9 @@ pub fn fit<T: Real, const N: usize>(
     })
 }
 
+/// The spot of each sensor (`None` where its reading is missing).
+pub type Spots<T, const N: usize> = [Option<Vector3<T>>; N];
+
 /// Passes of the incidence correction after the first plane (each refits
 /// the plane with γ from the previous one; a fixed point is reached in 2-3).
 const INCIDENCE_PASSES: usize = 4;
@@ -296,16 +299,31 @@ pub fn plane<T: Real, const N: usize>(
     ctx: &Context<T>,
     method: Method,
 ) -> Result<PlaneFit<T>> {
+    plane_and_spots(head, readings, ctx, method).map(|(p, _)| p)
+}
+
+/// [`plane`], also returning the spots the final plane was fitted to
+/// (`None` where the reading is missing): the start of the curved-surface
+/// fit of [`crate::surface`].
+///
+/// # Errors
+/// Those of [`spots`] and [`fit`].
+pub fn plane_and_spots<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    method: Method,
+) -> Result<(PlaneFit<T>, Spots<T, N>)> {
     let ones = [T::one(); N];
-    let (s, _) = spots(head, readings, ctx, &ones)?;
+    let (mut s, _) = spots(head, readings, ctx, &ones)?;
     let mut current = fit(head, &s, method)?;
     if !head.sensors.iter().any(|s| s.ext.needs_incidence()) {
-        return Ok(current);
+        return Ok((current, s));
     }
     let tol = degenerate_tol::<T>();
     for _ in 0..INCIDENCE_PASSES {
         let cg: [T; N] = core::array::from_fn(|i| current.normal.dot(&head.sensors[i].dir).abs());
-        let (s, _) = spots(head, readings, ctx, &cg)?;
+        (s, _) = spots(head, readings, ctx, &cg)?;
         let next = fit(head, &s, method)?;
         let moved = (next.normal - current.normal).norm_squared();
         current = next;
@@ -313,7 +331,7 @@ pub fn plane<T: Real, const N: usize>(
             break;
         }
     }
-    Ok(current)
+    Ok((current, s))
 }
 
 /// The whole per-sample computation: plane, deviation (Tian eq. 1-5) and

@@ -17,6 +17,9 @@
 //! **speed** — median wall time of calibrating all four sensors from 100
 //! poses, LM and EKF, over repeated runs.
 //!
+//! **curvature** — micro-plane against the curved model on spheres and
+//! cylinders, and the alignment loop: [`crate::curvature`].
+//!
 //! **ident** — how the identifiability and the calibrated normal error
 //! depend on the calibration pose spread (tilt range about x and y,
 //! standoff range), for choosing the thresholds.
@@ -64,6 +67,9 @@ pub enum Bench {
     Diagnose(crate::diagnose::bench::Args),
     /// Planned (D-optimal) against random calibration poses, 8-100 poses.
     Plan(crate::plan::BenchArgs),
+    /// Curved skins (issue 14): micro-plane against the sphere/cylinder
+    /// model and the noise floor, and the alignment loop.
+    Curvature(crate::curvature::Args),
 }
 
 /// Arguments of `perpend bench accuracy`.
@@ -668,6 +674,7 @@ pub fn run(a: &Args) -> Result<()> {
         Bench::Ident(x) => run_ident(x),
         Bench::Diagnose(x) => crate::diagnose::bench::run(x),
         Bench::Plan(x) => crate::plan::run_bench(x),
+        Bench::Curvature(x) => crate::curvature::run(x),
     }
 }
 

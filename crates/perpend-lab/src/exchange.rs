@@ -17,6 +17,10 @@
 //! order (they are sorted by pose); a pose with fewer than three valid
 //! readings is kept (it calibrates the sensors that read; wherever a normal
 //! is computed from it, it is skipped).
+//!
+//! A readings file ([`parse_readings`], what `perpend measure` reads) has
+//! the columns of `poses.csv` without the plane: `pose`, `d1_mm … dN_mm`,
+//! optionally `t_s` and `temp_c`; plane columns, when present, are ignored.
 
 use std::collections::HashMap;
 use std::fmt;
@@ -558,22 +562,15 @@ fn optional_finite(
     }
 }
 
-/// Reads `poses.csv` from `reader`. `expect_sensors`: the number of sensors
-/// of the head (from `sensors.csv`); the file must then have exactly the
-/// columns `d1_mm … dN_mm`. Without it the columns found decide.
-///
-/// # Errors
-/// [`ExchangeError`] for any violation of the format.
-pub fn parse_poses<R: Read>(
-    reader: R,
+/// The columns `d1_mm … dN_mm` of a header, in sensor order. With
+/// `expect_sensors` the file must have exactly N of them; without, the
+/// columns found decide.
+fn reading_columns(
     file: &str,
+    hline: u64,
+    header: &csv::StringRecord,
     expect_sensors: Option<usize>,
-) -> Result<PoseTable, ExchangeError> {
-    let text = Text::read(reader, file)?;
-    let mut rdr = csv_reader(&text.bytes);
-    let (header, hline) = read_header(&mut rdr, &text, file)?;
-    require_columns(file, hline, &header, &["pose", "a", "b", "c", "d_mm"])?;
-    // Reading columns d<i>_mm.
+) -> Result<Vec<usize>, ExchangeError> {
     let mut dcols: HashMap<usize, usize> = HashMap::new();
     for (idx, h) in header.iter().enumerate() {
         if let Some(num) = h.strip_prefix('d').and_then(|s| s.strip_suffix("_mm")) {
@@ -612,7 +609,26 @@ pub fn parse_poses<R: Read>(
             format!("column d{found}_mm: the head has only {n} sensors"),
         ));
     }
-    let cols: Vec<usize> = (1..=n).map(|i| dcols[&i]).collect();
+    Ok((1..=n).map(|i| dcols[&i]).collect())
+}
+
+/// Reads `poses.csv` from `reader`. `expect_sensors`: the number of sensors
+/// of the head (from `sensors.csv`); the file must then have exactly the
+/// columns `d1_mm … dN_mm`. Without it the columns found decide.
+///
+/// # Errors
+/// [`ExchangeError`] for any violation of the format.
+pub fn parse_poses<R: Read>(
+    reader: R,
+    file: &str,
+    expect_sensors: Option<usize>,
+) -> Result<PoseTable, ExchangeError> {
+    let text = Text::read(reader, file)?;
+    let mut rdr = csv_reader(&text.bytes);
+    let (header, hline) = read_header(&mut rdr, &text, file)?;
+    require_columns(file, hline, &header, &["pose", "a", "b", "c", "d_mm"])?;
+    let cols = reading_columns(file, hline, &header, expect_sensors)?;
+    let n = cols.len();
     // Optional per-reading standard deviations s<i>_mm: all or none.
     let scols: Vec<Option<usize>> = (1..=n)
         .map(|i| header.iter().position(|h| h == format!("s{i}_mm")))
@@ -686,36 +702,45 @@ pub fn parse_poses<R: Read>(
             },
         });
     }
-    order_rows(file, &mut rows)?;
-    if rows.is_empty() {
+    order_rows(file, &mut rows, |r| (r.pose, r.line))?;
+    check_rows(file, rows.iter().map(|r| r.readings.as_slice()))?;
+    Ok(PoseTable { n_sensors: n, rows })
+}
+
+/// Refuses a table without rows or without a pose of three valid readings.
+fn check_rows<'a>(
+    file: &str,
+    mut readings: impl ExactSizeIterator<Item = &'a [Option<f64>]>,
+) -> Result<(), ExchangeError> {
+    if readings.len() == 0 {
         return Err(err(file, None, "no pose rows"));
     }
-    if !rows
-        .iter()
-        .any(|r| r.readings.iter().filter(|x| x.is_some()).count() >= 3)
-    {
+    if !readings.any(|r| r.iter().filter(|x| x.is_some()).count() >= 3) {
         return Err(err(
             file,
             None,
             "no pose has three valid readings: a normal needs three",
         ));
     }
-    Ok(PoseTable { n_sensors: n, rows })
+    Ok(())
 }
 
 /// Sorts the rows by pose number (rows may come in any order) and refuses
-/// a pose number that appears twice, naming both lines.
-fn order_rows(file: &str, rows: &mut [PoseRow]) -> Result<(), ExchangeError> {
-    rows.sort_by_key(|r| (r.pose, r.line));
+/// a pose number that appears twice, naming both lines; `key` gives a
+/// row's `(pose, line)`.
+fn order_rows<R>(
+    file: &str,
+    rows: &mut [R],
+    key: impl Fn(&R) -> (i64, u64),
+) -> Result<(), ExchangeError> {
+    rows.sort_by_key(&key);
     for w in rows.windows(2) {
-        if w[0].pose == w[1].pose {
+        let ((p0, l0), (p1, l1)) = (key(&w[0]), key(&w[1]));
+        if p0 == p1 {
             return Err(err(
                 file,
-                Some(w[1].line),
-                format!(
-                    "pose {} appears twice (also on line {}): pose numbers are unique",
-                    w[1].pose, w[0].line
-                ),
+                Some(l1),
+                format!("pose {p1} appears twice (also on line {l0}): pose numbers are unique"),
             ));
         }
     }
@@ -730,6 +755,116 @@ pub fn read_poses(path: &Path, expect_sensors: Option<usize>) -> Result<PoseTabl
     let name = path.display().to_string();
     let f = std::fs::File::open(path).map_err(|e| err(&name, None, format!("cannot open: {e}")))?;
     parse_poses(f, &name, expect_sensors)
+}
+
+/// One row of a readings file (what `perpend measure` reads): a row of
+/// `poses.csv` whose plane columns are absent or ignored.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReadingRow {
+    /// Line in the file.
+    pub line: u64,
+    /// Pose number.
+    pub pose: i64,
+    /// Readings [mm] of sensors 1..N; `None` = missing.
+    pub readings: Vec<Option<f64>>,
+    /// Acquisition time [s], if given.
+    pub t_s: Option<f64>,
+    /// Head temperature [°C], if given.
+    pub temp_c: Option<f64>,
+}
+
+impl ReadingRow {
+    /// The context of the extension corrections (temperature, time).
+    pub fn context(&self) -> Context<f64> {
+        Context {
+            temp_c: self.temp_c,
+            t_s: self.t_s,
+        }
+    }
+}
+
+/// The rows of a readings file, ordered by pose number.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ReadingTable {
+    /// Number of reading columns `d1_mm … dN_mm`.
+    pub n_sensors: usize,
+    /// The rows, ordered by pose number (unique).
+    pub rows: Vec<ReadingRow>,
+}
+
+#[derive(Deserialize)]
+struct ReadingRecord {
+    pose: i64,
+    #[serde(default)]
+    t_s: Option<f64>,
+    #[serde(default)]
+    temp_c: Option<f64>,
+}
+
+/// Reads a readings file: the columns of `poses.csv` without the plane.
+/// `pose` and `d1_mm … dN_mm` are required, `t_s` and `temp_c` used when
+/// present; `a, b, c, d_mm` and every other column are ignored (a
+/// calibration run can be measured as it is). The rules of
+/// [`parse_poses`] otherwise hold: comments, any column order, empty or
+/// `NaN` = missing, unique pose numbers, at least one pose with three
+/// valid readings.
+///
+/// # Errors
+/// [`ExchangeError`] for any violation of the format.
+pub fn parse_readings<R: Read>(
+    reader: R,
+    file: &str,
+    expect_sensors: Option<usize>,
+) -> Result<ReadingTable, ExchangeError> {
+    let text = Text::read(reader, file)?;
+    let mut rdr = csv_reader(&text.bytes);
+    let (header, hline) = read_header(&mut rdr, &text, file)?;
+    require_columns(file, hline, &header, &["pose"])?;
+    let cols = reading_columns(file, hline, &header, expect_sensors)?;
+    let mut rows: Vec<ReadingRow> = Vec::new();
+    let mut rec = csv::StringRecord::new();
+    loop {
+        match rdr.read_record(&mut rec) {
+            Ok(true) => {}
+            Ok(false) => break,
+            Err(e) => return Err(csv_error(file, &text, &e)),
+        }
+        let line = text.line_of(&rec);
+        let r: ReadingRecord = rec
+            .deserialize(Some(&header))
+            .map_err(|e| de_error(file, &text, line, &header, &rec, &e))?;
+        let mut readings = Vec::with_capacity(cols.len());
+        for (i, &c) in cols.iter().enumerate() {
+            let name = format!("d{}_mm", i + 1);
+            readings.push(parse_reading(file, line, &name, rec.get(c).unwrap_or(""))?);
+        }
+        rows.push(ReadingRow {
+            line,
+            pose: r.pose,
+            readings,
+            t_s: optional_finite(file, line, "t_s", r.t_s)?,
+            temp_c: optional_finite(file, line, "temp_c", r.temp_c)?,
+        });
+    }
+    order_rows(file, &mut rows, |r| (r.pose, r.line))?;
+    check_rows(file, rows.iter().map(|r| r.readings.as_slice()))?;
+    Ok(ReadingTable {
+        n_sensors: cols.len(),
+        rows,
+    })
+}
+
+/// Reads a readings file (see [`parse_readings`]).
+///
+/// # Errors
+/// [`ExchangeError`] for an unreadable file or any violation of the format.
+pub fn read_readings(
+    path: &Path,
+    expect_sensors: Option<usize>,
+) -> Result<ReadingTable, ExchangeError> {
+    let name = path.display().to_string();
+    let f = std::fs::File::open(path).map_err(|e| err(&name, None, format!("cannot open: {e}")))?;
+    parse_readings(f, &name, expect_sensors)
 }
 
 fn num(x: f64) -> String {

@@ -19,6 +19,14 @@
 //!                  "identifiability": { "status": "ok", ... } } ] }
 //! ```
 //!
+//! Optionally, per sensor, the analog transfer function the board holds in
+//! 0x2201..0x2204 (`perpend node pull` writes it, `perpend node push`
+//! writes it back; `calibrate` does not produce it):
+//! `"transfer": { "kind": "4-20mA", "scale": 100.0, "mm_at_low": 30.0,
+//! "mm_at_high": 70.0 }` (kind `4-20mA` on a shunt of `scale` Ω, or
+//! `0-10V` through a divider of ratio `scale`; the distances at 4 mA / 0 V
+//! and at 20 mA / 10 V).
+//!
 //! The reader ([`ParamFile::read`]) rejects anything else with a message
 //! naming the file and the problem (serde's line/column for syntax and
 //! type errors; the sensor and field for values out of range). Unknown
@@ -130,6 +138,25 @@ impl From<&perpend_core::calib::Diagnostic<f64>> for Identifiability {
     }
 }
 
+/// Transfer-function kind: 4-20 mA on a shunt.
+pub const TRANSFER_CURRENT: &str = "4-20mA";
+/// Transfer-function kind: 0-10 V through a divider.
+pub const TRANSFER_VOLTAGE: &str = "0-10V";
+
+/// The analog transfer function of one channel (the board's 0x2201..).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransferParams {
+    /// [`TRANSFER_CURRENT`] or [`TRANSFER_VOLTAGE`].
+    pub kind: String,
+    /// Shunt resistance [Ω] (4-20 mA) or divider ratio (0-10 V).
+    pub scale: f64,
+    /// Distance at 4 mA / 0 V [mm].
+    pub mm_at_low: f64,
+    /// Distance at 20 mA / 10 V [mm].
+    pub mm_at_high: f64,
+}
+
 /// Calibrated parameters of one sensor.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -161,6 +188,10 @@ pub struct SensorParams {
     /// Identifiability of the pose set (least squares only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identifiability: Option<Identifiability>,
+    /// The channel's analog transfer function, when known (read from a
+    /// board by `perpend node pull`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub transfer: Option<TransferParams>,
 }
 
 impl SensorParams {
@@ -192,6 +223,7 @@ impl SensorParams {
             residual_rms_mm: None,
             readings: 0,
             identifiability: None,
+            transfer: None,
         }
     }
 }
@@ -303,6 +335,16 @@ impl ParamFile {
                 {
                     bail!("sensor {id}: sigma must be non-negative finite numbers");
                 }
+            }
+            if let Some(t) = &s.transfer {
+                if t.kind != TRANSFER_CURRENT && t.kind != TRANSFER_VOLTAGE {
+                    bail!(
+                        "sensor {id}: transfer kind '{}' is neither '{TRANSFER_CURRENT}' nor \
+                         '{TRANSFER_VOLTAGE}'",
+                        t.kind
+                    );
+                }
+                finite(&[t.scale, t.mm_at_low, t.mm_at_high], "transfer")?;
             }
             if let Some(r) = s.residual_rms_mm {
                 if !(r.is_finite() && r >= 0.0) {

@@ -24,6 +24,10 @@
 //!    (step 4), the sensors' measuring range and random dropouts.
 //!    Optional time stamps and a head-temperature profile fill `t_s` /
 //!    `temp_c`.
+//! 5. **Curved datum surfaces** (issue 14): readings of a sphere or
+//!    cylinder ([`perpend_core::surface::CurvedSurface`], beam-surface
+//!    intersection) with the same noise, range and dropouts
+//!    ([`curved_readings`]); a Tian-style head ([`tian_style_head`]).
 //!
 //! Everything is drawn from one seeded [`StdRng`], so a seed reproduces a
 //! run exactly.
@@ -41,6 +45,7 @@ use perpend_core::ext::{Context, Extension};
 use perpend_core::geometry::{tangent_basis, Plane};
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
+use perpend_core::surface::CurvedSurface;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
@@ -192,6 +197,47 @@ pub fn random_head(rng: &mut StdRng, zero_err_mm: f64, dir_err_rad: f64) -> Resu
         truth,
         sigma_mm: Some(0.01),
         standoff_mm: 35.0,
+    })
+}
+
+/// Standoff [mm] of the Tian-style head ([`tian_style_head`]): where the
+/// surface crosses the spindle axis, 60 mm from the zero points (issue 14).
+pub const TIAN_STANDOFF_MM: f64 = 60.0;
+
+/// A Tian-style head (Tian Fig. 3-4 with the proportions of issue 14):
+/// four sensors on a 45 mm circle in z = 0, beams 25° off the axis towards
+/// it, looking along +z, numbered counter-clockwise from +x, standoff
+/// [`TIAN_STANDOFF_MM`] (the spots lie on a 17 mm circle there); the true
+/// head has zero-point errors uniform in ±`zero_err_mm` per axis and beam
+/// tilts uniform in ±`dir_err_rad` about each tangent axis.
+///
+/// # Errors
+/// None in practice.
+pub fn tian_style_head(rng: &mut StdRng, zero_err_mm: f64, dir_err_rad: f64) -> Result<SimHead> {
+    let h = perpend_core::head::Head4::cone(45.0, 25f64.to_radians(), 0.0, 0.0)
+        .map_err(|e| anyhow::anyhow!("cone head: {e}"))?;
+    let nominal = h.sensors.to_vec();
+    let mut truth = Vec::new();
+    for s in &nominal {
+        let mut u = || rng.gen_range(-1.0..=1.0);
+        let d = SVector::<f64, 5>::from([
+            zero_err_mm * u(),
+            zero_err_mm * u(),
+            zero_err_mm * u(),
+            dir_err_rad * u(),
+            dir_err_rad * u(),
+        ]);
+        truth.push(
+            s.retract(&d)
+                .map_err(|e| anyhow::anyhow!("Tian-style head: {e}"))?,
+        );
+    }
+    Ok(SimHead {
+        name: "tian".into(),
+        nominal,
+        truth,
+        sigma_mm: Some(0.01),
+        standoff_mm: TIAN_STANDOFF_MM,
     })
 }
 
@@ -540,6 +586,13 @@ pub fn readings(
     for e in effects {
         e.apply(&truth, &mut r, rng);
     }
+    perturb(cfg, &mut r, rng);
+    r
+}
+
+/// Reading noise ζ, measuring range and dropouts of `cfg` applied to
+/// distances (`None` stays missing).
+fn perturb(cfg: &SimConfig, r: &mut [Option<f64>], rng: &mut StdRng) {
     for x in r.iter_mut() {
         let noise = cfg.zeta_mm * gauss(rng);
         let drop = cfg.dropout > 0.0 && rng.gen_bool(cfg.dropout.clamp(0.0, 1.0));
@@ -552,6 +605,29 @@ pub fn readings(
             _ => None,
         };
     }
+}
+
+/// True distances of `head` on a curved datum surface (beam-surface
+/// intersection, [`CurvedSurface::distance`]; `None` where the beam misses).
+pub fn curved_distances(head: &[Sensor<f64>], surface: &CurvedSurface<f64>) -> Vec<Option<f64>> {
+    head.iter()
+        .enumerate()
+        .map(|(i, s)| surface.distance(s, i).ok())
+        .collect()
+}
+
+/// Noisy readings of a curved datum surface (sphere or cylinder, issue 14)
+/// by the true head: the geometric distances, then noise ζ, measuring
+/// range and dropouts as [`readings`] (no [`Effect`]s: they are written
+/// for planes).
+pub fn curved_readings(
+    head: &SimHead,
+    cfg: &SimConfig,
+    surface: &CurvedSurface<f64>,
+    rng: &mut StdRng,
+) -> Vec<Option<f64>> {
+    let mut r = curved_distances(&head.truth, surface);
+    perturb(cfg, &mut r, rng);
     r
 }
 
@@ -801,4 +877,64 @@ pub fn run(a: &Args) -> Result<()> {
         head.name
     );
     Ok(())
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use perpend_core::surface::Shape;
+
+    #[test]
+    fn curved_readings_put_the_spots_on_the_surface() {
+        let mut rng = StdRng::seed_from_u64(4);
+        let head = tian_style_head(&mut rng, 1.0, 0.02).unwrap();
+        let n = Vector3::new(0.1, -0.05, -1.0);
+        let p = Vector3::new(0.0, 0.0, TIAN_STANDOFF_MM);
+        let cfg = SimConfig {
+            zeta_mm: 0.0,
+            tracker: None,
+            ..SimConfig::paper()
+        };
+        for shape in [
+            Shape::Sphere { radius: 300.0 },
+            Shape::Sphere { radius: -300.0 },
+            Shape::Cylinder {
+                radius: 400.0,
+                axis: Vector3::new(1.0, 1.0, 0.0),
+            },
+            Shape::Cylinder {
+                radius: -400.0,
+                axis: Vector3::new(0.0, 1.0, 0.0),
+            },
+        ] {
+            let s = CurvedSurface::through(p, n, &shape).unwrap();
+            let r = curved_readings(&head, &cfg, &s, &mut rng);
+            for (d, sensor) in r.iter().zip(&head.truth) {
+                let q = sensor.spot(d.unwrap());
+                // on the surface: its distance from the centre (or axis) is |R|
+                let mut v = q - s.centre;
+                if let Some(a) = s.axis {
+                    v -= a * a.dot(&v);
+                }
+                assert!((v.norm() - s.radius.abs()).abs() < 1e-9, "{shape:?}");
+                // the facing side: the normal there opposes the beam
+                assert!(s.normal_at(&q).unwrap().dot(&sensor.dir) < 0.0);
+            }
+        }
+        // noise ζ is added as for planes
+        let noisy = SimConfig {
+            zeta_mm: 0.01,
+            ..cfg
+        };
+        let s = CurvedSurface::through(p, n, &Shape::Sphere { radius: 500.0 }).unwrap();
+        let exact = curved_distances(&head.truth, &s);
+        let r = curved_readings(&head, &noisy, &s, &mut rng);
+        let dev: f64 = r
+            .iter()
+            .zip(&exact)
+            .map(|(a, b)| (a.unwrap() - b.unwrap()).abs())
+            .sum();
+        assert!(dev > 0.0 && dev < 0.2, "{dev}");
+    }
 }

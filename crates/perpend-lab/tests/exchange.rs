@@ -249,3 +249,52 @@ pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm,d4_mm,s1_mm,s2_mm,s3_mm,s4_mm,n_samples,plane_
         .to_string();
     assert!(e.contains("missing column s2_mm"), "{e}");
 }
+
+#[test]
+fn readings_without_a_plane_and_with_an_ignored_one() {
+    use perpend_lab::exchange::parse_readings;
+    // No plane columns, context columns, rows out of order.
+    let text = "# readings of a curved skin\nd2_mm,pose,d1_mm,d3_mm,temp_c,t_s\n40.5,2,41,42,21.5,0.1\n# c\n40,1,,41.5,,\n";
+    let t = parse_readings(text.as_bytes(), "r.csv", Some(3)).unwrap();
+    assert_eq!(t.n_sensors, 3);
+    assert_eq!(t.rows[0].pose, 1);
+    assert_eq!(t.rows[0].line, 5);
+    assert_eq!(t.rows[0].readings, vec![None, Some(40.0), Some(41.5)]);
+    assert_eq!(t.rows[1].context().temp_c, Some(21.5));
+    assert_eq!(t.rows[1].context().t_s, Some(0.1));
+    // A calibration file: its plane columns are not even parsed.
+    let text = "pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm\n1,junk,0,1,-40,40,41,42\n";
+    let t = parse_readings(text.as_bytes(), "p.csv", None).unwrap();
+    assert_eq!(t.rows[0].readings, vec![Some(40.0), Some(41.0), Some(42.0)]);
+}
+
+#[test]
+fn readings_errors_name_file_line_and_problem() {
+    use perpend_lab::exchange::parse_readings;
+    let e = |text: &str| {
+        parse_readings(text.as_bytes(), "r.csv", Some(3))
+            .unwrap_err()
+            .to_string()
+    };
+    assert_eq!(
+        e("d1_mm,d2_mm,d3_mm\n1,2,3\n"),
+        "r.csv, line 1: missing column pose"
+    );
+    assert_eq!(
+        e("pose,d1_mm,d2_mm\n1,2,3\n"),
+        "r.csv, line 1: missing column d3_mm"
+    );
+    assert_eq!(
+        e("pose,d1_mm,d2_mm,d3_mm\n1,40,41,42\n# c\n1,40,41,42\n"),
+        "r.csv, line 4: pose 1 appears twice (also on line 2): pose numbers are unique"
+    );
+    assert_eq!(
+        e("pose,d1_mm,d2_mm,d3_mm\n1,40,-1,42\n"),
+        "r.csv, line 2: column d2_mm: negative distance -1 (readings are distances along the beam)"
+    );
+    assert_eq!(
+        e("pose,d1_mm,d2_mm,d3_mm\n1,40,,42\n"),
+        "r.csv: no pose has three valid readings: a normal needs three"
+    );
+    assert_eq!(e("pose,d1_mm,d2_mm,d3_mm\n"), "r.csv: no pose rows");
+}

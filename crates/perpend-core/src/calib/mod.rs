@@ -26,7 +26,7 @@
 
 pub mod ekf;
 pub mod ident;
-mod linalg;
+pub(crate) mod linalg;
 pub mod lsq;
 pub mod regress;
 #[cfg(test)]

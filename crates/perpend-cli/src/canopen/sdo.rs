@@ -1,0 +1,322 @@
+//! SDO client (CiA 301 §7.2.4): expedited and segmented upload and
+//! download on the default channel (`0x600+id` → `0x580+id`), toggle and
+//! multiplexer checks, the client's abort (0x05040000) sent when the server
+//! does not answer in time, and typed helpers for the dictionary's types.
+//!
+//! Limits: no block transfer (the board refuses it); an upload larger than
+//! [`MAX_UPLOAD`] bytes is aborted.
+
+use std::time::Duration;
+
+use perpend_can::Frame;
+
+use super::{Client, ClientError};
+
+/// Largest upload accepted \[bytes\].
+pub const MAX_UPLOAD: usize = 4096;
+
+/// Abort code the client sends: SDO protocol timed out.
+const ABORT_TIMEOUT: u32 = 0x0504_0000;
+/// Abort code the client sends: toggle bit not alternated.
+const ABORT_TOGGLE: u32 = 0x0503_0000;
+/// Abort code the client sends: command specifier not valid.
+const ABORT_COMMAND: u32 = 0x0504_0001;
+
+/// One transfer's address and direction, for messages.
+#[derive(Debug, Clone, Copy)]
+struct Ctx {
+    node: u8,
+    index: u16,
+    sub: u8,
+    write: bool,
+}
+
+impl Ctx {
+    fn what(&self) -> String {
+        if self.write {
+            format!("SDO write of {:#06x} sub {}", self.index, self.sub)
+        } else {
+            format!("SDO read of {:#06x} sub {}", self.index, self.sub)
+        }
+    }
+
+    fn mux(&self) -> [u8; 3] {
+        let i = self.index.to_le_bytes();
+        [i[0], i[1], self.sub]
+    }
+
+    fn protocol(&self, what: &str) -> ClientError {
+        ClientError::Protocol {
+            node: self.node,
+            what: format!("{}: {what}", self.what()),
+        }
+    }
+}
+
+impl Client {
+    /// Sends an abort for `ctx` (best effort: the transfer already failed).
+    fn send_abort(&mut self, ctx: &Ctx, code: u32) {
+        let m = ctx.mux();
+        let c = code.to_le_bytes();
+        let f = Frame::new(
+            0x600 + ctx.node as u16,
+            &[0x80, m[0], m[1], m[2], c[0], c[1], c[2], c[3]],
+        );
+        let _ = self.send(&f);
+    }
+
+    /// Sends one request and waits for the server's answer.
+    fn exchange(
+        &mut self,
+        ctx: &Ctx,
+        req: [u8; 8],
+        timeout: Duration,
+    ) -> Result<[u8; 8], ClientError> {
+        self.send(&Frame::new(0x600 + ctx.node as u16, &req))?;
+        let id = 0x580 + ctx.node as u16;
+        match self.wait_for(timeout, |f| f.id == id && f.len == 8 && !f.rtr)? {
+            Some(f) if f.data[0] == 0x80 => Err(ClientError::Abort {
+                node: ctx.node,
+                index: ctx.index,
+                sub: ctx.sub,
+                code: u32::from_le_bytes([f.data[4], f.data[5], f.data[6], f.data[7]]),
+                write: ctx.write,
+            }),
+            Some(f) => Ok(f.data),
+            None => {
+                self.send_abort(ctx, ABORT_TIMEOUT);
+                Err(self.timeout_error(ctx.node, &ctx.what(), timeout))
+            }
+        }
+    }
+
+    /// Checks an initiate answer: command `expect` (under `mask`) and the
+    /// multiplexer.
+    fn check_initiate(
+        &mut self,
+        ctx: &Ctx,
+        resp: &[u8; 8],
+        mask: u8,
+        expect: u8,
+    ) -> Result<(), ClientError> {
+        if resp[0] & mask != expect {
+            self.send_abort(ctx, ABORT_COMMAND);
+            return Err(ctx.protocol(&format!("unexpected answer command {:#04x}", resp[0])));
+        }
+        if resp[1..4] != ctx.mux() {
+            return Err(ctx.protocol(&format!(
+                "the answer is for {:#06x} sub {}",
+                u16::from_le_bytes([resp[1], resp[2]]),
+                resp[3]
+            )));
+        }
+        Ok(())
+    }
+
+    /// Reads `(index, sub)` of `node`: the value's bytes.
+    ///
+    /// # Errors
+    /// [`ClientError`]: timeout, abort (with its sentence), protocol error.
+    pub fn upload(&mut self, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, ClientError> {
+        let ctx = Ctx {
+            node,
+            index,
+            sub,
+            write: false,
+        };
+        let m = ctx.mux();
+        let t = self.timeout;
+        let resp = self.exchange(&ctx, [0x40, m[0], m[1], m[2], 0, 0, 0, 0], t)?;
+        self.check_initiate(&ctx, &resp, 0xE0, 0x40)?;
+        if resp[0] & 0x02 != 0 {
+            let n = if resp[0] & 0x01 != 0 {
+                4 - ((resp[0] >> 2) & 3) as usize
+            } else {
+                4
+            };
+            return Ok(resp[4..4 + n].to_vec());
+        }
+        let size = (resp[0] & 0x01 != 0)
+            .then(|| u32::from_le_bytes([resp[4], resp[5], resp[6], resp[7]]) as usize);
+        if size.is_some_and(|s| s > MAX_UPLOAD) {
+            self.send_abort(&ctx, ABORT_COMMAND);
+            return Err(ctx.protocol(&format!(
+                "the value is {} bytes, more than the {MAX_UPLOAD} accepted",
+                size.unwrap_or(0)
+            )));
+        }
+        let data = self.upload_segments(&ctx)?;
+        match size {
+            Some(s) if s != data.len() => Err(ctx.protocol(&format!(
+                "the server announced {s} bytes and sent {}",
+                data.len()
+            ))),
+            _ => Ok(data),
+        }
+    }
+
+    /// The segments of a segmented upload.
+    fn upload_segments(&mut self, ctx: &Ctx) -> Result<Vec<u8>, ClientError> {
+        let mut data = Vec::new();
+        let mut toggle = 0u8;
+        loop {
+            let t = self.timeout;
+            let resp = self.exchange(ctx, [0x60 | toggle, 0, 0, 0, 0, 0, 0, 0], t)?;
+            if resp[0] & 0xE0 != 0x00 {
+                self.send_abort(ctx, ABORT_COMMAND);
+                return Err(ctx.protocol(&format!("unexpected segment command {:#04x}", resp[0])));
+            }
+            if resp[0] & 0x10 != toggle {
+                self.send_abort(ctx, ABORT_TOGGLE);
+                return Err(ctx.protocol("the toggle bit of a segment did not alternate"));
+            }
+            let n = 7 - ((resp[0] >> 1) & 7) as usize;
+            data.extend_from_slice(&resp[1..1 + n]);
+            if resp[0] & 0x01 != 0 {
+                return Ok(data);
+            }
+            if data.len() > MAX_UPLOAD {
+                self.send_abort(ctx, ABORT_COMMAND);
+                return Err(ctx.protocol(&format!("more than {MAX_UPLOAD} bytes")));
+            }
+            toggle ^= 0x10;
+        }
+    }
+
+    /// Writes `data` to `(index, sub)` of `node` (expedited up to 4 bytes,
+    /// else segmented), waiting [`Client::timeout`] for each answer.
+    ///
+    /// # Errors
+    /// [`ClientError`]: timeout, abort (with its sentence), protocol error.
+    pub fn download(
+        &mut self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        data: &[u8],
+    ) -> Result<(), ClientError> {
+        let t = self.timeout;
+        self.download_timeout(node, index, sub, data, t)
+    }
+
+    /// [`Client::download`] with its own answer timeout (a store waits for
+    /// the flash).
+    ///
+    /// # Errors
+    /// As [`Client::download`].
+    pub fn download_timeout(
+        &mut self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        data: &[u8],
+        timeout: Duration,
+    ) -> Result<(), ClientError> {
+        let ctx = Ctx {
+            node,
+            index,
+            sub,
+            write: true,
+        };
+        let m = ctx.mux();
+        if !data.is_empty() && data.len() <= 4 {
+            let mut req = [
+                0x23 | (((4 - data.len()) as u8) << 2),
+                m[0],
+                m[1],
+                m[2],
+                0,
+                0,
+                0,
+                0,
+            ];
+            req[4..4 + data.len()].copy_from_slice(data);
+            let resp = self.exchange(&ctx, req, timeout)?;
+            return self.check_initiate(&ctx, &resp, 0xFF, 0x60);
+        }
+        let l = (data.len() as u32).to_le_bytes();
+        let req = [0x21, m[0], m[1], m[2], l[0], l[1], l[2], l[3]];
+        let resp = self.exchange(&ctx, req, self.timeout)?;
+        self.check_initiate(&ctx, &resp, 0xFF, 0x60)?;
+        let mut toggle = 0u8;
+        let chunks: Vec<&[u8]> = data.chunks(7).collect();
+        for (k, chunk) in chunks.iter().enumerate() {
+            let last = u8::from(k + 1 == chunks.len());
+            let mut req = [
+                toggle | (((7 - chunk.len()) as u8) << 1) | last,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            ];
+            req[1..1 + chunk.len()].copy_from_slice(chunk);
+            let wait = if last == 1 { timeout } else { self.timeout };
+            let resp = self.exchange(&ctx, req, wait)?;
+            if resp[0] != 0x20 | toggle {
+                self.send_abort(&ctx, ABORT_TOGGLE);
+                return Err(ctx.protocol(&format!("unexpected segment answer {:#04x}", resp[0])));
+            }
+            toggle ^= 0x10;
+        }
+        Ok(())
+    }
+
+    /// Reads an UNSIGNED8/16/32 (any length up to 4 bytes, little endian).
+    ///
+    /// # Errors
+    /// As [`Client::upload`], or a value longer than 4 bytes.
+    pub fn read_u32(&mut self, node: u8, index: u16, sub: u8) -> Result<u32, ClientError> {
+        let v = self.upload(node, index, sub)?;
+        if v.is_empty() || v.len() > 4 {
+            return Err(ClientError::Protocol {
+                node,
+                what: format!(
+                    "{index:#06x} sub {sub} sent {} bytes for an integer",
+                    v.len()
+                ),
+            });
+        }
+        let mut b = [0u8; 4];
+        b[..v.len()].copy_from_slice(&v);
+        Ok(u32::from_le_bytes(b))
+    }
+
+    /// Reads a REAL32.
+    ///
+    /// # Errors
+    /// As [`Client::upload`], or a value that is not 4 bytes.
+    pub fn read_f32(&mut self, node: u8, index: u16, sub: u8) -> Result<f32, ClientError> {
+        let v = self.upload(node, index, sub)?;
+        let b: [u8; 4] = v.as_slice().try_into().map_err(|_| ClientError::Protocol {
+            node,
+            what: format!("{index:#06x} sub {sub} sent {} bytes for a REAL32", v.len()),
+        })?;
+        Ok(f32::from_le_bytes(b))
+    }
+
+    /// Reads a VISIBLE_STRING (trailing NULs dropped, invalid UTF-8
+    /// replaced).
+    ///
+    /// # Errors
+    /// As [`Client::upload`].
+    pub fn read_string(&mut self, node: u8, index: u16, sub: u8) -> Result<String, ClientError> {
+        let v = self.upload(node, index, sub)?;
+        let end = v.iter().rposition(|&b| b != 0).map_or(0, |p| p + 1);
+        Ok(String::from_utf8_lossy(&v[..end]).into_owned())
+    }
+
+    /// Writes an UNSIGNED32.
+    ///
+    /// # Errors
+    /// As [`Client::download`].
+    pub fn write_u32(&mut self, node: u8, index: u16, sub: u8, v: u32) -> Result<(), ClientError> {
+        self.download(node, index, sub, &v.to_le_bytes())
+    }
+}
+
+#[cfg(test)]
+#[path = "sdo_tests.rs"]
+mod tests;

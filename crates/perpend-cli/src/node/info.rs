@@ -1,0 +1,241 @@
+//! `perpend node info`, `status` and `nmt`: what the board is (identity
+//! 0x1018, device type 0x1000, name and versions 0x1008-0x100A, NMT state
+//! from its heartbeat, node-id and bit rate 0x2400, acquisition 0x2300,
+//! calibration lock 0x2010), how it is (status word 0x2005 in words, error
+//! register 0x1001, the last emergencies from 0x1003), and NMT commands
+//! with their effect checked.
+//!
+//! The dictionary has no stored-parameter stamp: `info` cannot show one.
+
+use std::time::Duration;
+
+use anyhow::Result;
+use serde_json::json;
+
+use super::words;
+use super::Node;
+use crate::canopen::{Nmt, NodeState};
+
+/// Options of `info` and `status`.
+#[derive(clap::Args, Debug)]
+pub struct InfoArgs {
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Options of `nmt`.
+#[derive(clap::Args, Debug)]
+pub struct NmtArgs {
+    /// The command.
+    #[arg(value_enum)]
+    pub command: Nmt,
+}
+
+fn state_text(s: Option<NodeState>, hb: u64) -> String {
+    match (s, hb) {
+        (_, 0) => "unknown (heartbeat off: 0x1017 = 0)".into(),
+        (None, _) => format!("unknown (no heartbeat within {} ms)", hb * 3 / 2 + 200),
+        (Some(s), _) => s.to_string(),
+    }
+}
+
+/// Reads what `info` shows.
+fn gather(node: &mut Node) -> Result<serde_json::Value> {
+    let id = node.id;
+    let device_type = node.hello()?;
+    let c = &mut node.client;
+    let name = c.read_string(id, 0x1008, 0)?;
+    let hw = c.read_string(id, 0x1009, 0)?;
+    let sw = c.read_string(id, 0x100A, 0)?;
+    let ident: Vec<u32> = (1..=4)
+        .map(|s| c.read_u32(id, 0x1018, s))
+        .collect::<Result<_, _>>()?;
+    let stored_id = c.read_u32(id, 0x2400, 1)?;
+    let kbps = c.read_u32(id, 0x2400, 2)?;
+    let acq: Vec<u32> = (1..=3)
+        .map(|s| c.read_u32(id, 0x2300, s))
+        .collect::<Result<_, _>>()?;
+    let limit = c.read_f32(id, 0x2300, 4)?;
+    let unlocked = c.read_u32(id, 0x2010, 0)? != 0;
+    let st = c.read_u32(id, 0x2005, 0)?;
+    let sensors = node.sensors()?;
+    let hb = node.heartbeat_ms()?;
+    let state = node.state(hb)?;
+    Ok(json!({
+        "node_id": id, "bus": node.client.bus_name(),
+        "device_type": device_type, "device_name": name,
+        "hardware_version": hw, "software_version": sw,
+        "vendor_id": ident[0], "product_code": ident[1],
+        "revision": ident[2], "serial": ident[3],
+        "heartbeat_ms": hb, "nmt_state": state_text(state, hb),
+        "sensors": sensors, "stored_node_id": stored_id, "bit_rate_kbps": kbps,
+        "sample_period_us": acq[0], "oversampling": acq[1],
+        "plane_method": if acq[2] == 0 { "Chen" } else { "least squares" },
+        "residual_limit_mm": limit, "calibration_unlocked": unlocked,
+        "calibrated": st & perpend_can::status::UNCALIBRATED == 0,
+    }))
+}
+
+/// `perpend node info`.
+///
+/// # Errors
+/// Client errors, in sentences.
+pub fn info(node: &mut Node, a: &InfoArgs) -> Result<()> {
+    let v = gather(node)?;
+    if a.json {
+        println!("{v}");
+        return Ok(());
+    }
+    let s = |k: &str| v[k].as_str().unwrap_or("").to_string();
+    let u = |k: &str| v[k].as_u64().unwrap_or(0);
+    let rev = u("revision");
+    println!("{}", node.name());
+    println!(
+        "  device        {} (hardware {}, software {}), device type {:#010x}",
+        s("device_name"),
+        s("hardware_version"),
+        s("software_version"),
+        u("device_type")
+    );
+    println!(
+        "  identity      vendor {:#010x}, product {:#010x}, revision {}.{} ({rev:#010x})",
+        u("vendor_id"),
+        u("product_code"),
+        rev >> 16,
+        rev & 0xFFFF
+    );
+    println!("  serial        {:#010x}", u("serial"));
+    println!(
+        "  NMT state     {} (heartbeat every {} ms)",
+        s("nmt_state"),
+        u("heartbeat_ms")
+    );
+    print_config(&v);
+    Ok(())
+}
+
+/// The head, lock, acquisition and CAN lines of `info`.
+fn print_config(v: &serde_json::Value) {
+    let s = |k: &str| v[k].as_str().unwrap_or("").to_string();
+    let u = |k: &str| v[k].as_u64().unwrap_or(0);
+    let b = |k: &str| v[k].as_bool().unwrap_or(false);
+    println!(
+        "  head          {} sensors, {}",
+        u("sensors"),
+        if b("calibrated") {
+            "calibrated"
+        } else {
+            "uncalibrated (factory head)"
+        }
+    );
+    println!(
+        "  calibration   {}",
+        if b("calibration_unlocked") {
+            "UNLOCKED (0x2010): a write is in progress or was left open"
+        } else {
+            "locked"
+        }
+    );
+    println!(
+        "  acquisition   every {} µs, oversampling {}, plane method {}, residual limit {} mm",
+        u("sample_period_us"),
+        u("oversampling"),
+        s("plane_method"),
+        v["residual_limit_mm"].as_f64().unwrap_or(f64::NAN) as f32
+    );
+    println!(
+        "  stored CAN    node-id {}, {} kbit/s (0x2400, effective after a reset)",
+        u("stored_node_id"),
+        u("bit_rate_kbps")
+    );
+}
+
+/// `perpend node status`.
+///
+/// # Errors
+/// Client errors, in sentences.
+pub fn status(node: &mut Node, a: &InfoArgs) -> Result<()> {
+    let id = node.id;
+    node.hello()?;
+    let sensors = node.sensors()?;
+    let c = &mut node.client;
+    let st = c.read_u32(id, 0x2005, 0)?;
+    let sample = c.read_u32(id, 0x2007, 0)?;
+    let reg = c.read_u32(id, 0x1001, 0)? as u8;
+    let n = c.read_u32(id, 0x1003, 0)?.min(8) as u8;
+    let mut errors = Vec::new();
+    for s in 1..=n {
+        let v = c.read_u32(id, 0x1003, s)?;
+        errors.push(((v & 0xFFFF) as u16, (v >> 16) as u16));
+    }
+    if a.json {
+        let e: Vec<_> = errors
+            .iter()
+            .map(|(code, info)| json!({"code": code, "info": info, "text": words::emcy_words(*code)}))
+            .collect();
+        let v = json!({
+            "node_id": id, "status": st, "sample": sample,
+            "status_words": words::status_words(st, sensors),
+            "error_register": reg, "errors": e,
+        });
+        println!("{v}");
+        return Ok(());
+    }
+    println!("{}: status {st:#010x} at sample {sample}", node.name());
+    for w in words::status_words(st, sensors) {
+        println!("  {w}");
+    }
+    println!(
+        "error register {reg:#04x}: {}",
+        words::error_register_words(reg)
+    );
+    if errors.is_empty() {
+        println!("no emergency recorded (0x1003 is empty)");
+    } else {
+        println!("last emergencies (0x1003, newest first):");
+        for (code, _) in &errors {
+            println!("  {code:#06x}  {}", words::emcy_words(*code));
+        }
+    }
+    Ok(())
+}
+
+/// `perpend node nmt`: sends the command and checks its effect (a boot-up
+/// after a reset, else the next heartbeat's state).
+///
+/// # Errors
+/// No boot-up, or a heartbeat that shows another state.
+pub fn nmt(node: &mut Node, a: &NmtArgs) -> Result<()> {
+    let id = node.id;
+    node.client.nmt(id, a.command)?;
+    if matches!(a.command, Nmt::Reset | Nmt::ResetComm) {
+        node.client.wait_bootup(id, Duration::from_secs(5))?;
+        println!("{}: reset, boot-up received (pre-operational)", node.name());
+        return Ok(());
+    }
+    let want = match a.command {
+        Nmt::Start => NodeState::Operational,
+        Nmt::Stop => NodeState::Stopped,
+        _ => NodeState::PreOperational,
+    };
+    // The heartbeat period cannot be read from a stopped node: wait for
+    // up to 3 s of heartbeats instead.
+    let end = std::time::Instant::now() + Duration::from_secs(3);
+    while let Some(left) = end.checked_duration_since(std::time::Instant::now()) {
+        match node.client.wait_heartbeat(id, left)? {
+            Some(s) if s == want => {
+                println!("{}: {want}", node.name());
+                return Ok(());
+            }
+            Some(_) => {}
+            None => break,
+        }
+    }
+    println!(
+        "{}: {} sent; no heartbeat confirmed it within 3 s (heartbeat off?)",
+        node.name(),
+        want
+    );
+    Ok(())
+}

@@ -1,0 +1,216 @@
+//! `perpend node`: a board on a real (or virtual) CAN bus, from the host:
+//! what it is, how it is, what it measures, its calibration in and out,
+//! and calibration poses captured from it.
+//!
+//! ```text
+//! perpend node --bus BUS --node-id N [--bitrate KBPS] [--timeout-ms MS] <command>
+//!   info [--json]                   identity, versions, NMT state, configuration
+//!   status [--json]                 status word in words, last emergencies (0x1003)
+//!   nmt start|stop|preop|reset|reset-comm
+//!   monitor [--sync-hz HZ] [--seconds S] [--csv FILE] [--start]
+//!   push params.json [--preop]      write, verify, store, reset, verify again, lock
+//!   pull [--out params.json]        the board's calibration as a params.json
+//!   capture --plane A,B,C,D --pose K --out poses.csv [--samples N]
+//! ```
+//!
+//! BUS is `tcp:HOST:PORT` (the virtual board), `slcan:/dev/ttyACM0[@BAUD]`
+//! or `socketcan:can0` (see [`crate::bus`]). Every failure is a sentence
+//! naming the node, the bus and what to do; nothing is left half done:
+//! Ctrl-C during `push` relocks the board and resets it to its stored
+//! calibration (nothing is stored before every value was written and read
+//! back), during `capture` appends nothing, during `monitor` ends it
+//! (and returns a node it started to pre-operational). A second Ctrl-C
+//! quits at once.
+//!
+//! Limits: the board's dictionary has no temperature object and no
+//! stored-parameter stamp, so `capture` and `monitor` write no `temp_c`
+//! and `info` shows no stamp.
+
+pub mod capture;
+pub mod info;
+pub mod monitor;
+pub mod params;
+pub mod words;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use anyhow::{bail, Result};
+
+use crate::bus::{self, BusSpec};
+use crate::canopen::{Client, ClientError, NodeState};
+
+/// Arguments of `perpend node`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The CAN bus: `tcp:HOST:PORT` (virtual board), `slcan:/dev/ttyACM0[@BAUD]`
+    /// (slcan adapter on a serial port), `socketcan:can0` (Linux SocketCAN).
+    #[arg(long)]
+    pub bus: String,
+    /// Node-id of the board, 1..127 (decimal or 0x hex).
+    #[arg(long, value_parser = crate::board::parse_node_id)]
+    pub node_id: u8,
+    /// CAN bit rate an slcan adapter is set to [kbit/s] (SocketCAN
+    /// interfaces keep theirs: `ip link set can0 type can bitrate …`).
+    #[arg(long, default_value_t = 1000)]
+    pub bitrate: u32,
+    /// How long the board may take to answer one SDO request [ms].
+    #[arg(long, default_value_t = 500)]
+    pub timeout_ms: u64,
+    /// What to do.
+    #[command(subcommand)]
+    pub cmd: Cmd,
+}
+
+/// The subcommands.
+#[derive(clap::Subcommand, Debug)]
+pub enum Cmd {
+    /// Identity, versions, serial, NMT state (from the heartbeat), configuration.
+    Info(info::InfoArgs),
+    /// The status word (0x2005) in words and the last emergencies (0x1003).
+    Status(info::InfoArgs),
+    /// Send an NMT command and wait for its effect (boot-up, heartbeat).
+    Nmt(info::NmtArgs),
+    /// Live θ1/θ2/θ, normal, distances, RMS and status from the TPDOs.
+    Monitor(monitor::Args),
+    /// Write a params.json into the board, verify, store, reset, verify again.
+    Push(params::PushArgs),
+    /// Read the board's calibration back into a params.json.
+    Pull(params::PullArgs),
+    /// Average N samples at one pose and append them to poses.csv.
+    Capture(capture::Args),
+}
+
+/// Set by Ctrl-C; long operations look at it between steps.
+static CANCEL: AtomicBool = AtomicBool::new(false);
+
+/// Installs the Ctrl-C handler. For a command that `checks` the flag
+/// (monitor, push, pull, capture), the first Ctrl-C sets it and the second
+/// quits at once; for the others (short reads) the first quits (exit code
+/// 130, as without a handler).
+fn install_ctrlc(checks: bool) {
+    let _ = ctrlc::set_handler(move || {
+        if !checks || CANCEL.swap(true, Ordering::SeqCst) {
+            eprintln!("\nperpend node: Ctrl-C, quitting now");
+            std::process::exit(130);
+        }
+        eprintln!("\nperpend node: Ctrl-C, finishing safely (Ctrl-C again quits at once)");
+    });
+}
+
+/// A session with one node.
+pub struct Node {
+    /// The CANopen master.
+    pub client: Client,
+    /// The node-id.
+    pub id: u8,
+}
+
+impl Node {
+    /// A session with node `id` through `client`.
+    pub fn new(client: Client, id: u8) -> Self {
+        Self { client, id }
+    }
+
+    /// Opens the bus of `a` and addresses its node.
+    ///
+    /// # Errors
+    /// A bad `--bus`, a bus that cannot be opened.
+    pub fn connect(a: &Args) -> Result<Self> {
+        let spec: BusSpec = a.bus.parse()?;
+        let bus = bus::open(&spec, a.bitrate)?;
+        let mut client = Client::new(bus);
+        client.timeout = Duration::from_millis(a.timeout_ms.max(1));
+        Ok(Self::new(client, a.node_id))
+    }
+
+    /// `node N on BUS`, for messages.
+    pub fn name(&self) -> String {
+        format!("node {} on {}", self.id, self.client.bus_name())
+    }
+
+    /// The first request of a command: the device type (0x1000). When it
+    /// times out, listens for the node's heartbeat a little longer, so that
+    /// the error can say whether the node is stopped or another node-id
+    /// answers instead.
+    ///
+    /// # Errors
+    /// The timeout with what was heard, or any other client error.
+    pub fn hello(&mut self) -> Result<u32> {
+        match self.client.read_u32(self.id, 0x1000, 0) {
+            Ok(v) => Ok(v),
+            Err(ClientError::Timeout { waited, what, .. }) => {
+                let listen = Duration::from_millis(1600);
+                let _ = self.client.wait_heartbeat(self.id, listen)?;
+                Err(self.client.timeout_error(self.id, &what, waited).into())
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// The number of sensors the board has (0x2004 sub 0).
+    ///
+    /// # Errors
+    /// Client errors.
+    pub fn sensors(&mut self) -> Result<usize> {
+        let n = self.client.read_u32(self.id, 0x2004, 0)? as usize;
+        if n == 0 || n > 16 {
+            bail!("{}: 0x2004 sub 0 says {n} sensors", self.name());
+        }
+        Ok(n)
+    }
+
+    /// The heartbeat period (0x1017) [ms].
+    ///
+    /// # Errors
+    /// Client errors.
+    pub fn heartbeat_ms(&mut self) -> Result<u64> {
+        Ok(self.client.read_u32(self.id, 0x1017, 0)? as u64)
+    }
+
+    /// The NMT state from the heartbeat (one heard within 1.5 periods, else
+    /// the next one); `None` when the heartbeat is off or does not come. A
+    /// boot-up counts as pre-operational (where a node goes after it).
+    ///
+    /// # Errors
+    /// Client errors.
+    pub fn state(&mut self, heartbeat_ms: u64) -> Result<Option<NodeState>> {
+        if heartbeat_ms == 0 {
+            return Ok(None);
+        }
+        let fresh = Duration::from_millis(heartbeat_ms * 3 / 2);
+        let s = match self.client.heard(self.id) {
+            Some(h) if h.at.elapsed() < fresh => Some(h.state),
+            _ => {
+                let wait = Duration::from_millis((heartbeat_ms * 3 / 2 + 200).min(10_000));
+                self.client.wait_heartbeat(self.id, wait)?
+            }
+        };
+        Ok(s.map(|s| match s {
+            NodeState::BootUp => NodeState::PreOperational,
+            s => s,
+        }))
+    }
+}
+
+/// Runs `perpend node`.
+///
+/// # Errors
+/// Everything that went wrong, in sentences.
+pub fn run(a: &Args) -> Result<()> {
+    install_ctrlc(matches!(
+        a.cmd,
+        Cmd::Monitor(_) | Cmd::Push(_) | Cmd::Pull(_) | Cmd::Capture(_)
+    ));
+    let mut node = Node::connect(a)?;
+    let cancel = &CANCEL;
+    match &a.cmd {
+        Cmd::Info(x) => info::info(&mut node, x),
+        Cmd::Status(x) => info::status(&mut node, x),
+        Cmd::Nmt(x) => info::nmt(&mut node, x),
+        Cmd::Monitor(x) => monitor::run(&mut node, x, cancel),
+        Cmd::Push(x) => params::push(&mut node, x, cancel).map(|r| println!("{r}")),
+        Cmd::Pull(x) => params::pull_to(&mut node, x, cancel),
+        Cmd::Capture(x) => capture::run(&mut node, x, cancel),
+    }
+}

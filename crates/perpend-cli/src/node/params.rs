@@ -1,0 +1,580 @@
+//! `perpend node push` and `pull`: a params.json into the board's
+//! calibration objects and back.
+//!
+//! Push, in this order, stopping at the first problem:
+//! 1. read and check the file (`ParamFile::read`), its sensor count against
+//!    the board's (0x2004 sub 0), every value against the range the board
+//!    accepts (nothing is written if one is out);
+//! 2. the NMT state from the heartbeat: a board in operational (or
+//!    stopped) is refused unless `--preop`, which switches it to
+//!    pre-operational (the robot controller may be using its PDOs);
+//! 3. unlock (0x2010 ← "ucal"), write every value of 0x2101.. (15 per
+//!    sensor) and, when the file has them, 0x2201.. (4 per sensor), then
+//!    read each one back and compare bit for bit; check that the board
+//!    finds the result valid (status bit 21 clear);
+//! 4. store (0x1010 sub 3 "save application parameters" where the firmware
+//!    has it, else sub 1 "save all"; answered after the flash write), reset node,
+//!    wait for the boot-up, read everything back again, lock (0x2010 ← 0).
+//!
+//! Nothing is stored before every value was written and verified: a
+//! failure or Ctrl-C before step 4 relocks the board and resets it, so it
+//! runs its previous stored calibration again, and says so.
+//!
+//! Pull reads the same objects into a params.json (`method` "board",
+//! `model` from the non-zero extension terms) that push and
+//! `ParamFile::read` accept; a beam direction the board holds with a
+//! length off 1 by more than 1e-6 is normalised in the file (the board
+//! normalises it too) with a warning.
+
+use std::fmt;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context as _, Result};
+use perpend_can::od::{self, Limits, SAVE_SIGNATURE, UNLOCK_SIGNATURE};
+use perpend_lab::paramfile::{
+    ExtParams, ParamFile, SensorParams, TransferParams, TRANSFER_CURRENT, TRANSFER_VOLTAGE,
+};
+use perpend_lab::progress::Progress;
+
+use super::Node;
+use crate::canopen::NodeState;
+
+/// Options of `push`.
+#[derive(clap::Args, Debug)]
+pub struct PushArgs {
+    /// The calibration file (`perpend calibrate --out`, `perpend node pull`).
+    pub file: PathBuf,
+    /// Switch a board found operational (or stopped) to pre-operational
+    /// for the push (without it, such a board is refused).
+    #[arg(long)]
+    pub preop: bool,
+}
+
+/// Options of `pull`.
+#[derive(clap::Args, Debug)]
+pub struct PullArgs {
+    /// Write the file here (default: standard output).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+/// Names of the calibration sub-indices 1..15.
+const CAL_NAMES: [&str; 15] = [
+    "zero x",
+    "zero y",
+    "zero z",
+    "direction x",
+    "direction y",
+    "direction z",
+    "d_ref",
+    "gain",
+    "nonlinearity 2",
+    "nonlinearity 3",
+    "incidence",
+    "crosstalk",
+    "thermal",
+    "temp_ref",
+    "drift",
+];
+/// Names of the transfer-function sub-indices 1..4.
+const TF_NAMES: [&str; 4] = ["kind", "scale", "mm at 4 mA / 0 V", "mm at 20 mA / 10 V"];
+
+/// How long the store (flash write) may take.
+const STORE_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long a reset may take until the boot-up.
+const BOOT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// One value to write.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Value {
+    /// Object.
+    pub index: u16,
+    /// Sub-index.
+    pub sub: u8,
+    /// The bytes (little endian).
+    pub bytes: Vec<u8>,
+    /// `sensor 2 gain`, for messages.
+    pub label: String,
+    /// The value as the file has it, for messages.
+    pub shown: f64,
+}
+
+/// What a push did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PushReport {
+    /// `node N on BUS`.
+    pub node: String,
+    /// Values written and verified.
+    pub values: usize,
+    /// Of these, how many differed from what the board held before.
+    pub changed: usize,
+    /// Whether the board was switched from operational to pre-operational.
+    pub switched: bool,
+    /// Whether the file had transfer functions.
+    pub transfer: bool,
+}
+
+impl fmt::Display for PushReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "push: {} values written to {} ({} changed{}), read back identical, stored \
+             (0x1010), node reset, read back identical after the boot-up; calibration locked",
+            self.values,
+            self.node,
+            self.changed,
+            if self.transfer {
+                ", transfer functions included"
+            } else {
+                "; the file has no transfer functions, 0x2201.. left as they were"
+            }
+        )?;
+        if self.switched {
+            write!(
+                f,
+                "\nthe node was operational and is pre-operational now: `perpend node … nmt \
+                 start` starts it again"
+            )?;
+        }
+        Ok(())
+    }
+}
+
+fn real(index: u16, sub: u8, label: String, v: f64) -> Result<Value> {
+    let x = v as f32;
+    let (_, e) = od::find(index, sub).map_err(|_| anyhow!("{index:#06x} sub {sub} unknown"))?;
+    if let Limits::Real(lo, hi) = e.limits {
+        if !(x.is_finite() && x >= lo && x <= hi) {
+            bail!(
+                "{label} = {v} is outside what the board accepts ({lo} to {hi}); nothing was \
+                 written"
+            );
+        }
+    }
+    Ok(Value {
+        index,
+        sub,
+        bytes: x.to_le_bytes().to_vec(),
+        label,
+        shown: v,
+    })
+}
+
+fn calibration_values(s: &SensorParams) -> [f64; 15] {
+    let e = &s.ext;
+    [
+        s.zero_mm[0],
+        s.zero_mm[1],
+        s.zero_mm[2],
+        s.dir[0],
+        s.dir[1],
+        s.dir[2],
+        e.d_ref_mm,
+        e.gain,
+        e.nonlinearity[0],
+        e.nonlinearity[1],
+        e.incidence_mm,
+        e.crosstalk,
+        e.thermal_mm_per_c,
+        e.temp_ref_c,
+        e.drift_mm_per_s,
+    ]
+}
+
+/// Every value of the file, checked against the board's ranges.
+///
+/// # Errors
+/// A value the board would refuse, named.
+pub fn plan(file: &ParamFile) -> Result<Vec<Value>> {
+    let mut out = Vec::new();
+    for (i, s) in file.sensors.iter().enumerate() {
+        let index = 0x2101 + i as u16;
+        for (k, v) in calibration_values(s).into_iter().enumerate() {
+            let label = format!("sensor {} {}", i + 1, CAL_NAMES[k]);
+            out.push(real(index, k as u8 + 1, label, v)?);
+        }
+        if let Some(t) = &s.transfer {
+            let index = 0x2201 + i as u16;
+            let kind = u8::from(t.kind == TRANSFER_VOLTAGE);
+            out.push(Value {
+                index,
+                sub: 1,
+                bytes: vec![kind],
+                label: format!("sensor {} transfer kind", i + 1),
+                shown: kind as f64,
+            });
+            for (k, v) in [t.scale, t.mm_at_low, t.mm_at_high].into_iter().enumerate() {
+                let label = format!("sensor {} transfer {}", i + 1, TF_NAMES[k + 1]);
+                out.push(real(index, k as u8 + 2, label, v)?);
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Makes sure the node is pre-operational; returns whether it was switched.
+fn ensure_preop(node: &mut Node, allow: bool) -> Result<bool> {
+    let hb = node.heartbeat_ms()?;
+    match node.state(hb)? {
+        Some(s @ (NodeState::Operational | NodeState::Stopped)) if !allow => bail!(
+            "{} is {s}: the board takes calibration only in pre-operational, and the robot \
+             controller may be using it now. Nothing was written. Rerun with --preop to switch \
+             it to pre-operational for the push (after the push's reset it stays \
+             pre-operational; `perpend node … nmt start` starts it again)",
+            node.name()
+        ),
+        Some(NodeState::Operational | NodeState::Stopped) => {
+            node.client.nmt(node.id, crate::canopen::Nmt::Preop)?;
+            let _ = node
+                .client
+                .wait_heartbeat(node.id, Duration::from_millis(hb + 200))?;
+            Ok(true)
+        }
+        _ => Ok(false),
+    }
+}
+
+/// Unlocks calibration writes and checks the board says so.
+fn unlock(node: &mut Node, allow: bool) -> Result<()> {
+    let id = node.id;
+    match node.client.write_u32(id, 0x2010, 0, UNLOCK_SIGNATURE) {
+        Ok(()) => {}
+        Err(e) if e.abort_code() == Some(0x0800_0022) && !allow => bail!(
+            "{} refuses the unlock in its present NMT state (operational, heartbeat off): \
+             nothing was written; rerun with --preop to switch it to pre-operational",
+            node.name()
+        ),
+        Err(e) => return Err(e.into()),
+    }
+    if node.client.read_u32(id, 0x2010, 0)? != 1 {
+        bail!(
+            "{}: 0x2010 does not read as unlocked after the unlock",
+            node.name()
+        );
+    }
+    Ok(())
+}
+
+/// Reads each value back; `Err` names the first that differs.
+fn verify(node: &mut Node, values: &[Value], bar: &Progress, when: &str) -> Result<()> {
+    for v in values {
+        let got = node.client.upload(node.id, v.index, v.sub)?;
+        bar.inc();
+        if got != v.bytes {
+            let shown = match <[u8; 4]>::try_from(got.as_slice()) {
+                Ok(b) => f32::from_le_bytes(b).to_string(),
+                Err(_) => format!("{got:02x?}"),
+            };
+            bail!(
+                "{} reads back as {shown} {when}, {} was written ({:#06x} sub {})",
+                v.label,
+                v.shown,
+                v.index,
+                v.sub
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Writes every value (checking `cancel` before each); returns how many
+/// differed from what the board held.
+fn write_all(
+    node: &mut Node,
+    values: &[Value],
+    cancel: &AtomicBool,
+    bar: &Progress,
+) -> Result<usize> {
+    let mut changed = 0;
+    for (k, v) in values.iter().enumerate() {
+        if cancel.load(Ordering::SeqCst) {
+            bail!("interrupted (Ctrl-C) after {k} of {} writes", values.len());
+        }
+        let before = node.client.upload(node.id, v.index, v.sub)?;
+        changed += usize::from(before != v.bytes);
+        node.client
+            .download(node.id, v.index, v.sub, &v.bytes)
+            .with_context(|| format!("writing {}", v.label))?;
+        bar.inc();
+    }
+    Ok(changed)
+}
+
+/// Waits for a sample newer than now and checks the board finds its
+/// calibration valid (status bit 21 clear).
+fn check_valid(node: &mut Node) -> Result<()> {
+    let id = node.id;
+    let n0 = node.client.read_u32(id, 0x2007, 0)?;
+    let end = Instant::now() + Duration::from_secs(2);
+    while node.client.read_u32(id, 0x2007, 0)? == n0 && Instant::now() < end {
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let st = node.client.read_u32(id, 0x2005, 0)?;
+    if st & perpend_can::status::CONFIG_INVALID != 0 {
+        bail!(
+            "the board finds the written calibration invalid (status bit 21: a combination \
+             its checks refuse, e.g. a transfer function outside its front end's range)"
+        );
+    }
+    Ok(())
+}
+
+/// After a failure before the store: lock, reset, wait for the boot-up.
+/// Returns what the board is left with, in words.
+fn abandon(node: &mut Node) -> String {
+    let id = node.id;
+    let _ = node.client.write_u32(id, 0x2010, 0, 0);
+    let reset = node
+        .client
+        .nmt(id, crate::canopen::Nmt::Reset)
+        .map_err(anyhow::Error::from)
+        .and_then(|()| Ok(node.client.wait_bootup(id, BOOT_TIMEOUT)?));
+    match reset {
+        Ok(()) => format!(
+            "nothing was stored: {} was reset and runs its previous stored calibration again",
+            node.name()
+        ),
+        Err(_) => format!(
+            "nothing was stored, but {} did not confirm its reset: reset it (NMT reset or power) \
+             before use, its dictionary may hold values that were not stored",
+            node.name()
+        ),
+    }
+}
+
+/// `perpend node push`.
+///
+/// # Errors
+/// Every refusal and failure in a sentence that says what the board is
+/// left with.
+pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushReport> {
+    let file = ParamFile::read(&a.file)?;
+    node.hello()?;
+    let n = node.sensors()?;
+    if file.sensors.len() != n {
+        bail!(
+            "{} has {} sensors, {} has {n} (0x2004 sub 0): the file is for another head; \
+             nothing was written",
+            a.file.display(),
+            file.sensors.len(),
+            node.name()
+        );
+    }
+    let values = plan(&file).with_context(|| a.file.display().to_string())?;
+    let switched = ensure_preop(node, a.preop)?;
+    unlock(node, a.preop)?;
+    let bar = Progress::new(3 * values.len() as u64, "push");
+    let changed = match write_phase(node, &values, cancel, &bar) {
+        Ok(c) => c,
+        Err(e) => {
+            let left = abandon(node);
+            return Err(e.context(left));
+        }
+    };
+    store_phase(node, &values, &bar)?;
+    Ok(PushReport {
+        node: node.name(),
+        values: values.len(),
+        changed,
+        switched,
+        transfer: file.sensors.iter().any(|s| s.transfer.is_some()),
+    })
+}
+
+/// Steps before the store: write, verify, validity, last chance to cancel.
+fn write_phase(
+    node: &mut Node,
+    values: &[Value],
+    cancel: &AtomicBool,
+    bar: &Progress,
+) -> Result<usize> {
+    let changed = write_all(node, values, cancel, bar)?;
+    verify(node, values, bar, "after writing")?;
+    check_valid(node)?;
+    if cancel.load(Ordering::SeqCst) {
+        bail!("interrupted (Ctrl-C) after every write, before the store");
+    }
+    Ok(changed)
+}
+
+/// Stores with 0x1010 sub 3 ("save application parameters": calibration
+/// and configuration, not a PDO remap someone left unsaved) where the
+/// firmware has it, else sub 1 ("save all").
+fn store(node: &mut Node) -> Result<(), crate::canopen::ClientError> {
+    let save = SAVE_SIGNATURE.to_le_bytes();
+    match node
+        .client
+        .download_timeout(node.id, 0x1010, 3, &save, STORE_TIMEOUT)
+    {
+        Err(e) if e.abort_code() == Some(0x0609_0011) => {
+            node.client
+                .download_timeout(node.id, 0x1010, 1, &save, STORE_TIMEOUT)
+        }
+        r => r,
+    }
+}
+
+/// The store, the reset and the second verification; the lock at the end.
+fn store_phase(node: &mut Node, values: &[Value], bar: &Progress) -> Result<()> {
+    let id = node.id;
+    if let Err(e) = store(node) {
+        let left = abandon(node);
+        return Err(anyhow::Error::from(e).context(format!("the store (0x1010) failed; {left}")));
+    }
+    node.client.nmt(id, crate::canopen::Nmt::Reset)?;
+    node.client
+        .wait_bootup(id, BOOT_TIMEOUT)
+        .context("the calibration was stored, but the node did not boot up after the reset")?;
+    verify(node, values, bar, "after the reset").context(
+        "the calibration was stored, but the board reads back other values after its reset",
+    )?;
+    node.client.write_u32(id, 0x2010, 0, 0)?;
+    Ok(())
+}
+
+/// The model name of the non-zero extension terms (`base` if none).
+fn model_name(sensors: &[SensorParams]) -> String {
+    let any = |f: fn(&ExtParams) -> bool| sensors.iter().any(|s| f(&s.ext));
+    let mut v = Vec::new();
+    if any(|e| e.nonlinearity != [0.0, 0.0]) {
+        v.push("nonlinearity");
+    } else if any(|e| e.gain != 0.0) {
+        v.push("gain");
+    }
+    for (name, f) in [
+        (
+            "incidence",
+            (|e: &ExtParams| e.incidence_mm != 0.0) as fn(&ExtParams) -> bool,
+        ),
+        ("crosstalk", |e| e.crosstalk != 0.0),
+        ("thermal", |e| e.thermal_mm_per_c != 0.0),
+        ("drift", |e| e.drift_mm_per_s != 0.0),
+    ] {
+        if any(f) {
+            v.push(name);
+        }
+    }
+    if v.is_empty() {
+        "base".into()
+    } else {
+        v.join("+")
+    }
+}
+
+/// One sensor's parameters from its 15 calibration values and transfer.
+fn sensor_params(i: usize, c: &[f64; 15], t: Option<TransferParams>) -> SensorParams {
+    let mut dir = [c[3], c[4], c[5]];
+    let len = dir.iter().map(|x| x * x).sum::<f64>().sqrt();
+    if (len - 1.0).abs() > 1e-6 && len > 0.0 {
+        eprintln!(
+            "warning: sensor {}: the board's beam direction has length {len:.6}; the file \
+             holds it normalised (as the board uses it)",
+            i + 1
+        );
+        dir.iter_mut().for_each(|x| *x /= len);
+    }
+    SensorParams {
+        sensor: i + 1,
+        zero_mm: [c[0], c[1], c[2]],
+        dir,
+        ext: ExtParams {
+            d_ref_mm: c[6],
+            gain: c[7],
+            nonlinearity: [c[8], c[9]],
+            incidence_mm: c[10],
+            crosstalk: c[11],
+            thermal_mm_per_c: c[12],
+            temp_ref_c: c[13],
+            drift_mm_per_s: c[14],
+        },
+        correction: None,
+        sigma: None,
+        sigma_ext: Vec::new(),
+        residual_rms_mm: None,
+        readings: 0,
+        identifiability: None,
+        transfer: t,
+    }
+}
+
+/// Reads the board's calibration into a parameter file.
+///
+/// # Errors
+/// Client errors; a Ctrl-C; a calibration the file format refuses.
+pub fn pull(node: &mut Node, cancel: &AtomicBool) -> Result<ParamFile> {
+    node.hello()?;
+    let n = node.sensors()?;
+    let id = node.id;
+    let bar = Progress::new(19 * n as u64, "pull");
+    let mut sensors = Vec::new();
+    for i in 0..n {
+        let mut c = [0f64; 15];
+        for (k, v) in c.iter_mut().enumerate() {
+            if cancel.load(Ordering::SeqCst) {
+                bail!("interrupted (Ctrl-C): nothing was written");
+            }
+            *v = node.client.read_f32(id, 0x2101 + i as u16, k as u8 + 1)? as f64;
+            bar.inc();
+        }
+        let tf = 0x2201 + i as u16;
+        let kind = node.client.read_u32(id, tf, 1)?;
+        let mut r = [0f64; 3];
+        for (k, v) in r.iter_mut().enumerate() {
+            *v = node.client.read_f32(id, tf, k as u8 + 2)? as f64;
+        }
+        (0..4).for_each(|_| bar.inc());
+        let t = TransferParams {
+            kind: if kind == 1 {
+                TRANSFER_VOLTAGE
+            } else {
+                TRANSFER_CURRENT
+            }
+            .into(),
+            scale: r[0],
+            mm_at_low: r[1],
+            mm_at_high: r[2],
+        };
+        sensors.push(sensor_params(i, &c, Some(t)));
+    }
+    let mut file = ParamFile::new("board", &model_name(&sensors), 0);
+    file.sensors = sensors;
+    file.validate()
+        .with_context(|| format!("the calibration of {} as a params.json", node.name()))?;
+    Ok(file)
+}
+
+/// `perpend node pull`: to `--out` or standard output.
+///
+/// # Errors
+/// As [`pull`], or the file cannot be written.
+pub fn pull_to(node: &mut Node, a: &PullArgs, cancel: &AtomicBool) -> Result<()> {
+    let file = pull(node, cancel)?;
+    match &a.out {
+        Some(p) => {
+            file.write(p)?;
+            eprintln!(
+                "pull: {} sensors of {} written to {}",
+                file.sensors.len(),
+                node.name(),
+                p.display()
+            );
+        }
+        None => {
+            let text = serde_json::to_string_pretty(&file)? + "\n";
+            let mut out = std::io::stdout().lock();
+            match std::io::Write::write_all(&mut out, text.as_bytes()) {
+                Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => {
+                    return Err(e).context("writing to standard output")
+                }
+                _ => {}
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+#[path = "params_tests.rs"]
+mod tests;

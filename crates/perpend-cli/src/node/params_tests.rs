@@ -1,0 +1,243 @@
+//! Push and pull against the board's own application on the in-memory bus
+//! (no TCP, virtual time): the round trip, an interrupted push, a file for
+//! another head, a board in operational.
+#![allow(clippy::unwrap_used, clippy::panic)]
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use perpend_can::Frame;
+use perpend_core::geometry::Plane;
+use perpend_core::params::Params;
+use perpend_lab::paramfile::{ParamFile, TransferParams, TRANSFER_CURRENT};
+
+use super::{plan, pull, push, PushArgs};
+use crate::board::node::{BoardConfig, VirtualBoard};
+use crate::board::sim::SimHead;
+use crate::bus::fake::{FakeBus, Peer};
+use crate::canopen::Client;
+use crate::node::Node;
+
+const NODE: u8 = 0x10;
+
+/// The virtual board, shared with the test; optionally raises `cancel`
+/// after `cancel_after` calibration writes.
+struct BoardPeer {
+    board: Arc<Mutex<VirtualBoard>>,
+    t: u64,
+    cancel: Arc<AtomicBool>,
+    cancel_after: Option<usize>,
+    cal_writes: usize,
+}
+
+impl Peer for BoardPeer {
+    fn frame(&mut self, f: &Frame, out: &mut Vec<Frame>) {
+        let d = f.data;
+        if f.id == 0x600 + NODE as u16 && d[0] >> 5 == 1 && d[2] == 0x21 {
+            self.cal_writes += 1;
+            if Some(self.cal_writes) == self.cancel_after {
+                self.cancel.store(true, Ordering::SeqCst);
+            }
+        }
+        self.t += 50;
+        self.board
+            .lock()
+            .unwrap()
+            .handle(f, self.t, &mut |o| out.push(o));
+    }
+    fn idle(&mut self, out: &mut Vec<Frame>) {
+        let mut b = self.board.lock().unwrap();
+        self.t += b.period_us();
+        b.sample(self.t);
+        b.poll(self.t, &mut |o| out.push(o));
+    }
+}
+
+struct Rig {
+    board: Arc<Mutex<VirtualBoard>>,
+    cancel: Arc<AtomicBool>,
+    node: Node,
+}
+
+fn rig(cancel_after: Option<usize>) -> Rig {
+    let plane = Plane::from_abcd(0.02, -0.03, 1.0, -45.0).unwrap();
+    let sim = SimHead::new(Params::factory().head.cast(), plane, 0.002, 3).unwrap();
+    let cfg = BoardConfig {
+        node_id: NODE,
+        head: None,
+        calibration: None,
+    };
+    let board = Arc::new(Mutex::new(VirtualBoard::new(&cfg, sim).unwrap()));
+    let cancel = Arc::new(AtomicBool::new(false));
+    let mut peer = BoardPeer {
+        board: board.clone(),
+        t: 0,
+        cancel: cancel.clone(),
+        cancel_after,
+        cal_writes: 0,
+    };
+    // Boot (the first poll sends the boot-up) and take a few samples.
+    let mut early = Vec::new();
+    for _ in 0..5 {
+        peer.idle(&mut early);
+    }
+    let mut bus = FakeBus::new(peer);
+    bus.inbox.extend(early);
+    let mut client = Client::new(Box::new(bus));
+    client.timeout = Duration::from_millis(200);
+    // A heartbeat every 100 ms of virtual time (state checks stay short).
+    client
+        .download(NODE, 0x1017, 0, &100u16.to_le_bytes())
+        .unwrap();
+    Rig {
+        board,
+        cancel,
+        node: Node::new(client, NODE),
+    }
+}
+
+/// The factory head, shifted and with a gain, plus transfer functions.
+fn params_file(dir: &std::path::Path, sensors: usize) -> std::path::PathBuf {
+    let nominal: Vec<_> = Params::factory().head.cast::<f64>().sensors.to_vec();
+    let mut truth = nominal.clone();
+    for (i, s) in truth.iter_mut().enumerate() {
+        s.zero.x += 0.1 * (i as f64 + 1.0);
+        s.ext.gain = 0.001 * i as f64;
+    }
+    let mut f = ParamFile::truth(&truth[..sensors], &nominal);
+    f.method = "lsq".into();
+    for s in &mut f.sensors {
+        s.transfer = Some(TransferParams {
+            kind: TRANSFER_CURRENT.into(),
+            scale: 150.0,
+            mm_at_low: 30.0,
+            mm_at_high: 70.0,
+        });
+    }
+    let p = dir.join(format!("params{sensors}.json"));
+    f.write(&p).unwrap();
+    p
+}
+
+fn args(file: std::path::PathBuf) -> PushArgs {
+    PushArgs { file, preop: false }
+}
+
+#[test]
+fn push_stores_and_pull_reads_the_same_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut r = rig(None);
+    let before = pull(&mut r.node, &r.cancel).unwrap();
+    assert_eq!(before.model, "base");
+    let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    assert_eq!(rep.values, 4 * 19);
+    assert!(rep.changed >= 4 * 3, "{rep:?}");
+    assert!(rep
+        .to_string()
+        .contains("read back identical after the boot-up"));
+    assert_eq!(r.board.lock().unwrap().app().stores(), 1);
+    assert!(!r
+        .board
+        .lock()
+        .unwrap()
+        .app()
+        .device()
+        .calibration_unlocked());
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    let file = ParamFile::read(&path).unwrap();
+    assert_eq!(back.model, "gain");
+    for (a, b) in file.sensors.iter().zip(&back.sensors) {
+        let f = |x: f64| x as f32 as f64;
+        assert_eq!(b.zero_mm, a.zero_mm.map(f));
+        assert_eq!(b.dir, a.dir.map(f));
+        assert_eq!(b.ext.gain, f(a.ext.gain));
+        assert_eq!(b.transfer, a.transfer);
+    }
+    // what pull wrote, push writes back unchanged
+    let p2 = dir.path().join("back.json");
+    back.write(&p2).unwrap();
+    assert_eq!(
+        plan(&ParamFile::read(&p2).unwrap()).unwrap(),
+        plan(&back).unwrap()
+    );
+    let rep = push(&mut r.node, &args(p2), &r.cancel).unwrap();
+    assert_eq!(rep.changed, 0);
+}
+
+#[test]
+fn an_interrupted_push_stores_nothing_and_resets_to_the_stored_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut r = rig(Some(20));
+    let before = pull(&mut r.node, &AtomicBool::new(false)).unwrap();
+    let e = format!(
+        "{:#}",
+        push(&mut r.node, &args(path), &r.cancel).unwrap_err()
+    );
+    assert!(e.contains("nothing was stored"), "{e}");
+    assert!(
+        e.contains("runs its previous stored calibration again"),
+        "{e}"
+    );
+    assert!(
+        e.contains("interrupted (Ctrl-C) after 24 of 76 writes"),
+        "{e}"
+    );
+    assert_eq!(r.board.lock().unwrap().app().stores(), 0);
+    assert!(!r
+        .board
+        .lock()
+        .unwrap()
+        .app()
+        .device()
+        .calibration_unlocked());
+    let after = pull(&mut r.node, &AtomicBool::new(false)).unwrap();
+    assert_eq!(before, after);
+}
+
+#[test]
+fn a_file_for_another_head_is_refused_before_any_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 3);
+    let mut r = rig(None);
+    let e = push(&mut r.node, &args(path), &r.cancel)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("has 3 sensors") && e.contains("has 4"), "{e}");
+    assert!(e.contains("another head; nothing was written"), "{e}");
+    assert_eq!(r.board.lock().unwrap().app().stores(), 0);
+}
+
+#[test]
+fn out_of_range_values_are_named_before_any_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut f = ParamFile::read(&path).unwrap();
+    f.sensors[1].ext.gain = 0.7;
+    f.write(&path).unwrap();
+    let e = format!("{:#}", plan(&f).unwrap_err());
+    assert!(
+        e.contains("sensor 2 gain = 0.7 is outside what the board accepts (-0.5 to 0.5)"),
+        "{e}"
+    );
+}
+
+#[test]
+fn an_operational_board_is_refused_unless_preop() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut r = rig(None);
+    r.node.client.nmt(NODE, crate::canopen::Nmt::Start).unwrap();
+    let e = push(&mut r.node, &args(path.clone()), &r.cancel)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("is operational") && e.contains("--preop"), "{e}");
+    assert_eq!(r.board.lock().unwrap().app().stores(), 0);
+    let mut a = args(path);
+    a.preop = true;
+    let rep = push(&mut r.node, &a, &r.cancel).unwrap();
+    assert!(rep.switched);
+    assert!(rep.to_string().contains("nmt start"));
+}

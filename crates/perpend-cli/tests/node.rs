@@ -1,0 +1,389 @@
+//! `perpend node` end to end against the virtual board over slcan/TCP on
+//! loopback: info, status, push → reset → pull, capture (also with a
+//! faulted sensor), monitor, and the refusals (wrong node-id, a board in
+//! operational, a file for another head). Each test starts its own board
+//! on a free port (`--slcan 127.0.0.1:0`, the port is on its first stdout
+//! line) and kills it when it ends, also on failure.
+#![allow(clippy::unwrap_used, clippy::panic)]
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use perpend_core::params::Params;
+use perpend_lab::paramfile::{ParamFile, TransferParams, TRANSFER_CURRENT};
+
+const NODE: &str = "16";
+const PLANE: &str = "0.035,-0.052,1,-40";
+
+/// A running virtual board; killed on drop.
+struct Board {
+    child: Child,
+    bus: String,
+}
+
+impl Board {
+    fn start(extra: &[&str]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_perpend"))
+            .args(["board", "--slcan", "127.0.0.1:0", "--node-id", NODE])
+            .args(["--plane", PLANE])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut line = String::new();
+            let _ = BufReader::new(stdout).read_line(&mut line);
+            let _ = tx.send(line);
+        });
+        let line = match rx.recv_timeout(Duration::from_secs(20)) {
+            Ok(l) => l,
+            Err(_) => {
+                let _ = child.kill();
+                panic!("perpend board did not start");
+            }
+        };
+        // "perpend board: node N on 127.0.0.1:PORT"
+        let addr = line.trim().rsplit(' ').next().unwrap().to_string();
+        Board {
+            child,
+            bus: format!("tcp:{addr}"),
+        }
+    }
+
+    /// Runs `perpend node --bus … --node-id 16 <args>` (bounded in time).
+    fn node(&self, args: &[&str]) -> Output {
+        self.node_as(NODE, args)
+    }
+
+    fn node_as(&self, id: &str, args: &[&str]) -> Output {
+        let t = Instant::now();
+        let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
+            .args(["--quiet", "node", "--bus", &self.bus, "--node-id", id])
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "{args:?} took too long"
+        );
+        out
+    }
+}
+
+impl Drop for Board {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn text(o: &Output) -> (String, String) {
+    (
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+fn ok(o: &Output) -> String {
+    let (out, err) = text(o);
+    assert!(o.status.success(), "failed:\n{out}\n{err}");
+    out
+}
+
+fn failed(o: &Output) -> String {
+    let (out, err) = text(o);
+    assert!(!o.status.success(), "succeeded:\n{out}\n{err}");
+    assert_eq!(o.status.code(), Some(1));
+    err
+}
+
+/// The factory head moved a little, a gain, transfer functions; `n` sensors.
+fn params_file(path: &Path, n: usize) -> ParamFile {
+    let nominal: Vec<_> = Params::factory().head.cast::<f64>().sensors.to_vec();
+    let mut truth = nominal.clone();
+    for (i, s) in truth.iter_mut().enumerate() {
+        s.zero.y -= 0.05 * (i as f64 + 1.0);
+        s.ext.gain = -0.002 * i as f64;
+    }
+    let mut f = ParamFile::truth(&truth[..n], &nominal);
+    f.method = "lsq".into();
+    for s in &mut f.sensors {
+        s.transfer = Some(TransferParams {
+            kind: TRANSFER_CURRENT.into(),
+            scale: 120.0,
+            mm_at_low: 30.0,
+            mm_at_high: 70.0,
+        });
+    }
+    f.write(path).unwrap();
+    f
+}
+
+#[test]
+fn info_and_status_describe_the_board() {
+    let b = Board::start(&[]);
+    let out = ok(&b.node(&["info", "--json"]));
+    let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert_eq!(v["node_id"], 16);
+    assert_eq!(v["sensors"], 4);
+    assert_eq!(v["nmt_state"], "pre-operational");
+    assert_eq!(v["calibration_unlocked"], false);
+    assert!(!v["device_name"].as_str().unwrap().is_empty());
+    let out = ok(&b.node(&["info"]));
+    assert!(out.contains("NMT state     pre-operational"), "{out}");
+    let out = ok(&b.node(&["status"]));
+    assert!(out.contains("sensor 1: valid"), "{out}");
+    assert!(out.contains("error register"), "{out}");
+}
+
+#[test]
+fn push_reset_pull_round_trip() {
+    let b = Board::start(&[]);
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("params.json");
+    let file = params_file(&p, 4);
+    let out = ok(&b.node(&["push", p.to_str().unwrap()]));
+    assert!(out.contains("76 values written"), "{out}");
+    assert!(
+        out.contains("read back identical after the boot-up"),
+        "{out}"
+    );
+    let back = dir.path().join("back.json");
+    ok(&b.node(&["pull", "--out", back.to_str().unwrap()]));
+    let got = ParamFile::read(&back).unwrap();
+    let f = |x: f64| x as f32 as f64;
+    for (a, g) in file.sensors.iter().zip(&got.sensors) {
+        assert_eq!(g.zero_mm, a.zero_mm.map(f));
+        assert_eq!(g.dir, a.dir.map(f));
+        assert_eq!(g.ext.gain, f(a.ext.gain));
+        assert_eq!(g.transfer, a.transfer);
+    }
+    // The pulled file is accepted by push and changes nothing.
+    let out = ok(&b.node(&["push", back.to_str().unwrap()]));
+    assert!(out.contains("(0 changed"), "{out}");
+    let v: serde_json::Value =
+        serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
+    assert_eq!(v["calibration_unlocked"], false);
+}
+
+#[test]
+fn capture_appends_rows_in_the_exchange_format() {
+    let b = Board::start(&[]);
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("poses.csv");
+    let ps = p.to_str().unwrap();
+    for pose in ["1", "2"] {
+        let args = [
+            "capture",
+            "--plane",
+            PLANE,
+            "--pose",
+            pose,
+            "--out",
+            ps,
+            "--samples",
+            "8",
+        ];
+        let out = ok(&b.node(&args));
+        assert!(out.contains("4 of 4 readings"), "{out}");
+    }
+    let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+    assert_eq!(t.rows.len(), 2);
+    let r = &t.rows[1];
+    assert!(r.readings.iter().all(|x| x.is_some_and(|d| d > 0.0)));
+    assert_eq!(r.noise.n_samples, Some(8));
+    assert!(r.noise.sd_mm.iter().all(|s| s.is_some()));
+    assert!(r.t_s.unwrap() >= t.rows[0].t_s.unwrap());
+    // The same pose again is refused, the file unchanged.
+    let before = std::fs::read_to_string(&p).unwrap();
+    let err = failed(&b.node(&["capture", "--plane", PLANE, "--pose", "2", "--out", ps]));
+    assert!(err.contains("pose 2 is already there"), "{err}");
+    assert_eq!(std::fs::read_to_string(&p).unwrap(), before);
+}
+
+#[test]
+fn capture_with_a_faulted_sensor_keeps_the_row_and_warns() {
+    let b = Board::start(&["--fault", "2:open"]);
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("poses.csv");
+    let args = [
+        "capture",
+        "--plane",
+        PLANE,
+        "--pose",
+        "7",
+        "--out",
+        p.to_str().unwrap(),
+        "--samples",
+        "5",
+    ];
+    let o = b.node(&args);
+    ok(&o);
+    let (_, err) = text(&o);
+    assert!(
+        err.contains("warning: sensor 2: 5 of 5 samples not valid (open loop"),
+        "{err}"
+    );
+    let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+    assert_eq!(t.rows[0].readings[1], None);
+    assert!(t.rows[0].readings[0].is_some());
+}
+
+#[test]
+fn a_wrong_node_id_names_node_bus_and_who_answers() {
+    let b = Board::start(&[]);
+    let err = failed(&b.node_as("17", &["--timeout-ms", "300", "info"]));
+    assert!(
+        err.contains(&format!("no answer from node 17 on {}", b.bus)),
+        "{err}"
+    );
+    assert!(
+        err.contains("heard on the bus: node 16; is --node-id right?"),
+        "{err}"
+    );
+}
+
+#[test]
+fn an_operational_board_and_a_foreign_file_are_refused() {
+    let b = Board::start(&[]);
+    let dir = tempfile::tempdir().unwrap();
+    let p3 = dir.path().join("three.json");
+    params_file(&p3, 3);
+    let err = failed(&b.node(&["push", p3.to_str().unwrap()]));
+    assert!(
+        err.contains("has 3 sensors") && err.contains("another head"),
+        "{err}"
+    );
+    let p = dir.path().join("params.json");
+    params_file(&p, 4);
+    ok(&b.node(&["nmt", "start"]));
+    let err = failed(&b.node(&["push", p.to_str().unwrap()]));
+    assert!(
+        err.contains("is operational") && err.contains("--preop"),
+        "{err}"
+    );
+    let out = ok(&b.node(&["push", p.to_str().unwrap(), "--preop"]));
+    assert!(out.contains("nmt start"), "{out}");
+}
+
+#[test]
+fn monitor_logs_rows_and_returns_the_board_to_pre_operational() {
+    let b = Board::start(&[]);
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("live.csv");
+    let args = [
+        "monitor",
+        "--start",
+        "--seconds",
+        "1.5",
+        "--sync-hz",
+        "20",
+        "--csv",
+        csv.to_str().unwrap(),
+    ];
+    let out = ok(&b.node(&args));
+    assert!(out.contains("θ1"), "{out}");
+    let log = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = log.lines();
+    let head = lines.next().unwrap();
+    assert!(head.starts_with("t_s,sample,theta1_deg,theta2_deg,theta_deg,nx,ny,nz,d1_mm"));
+    let rows: Vec<&str> = lines.collect();
+    assert!(rows.len() >= 10, "{} rows", rows.len());
+    // θ1 of the plane within 0.01° (Tian eq. 1-3: atan2(n_y, -n_z)).
+    let th1: f64 = rows[rows.len() - 1]
+        .split(',')
+        .nth(2)
+        .unwrap()
+        .parse()
+        .unwrap();
+    let k = (0.035f64 * 0.035 + 0.052 * 0.052 + 1.0).sqrt();
+    let want = (0.052 / k).atan2(1.0 / k).to_degrees();
+    assert!((th1 - want).abs() < 0.01, "{th1} vs {want}");
+    let v: serde_json::Value =
+        serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
+    assert_eq!(v["nmt_state"], "pre-operational");
+}
+
+/// A running `perpend node` process; killed on drop unless taken.
+struct Proc(Option<Child>);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Some(c) = self.0.as_mut() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+impl Board {
+    fn spawn_node(&self, args: &[&str]) -> Proc {
+        let c = Command::new(env!("CARGO_BIN_EXE_perpend"))
+            .args(["--quiet", "node", "--bus", &self.bus, "--node-id", NODE])
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        Proc(Some(c))
+    }
+}
+
+/// Sends SIGINT after `after` and waits (at most 10 s) for the exit.
+#[cfg(unix)]
+fn interrupt(mut p: Proc, after: Duration) -> Output {
+    use nix::sys::signal::{kill, Signal};
+    use nix::unistd::Pid;
+    std::thread::sleep(after);
+    let pid = p.0.as_ref().unwrap().id();
+    kill(Pid::from_raw(pid as i32), Signal::SIGINT).unwrap();
+    let end = Instant::now() + Duration::from_secs(10);
+    while p.0.as_mut().unwrap().try_wait().unwrap().is_none() {
+        assert!(Instant::now() < end, "no exit within 10 s of Ctrl-C");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    p.0.take().unwrap().wait_with_output().unwrap()
+}
+
+#[cfg(unix)]
+#[test]
+fn ctrl_c_appends_nothing_and_leaves_the_board_as_found() {
+    let b = Board::start(&[]);
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("poses.csv");
+    let args = [
+        "capture",
+        "--plane",
+        PLANE,
+        "--pose",
+        "1",
+        "--out",
+        p.to_str().unwrap(),
+        "--samples",
+        "100000",
+    ];
+    let o = interrupt(b.spawn_node(&args), Duration::from_millis(800));
+    let err = failed(&o);
+    assert!(
+        err.contains("interrupted (Ctrl-C): nothing was appended"),
+        "{err}"
+    );
+    assert!(!p.exists());
+    // A monitor that started the node ends at Ctrl-C with the node
+    // pre-operational again.
+    let o = interrupt(
+        b.spawn_node(&["monitor", "--start"]),
+        Duration::from_millis(2500),
+    );
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(err.contains("the node is pre-operational again"), "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
+    assert_eq!(v["nmt_state"], "pre-operational");
+}
