@@ -366,7 +366,10 @@ fn setup() -> (Fw, can::CanRx<'static>) {
         Ok(s) => s,
         Err(_) => defmt::panic!("storage range is not a valid map range"),
     };
-    let app = App::new(store);
+    // 0x1018 sub 4: the 96-bit unique ID folded to 32 bits.
+    let serial = perpend_can::config::serial_from_uid(&embassy_stm32::uid::uid());
+    info!("serial number {=u32:#010x}", serial);
+    let app = App::with_serial(store, serial);
     match app.boot() {
         Boot::Stored => info!("boot: stored parameters"),
         Boot::Missing => info!("boot: no stored parameters, factory defaults (uncalibrated)"),

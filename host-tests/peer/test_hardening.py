@@ -34,7 +34,9 @@ TOGGLE = 0x05030000
 COMMAND = 0x05040001
 READ_ONLY = 0x06010002
 NO_OBJECT = 0x06020000
-LENGTH = 0x06070010
+LENGTH = 0x06070010  # length differs from the size the client declared
+TOO_LONG = 0x06070012
+TOO_SHORT = 0x06070013
 NO_SUB = 0x06090011
 RANGE = 0x06090030
 TOO_HIGH = 0x06090031
@@ -141,8 +143,8 @@ def test_write_protection_attacks_change_nothing(board):
         (0x2400, 2, struct.pack("<H", 300), RANGE),
         (0x2400, 2, struct.pack("<H", 0), RANGE),
         # wrong lengths
-        (0x2300, 1, b"\x10\x27", LENGTH),
-        (0x2400, 1, b"\x05\x00\x00\x00", LENGTH),
+        (0x2300, 1, b"\x10\x27", TOO_SHORT),
+        (0x2400, 1, b"\x05\x00\x00\x00", TOO_LONG),
         # no such object / sub-index
         (0x2500, 0, b"\x00", NO_OBJECT),
         (0x2300, 5, b"\x00", NO_SUB),
@@ -178,13 +180,13 @@ def test_write_protection_attacks_change_nothing(board):
         return raw.request(bytes([cmd]) + data + bytes(7 - n))
 
     for size in (8, 5, 0xFFFFFFFF):
-        assert raw_abort(initiate(0x2300, 1, size)) == LENGTH
-    assert abort_code(lambda: sdo.download(0x2102, 8, bytes(8))) == LENGTH  # canopen, segmented
+        assert raw_abort(initiate(0x2300, 1, size)) == TOO_LONG
+    assert abort_code(lambda: sdo.download(0x2102, 8, bytes(8))) == TOO_LONG  # canopen, segmented
     assert initiate(0x2300, 1, 4)[0] == 0x60
     assert raw_abort(segment(0, bytes(7), False)) == LENGTH
     assert initiate(0x2101, 2, None)[0] == 0x60
     assert segment(0, bytes(7), False)[0] == 0x20
-    assert raw_abort(segment(1, bytes(7), True)) == LENGTH
+    assert raw_abort(segment(1, bytes(7), True)) == TOO_LONG
     # toggle
     assert initiate(0x2102, 8, None)[0] == 0x60
     assert raw_abort(segment(1, struct.pack("<f", 0.01), True)) == TOGGLE

@@ -513,14 +513,21 @@ fn bus_off_and_recovery() {
     r.app.bus_off_recovered();
     r.poll();
     let e = r.emcys();
-    assert_eq!(e.len(), 1, "{e:04x?}");
+    assert_eq!(e.len(), 2, "{e:04x?}");
     assert_eq!(e[0].0, emcy::BUS_OFF_RECOVERED);
     assert_eq!(
         e[0].1 & (error_register::COMMUNICATION | error_register::GENERIC),
         error_register::COMMUNICATION | error_register::GENERIC
     );
-    // no error reset: the sensor fault is still active; the controller
-    // sees it in the status word, 0x1001 and 0x1003 (its EMCY was lost)
+    // its error reset carries the error register that remains: the sensor
+    // fault is still active; the controller sees it in the status word,
+    // 0x1001 and 0x1003 (its EMCY was lost)
+    assert_eq!(e[1].0, 0);
+    assert_eq!(
+        e[1].1,
+        error_register::CURRENT | error_register::GENERIC,
+        "{e:04x?}"
+    );
     let mut c = counts_for_mm(r.live_mm());
     c[2] = counts_for_ma(0.0, 2);
     let o = r.sample(c);

@@ -25,6 +25,8 @@ const NO_OBJECT: u32 = 0x0602_0000;
 const NOT_MAPPABLE: u32 = 0x0604_0041;
 const PDO_LENGTH: u32 = 0x0604_0042;
 const LENGTH: u32 = 0x0607_0010;
+const TOO_LONG: u32 = 0x0607_0012;
+const TOO_SHORT: u32 = 0x0607_0013;
 const NO_SUB: u32 = 0x0609_0011;
 const RANGE: u32 = 0x0609_0030;
 const TOO_HIGH: u32 = 0x0609_0031;
@@ -307,7 +309,7 @@ fn calibration_without_unlock_is_refused() {
         );
     }
     // the unlock value with a wrong length
-    refused(&mut b, LENGTH, 0x2010, 0, |b| {
+    refused(&mut b, TOO_SHORT, 0x2010, 0, |b| {
         Some(b.write(0x2010, 0, &UNLOCK_SIGNATURE.to_le_bytes()[..2]))
     });
 }
@@ -557,7 +559,8 @@ fn wrong_lengths_for_every_writable_object() {
             if n == e.ty.size() {
                 continue;
             }
-            refused(&mut b, LENGTH, index, e.sub, |b| {
+            let code = if n > e.ty.size() { TOO_LONG } else { TOO_SHORT };
+            refused(&mut b, code, index, e.sub, |b| {
                 Some(b.write(index, e.sub, &[0x11, 0x22, 0x33, 0x44][..n]))
             });
         }
@@ -579,7 +582,8 @@ fn oversized_segmented_downloads_are_refused() {
         let size = od::find(index, sub).unwrap().1.ty.size() as u32;
         // a declared size that is not the object's
         for declared in [0, size + 1, 8, 255, u32::MAX] {
-            refused(&mut b, LENGTH, index, sub, |b| {
+            let code = if declared > size { TOO_LONG } else { TOO_SHORT };
+            refused(&mut b, code, index, sub, |b| {
                 b.initiate(index, sub, Some(declared))
             });
         }
@@ -596,12 +600,12 @@ fn oversized_segmented_downloads_are_refused() {
             b.segment(false, &[0x55; 7][..size as usize + 1], true)
         });
         // size not indicated: more than the object holds in one segment
-        refused(&mut b, LENGTH, index, sub, |b| {
+        refused(&mut b, TOO_LONG, index, sub, |b| {
             b.initiate(index, sub, None).unwrap().unwrap();
             b.segment(false, &[0x55; 7][..size as usize + 1], true)
         });
         // ... or spread over segments beyond the server's buffer
-        refused(&mut b, LENGTH, index, sub, |b| {
+        refused(&mut b, TOO_LONG, index, sub, |b| {
             b.initiate(index, sub, None).unwrap().unwrap();
             assert_eq!(b.segment(false, &[0; 7], false).unwrap().unwrap()[0], 0x20);
             b.segment(true, &[0; 7], true)
@@ -780,7 +784,7 @@ fn store_restore_and_pdo_attacks_are_refused() {
             Some(b.write_u32(0x1011, 1, v))
         });
     }
-    refused(&mut b, LENGTH, 0x1010, 1, |b| {
+    refused(&mut b, TOO_SHORT, 0x1010, 1, |b| {
         Some(b.write(0x1010, 1, b"sav"))
     });
     // a store while one is pending: refused, the first one completes
@@ -943,7 +947,7 @@ fn attacks_on_the_board_reach_neither_pipeline_nor_flash() {
     expect(&mut b, r, RANGE);
     // oversized segmented
     let r = b.sdo([0x21, 0x00, 0x23, 1, 8, 0, 0, 0]);
-    expect(&mut b, r, LENGTH);
+    expect(&mut b, r, TOO_LONG);
     // in operational
     b.nmt(0x01);
     let r = b.write(0x2010, 0, &UNLOCK_SIGNATURE.to_le_bytes());

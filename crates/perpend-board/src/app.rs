@@ -27,8 +27,15 @@
 //!   sets status bit 21 and EMCY 0x6300; nothing invalid is ever stored.
 //! * **store** (0x1010 "save"): the record (stamp + 1) and the image are
 //!   stored as one item; the SDO confirmation follows the flash outcome.
-//!   **restore** (0x1011 "load") stores a tombstone: the next boot uses the
-//!   factory defaults.
+//!   Sub 1 stores everything, sub 2 the communication objects
+//!   (0x1000..0x1FFF), sub 3 the application objects (0x2000..); the
+//!   other group keeps its stored values. **restore** (0x1011 "load",
+//!   same sub-indices) stores a record with the group's defaults (sub 1
+//!   and 3 also the record's settings without an object), active from the
+//!   next reset node or power-on; the node-id and bit rate (0x2400) are
+//!   never restored. A restore used to store a tombstone
+//!   ([`crate::storage::TOMBSTONE`]); one written by older firmware still
+//!   boots the factory defaults.
 //!
 //! ## EMCY
 //!
@@ -48,11 +55,12 @@
 //! A condition raises its EMCY on the first sample that shows it; it is
 //! cleared only after [`EMCY_CLEAR_SAMPLES`] samples without it, so a
 //! flickering fault does not flood the bus. Bus events are raised and
-//! cleared at once (one EMCY, then the "error reset" when nothing else is
-//! active). The transmit-queue EMCY is sent when frames start being dropped
+//! cleared at once (one EMCY, then its "error reset" with the register that
+//! remains). The transmit-queue EMCY is sent when frames start being dropped
 //! after [`TX_EMCY_QUIET_US`] without drops: once per congestion episode,
 //! however long it lasts (0x2008 counts every frame).
 
+use perpend_can::od::Group;
 use perpend_can::status::{emcy, error_register};
 use perpend_can::{
     Acquisition as OdAcquisition, Defaults, Device, Events, Frame, Measurement, Request,
@@ -67,7 +75,7 @@ use crate::status::{
     sensor_nibble, CONFIG_INVALID, NO_PLANE, SENSOR_OPEN_LOOP, SENSOR_OVERCURRENT, SENSOR_STUCK,
     SENSOR_VALID,
 };
-use crate::storage::{clear, load_with_tail, save_with_tail, Boot, ParamStore};
+use crate::storage::{load_with_tail, save_with_tail, Boot, ParamStore};
 
 /// Samples without a condition before its EMCY is cleared (100 ms at
 /// 1 kHz).
@@ -252,6 +260,8 @@ pub struct App<S: ParamStore> {
     extra: Params,
     boot: Boot,
     boot_bad: bool,
+    /// The stored record: `extra` after the next reset node.
+    next_extra: Params,
     cfg_gen: u32,
     quiet: [u16; CONDS],
     acq_changed: bool,
@@ -264,11 +274,19 @@ pub struct App<S: ParamStore> {
 }
 
 impl<S: ParamStore> App<S> {
+    /// Boots with serial number 0 (tests; the firmware and the virtual
+    /// board use [`App::with_serial`]).
+    pub fn new(store: S) -> Self {
+        Self::with_serial(store, 0)
+    }
+
     /// Boots: loads the stored item from `store` (factory defaults if it is
-    /// missing or bad) and builds the device and the pipeline.
-    pub fn new(mut store: S) -> Self {
+    /// missing or bad) and builds the device, whose 0x1018 sub 4 is
+    /// `serial` (the firmware passes [`perpend_can::config::serial_from_uid`]
+    /// of the MCU's unique ID), and the pipeline.
+    pub fn with_serial(mut store: S, serial: u32) -> Self {
         let factory = Params::factory();
-        let defaults = defaults_for(&factory);
+        let defaults = defaults_for(&factory).with_serial(serial);
         let mut image = [0u8; IMAGE_LEN];
         let (stored, mut boot, n) = load_with_tail(&mut store, &mut image);
         let mut dev = Device::new(factory.can.node_id, &defaults);
@@ -291,6 +309,7 @@ impl<S: ParamStore> App<S> {
             extra,
             boot,
             boot_bad,
+            next_extra: extra,
             quiet: [0; CONDS],
             acq_changed: false,
             can_changed: false,
@@ -494,18 +513,16 @@ impl<S: ParamStore> App<S> {
     fn service(&mut self, out: &mut impl FnMut(Frame)) {
         let ev = self.dev.take_events();
         if ev.contains(Events::REQUEST) {
-            match self.dev.pending_request() {
-                Some(Request::Store) => {
-                    let ok = self.store_now();
-                    // NoRequest cannot happen: a request is pending.
-                    let _ = self.dev.finish_request(ok, out);
-                }
-                Some(Request::Restore) => {
-                    let ok = clear(&mut self.store).is_ok();
-                    let _ = self.dev.finish_request(ok, out);
-                }
-                None => {}
+            if let Some(req) = self.dev.pending_request() {
+                let ok = self.store_now(req);
+                // NoRequest cannot happen: a request is pending.
+                let _ = self.dev.finish_request(ok, out);
             }
+        }
+        if ev.contains(Events::RESET_NODE) {
+            // The stored record's settings without an object (ADC
+            // reference, detectors, signal spans) apply from now on too.
+            self.extra = self.next_extra;
         }
         if ev.contains(Events::CONFIG_CHANGED)
             || ev.contains(Events::RESET_NODE)
@@ -518,17 +535,30 @@ impl<S: ParamStore> App<S> {
         }
     }
 
-    /// Stores the record and the image; true on success.
-    fn store_now(&mut self) -> bool {
-        let Ok(mut p) = params_from_device(&self.dev, &self.extra) else {
+    /// Carries out a store or restore: stores the record and the image the
+    /// request leaves (both describe the same values: the record is taken
+    /// from a copy of the device with the image loaded); true on success.
+    /// A restore of the application parameters also restores the record's
+    /// settings without an object to the factory ones.
+    fn store_now(&mut self, req: Request) -> bool {
+        let mut image = [0u8; IMAGE_LEN];
+        self.dev.persistent_image(&mut image);
+        let mut staged = self.dev.clone();
+        if staged.load_image(&image).is_err() {
+            return false;
+        }
+        let base = match req {
+            Request::Restore(Group::All | Group::Application) => Params::factory(),
+            _ => self.next_extra,
+        };
+        let Ok(mut p) = params_from_device(&staged, &base) else {
             return false;
         };
         p.stamp = self.extra.stamp.wrapping_add(1).max(1);
-        let mut image = [0u8; IMAGE_LEN];
-        self.dev.persistent_image(&mut image);
         match save_with_tail(&mut self.store, &p, &image) {
             Ok(()) => {
                 self.extra.stamp = p.stamp;
+                self.next_extra = p;
                 self.stores += 1;
                 if self.boot_bad {
                     self.boot_bad = false;

@@ -18,6 +18,8 @@ struct Bench {
     app: HostApp,
     t: u64,
     sent: Vec<Frame>,
+    /// Node-id the bench addresses.
+    node: u16,
 }
 
 impl Bench {
@@ -26,6 +28,7 @@ impl Bench {
             app: App::new(host_store(flash)),
             t: 0,
             sent: Vec::new(),
+            node: NODE,
         };
         b.poll();
         b
@@ -52,7 +55,7 @@ impl Bench {
     }
 
     fn nmt(&mut self, cs: u8) {
-        self.send(Frame::new(0, &[cs, NODE as u8]));
+        self.send(Frame::new(0, &[cs, self.node as u8]));
     }
 
     /// Expedited SDO download; `Err(abort code)` on an abort.
@@ -63,10 +66,10 @@ impl Bench {
         p[1..3].copy_from_slice(&index.to_le_bytes());
         p[3] = sub;
         p[4..4 + data.len()].copy_from_slice(data);
-        let got = self.send(Frame::new(0x600 + NODE, &p));
+        let got = self.send(Frame::new(0x600 + self.node, &p));
         let r = got
             .iter()
-            .find(|f| f.id == 0x580 + NODE)
+            .find(|f| f.id == 0x580 + self.node)
             .expect("SDO response");
         match r.data[0] {
             0x60 => Ok(()),
@@ -177,12 +180,99 @@ fn calibration_write_store_reboot() {
     let mut b = b;
     let o = b.sample([30000; 4]);
     assert_eq!(o.status & UNCALIBRATED, 0);
-    // restore: next boot is factory
+    // restore: next boot is factory (a stored record of the defaults)
     b.write(0x1011, 1, &LOAD.to_le_bytes()).unwrap();
     let b = b.reboot();
-    assert_eq!(b.app.boot(), Boot::Missing);
+    assert_eq!(b.app.boot(), Boot::Stored);
     assert!(!b.app.pipeline().calibrated());
-    assert_eq!(*b.app.pipeline().params(), Params::factory());
+    let factory = Params {
+        stamp: 2,
+        ..Params::factory()
+    };
+    assert_eq!(*b.app.pipeline().params(), factory);
+}
+
+/// Issue 16 item 2: a restore used to bring the node back as 0x20 at
+/// 1000 kbit/s; the node-id and bit rate (0x2400) now survive every
+/// restore, and the groups of 0x1010/0x1011 are kept apart.
+#[test]
+fn restore_keeps_node_id_and_bit_rate() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2400, 1, &[0x10]).unwrap();
+    b.write(0x2400, 2, &500u16.to_le_bytes()).unwrap();
+    b.write(0x1017, 0, &250u16.to_le_bytes()).unwrap();
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 1, 50.5).unwrap();
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    let mut b = b.reboot();
+    b.node = 0x10;
+    assert_eq!(b.app.device().node_id(), 0x10);
+    // restore communication only: heartbeat back, calibration kept
+    b.write(0x1011, 2, &LOAD.to_le_bytes()).unwrap();
+    b.nmt(0x81);
+    b.poll();
+    assert_eq!(b.app.device().heartbeat_ms(), 1000);
+    assert_eq!(b.app.device().calibration(0).unwrap().zero[0], 50.5);
+    // restore all + reset node: node-id and bit rate stay
+    b.write(0x1011, 1, &LOAD.to_le_bytes()).unwrap();
+    b.sent.clear();
+    b.nmt(0x81);
+    b.poll();
+    assert!(b.sent.contains(&Frame::new(0x710, &[0])), "{:?}", b.sent);
+    let c = b.app.take_can_change().expect("reset");
+    assert_eq!((c.node_id, c.bitrate), (0x10, Bitrate::K500));
+    assert!(!b.app.pipeline().calibrated());
+    assert_eq!(b.app.device().read_u32(0x1800, 1), Some(0x4000_0190));
+    // and after a power cycle
+    let b = b.reboot();
+    assert_eq!(b.app.device().node_id(), 0x10);
+    assert_eq!(b.app.can_config().bitrate, Bitrate::K500);
+    assert!(!b.app.pipeline().calibrated());
+}
+
+#[test]
+fn save_groups_store_only_their_objects() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x1017, 0, &300u16.to_le_bytes()).unwrap();
+    b.write(0x2300, 1, &2000u32.to_le_bytes()).unwrap();
+    // communication only
+    b.write(0x1010, 2, &SAVE.to_le_bytes()).unwrap();
+    let mut b = b.reboot();
+    assert_eq!(b.app.device().heartbeat_ms(), 300);
+    assert_eq!(b.app.acquisition().period_us, 1000);
+    b.write(0x2300, 1, &2000u32.to_le_bytes()).unwrap();
+    b.write(0x1017, 0, &400u16.to_le_bytes()).unwrap();
+    // application only
+    b.write(0x1010, 3, &SAVE.to_le_bytes()).unwrap();
+    let mut b = b.reboot();
+    assert_eq!(b.app.device().heartbeat_ms(), 300);
+    assert_eq!(b.app.acquisition().period_us, 2000);
+    // restore application: period back at the next reset node
+    b.write(0x1011, 3, &LOAD.to_le_bytes()).unwrap();
+    assert_eq!(b.app.acquisition().period_us, 2000);
+    b.nmt(0x81);
+    b.poll();
+    assert_eq!(b.app.acquisition().period_us, 1000);
+    assert_eq!(b.app.device().heartbeat_ms(), 300);
+    assert_eq!(b.write(0x1010, 4, &SAVE.to_le_bytes()), Err(0x0609_0011));
+}
+
+/// An unsaved node-id / bit-rate change is not dropped by a reset node: it
+/// becomes active like at a reset communication (lost at power-off).
+#[test]
+fn unsaved_node_id_applies_at_reset_node() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2400, 1, &[0x11]).unwrap();
+    b.write(0x2400, 2, &250u16.to_le_bytes()).unwrap();
+    b.nmt(0x81);
+    b.poll();
+    b.node = 0x11;
+    let c = b.app.take_can_change().expect("reset");
+    assert_eq!((c.node_id, c.bitrate), (0x11, Bitrate::K250));
+    assert_eq!(b.app.device().read_u32(0x1801, 1), Some(0x4000_0291));
+    b.write(0x1017, 0, &100u16.to_le_bytes()).unwrap();
+    let b = b.reboot();
+    assert_eq!(b.app.device().node_id(), 0x20);
 }
 
 #[test]
@@ -314,6 +404,65 @@ fn sensor_faults_raise_and_clear_emcy() {
         [0.0; 3],
         "no NaN on the bus"
     );
+}
+
+/// A flapping sensor fault: inside the hold time one EMCY in all; beyond
+/// it one EMCY and one error reset per episode, 0x1003 lists the code once.
+#[test]
+fn flapping_fault_emcy_and_history() {
+    let mut b = Bench::new(HostFlash::new());
+    b.nmt(0x01);
+    let good = good_counts(&b.app);
+    let p = *b.app.pipeline().params();
+    let mut bad = good;
+    bad[1] = counts_for_ma(&p, 1, 2.0);
+    for _ in 0..20 {
+        b.sample(bad);
+        for _ in 0..10 {
+            b.sample(good);
+        }
+    }
+    assert_eq!(b.emcys().len(), 1, "{:x?}", b.emcys());
+    for _ in 0..3 {
+        for _ in 0..EMCY_CLEAR_SAMPLES + 1 {
+            b.sample(good);
+        }
+        b.sample(bad);
+    }
+    let codes: Vec<u16> = b.emcys().iter().map(|e| e.0).collect();
+    let code = emcy::sensor_current(1);
+    assert_eq!(codes, [code, 0, code, 0, code, 0, code]);
+    assert_eq!(b.app.device().read_u32(0x1003, 0), Some(1));
+    assert_eq!(
+        b.app.device().read_u32(0x1003, 1).map(|v| v as u16),
+        Some(code)
+    );
+}
+
+/// A record stored by firmware before issue 16 (device image of layout 1)
+/// still boots as stored.
+#[test]
+fn record_of_the_previous_layout_still_boots() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2300, 1, &3000u32.to_le_bytes()).unwrap();
+    b.write(0x1017, 0, &500u16.to_le_bytes()).unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    b.app.device().persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = perpend_can::device::image_as_v1(&img, &mut old);
+    let p = Params {
+        stamp: 1,
+        ..Params::factory()
+    };
+    let mut f = b.app.into_store().into_flash();
+    f.power_on();
+    let mut store = host_store(f);
+    crate::storage::save_with_tail(&mut store, &p, &old[..n]).unwrap();
+    let b = Bench::new(store.into_flash());
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert_eq!(b.app.acquisition().period_us, 3000);
+    assert_eq!(b.app.device().heartbeat_ms(), 500);
+    assert_eq!(b.app.device().error_register(), 0);
 }
 
 #[test]

@@ -12,10 +12,93 @@ use perpend_core::normal::Method;
 use perpend_core::params::{Bitrate, Frontend, Params, Transfer};
 use perpend_core::Real;
 
+/// Vendor-ID placeholder of builds without `PERPEND_VENDOR_ID`:
+/// 0xAFFF_5050 ("PP"). CiA assigns every vendor-ID (0x0000_0000 to
+/// 0xAFFE_FFFF) and reserves no range for tests or unregistered use; this
+/// value lies in 0xAFFF_0000..=0xFFFE_FFFF, which CiA lists as *reserved*
+/// (assigned to nobody), so it cannot collide with a registered vendor.
+/// A product shipped to integrators must be built with its CiA-assigned
+/// ID: `PERPEND_VENDOR_ID=0x... cargo xtask fw`.
+pub const VENDOR_ID_PLACEHOLDER: u32 = 0xAFFF_5050;
+
+/// The vendor-ID (0x1018 sub 1), fixed at build time: the environment
+/// variable `PERPEND_VENDOR_ID` (decimal or `0x` hex, not 0) when the crate
+/// is compiled, else [`VENDOR_ID_PLACEHOLDER`]. A malformed or zero value
+/// is a compile error.
+pub const VENDOR_ID: u32 = match option_env!("PERPEND_VENDOR_ID") {
+    Some(s) => match parse_u32(s.as_bytes()) {
+        Some(v) if v != 0 => v,
+        _ => panic!("PERPEND_VENDOR_ID: expected a non-zero decimal or 0x hex u32"),
+    },
+    None => VENDOR_ID_PLACEHOLDER,
+};
+
+/// Device type 0x1000: 0x0000_0000, "no standardized device profile"
+/// (CiA 301 §7.5.2.1; the additional information is then 0 too). CiA 404
+/// (measuring devices) was considered: its analog-input function blocks
+/// (0x6100.. field values, 0x6130 process values, 0x6110 sensor type,
+/// 0x6131 physical unit coded per CiA 303-2, ...) are not implemented,
+/// and announcing profile 404 (0x0194) would make a profile-aware master
+/// look for them. The measurement lives in the manufacturer area
+/// (0x2001..0x2008, docs/can.md).
+pub const DEVICE_TYPE: u32 = 0;
+
+/// Parses a decimal or `0x` hexadecimal `u32` (const, for build-time
+/// settings).
+pub const fn parse_u32(s: &[u8]) -> Option<u32> {
+    let (radix, start) = if s.len() > 2 && s[0] == b'0' && (s[1] == b'x' || s[1] == b'X') {
+        (16u64, 2)
+    } else {
+        (10u64, 0)
+    };
+    if s.len() <= start {
+        return None;
+    }
+    let mut v: u64 = 0;
+    let mut i = start;
+    while i < s.len() {
+        let d = match s[i] {
+            b'0'..=b'9' => (s[i] - b'0') as u64,
+            b'a'..=b'f' => (s[i] - b'a' + 10) as u64,
+            b'A'..=b'F' => (s[i] - b'A' + 10) as u64,
+            b'_' => {
+                i += 1;
+                continue;
+            }
+            _ => return None,
+        };
+        if d >= radix {
+            return None;
+        }
+        v = v * radix + d;
+        if v > u32::MAX as u64 {
+            return None;
+        }
+        i += 1;
+    }
+    Some(v as u32)
+}
+
+/// A 32-bit serial number (0x1018 sub 4) from the MCU's 96-bit unique ID
+/// (STM32G4 UID at 0x1FFF_7590, little-endian bytes): FNV-1a over the 12
+/// bytes. Every UID bit influences the result (XOR-folding the three words
+/// would cancel patterns between lot number and wafer coordinates); two
+/// boards collide with probability 2^-32 per pair.
+pub const fn serial_from_uid(uid: &[u8; 12]) -> u32 {
+    let mut h: u32 = 0x811C_9DC5;
+    let mut i = 0;
+    while i < 12 {
+        h ^= uid[i] as u32;
+        h = h.wrapping_mul(0x0100_0193);
+        i += 1;
+    }
+    h
+}
+
 /// Identity object 0x1018.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Identity {
-    /// Sub 1: vendor-ID assigned by CiA (0 = none assigned).
+    /// Sub 1: vendor-ID assigned by CiA ([`VENDOR_ID`]).
     pub vendor_id: u32,
     /// Sub 2: product code.
     pub product_code: u32,
@@ -208,7 +291,7 @@ pub const BIT_RATES_KBPS: [u16; 4] = [125, 250, 500, 1000];
 /// (factory) values of every persisted object. 0x1011 "load" restores these.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Defaults {
-    /// 0x1000 device type (0: no standard device profile).
+    /// 0x1000 device type ([`DEVICE_TYPE`]).
     pub device_type: u32,
     /// 0x1008 manufacturer device name.
     pub device_name: &'static str,
@@ -299,8 +382,9 @@ impl Defaults {
     /// [`Params::factory`] (the design head, 4-20 mA sensors, 1 kHz, least
     /// squares; see there), heartbeat 1000 ms, SDO timeout 1 s, no ADC
     /// scan-time check (`adc_scan_ns` 0), identity
-    /// with vendor-ID 0 (none assigned by CiA), product code "PERP" and
-    /// serial 0 (the firmware sets it from the MCU UID).
+    /// with vendor-ID [`VENDOR_ID`], product code "PERP" and serial 0 (the
+    /// board sets it with [`Defaults::with_serial`]: the firmware from the
+    /// MCU UID, [`serial_from_uid`]).
     pub fn nominal() -> Self {
         Self::from_params(&Params::factory())
     }
@@ -311,12 +395,12 @@ impl Defaults {
     /// [`crate::Device::new`] separately (usually `p.can.node_id`).
     pub fn from_params(p: &Params) -> Self {
         Self {
-            device_type: 0,
+            device_type: DEVICE_TYPE,
             device_name: "perpend normal sensor",
             hardware_version: "perpend board rev A",
             software_version: concat!("perpend ", env!("CARGO_PKG_VERSION")),
             identity: Identity {
-                vendor_id: 0,
+                vendor_id: VENDOR_ID,
                 product_code: 0x5045_5250,
                 revision: 0x0001_0000,
                 serial: 0,
@@ -329,6 +413,12 @@ impl Defaults {
             acquisition: Acquisition::from_params(&p.acq),
             bit_rate_kbps: kbps_of(p.can.bitrate),
         }
+    }
+
+    /// The defaults with serial number `serial` (0x1018 sub 4).
+    pub const fn with_serial(mut self, serial: u32) -> Self {
+        self.identity.serial = serial;
+        self
     }
 
     /// The defaults with the calibration replaced by `head` (e.g. the
@@ -453,6 +543,27 @@ impl Measurement {
 mod tests {
     use super::*;
     use approx::assert_relative_eq;
+
+    #[test]
+    fn build_time_identity() {
+        assert_eq!(parse_u32(b"0xAFFF_5050"), Some(0xAFFF_5050));
+        assert_eq!(parse_u32(b"1234"), Some(1234));
+        assert_eq!(parse_u32(b"0x1_0000_0000"), None);
+        assert_eq!(parse_u32(b"0x"), None);
+        assert_eq!(parse_u32(b"12a"), None);
+        assert_ne!(VENDOR_ID, 0);
+        let d = Defaults::nominal().with_serial(0x1234_5678);
+        assert_eq!(d.identity.serial, 0x1234_5678);
+        assert_eq!(d.identity.vendor_id, VENDOR_ID);
+        assert_eq!(d.device_type, DEVICE_TYPE);
+        // every UID byte matters
+        let a = serial_from_uid(&[0; 12]);
+        for i in 0..12 {
+            let mut u = [0u8; 12];
+            u[i] = 1;
+            assert_ne!(serial_from_uid(&u), a);
+        }
+    }
 
     #[test]
     fn calibration_array_round_trip() {

@@ -18,6 +18,7 @@ use crate::config::{
     TransferFunction,
 };
 use crate::frame::Frame;
+pub use crate::od::Group;
 use crate::od::{
     self, Access, Class, DataType, Init, Limits, Lookup, Text, ENTRIES, LOAD_SIGNATURE, MAX_MAPPED,
     PERSISTENT, SAVE_SIGNATURE, TPDOS, UNLOCK_SIGNATURE,
@@ -54,14 +55,17 @@ impl NmtState {
 }
 
 /// A request the application must carry out on its non-volatile storage.
+/// In both cases it writes [`Device::persistent_image`], which already
+/// holds what the request leaves stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Request {
-    /// 0x1010 "save": write [`Device::persistent_image`] to storage.
-    Store,
-    /// 0x1011 "load": erase the stored record so that the defaults apply at
-    /// the next power-on (the device itself applies them at the next reset
-    /// node).
-    Restore,
+    /// 0x1010 sub 1/2/3 "save": the group's current values are stored,
+    /// the other persisted objects keep their stored values.
+    Store(Group),
+    /// 0x1011 sub 1/2/3 "load": the group's defaults are stored (0x2400
+    /// excepted, see [`od::restorable`]); they become active at the next
+    /// reset node or power-on (CiA 301 §7.5.2.14).
+    Restore(Group),
 }
 
 /// Things that happened since the application last called
@@ -104,12 +108,16 @@ pub const IMAGE_LEN: usize = 8 + 4 * PERSISTENT;
 pub const MAX_ACTIVE_ERRORS: usize = 8;
 const EMCY_QUEUE: usize = 8;
 
-/// FNV-1a over (index, sub, type) of the persisted entries: changes when
-/// the persisted layout changes.
-fn layout_signature() -> u32 {
+/// Length of an image of layout 1 (firmware before issue 16, without the
+/// entries marked `since_v2`): still accepted by [`Device::load_image`].
+pub const IMAGE_LEN_V1: usize = 8 + 4 * od::PERSISTENT_V1;
+
+/// FNV-1a over (index, sub, type) of the persisted entries (`v1`: those of
+/// layout 1 only): changes when the persisted layout changes.
+fn layout_signature_of(v1: bool) -> u32 {
     let mut h: u32 = 0x811C_9DC5;
     for (_, index, e) in od::entries() {
-        if e.persist {
+        if e.persist && !(v1 && e.since_v2) {
             for b in index
                 .to_le_bytes()
                 .into_iter()
@@ -124,19 +132,44 @@ fn layout_signature() -> u32 {
     h
 }
 
+fn layout_signature() -> u32 {
+    layout_signature_of(false)
+}
+
+/// Converts a current image ([`IMAGE_LEN`] bytes) into the layout-1 image
+/// older firmware wrote (the `since_v2` entries left out): for
+/// compatibility tests. Returns the length written ([`IMAGE_LEN_V1`]).
+pub fn image_as_v1(img: &[u8; IMAGE_LEN], out: &mut [u8; IMAGE_LEN]) -> usize {
+    out[0..4].copy_from_slice(&layout_signature_of(true).to_le_bytes());
+    out[4..8].copy_from_slice(&(od::PERSISTENT_V1 as u32).to_le_bytes());
+    let (mut p, mut q) = (8, 8);
+    for (_, _, e) in od::entries() {
+        if e.persist {
+            if !e.since_v2 {
+                out[q..q + 4].copy_from_slice(&img[p..p + 4]);
+                q += 4;
+            }
+            p += 4;
+        }
+    }
+    q
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 struct TpdoRt {
     sync_count: u8,
     last_tx: Option<u64>,
+    /// The mapped data changed (beyond the deadband) since the last
+    /// transmission.
     event_pending: bool,
     timer_due: Option<u64>,
+    /// Payload of the last transmission (`None`: nothing sent yet).
+    last_data: Option<([u8; 8], u8)>,
 }
 
 #[derive(Debug, Clone)]
 struct Core {
     defaults: Defaults,
-    /// Node-id given to [`Device::new`]: the default of 0x2400 sub 1.
-    base_node: u8,
     node_id: u8,
     values: [u32; ENTRIES],
     /// Power-on values: what a reset restores (defaults overlaid with the
@@ -151,6 +184,8 @@ struct Core {
     n_active: usize,
     emcy_queue: [[u8; 8]; EMCY_QUEUE],
     emcy_len: usize,
+    /// Time of the last EMCY sent (the inhibit time 0x1015 counts from it).
+    emcy_last_tx: Option<u64>,
     request: Option<Request>,
     events: u8,
     config_gen: u32,
@@ -281,6 +316,18 @@ impl Core {
         }
     }
 
+    /// The value entry `s` (a persisted entry of `index`) has in storage
+    /// once `req` is carried out.
+    fn staged(&self, req: Request, s: usize, index: u16, e: &od::Entry) -> u32 {
+        match req {
+            Request::Store(g) if g.contains(index) => self.values[s],
+            Request::Restore(g) if g.contains(index) && od::restorable(index) => {
+                self.init_value(e, self.boot_node())
+            }
+            _ => self.boot[s],
+        }
+    }
+
     fn text(&self, t: Text) -> &'static str {
         match t {
             Text::DeviceName => self.defaults.device_name,
@@ -318,6 +365,10 @@ impl Core {
             self.unlocked = false;
             self.set(0x2010, 0, 0);
             self.event(Events::STATE_CHANGED);
+            if s == NmtState::Stopped {
+                // Nothing queued before the stop is sent after it.
+                self.emcy_len = 0;
+            }
             if s == NmtState::Operational {
                 self.tpdo = [TpdoRt::default(); TPDOS];
                 self.arm_event_timers(None);
@@ -376,9 +427,13 @@ impl Core {
         (map, n)
     }
 
-    /// The payload of TPDO `k`, or `None` if its mapping is unusable.
+    /// The payload of TPDO `k`, or `None` if its mapping is unusable or
+    /// empty (sub 0 = 0: an empty PDO is never sent).
     fn tpdo_frame(&self, k: usize) -> Option<Frame> {
         let (map, n) = self.mapping_of(k);
+        if n == 0 {
+            return None;
+        }
         let mut data = [0u8; 8];
         let mut len = 0usize;
         for &m in map.iter().take(n) {
@@ -395,25 +450,83 @@ impl Core {
         Some(Frame::new(id, &data[..len]))
     }
 
-    fn maps_measurement(&self, k: usize) -> bool {
-        let (map, n) = self.mapping_of(k);
-        map.iter()
-            .take(n)
-            .any(|&m| matches!((m >> 16) as u16, 0x2001..=0x2007))
+    /// The deadband (0x2009) of a mapped REAL32 object, if it has one.
+    fn deadband_of(&self, index: u16) -> Option<f32> {
+        match index {
+            0x2002 | 0x2003 => Some(self.get_f32(0x2009, 1)),
+            0x2001 => Some(self.get_f32(0x2009, 2)),
+            0x2004 | 0x2006 => Some(self.get_f32(0x2009, 3)),
+            _ => None,
+        }
     }
 
-    /// Applies a node-id change at a reset: node-relative values follow.
-    fn apply_node_id(&mut self) {
+    /// Whether payload `f` of TPDO `k` differs from the last one sent:
+    /// objects with a deadband by more than it, the others in any bit.
+    fn changed(&self, k: usize, f: &Frame) -> bool {
+        let Some((last, len)) = self.tpdo[k].last_data else {
+            return true;
+        };
+        if len != f.len {
+            return true;
+        }
+        let (map, n) = self.mapping_of(k);
+        let mut pos = 0usize;
+        for &m in map.iter().take(n) {
+            let bytes = (m as u8 / 8) as usize;
+            let (Some(a), Some(b)) = (last.get(pos..pos + bytes), f.data.get(pos..pos + bytes))
+            else {
+                return true;
+            };
+            let differs = match (self.deadband_of((m >> 16) as u16), a, b) {
+                (Some(db), &[a0, a1, a2, a3], &[b0, b1, b2, b3]) => {
+                    let d =
+                        f32::from_le_bytes([a0, a1, a2, a3]) - f32::from_le_bytes([b0, b1, b2, b3]);
+                    !(d.abs() <= db) // NaN counts as a change
+                }
+                _ => a != b,
+            };
+            if differs {
+                return true;
+            }
+            pos += bytes;
+        }
+        false
+    }
+
+    /// Sends TPDO `k` at `now_us` (nothing if it is empty or unusable) and
+    /// remembers what was sent.
+    fn send_tpdo(&mut self, k: usize, now_us: u64, out: &mut impl FnMut(Frame)) {
+        let rt = &mut self.tpdo[k];
+        rt.event_pending = false;
+        rt.last_tx = Some(now_us);
+        if let Some(f) = self.tpdo_frame(k) {
+            self.tpdo[k].last_data = Some((f.data, f.len));
+            out(f);
+        }
+    }
+
+    /// The node-id the stored (power-on) values were made for: 0x2400
+    /// sub 1 of `boot`.
+    fn boot_node(&self) -> u8 {
+        let v = slot(0x2400, 1).map_or(0, |s| self.boot[s]);
+        if (1..=127).contains(&v) {
+            v as u8
+        } else {
+            self.node_id
+        }
+    }
+
+    /// Makes the configured node-id (0x2400 sub 1) active: node-relative
+    /// values follow. Persisted COB-IDs follow only where they still hold
+    /// their default for `from` (the node-id the current values were made
+    /// for); the stored values are not touched.
+    fn apply_node_id(&mut self, from: u8) {
         let configured = self.get(0x2400, 1);
         let new = if (1..=127).contains(&configured) {
             configured as u8
         } else {
             self.node_id
         };
-        let old = self.node_id;
-        if new == old {
-            return;
-        }
         for (s, _, e) in od::entries() {
             if let Init::Node(base) = e.init {
                 if base == 0 {
@@ -422,14 +535,9 @@ impl Core {
                 if !e.persist {
                     self.values[s] = base + new as u32;
                     self.boot[s] = base + new as u32;
-                } else {
-                    let old_id = (base & 0x7FF) + old as u32;
+                } else if from != new && self.values[s] & 0x7FF == (base & 0x7FF) + from as u32 {
                     let new_id = (base & 0x7FF) + new as u32;
-                    for arr in [&mut self.values, &mut self.boot] {
-                        if arr[s] & 0x7FF == old_id {
-                            arr[s] = (arr[s] & !0x7FF) | new_id;
-                        }
-                    }
+                    self.values[s] = (self.values[s] & !0x7FF) | new_id;
                 }
             }
         }
@@ -437,10 +545,16 @@ impl Core {
     }
 
     fn reset_node(&mut self) {
+        // 0x2400 is kept: a written node-id / bit rate becomes active now,
+        // saved or not (docs/can.md).
+        let comm = [self.get(0x2400, 1), self.get(0x2400, 2)];
         self.values = self.boot;
+        self.set(0x2400, 1, comm[0]);
+        self.set(0x2400, 2, comm[1]);
         self.n_active = 0;
         self.emcy_len = 0;
-        self.apply_node_id();
+        let from = self.boot_node();
+        self.apply_node_id(from);
         self.reset_common();
         self.config_changed();
         self.event(Events::RESET_NODE);
@@ -452,7 +566,8 @@ impl Core {
                 self.values[s] = self.boot[s];
             }
         }
-        self.apply_node_id();
+        let from = self.boot_node();
+        self.apply_node_id(from);
         self.reset_common();
         self.event(Events::RESET_COMM);
     }
@@ -469,6 +584,42 @@ impl Core {
         }
     }
 
+    /// Sends queued EMCYs: all of them without an inhibit time (0x1015),
+    /// else one when the inhibit time since the previous one has passed.
+    fn send_emcys(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        let id = (self.get(0x1014, 0) & 0x7FF) as u16;
+        let inhibit = self.get(0x1015, 0) as u64 * 100;
+        let mut sent = 0;
+        while sent < self.emcy_len {
+            if self.emcy_last_tx.is_some_and(|l| now_us < l + inhibit) {
+                break;
+            }
+            out(Frame::new(id, &self.emcy_queue[sent]));
+            self.emcy_last_tx = Some(now_us);
+            sent += 1;
+        }
+        self.emcy_queue.copy_within(sent.., 0);
+        self.emcy_len -= sent;
+    }
+
+    /// Records `code` (with additional information `info`) as the newest
+    /// entry of 0x1003. A code already in the history moves to sub 1
+    /// instead of appearing twice (a flapping condition fills no history).
+    fn record_error(&mut self, code: u16, info: u32) {
+        let n = (self.get(0x1003, 0) as u8).min(8);
+        let found = (1..=n).find(|&s| self.get(0x1003, s) & 0xFFFF == code as u32);
+        // Shift subs 1..last down by one, newest at sub 1.
+        let last = found.unwrap_or((n + 1).min(8));
+        for s in (2..=last).rev() {
+            let prev = self.get(0x1003, s - 1);
+            self.set(0x1003, s, prev);
+        }
+        self.set(0x1003, 1, (info << 16) | code as u32);
+        if found.is_none() {
+            self.set(0x1003, 0, (n + 1).min(8) as u32);
+        }
+    }
+
     fn update_error_register(&mut self) {
         let mut reg = 0u8;
         for &(_, r) in &self.active[..self.n_active] {
@@ -477,7 +628,12 @@ impl Core {
         self.set(0x1001, 0, reg as u32);
     }
 
+    /// Queues an EMCY for the next poll; in stopped nothing is queued (the
+    /// error register and 0x1003 still follow).
     fn queue_emcy(&mut self, payload: [u8; 8]) {
+        if self.state == NmtState::Stopped {
+            return;
+        }
         if self.emcy_len == EMCY_QUEUE {
             // Drop the oldest: the newest state matters most.
             self.emcy_queue.copy_within(1.., 0);
@@ -525,10 +681,11 @@ impl Core {
                 Ok(Some(Written::Done))
             }
             0x1010 | 0x1011 => {
+                let group = Group::of_sub(sub).ok_or(SdoAbort::NoSub)?;
                 let (sig, req) = if index == 0x1010 {
-                    (SAVE_SIGNATURE, Request::Store)
+                    (SAVE_SIGNATURE, Request::Store(group))
                 } else {
-                    (LOAD_SIGNATURE, Request::Restore)
+                    (LOAD_SIGNATURE, Request::Restore(group))
                 };
                 if v != sig || self.request.is_some() {
                     return Err(SdoAbort::Store);
@@ -542,44 +699,7 @@ impl Core {
                 self.hb_restart = true;
                 Ok(Some(Written::Done))
             }
-            0x1800..=0x1803 => {
-                let k = (index - 0x1800) as usize;
-                match sub {
-                    1 => {
-                        let old = self.get(index, 1);
-                        if v & 0x2000_0000 != 0 || v & 0x1FFF_F800 != 0 {
-                            return Err(SdoAbort::Range);
-                        }
-                        let valid = v & 0x8000_0000 == 0;
-                        if valid {
-                            if !cob_allowed(v & 0x7FF) {
-                                return Err(SdoAbort::Range);
-                            }
-                            if old & 0x8000_0000 == 0 && old & 0x7FF != v & 0x7FF {
-                                return Err(SdoAbort::Range);
-                            }
-                        }
-                        self.set(index, 1, v);
-                        self.tpdo[k] = TpdoRt::default();
-                        Ok(Some(Written::Done))
-                    }
-                    2 => {
-                        if !(v <= 240 || v >= 254) {
-                            return Err(SdoAbort::Range);
-                        }
-                        self.set(index, 2, v);
-                        self.tpdo[k].sync_count = 0;
-                        self.arm_event_timers(Some(k));
-                        Ok(Some(Written::Done))
-                    }
-                    5 => {
-                        self.set(index, 5, v);
-                        self.arm_event_timers(Some(k));
-                        Ok(Some(Written::Done))
-                    }
-                    _ => Ok(None),
-                }
-            }
+            0x1800..=0x1803 => self.write_tpdo_comm((index - 0x1800) as usize, sub, v),
             0x1A00..=0x1A03 => {
                 let k = (index - 0x1A00) as usize;
                 if self.tpdo_valid(k) {
@@ -609,6 +729,56 @@ impl Core {
                 } else {
                     return Err(SdoAbort::Range);
                 }
+                Ok(Some(Written::Done))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    /// Writes TPDO communication parameter `sub` of TPDO `k` (CiA 301
+    /// §7.5.2.35): COB-ID bits 0-30 and the inhibit time only while the PDO
+    /// does not exist (0x06090030 otherwise); transmission type and event
+    /// timer at any time.
+    fn write_tpdo_comm(&mut self, k: usize, sub: u8, v: u32) -> Result<Option<Written>, SdoAbort> {
+        let index = 0x1800 + k as u16;
+        match sub {
+            1 => {
+                let old = self.get(index, 1);
+                if v & 0x2000_0000 != 0 || v & 0x1FFF_F800 != 0 {
+                    return Err(SdoAbort::Range);
+                }
+                let valid = v & 0x8000_0000 == 0;
+                if valid {
+                    if !cob_allowed(v & 0x7FF) {
+                        return Err(SdoAbort::Range);
+                    }
+                    // CiA 301 §7.5.2.35: bits 0-30 change only
+                    // while the PDO does not exist.
+                    if old & 0x8000_0000 == 0 && old & 0x7FFF_FFFF != v & 0x7FFF_FFFF {
+                        return Err(SdoAbort::Range);
+                    }
+                }
+                self.set(index, 1, v);
+                self.tpdo[k] = TpdoRt::default();
+                Ok(Some(Written::Done))
+            }
+            2 => {
+                if !(v <= 240 || v >= 254) {
+                    return Err(SdoAbort::Range);
+                }
+                self.set(index, 2, v);
+                self.tpdo[k].sync_count = 0;
+                self.arm_event_timers(Some(k));
+                Ok(Some(Written::Done))
+            }
+            3 if self.tpdo_valid(k) => {
+                // The inhibit time changes only while the PDO does
+                // not exist (CiA 301 §7.5.2.35).
+                Err(SdoAbort::Range)
+            }
+            5 => {
+                self.set(index, 5, v);
+                self.arm_event_timers(Some(k));
                 Ok(Some(Written::Done))
             }
             _ => Ok(None),
@@ -678,8 +848,8 @@ impl Dictionary for Core {
         if e.access != Access::Rw {
             return Err(SdoAbort::ReadOnly);
         }
-        if len.is_some_and(|l| l != e.ty.size()) {
-            return Err(SdoAbort::Length);
+        if let Some(a) = len.and_then(|l| crate::sdo::length_abort(e.ty.size(), l)) {
+            return Err(a);
         }
         self.write_allowed(index, e)
     }
@@ -713,7 +883,6 @@ impl Device {
         };
         let mut core = Core {
             defaults: *defaults,
-            base_node: node_id,
             node_id,
             values: [0; ENTRIES],
             boot: [0; ENTRIES],
@@ -726,6 +895,7 @@ impl Device {
             n_active: 0,
             emcy_queue: [[0; 8]; EMCY_QUEUE],
             emcy_len: 0,
+            emcy_last_tx: None,
             request: None,
             events: 0,
             config_gen: 0,
@@ -820,10 +990,7 @@ impl Device {
                 _ => false,
             };
             if send {
-                if let Some(f) = self.core.tpdo_frame(k) {
-                    self.core.tpdo[k].last_tx = Some(now_us);
-                    out(f);
-                }
+                self.core.send_tpdo(k, now_us, out);
             }
         }
     }
@@ -857,13 +1024,9 @@ impl Device {
                 c.hb_next = Some(if next > now_us { next } else { now_us + hb });
             }
         }
-        // Emergencies (not in stopped).
+        // Emergencies (not in stopped), at most one per inhibit time.
         if c.state != NmtState::Stopped {
-            let id = (c.get(0x1014, 0) & 0x7FF) as u16;
-            for p in &c.emcy_queue[..c.emcy_len] {
-                out(Frame::new(id, p));
-            }
-            c.emcy_len = 0;
+            c.send_emcys(now_us, out);
         }
         // Event-driven TPDOs.
         if c.state == NmtState::Operational {
@@ -879,15 +1042,12 @@ impl Device {
                     c.tpdo[k].timer_due = Some(now_us + timer);
                 }
                 let timer_fired = c.tpdo[k].timer_due.is_some_and(|t| now_us >= t);
+                // Event timer or change of the mapped data, never closer
+                // than the inhibit time to the previous transmission.
                 let inhibit_ok = rt.last_tx.is_none_or(|l| now_us >= l + inhibit);
-                if timer_fired || (rt.event_pending && inhibit_ok) {
-                    if let Some(f) = c.tpdo_frame(k) {
-                        out(f);
-                    }
-                    let rt = &mut c.tpdo[k];
-                    rt.last_tx = Some(now_us);
-                    rt.event_pending = false;
-                    rt.timer_due = (timer > 0).then(|| now_us + timer);
+                if (timer_fired || rt.event_pending) && inhibit_ok {
+                    c.send_tpdo(k, now_us, out);
+                    c.tpdo[k].timer_due = (timer > 0).then(|| now_us + timer);
                 }
             }
         }
@@ -931,8 +1091,10 @@ impl Device {
     // Application side: measurement
 
     /// Publishes one sample: writes 0x2001..0x2006, increments the sample
-    /// counter 0x2007 and triggers the event-driven TPDOs (types 0, 254,
-    /// 255) that map a measurement object.
+    /// counter 0x2007 and marks the TPDOs of types 0, 254 and 255 whose
+    /// mapped data changed since their last transmission (beyond the
+    /// deadbands of 0x2009): type 0 is sent at the next SYNC, 254/255 at the
+    /// next poll after the inhibit time.
     pub fn set_measurement(&mut self, m: &Measurement) {
         let c = &mut self.core;
         for (i, v) in m.normal.iter().enumerate() {
@@ -952,8 +1114,10 @@ impl Device {
         c.set(0x2007, 0, n);
         for k in 0..TPDOS {
             let tt = c.get(0x1800 + k as u16, 2);
-            if matches!(tt, 0 | 254 | 255) && c.maps_measurement(k) {
-                c.tpdo[k].event_pending = true;
+            if matches!(tt, 0 | 254 | 255) && c.tpdo_valid(k) && !c.tpdo[k].event_pending {
+                if let Some(f) = c.tpdo_frame(k) {
+                    c.tpdo[k].event_pending = c.changed(k, &f);
+                }
             }
         }
     }
@@ -1132,10 +1296,12 @@ impl Device {
     // Application side: emergencies
 
     /// Raises emergency `code` with error-register bits `reg` and 5 bytes of
-    /// manufacturer data: sends an EMCY (at the next poll, not in stopped),
-    /// sets 0x1001 and records the code in 0x1003 (newest at sub 1; bits
-    /// 16-31 = `mfr[0..2]`). Returns `false` (and sends nothing) if `code`
-    /// is already active.
+    /// manufacturer data: sends one EMCY (at the next poll after the
+    /// inhibit time 0x1015; nothing in stopped, and nothing queued before a
+    /// stop is sent after it), sets 0x1001 and records the code in 0x1003
+    /// (newest at sub 1; bits 16-31 = `mfr[0..2]`; a code already in the
+    /// history moves to sub 1). Returns `false` (and sends nothing) if
+    /// `code` is already active.
     pub fn signal_emcy(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
         let c = &mut self.core;
         if c.active[..c.n_active].iter().any(|&(k, _)| k == code) {
@@ -1146,15 +1312,8 @@ impl Device {
             c.n_active += 1;
         }
         c.update_error_register();
-        // History: shift down, newest at sub 1.
-        for s in (2..=8u8).rev() {
-            let prev = c.get(0x1003, s - 1);
-            c.set(0x1003, s, prev);
-        }
         let info = u16::from_le_bytes([mfr[0], mfr[1]]) as u32;
-        c.set(0x1003, 1, (info << 16) | code as u32);
-        let n = (c.get(0x1003, 0) + 1).min(8);
-        c.set(0x1003, 0, n);
+        c.record_error(code, info);
         let reg_now = c.get(0x1001, 0) as u8;
         let cb = code.to_le_bytes();
         c.queue_emcy([
@@ -1163,9 +1322,10 @@ impl Device {
         true
     }
 
-    /// Clears emergency `code`. When the last active error is cleared, an
-    /// "error reset" EMCY (code 0x0000) is sent. Returns whether `code`
-    /// was active.
+    /// Clears emergency `code`: one "error reset" EMCY (code 0x0000, CiA
+    /// 301 §7.2.7.1) per clear, with the error register that remains and
+    /// the cleared code in manufacturer bytes 0-1 (little-endian). Returns
+    /// whether `code` was active.
     pub fn clear_emcy(&mut self, code: u16) -> bool {
         let c = &mut self.core;
         let Some(pos) = c.active[..c.n_active].iter().position(|&(k, _)| k == code) else {
@@ -1174,9 +1334,9 @@ impl Device {
         c.active.copy_within(pos + 1..c.n_active, pos);
         c.n_active -= 1;
         c.update_error_register();
-        if c.n_active == 0 {
-            c.queue_emcy([0; 8]);
-        }
+        let reg_now = c.get(0x1001, 0) as u8;
+        let cb = code.to_le_bytes();
+        c.queue_emcy([0, 0, reg_now, cb[0], cb[1], 0, 0, 0]);
         true
     }
 
@@ -1211,13 +1371,9 @@ impl Device {
     pub fn finish_request(&mut self, ok: bool, out: &mut impl FnMut(Frame)) -> Result<(), Error> {
         let req = self.core.request.take().ok_or(Error::NoRequest)?;
         if ok {
-            let base = self.core.base_node;
-            for (s, _, e) in od::entries() {
+            for (s, index, e) in od::entries() {
                 if e.persist {
-                    self.core.boot[s] = match req {
-                        Request::Store => self.core.values[s],
-                        Request::Restore => self.core.init_value(e, base),
-                    };
+                    self.core.boot[s] = self.core.staged(req, s, index, e);
                 }
             }
         }
@@ -1263,7 +1419,8 @@ impl Device {
                 self.core.boot[s] = next[s];
             }
         }
-        self.core.apply_node_id();
+        let from = self.core.node_id;
+        self.core.apply_node_id(from);
         self.core.config_changed();
         Ok(())
     }
@@ -1298,15 +1455,20 @@ impl Device {
         p
     }
 
-    /// Writes the current persisted values (what 0x1010 stores) as an image
-    /// of [`IMAGE_LEN`] bytes.
+    /// Writes the persisted values as an image of [`IMAGE_LEN`] bytes:
+    /// while a [`Request`] is pending, what storage must hold once it is
+    /// carried out (see [`Request`]); otherwise the current values.
     pub fn persistent_image(&self, buf: &mut [u8; IMAGE_LEN]) {
         buf[0..4].copy_from_slice(&layout_signature().to_le_bytes());
         buf[4..8].copy_from_slice(&(PERSISTENT as u32).to_le_bytes());
         let mut p = 8;
-        for (s, _, e) in od::entries() {
+        for (s, index, e) in od::entries() {
             if e.persist {
-                buf[p..p + 4].copy_from_slice(&self.core.values[s].to_le_bytes());
+                let v = match self.core.request {
+                    Some(req) => self.core.staged(req, s, index, e),
+                    None => self.core.values[s],
+                };
+                buf[p..p + 4].copy_from_slice(&v.to_le_bytes());
                 p += 4;
             }
         }
@@ -1315,27 +1477,34 @@ impl Device {
     /// Loads a stored image (normally before the first poll): every value
     /// is checked against its object's rules first; on success the values
     /// become both current and power-on values and a node-id stored in
-    /// 0x2400 becomes active.
+    /// 0x2400 becomes active. An image of layout 1 ([`IMAGE_LEN_V1`]
+    /// bytes, written before issue 16) loads too: the entries added since
+    /// keep their current values.
     ///
     /// # Errors
     /// [`Error::ImageLength`], [`Error::ImageLayout`], [`Error::Value`];
     /// the device is unchanged.
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
-        if img.len() != IMAGE_LEN {
+        let v1 = img.len() == IMAGE_LEN_V1;
+        if img.len() != IMAGE_LEN && !v1 {
             return Err(Error::ImageLength {
                 expected: IMAGE_LEN,
                 got: img.len(),
             });
         }
         let word = |p: usize| u32::from_le_bytes([img[p], img[p + 1], img[p + 2], img[p + 3]]);
-        if word(0) != layout_signature() || word(4) != PERSISTENT as u32 {
+        let count = if v1 { od::PERSISTENT_V1 } else { PERSISTENT };
+        if word(0) != layout_signature_of(v1) || word(4) != count as u32 {
             return Err(Error::ImageLayout);
         }
+        // An entry the image holds (layout 1 lacks the `since_v2` ones,
+        // which keep their current value).
+        let held = |e: &od::Entry| e.persist && !(v1 && e.since_v2);
         // Validate everything first (mappings against the image's own
         // counts).
         let mut p = 8;
         for (_, index, e) in od::entries() {
-            if e.persist {
+            if held(e) {
                 let v = word(p);
                 if !self.core.valid_persisted(index, e.sub, e, v) {
                     return Err(Error::Value { index, sub: e.sub });
@@ -1346,7 +1515,7 @@ impl Device {
         let mut next = self.core.values;
         let mut p = 8;
         for (s, _, e) in od::entries() {
-            if e.persist {
+            if held(e) {
                 next[s] = word(p);
                 p += 4;
             }
@@ -1368,7 +1537,8 @@ impl Device {
                 self.core.boot[s] = next[s];
             }
         }
-        self.core.apply_node_id();
+        let from = self.core.boot_node();
+        self.core.apply_node_id(from);
         self.core.hb_restart = true;
         self.core.config_changed();
         Ok(())

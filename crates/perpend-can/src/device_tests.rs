@@ -223,8 +223,10 @@ fn sdo_abort_codes() {
     assert_eq!(b.upload(0x1018, 9), Err(0x0609_0011));
     assert_eq!(b.write_u32(0x1000, 0, 5), Err(0x0601_0002));
     assert_eq!(b.write_u32(0x2001, 1, 5), Err(0x0601_0002));
-    assert_eq!(b.write_u32(0x1017, 0, 5), Err(0x0607_0010)); // U16 written as 4 bytes
-    assert_eq!(b.write_u32(0x1800, 2, 0), Err(0x0607_0010));
+    assert_eq!(b.write_u32(0x1017, 0, 5), Err(0x0607_0012)); // U16 written as 4 bytes
+    assert_eq!(b.write_u32(0x1800, 2, 0), Err(0x0607_0012));
+    assert_eq!(b.download(0x2300, 1, &[1, 2]), Err(0x0607_0013)); // U32 as 2 bytes
+    assert_eq!(b.download(0x2101, 1, &[0, 0, 0x80]), Err(0x0607_0013));
     assert_eq!(b.download(0x1800, 2, &[245]), Err(0x0609_0030));
     assert_eq!(b.write_u32(0x2300, 1, 200_000), Err(0x0609_0031));
     assert_eq!(b.write_u32(0x2300, 1, 50), Err(0x0609_0032));
@@ -299,7 +301,7 @@ fn store_reset_and_restore() {
     b.write_u32(0x2300, 1, 5000).unwrap();
     // store: deferred until the application finishes
     assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
-    assert_eq!(b.dev.pending_request(), Some(Request::Store));
+    assert_eq!(b.dev.pending_request(), Some(Request::Store(Group::All)));
     assert!(b.dev.take_events().contains(Events::REQUEST));
     let mut img = [0u8; IMAGE_LEN];
     b.dev.persistent_image(&mut img);
@@ -324,7 +326,7 @@ fn store_reset_and_restore() {
     assert_eq!(d2.calibration(2), b.dev.calibration(2));
     // restore defaults: effective at the next reset
     assert_eq!(b.write_u32(0x1011, 1, od::LOAD_SIGNATURE), Err(0));
-    assert_eq!(b.dev.pending_request(), Some(Request::Restore));
+    assert_eq!(b.dev.pending_request(), Some(Request::Restore(Group::All)));
     b.finish(true);
     assert_eq!(b.dev.calibration(2).unwrap().zero[0], 12.5);
     b.nmt(0x81, 0);
@@ -495,7 +497,11 @@ fn tpdo_remap_and_cyclic_type() {
 fn event_driven_tpdo_with_inhibit_and_timer() {
     let mut b = Bus::new();
     b.download(0x1801, 2, &[255]).unwrap();
+    // the inhibit time changes only while the PDO does not exist
+    assert_eq!(b.download(0x1801, 3, &[0x10, 0x27]), Err(0x0609_0030));
+    b.write_u32(0x1801, 1, 0x8000_0290).unwrap();
     b.download(0x1801, 3, &[0x10, 0x27]).unwrap(); // 10000 × 100 µs = 1 s
+    b.write_u32(0x1801, 1, 0x4000_0290).unwrap();
     b.download(0x1801, 5, &[0xD0, 0x07]).unwrap(); // 2000 ms
     b.download(0x1017, 0, &[0, 0]).unwrap();
     b.nmt(0x01, 0);
@@ -534,6 +540,122 @@ fn acyclic_sync_type_zero() {
     b.dev.set_measurement(&sample());
     assert!(b.sync().iter().any(|f| f.id == 0x190));
     assert!(b.sync().iter().all(|f| f.id != 0x190));
+    // the same angles again: no change, nothing at SYNC
+    b.dev.set_measurement(&sample());
+    assert!(b.sync().iter().all(|f| f.id != 0x190));
+    let mut m = sample();
+    m.theta1_deg += 0.5;
+    b.dev.set_measurement(&m);
+    assert!(b.sync().iter().any(|f| f.id == 0x190));
+}
+
+/// Types 254/255 send on change of the mapped data (beyond the deadband
+/// of 0x2009) and on the event timer, never faster than the inhibit time.
+#[test]
+fn change_driven_tpdo_with_deadband_timer_and_inhibit() {
+    let mut b = Bus::new();
+    b.download(0x1017, 0, &[0, 0]).unwrap();
+    b.download(0x1800, 2, &[254]).unwrap();
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    b.download(0x1800, 3, &[0xE8, 0x03]).unwrap(); // 100 ms
+    b.write_u32(0x1800, 1, 0x4000_0190).unwrap();
+    b.nmt(0x01, 0);
+    b.take();
+    let tpdo1 = |v: Vec<Frame>| v.into_iter().filter(|f| f.id == 0x190).count();
+    let mut m = sample();
+    b.dev.set_measurement(&m);
+    b.advance(10);
+    assert_eq!(tpdo1(b.take()), 1, "first sample is a change");
+    // noise below the deadband (0.01°) is no change
+    for i in 0..50 {
+        m.theta1_deg = sample().theta1_deg + if i % 2 == 0 { 0.004 } else { -0.004 };
+        b.dev.set_measurement(&m);
+        b.advance(10_000);
+    }
+    assert_eq!(tpdo1(b.take()), 0);
+    // a change: sent, the next one only after the inhibit time
+    m.theta1_deg += 0.05;
+    b.dev.set_measurement(&m);
+    b.advance(10);
+    assert_eq!(tpdo1(b.take()), 1);
+    m.theta2_deg += 0.05;
+    b.dev.set_measurement(&m);
+    b.advance(50_000);
+    assert_eq!(tpdo1(b.take()), 0);
+    b.advance(50_010);
+    assert_eq!(tpdo1(b.take()), 1);
+    // a wider deadband (written in operational: an application object)
+    b.write_f32(0x2009, 1, 1.0).unwrap();
+    m.theta2_deg += 0.5;
+    b.dev.set_measurement(&m);
+    b.advance(200_000);
+    assert_eq!(tpdo1(b.take()), 0);
+    // event timer 100 ms: ten frames a second without any change
+    b.download(0x1800, 5, &[100, 0]).unwrap();
+    for _ in 0..1000 {
+        b.advance(1_000);
+    }
+    let n = tpdo1(b.take());
+    assert!((9..=11).contains(&n), "{n} frames in 1 s");
+}
+
+#[test]
+fn tpdo_communication_parameters_change_only_while_invalid() {
+    let mut b = Bus::new();
+    // COB-ID: bits 0-30 while valid refused (0x06090030), valid bit alone ok
+    assert_eq!(b.write_u32(0x1800, 1, 0x4000_0191), Err(0x0609_0030));
+    assert_eq!(b.write_u32(0x1800, 1, 0x0000_0190), Err(0x0609_0030));
+    assert_eq!(b.download(0x1800, 3, &[1, 0]), Err(0x0609_0030));
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    b.write_u32(0x1800, 1, 0x8000_0191).unwrap();
+    b.download(0x1800, 3, &[1, 0]).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0191).unwrap();
+    // transmission type and event timer: any time (CiA 301 does not
+    // restrict them)
+    b.download(0x1800, 2, &[254]).unwrap();
+    b.download(0x1800, 5, &[10, 0]).unwrap();
+    assert_eq!(b.read32(0x1800, 3), 1);
+}
+
+#[test]
+fn empty_pdos_are_not_sent() {
+    let mut b = Bus::new();
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    b.download(0x1A00, 0, &[0]).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0190).unwrap();
+    b.download(0x1800, 2, &[255]).unwrap();
+    b.download(0x1800, 5, &[10, 0]).unwrap();
+    b.nmt(0x01, 0);
+    b.dev.set_measurement(&sample());
+    for _ in 0..100 {
+        b.advance(1_000);
+    }
+    assert!(b.take().iter().all(|f| f.id != 0x190));
+    b.download(0x1800, 2, &[1]).unwrap();
+    assert!(b.sync().iter().all(|f| f.id != 0x190));
+}
+
+/// An image stored by firmware before issue 16 (layout 1, without 0x2009)
+/// still loads; the new entries keep their defaults.
+#[test]
+fn layout_1_images_still_load() {
+    let mut b = Bus::new();
+    b.write_u32(0x2300, 1, 4000).unwrap();
+    b.write_f32(0x2009, 1, 0.5).unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    // drop the since_v2 words, sign as layout 1
+    let mut buf = [0u8; IMAGE_LEN];
+    let n = image_as_v1(&img, &mut buf);
+    assert_eq!(n, IMAGE_LEN_V1);
+    let mut old = buf[..n].to_vec();
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_image(&old).unwrap();
+    assert_eq!(d.acquisition().period_us, 4000);
+    assert_eq!(d.read_f32(0x2009, 1), Some(od::DEADBAND_DEG));
+    // a layout-1 length with the current signature is refused
+    old[..4].copy_from_slice(&layout_signature().to_le_bytes());
+    assert_eq!(d.load_image(&old), Err(Error::ImageLayout));
 }
 
 #[test]
@@ -565,23 +687,31 @@ fn emergency_producer_and_error_history() {
     assert_eq!(b.read32(0x1003, 0), 2);
     assert_eq!(b.read32(0x1003, 1) & 0xFFFF, 0xFF02);
     assert_eq!(b.read32(0x1003, 2) & 0xFFFF, 0x2112);
-    // clear one: no reset message yet; clear the last: error reset
+    // every clear: one error reset with the remaining register and the
+    // cleared code
     assert!(b.dev.clear_emcy(status::emcy::sensor_current(1)));
     assert!(!b.dev.clear_emcy(status::emcy::sensor_current(1)));
     assert_eq!(b.dev.error_register(), 0x81);
     b.take();
     b.poll();
-    assert_eq!(b.take().len(), 1); // the NO_PLANE EMCY only
+    let f = b.take();
+    assert_eq!(f.len(), 2); // the NO_PLANE EMCY, the error reset
+    assert_eq!(f[1], Frame::new(0x90, &[0, 0, 0x81, 0x12, 0x21, 0, 0, 0]));
     b.dev.clear_emcy(status::emcy::NO_PLANE);
     b.poll();
-    assert_eq!(b.take(), vec![Frame::new(0x90, &[0; 8])]);
+    assert_eq!(
+        b.take(),
+        vec![Frame::new(0x90, &[0, 0, 0, 0x02, 0xFF, 0, 0, 0])]
+    );
     assert_eq!(b.dev.error_register(), 0);
     // history clear: only 0 accepted
     assert_eq!(b.download(0x1003, 0, &[1]), Err(0x0609_0030));
     b.download(0x1003, 0, &[0]).unwrap();
     assert_eq!(b.read32(0x1003, 0), 0);
     assert_eq!(b.read32(0x1003, 1), 0);
-    // not sent while stopped, sent after
+    // not sent while stopped, nor anything stale after it: a queued EMCY
+    // is dropped by the stop; the state (0x1001, active set) still follows
+    b.dev.signal_emcy(status::emcy::NO_PLANE, 0x80, [0; 5]);
     b.nmt(0x02, 0);
     b.take();
     b.dev.signal_emcy(status::emcy::DATA_SET, 1, [0; 5]);
@@ -589,13 +719,51 @@ fn emergency_producer_and_error_history() {
     assert!(b.take().is_empty());
     b.nmt(0x80, 0);
     b.poll();
-    assert_eq!(b.take().len(), 1);
+    assert!(b.take().is_empty());
     assert!(b.dev.emcy_active(status::emcy::DATA_SET));
+    assert_eq!(b.dev.error_register(), 0x81);
     // reset node clears errors
     b.nmt(0x81, 0);
     b.poll();
     assert_eq!(b.dev.error_register(), 0);
     assert!(!b.dev.emcy_active(status::emcy::DATA_SET));
+}
+
+/// 0x1015: at most one EMCY per inhibit time; a flapping code appears
+/// once in 0x1003.
+#[test]
+fn emcy_inhibit_time_and_history_without_duplicates() {
+    let mut b = Bus::new();
+    b.download(0x1015, 0, &[0xE8, 0x03]).unwrap(); // 1000 × 100 µs = 100 ms
+    b.download(0x1017, 0, &[0, 0]).unwrap();
+    b.take();
+    for _ in 0..3 {
+        b.dev
+            .signal_emcy(status::emcy::NO_PLANE, 0x80, [1, 0, 0, 0, 0]);
+        b.dev.clear_emcy(status::emcy::NO_PLANE);
+    }
+    b.dev
+        .signal_emcy(status::emcy::DATA_SET, 0x01, [0, 0, 0, 0, 0]);
+    // 7 queued: one now, then one per 100 ms
+    b.poll();
+    assert_eq!(b.take().len(), 1);
+    b.advance(99_000);
+    assert!(b.take().is_empty());
+    b.advance(1_000);
+    assert_eq!(b.take().len(), 1);
+    for _ in 0..600 {
+        b.advance(1_000);
+    }
+    assert_eq!(b.take().len(), 5);
+    // history: NO_PLANE once, DATA_SET newest
+    assert_eq!(b.read32(0x1003, 0), 2);
+    assert_eq!(b.read32(0x1003, 1) & 0xFFFF, 0x6300);
+    assert_eq!(b.read32(0x1003, 2) & 0xFFFF, 0xFF02);
+    b.dev
+        .signal_emcy(status::emcy::NO_PLANE, 0x80, [3, 0, 0, 0, 0]);
+    assert_eq!(b.read32(0x1003, 0), 2);
+    assert_eq!(b.read32(0x1003, 1), 0x0003_FF02);
+    assert_eq!(b.read32(0x1003, 2) & 0xFFFF, 0x6300);
 }
 
 #[test]
@@ -617,11 +785,13 @@ fn node_id_change_at_reset_communication() {
     assert_eq!(b.read32(0x1800, 1), 0x4000_01A0);
     // reset comm restored TPDO3 to its power-on value, then followed the id
     assert_eq!(b.read32(0x1802, 1), 0x4000_03A0);
-    // reset node without a store: back to the old id
+    // reset node without a store: the configured id stays active (it is
+    // not dropped silently; it is lost at power-off unless saved)
     b.nmt(0x81, 0x20);
     b.poll();
-    assert_eq!(b.dev.node_id(), NODE);
-    assert_eq!(b.read32(0x1800, 1), 0x4000_0190);
+    assert_eq!(b.dev.node_id(), 0x20);
+    assert_eq!(b.read32(0x1800, 1), 0x4000_01A0);
+    assert_eq!(b.read32(0x1802, 1), 0x4000_03A0);
 }
 
 #[test]
@@ -704,7 +874,8 @@ fn stored_params_bridge() {
     b.nmt(0x81, 0);
     b.poll();
     assert!(b.dev.calibration_is_default());
-    assert_eq!(b.dev.node_id(), NODE);
+    // the node-id of the record is a layer setting: no restore touches it
+    assert_eq!(b.dev.node_id(), 0x30);
 }
 
 #[test]
@@ -744,11 +915,15 @@ fn publish_follows_the_status_word() {
     assert_eq!(f[0].data[..3], [0x14, 0xFF, 0x83]); // current bit of sensor 3 still set
     assert_eq!(f[0].data[3..6], [4, 0, 1]);
     assert_eq!(f[1].data[..4], [0x02, 0xFF, 0x83, 2]);
-    // all good again: a single error reset
+    // all good again: one error reset per cleared code, the last with an
+    // empty error register
     m.status = ok;
     b.dev.publish(&m);
     b.poll();
-    assert_eq!(b.take(), vec![Frame::new(0x90, &[0; 8])]);
+    let f = b.take();
+    assert_eq!(f.len(), 3);
+    assert!(f.iter().all(|f| f.data[..2] == [0, 0]));
+    assert_eq!(f[2], Frame::new(0x90, &[0, 0, 0, 0x02, 0xFF, 0, 0, 0]));
     m.status = ok | CONFIG_INVALID;
     b.dev.publish(&m);
     assert!(b.dev.emcy_active(emcy::DATA_SET));

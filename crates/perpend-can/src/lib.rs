@@ -49,10 +49,12 @@
 //!    [`Device::calibration`], [`Device::transfer`], [`Device::acquisition`]
 //!    (or `params(&current)`); on [`Events::RESET_COMM`] apply
 //!    [`Device::communication`] (bit rate); on [`Events::REQUEST`] carry out
-//!    [`Device::pending_request`] — a [`Request::Store`] writes the record
-//!    and [`Device::persistent_image`] to flash, a [`Request::Restore`]
-//!    erases it — and call [`Device::finish_request`] with the outcome (the
-//!    SDO confirmation is sent then).
+//!    [`Device::pending_request`] — for a [`Request::Store`] or
+//!    [`Request::Restore`] write [`Device::persistent_image`] (it already
+//!    holds what the request leaves stored: the saved group's current
+//!    values, or the restored group's defaults, the rest as stored) and the
+//!    record to flash — and call [`Device::finish_request`] with the outcome
+//!    (the SDO confirmation is sent then).
 //!
 //! ## Public API summary
 //!
@@ -86,9 +88,10 @@
 //!   (0x01), stop (0x02), enter pre-operational (0x80), reset node (0x81:
 //!   every object back to its power-on value, i.e. defaults overlaid with
 //!   the last stored/loaded image; errors cleared), reset communication
-//!   (0x82: 0x1000..0x1FFF parameters only). A node-id written to 0x2400
-//!   sub 1 becomes active at the next reset; TPDO COB-IDs that were the
-//!   default for the old node-id follow it. Every state change clears the
+//!   (0x82: 0x1000..0x1FFF parameters only). A node-id or bit rate written
+//!   to 0x2400 becomes active at the next reset (communication or node),
+//!   saved or not; TPDO COB-IDs that were the default for the old
+//!   node-id follow it. Every state change clears the
 //!   calibration unlock.
 //! * **Heartbeat** `0x700+id [state]` every 0x1017 ms (0 = off): 0x7F
 //!   pre-operational, 0x05 operational, 0x04 stopped.
@@ -97,25 +100,33 @@
 //!   timeout (`Defaults::sdo_timeout_us`, abort 0x05040000), block transfer
 //!   refused (0x05040001). See [`sdo`] for the codes. Order of checks:
 //!   object (0x06020000) → sub-index (0x06090011) → access (0x06010002) →
-//!   length (0x06070010) → state (0x08000022) → lock (0x08000021) → value
+//!   length (0x06070012 too long, 0x06070013 too short) → state (0x08000022) → lock (0x08000021) → value
 //!   (0x06090030/31/32, PDO mapping 0x06040041/42/43).
 //! * **SYNC** (COB-ID 0x80) in operational: TPDOs with transmission type
-//!   1..240 are sent every n-th SYNC, type 0 on the SYNC after an
-//!   application event.
-//! * **TPDO 1..4** (0x1800+k / 0x1A00+k): COB-ID (bit 31 = not valid; the
-//!   11-bit id may change only while not valid, restricted ids refused),
-//!   transmission type 0, 1..240, 254, 255 (others 0x06090030), inhibit time
-//!   (100 µs) and event timer (ms) for 254/255; mapping of up to 8 objects
-//!   / 64 bits, changeable only while the PDO is not valid and (entries)
-//!   while sub 0 is 0 (0x08000022 otherwise).
-//! * **EMCY** on 0x1014 (0x80+id): `[code lo, code hi, 0x1001, mfr[5]]`;
-//!   0x1003 holds the last 8 codes (write 0 to sub 0 clears it); an "error
-//!   reset" (code 0) is sent when the last active error clears.
-//! * **Store/restore** 0x1010/0x1011 sub 1 with "save" 0x65766173 / "load"
-//!   0x64616F6C (other values: 0x08000020); read as 1 (on command).
-//!   Persisted: 0x1017, 0x1800..0x1803, 0x1A00..0x1A03, 0x2101..0x2104,
-//!   0x2201..0x2204, 0x2300, 0x2400. "load" makes the defaults effective at
-//!   the next reset node.
+//!   1..240 are sent every n-th SYNC, type 0 at the SYNC after the mapped
+//!   data changed.
+//! * **TPDO 1..4** (0x1800+k / 0x1A00+k): COB-ID (bit 31 = not valid; bits
+//!   0-30 and the inhibit time change only while not valid, else
+//!   0x06090030; restricted ids refused), transmission type 0, 1..240, 254,
+//!   255 (others 0x06090030); 254/255 are sent when the mapped data change
+//!   (beyond the deadbands of 0x2009) and when the event timer (ms)
+//!   expires, never within the inhibit time (100 µs); an empty mapping is
+//!   never sent; mapping of up to 8 objects / 64 bits, changeable only
+//!   while the PDO is not valid and (entries) while sub 0 is 0 (0x08000022
+//!   otherwise).
+//! * **EMCY** on 0x1014 (0x80+id): `[code lo, code hi, 0x1001, mfr[5]]`,
+//!   at most one per inhibit time 0x1015 (100 µs); one per raise, one
+//!   "error reset" (code 0, the remaining 0x1001, the cleared code in
+//!   mfr 0-1) per clear; none in stopped and nothing queued before a stop
+//!   after it; 0x1003 holds the last 8 distinct codes (a repeated code
+//!   moves to sub 1; write 0 to sub 0 clears it).
+//! * **Store/restore** 0x1010/0x1011 sub 1 (all), 2 (0x1000..0x1FFF), 3
+//!   (0x2000..) with "save" 0x65766173 / "load" 0x64616F6C (other values:
+//!   0x08000020); read as 1 (on command). Persisted: 0x1015, 0x1017,
+//!   0x1800..0x1803, 0x1A00..0x1A03, 0x2009, 0x2101..0x2104,
+//!   0x2201..0x2204, 0x2300, 0x2400. "load" makes the group's defaults
+//!   effective at the next reset node; 0x2400 (node-id, bit rate) is never
+//!   restored.
 //!
 //! ## Object dictionary (manufacturer part; REAL32 unless noted)
 //!

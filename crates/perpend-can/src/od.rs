@@ -155,6 +155,9 @@ pub struct Entry {
     pub pdo: bool,
     /// Whether 0x1010 "save" stores it.
     pub persist: bool,
+    /// Persisted since layout 2 (issue 16): absent from images of layout 1,
+    /// which still load (the entry keeps its default).
+    pub since_v2: bool,
     /// Accepted values on write.
     pub limits: Limits,
     /// Default value.
@@ -171,6 +174,7 @@ impl Entry {
             class,
             pdo: false,
             persist: false,
+            since_v2: false,
             limits: Limits::Any,
             init: Init::Fixed(0),
         }
@@ -189,6 +193,10 @@ impl Entry {
     }
     const fn persist(mut self) -> Self {
         self.persist = true;
+        self
+    }
+    const fn v2(mut self) -> Self {
+        self.since_v2 = true;
         self
     }
 }
@@ -289,6 +297,58 @@ pub const LOAD_SIGNATURE: u32 = 0x6461_6F6C;
 /// every refused write, changes nothing (an unlocked device stays unlocked).
 /// The unlock is cleared by every NMT state change and reset.
 pub const UNLOCK_SIGNATURE: u32 = 0x6C61_6375;
+
+/// A parameter group of 0x1010 / 0x1011 (CiA 301 §7.5.2.13/14).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Group {
+    /// Sub 1: every persisted object.
+    All,
+    /// Sub 2: communication objects 0x1000..0x1FFF (heartbeat, TPDOs).
+    Communication,
+    /// Sub 3: application objects 0x2000.. (calibration, transfer
+    /// functions, acquisition, 0x2400).
+    Application,
+}
+
+impl Group {
+    /// The group of sub-index `sub` of 0x1010 / 0x1011.
+    pub const fn of_sub(sub: u8) -> Option<Self> {
+        match sub {
+            1 => Some(Group::All),
+            2 => Some(Group::Communication),
+            3 => Some(Group::Application),
+            _ => None,
+        }
+    }
+
+    /// Whether the persisted object `index` belongs to the group.
+    pub const fn contains(self, index: u16) -> bool {
+        match self {
+            Group::All => true,
+            Group::Communication => index < 0x2000,
+            Group::Application => index >= 0x2000,
+        }
+    }
+}
+
+/// The node-id and bit rate (0x2400) are layer settings (what CiA 305 LSS
+/// would set): 0x1010 sub 1 and 3 store them, no 0x1011 restore touches
+/// them, and a written value becomes active at the next NMT reset
+/// communication or reset node, saved or not.
+pub const fn restorable(index: u16) -> bool {
+    index != 0x2400
+}
+
+/// Default of 0x2009 sub 1: a TPDO of type 0/254/255 counts a mapped angle
+/// (0x2002, 0x2003) as changed when it differs from the value last sent
+/// by more than this \[deg\] (over 4σ of the difference of two noisy
+/// samples of the virtual board, whose θ noise is ~0.003° 1σ).
+pub const DEADBAND_DEG: f32 = 0.02;
+/// Default of 0x2009 sub 2: the same for the normal's components (0x2001).
+pub const DEADBAND_NORMAL: f32 = 0.0002;
+/// Default of 0x2009 sub 3: the same for distances and the residual
+/// (0x2004, 0x2006) \[mm\].
+pub const DEADBAND_MM: f32 = 0.01;
 
 /// Number of TPDOs.
 pub const TPDOS: usize = 4;
@@ -478,23 +538,50 @@ pub const OBJECTS: &[Object] = &[
         0x1010,
         "Store parameters",
         &[
-            sub0(1),
+            sub0(3),
             Entry::new(1, "Save all parameters", U32, Rw, Class::Command).init(Init::Fixed(1)),
+            Entry::new(2, "Save communication parameters", U32, Rw, Class::Command)
+                .init(Init::Fixed(1)),
+            Entry::new(3, "Save application parameters", U32, Rw, Class::Command)
+                .init(Init::Fixed(1)),
         ],
     ),
     arr(
         0x1011,
         "Restore default parameters",
         &[
-            sub0(1),
+            sub0(3),
             Entry::new(1, "Restore all default parameters", U32, Rw, Class::Command)
                 .init(Init::Fixed(1)),
+            Entry::new(
+                2,
+                "Restore communication default parameters",
+                U32,
+                Rw,
+                Class::Command,
+            )
+            .init(Init::Fixed(1)),
+            Entry::new(
+                3,
+                "Restore application default parameters",
+                U32,
+                Rw,
+                Class::Command,
+            )
+            .init(Init::Fixed(1)),
         ],
     ),
     var(
         0x1014,
         "COB-ID EMCY",
         &[Entry::new(0, "COB-ID EMCY", U32, Ro, Class::Comm).init(Init::Node(0x80))],
+    ),
+    var(
+        0x1015,
+        "Inhibit time EMCY",
+        &[Entry::new(0, "Inhibit time EMCY", U16, Rw, Class::Comm)
+            .persist()
+            .v2()],
     ),
     var(
         0x1017,
@@ -613,6 +700,28 @@ pub const OBJECTS: &[Object] = &[
             Entry::new(2, "Peak fill", U32, Ro, Class::Measurement).pdo(),
         ],
     ),
+    rec(
+        0x2009,
+        "TPDO change deadband",
+        &[
+            sub0(3),
+            Entry::new(1, "Angle deadband deg", Real32, Rw, Class::Comm)
+                .persist()
+                .v2()
+                .limits(Limits::Real(0.0, 90.0))
+                .init(Init::Fixed(DEADBAND_DEG.to_bits())),
+            Entry::new(2, "Normal deadband", Real32, Rw, Class::Comm)
+                .persist()
+                .v2()
+                .limits(Limits::Real(0.0, 2.0))
+                .init(Init::Fixed(DEADBAND_NORMAL.to_bits())),
+            Entry::new(3, "Length deadband mm", Real32, Rw, Class::Comm)
+                .persist()
+                .v2()
+                .limits(Limits::Real(0.0, 1000.0))
+                .init(Init::Fixed(DEADBAND_MM.to_bits())),
+        ],
+    ),
     var(
         0x2010,
         "Calibration unlock",
@@ -676,13 +785,14 @@ const fn count_entries() -> usize {
     n
 }
 
-const fn count_persist() -> usize {
+const fn count_persist(v1_only: bool) -> usize {
     let mut n = 0;
     let mut i = 0;
     while i < OBJECTS.len() {
         let mut j = 0;
         while j < OBJECTS[i].subs.len() {
-            if OBJECTS[i].subs[j].persist {
+            let e = &OBJECTS[i].subs[j];
+            if e.persist && !(v1_only && e.since_v2) {
                 n += 1;
             }
             j += 1;
@@ -696,7 +806,9 @@ const fn count_persist() -> usize {
 /// slots of a [`crate::Device`].
 pub const ENTRIES: usize = count_entries();
 /// Number of entries stored by 0x1010.
-pub const PERSISTENT: usize = count_persist();
+pub const PERSISTENT: usize = count_persist(false);
+/// Number of entries an image of layout 1 (before issue 16) holds.
+pub const PERSISTENT_V1: usize = count_persist(true);
 
 /// Slot of the first entry of each object (prefix sums of the sub counts).
 const OFFSETS: [usize; OBJECTS.len()] = {

@@ -37,8 +37,16 @@ pub enum SdoAbort {
     /// match the object).
     Incompatible,
     /// 0x06070010 data type does not match, length of service parameter
-    /// does not match.
+    /// does not match: the length is wrong but neither too long nor too
+    /// short can be told (a segmented download whose data differ from the
+    /// size it declared).
     Length,
+    /// 0x06070012 length of service parameter too high: more bytes than
+    /// the object holds.
+    TooLong,
+    /// 0x06070013 length of service parameter too low: fewer bytes than
+    /// the object holds.
+    TooShort,
     /// 0x06090011 sub-index does not exist.
     NoSub,
     /// 0x06090030 invalid value for parameter (download only).
@@ -71,6 +79,8 @@ impl SdoAbort {
             SdoAbort::PdoLength => 0x0604_0042,
             SdoAbort::Incompatible => 0x0604_0043,
             SdoAbort::Length => 0x0607_0010,
+            SdoAbort::TooLong => 0x0607_0012,
+            SdoAbort::TooShort => 0x0607_0013,
             SdoAbort::NoSub => 0x0609_0011,
             SdoAbort::Range => 0x0609_0030,
             SdoAbort::TooHigh => 0x0609_0031,
@@ -83,7 +93,7 @@ impl SdoAbort {
     }
 
     /// Every code, for tests and documentation.
-    pub const ALL: [SdoAbort; 18] = [
+    pub const ALL: [SdoAbort; 20] = [
         SdoAbort::Toggle,
         SdoAbort::Timeout,
         SdoAbort::Command,
@@ -94,6 +104,8 @@ impl SdoAbort {
         SdoAbort::PdoLength,
         SdoAbort::Incompatible,
         SdoAbort::Length,
+        SdoAbort::TooLong,
+        SdoAbort::TooShort,
         SdoAbort::NoSub,
         SdoAbort::Range,
         SdoAbort::TooHigh,
@@ -146,6 +158,18 @@ pub trait Dictionary {
     /// # Errors
     /// The abort to send; the dictionary is unchanged.
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<Written, SdoAbort>;
+}
+
+/// The abort for writing `got` bytes to an object of `size` bytes:
+/// 0x06070012 too long, 0x06070013 too short, `None` when they match.
+pub const fn length_abort(size: usize, got: usize) -> Option<SdoAbort> {
+    if got > size {
+        Some(SdoAbort::TooLong)
+    } else if got < size {
+        Some(SdoAbort::TooShort)
+    } else {
+        None
+    }
 }
 
 /// Largest segmented download accepted \[bytes\].
@@ -358,9 +382,15 @@ impl SdoServer {
         }
         let n = 7 - ((req[0] >> 1) & 7) as usize;
         let last = req[0] & 0x01 != 0;
-        if len + n > MAX_DOWNLOAD || declared.is_some_and(|d| len + n > d) {
+        if declared.is_some_and(|d| len + n > d) {
+            // More data than the client itself declared.
             self.transfer = Transfer::Idle;
             return Some(abort_payload(index, sub, SdoAbort::Length));
+        }
+        if len + n > MAX_DOWNLOAD {
+            // Undeclared size, already longer than any writable object.
+            self.transfer = Transfer::Idle;
+            return Some(abort_payload(index, sub, SdoAbort::TooLong));
         }
         buf[len..len + n].copy_from_slice(&req[1..1 + n]);
         len += n;
@@ -534,8 +564,8 @@ mod tests {
         fn check_write(&self, index: u16, sub: u8, len: Option<usize>) -> Result<(), SdoAbort> {
             match self.read(index, sub)? {
                 Value::Num(_, n) if index != 0x2001 => match len {
-                    Some(l) if l != n => Err(SdoAbort::Length),
-                    _ => Ok(()),
+                    Some(l) => length_abort(n, l).map_or(Ok(()), Err),
+                    None => Ok(()),
                 },
                 _ => Err(SdoAbort::ReadOnly),
             }
@@ -593,7 +623,12 @@ mod tests {
         let r = s
             .handle(&mut od, &[0x2F, 0x00, 0x20, 0, 1, 0, 0, 0], 0)
             .unwrap();
-        assert_eq!(abort_code(&r), Some(0x0607_0010));
+        assert_eq!(abort_code(&r), Some(0x0607_0013)); // 1 byte to a U32
+        assert_eq!(&r[1..4], &[0x00, 0x20, 0]);
+        let r = s
+            .handle(&mut od, &[0x21, 0x00, 0x20, 0, 5, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0607_0012)); // 5 declared for a U32
         assert_eq!(&r[1..4], &[0x00, 0x20, 0]);
         let r = s
             .handle(&mut od, &[0x40, 0x99, 0x20, 0, 0, 0, 0, 0], 0)
@@ -668,10 +703,24 @@ mod tests {
             .unwrap();
         assert_eq!(r[0], 0x20);
         assert_eq!(od.v, 0xDDCC_BBAA);
-        // wrong declared size
+        // wrong declared size: too long, too short
         let r = s
             .handle(&mut od, &[0x21, 0x00, 0x20, 0, 9, 0, 0, 0], 0)
             .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0607_0012));
+        let r = s
+            .handle(&mut od, &[0x21, 0x00, 0x20, 0, 2, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0607_0013));
+        // undeclared size, 3 bytes in the last segment: too short
+        s.handle(&mut od, &[0x20, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x09, 1, 2, 3, 0, 0, 0, 0], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0607_0013));
+        // declared 4, 7 sent: differs from the declaration (0x06070010)
+        s.handle(&mut od, &[0x21, 0x00, 0x20, 0, 4, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x00, 1, 2, 3, 4, 5, 6, 7], 0).unwrap();
         assert_eq!(abort_code(&r), Some(0x0607_0010));
         // oversize data without size indication
         s.handle(&mut od, &[0x20, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
@@ -679,7 +728,7 @@ mod tests {
         let r = s.handle(&mut od, &[0x00, 1, 2, 3, 4, 5, 6, 7], 0).unwrap();
         assert_eq!(r[0], 0x20);
         let r = s.handle(&mut od, &[0x10, 1, 2, 3, 4, 5, 6, 7], 0).unwrap();
-        assert_eq!(abort_code(&r), Some(0x0607_0010));
+        assert_eq!(abort_code(&r), Some(0x0607_0012));
         // toggle error
         s.handle(&mut od, &[0x21, 0x00, 0x20, 0, 4, 0, 0, 0], 0)
             .unwrap();

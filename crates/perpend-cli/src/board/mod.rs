@@ -9,9 +9,11 @@
 //! ```text
 //! perpend board --slcan 127.0.0.1:5555 --node-id 16 --plane 0.035,-0.052,1,-40 \
 //!               [--sensors sensors.csv] [--params params.json] [--noise-mm 0.002] \
-//!               [--fault 3:open] [--seed 1]
+//!               [--fault 3:open] [--seed 1] [--serial 0x12345678]
 //! ```
 //!
+//! * `--serial`: 0x1018 sub 4 (default: derived from `--seed` as the
+//!   firmware derives it from the MCU's unique ID, [`node::serial_for_seed`]).
 //! * `--plane A,B,C,D`: the surface `A·x + B·y + C·z + D = 0` in the TCS.
 //! * `--sensors`: the head the board is built with (exchange format,
 //!   4 sensors): stored on the board and simulated.
@@ -81,6 +83,17 @@ pub struct Args {
     /// Seed of the noise generator.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Serial number of the board (0x1018 sub 4), decimal or 0x hex;
+    /// default: derived from --seed like the firmware folds the MCU UID
+    /// ([`node::serial_for_seed`]).
+    #[arg(long, value_parser = parse_serial)]
+    pub serial: Option<u32>,
+}
+
+/// Parses a serial number: decimal or `0x` hex `u32`.
+pub fn parse_serial(s: &str) -> Result<u32> {
+    perpend_can::config::parse_u32(s.trim().as_bytes())
+        .ok_or_else(|| anyhow!("serial '{s}': expected a decimal or 0x hex u32"))
 }
 
 /// One `--fault`.
@@ -166,7 +179,8 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
         head,
         calibration,
     };
-    let mut board = VirtualBoard::new(&cfg, sim)?;
+    let serial = a.serial.unwrap_or_else(|| node::serial_for_seed(a.seed));
+    let mut board = VirtualBoard::with_serial(&cfg, sim, serial)?;
     board.set_bus_noack(noack_us);
     Ok(board)
 }
@@ -204,6 +218,7 @@ mod tests {
             noise_mm: 0.0,
             fault: Vec::new(),
             seed: 1,
+            serial: None,
         }
     }
 
@@ -239,6 +254,28 @@ mod tests {
         a.sensors = Some(path3);
         let e = build(&a).err().unwrap().to_string();
         assert!(e.contains("4 sensors"), "{e}");
+    }
+
+    #[test]
+    fn serial_from_flag_or_seed() {
+        assert_eq!(parse_serial("0x00C0FFEE").unwrap(), 0x00C0_FFEE);
+        assert_eq!(parse_serial("17").unwrap(), 17);
+        assert!(parse_serial("0x1_0000_0000").is_err());
+        assert!(parse_serial("x").is_err());
+        let b = build(&args()).unwrap();
+        let seed1 = node::serial_for_seed(1);
+        assert_eq!(b.app().device().read_u32(0x1018, 4), Some(seed1));
+        assert_ne!(node::serial_for_seed(2), seed1);
+        let b = build(&Args {
+            serial: Some(0xABCD),
+            ..args()
+        })
+        .unwrap();
+        assert_eq!(b.app().device().read_u32(0x1018, 4), Some(0xABCD));
+        assert_eq!(
+            b.app().device().read_u32(0x1018, 1),
+            Some(perpend_can::config::VENDOR_ID)
+        );
     }
 
     #[test]

@@ -71,6 +71,17 @@ fn seed_record(cfg: &BoardConfig) -> Result<Option<(Params, [u8; IMAGE_LEN])>> {
     Ok(Some((p, img)))
 }
 
+/// The serial number of a virtual board run with `--seed seed`: the
+/// firmware's fold of a 96-bit unique ID
+/// ([`perpend_can::config::serial_from_uid`]) applied to "virt" followed by
+/// the seed's 8 little-endian bytes.
+pub fn serial_for_seed(seed: u64) -> u32 {
+    let mut uid = [0u8; 12];
+    uid[..4].copy_from_slice(b"virt");
+    uid[4..].copy_from_slice(&seed.to_le_bytes());
+    perpend_can::config::serial_from_uid(&uid)
+}
+
 /// The virtual CAN controller: three transmit slots, like the FDCAN.
 #[derive(Debug, Default)]
 pub struct VirtualCan {
@@ -121,11 +132,21 @@ pub struct VirtualBoard {
 }
 
 impl VirtualBoard {
-    /// Boots a board with `cfg` whose head looks through `sim`.
+    /// Boots a board with `cfg` whose head looks through `sim`, with the
+    /// serial number of seed 1 ([`serial_for_seed`]).
     ///
     /// # Errors
     /// A head or node-id the board cannot store.
     pub fn new(cfg: &BoardConfig, sim: SimHead) -> Result<Self> {
+        Self::with_serial(cfg, sim, serial_for_seed(1))
+    }
+
+    /// Boots a board like [`VirtualBoard::new`] whose 0x1018 sub 4 is
+    /// `serial`.
+    ///
+    /// # Errors
+    /// A head or node-id the board cannot store.
+    pub fn with_serial(cfg: &BoardConfig, sim: SimHead, serial: u32) -> Result<Self> {
         if !(1..=127).contains(&cfg.node_id) {
             return Err(anyhow!("--node-id {}: must be 1..127", cfg.node_id));
         }
@@ -134,7 +155,7 @@ impl VirtualBoard {
             save_with_tail(&mut store, &p, &img)
                 .map_err(|e| anyhow!("writing the start-up record: {e:?}"))?;
         }
-        let app = App::new(store);
+        let app = App::with_serial(store, serial);
         Ok(Self {
             app,
             sim,
