@@ -71,6 +71,7 @@ const FUZZ_TARGETS: &[&str] = &[
     "stored_params",
     "can_device",
     "slcan_line",
+    "host_inputs",
 ];
 
 fn fuzz(args: &[String]) -> Result<()> {

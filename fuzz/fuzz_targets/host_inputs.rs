@@ -1,0 +1,23 @@
+//! The host tool's other parsers on arbitrary bytes: the slcan lines an
+//! adapter sends to `perpend node` (with and without timestamps), the
+//! `--bus` specification, and the readings file of `perpend measure`.
+//! Each returns a value or an error, never panics; a frame it accepts is
+//! well-formed.
+#![no_main]
+use libfuzzer_sys::fuzz_target;
+use perpend_cli::bus::slcan::{parse_line, Line};
+use perpend_cli::bus::BusSpec;
+use perpend_lab::exchange::parse_readings;
+
+fuzz_target!(|data: &[u8]| {
+    for line in data.split(|b| *b == b'\r') {
+        if let Line::Frame(f) = parse_line(line) {
+            assert!(f.is_well_formed());
+        }
+    }
+    if let Ok(s) = std::str::from_utf8(data) {
+        let _ = s.parse::<BusSpec>();
+    }
+    let _ = parse_readings(data, "readings.csv", None);
+    let _ = parse_readings(data, "readings.csv", Some(4));
+});
