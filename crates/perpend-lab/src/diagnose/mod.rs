@@ -493,7 +493,7 @@ pub fn available_models(poses: &PoseTable) -> Vec<Effect> {
 }
 
 /// The largest `|d − d_ref|` of the run [mm] (for the plausibility bounds).
-fn reading_span(poses: &PoseTable, refs: &Refs) -> f64 {
+pub(crate) fn reading_span(poses: &PoseTable, refs: &Refs) -> f64 {
     poses
         .rows
         .iter()

@@ -358,17 +358,7 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
                 ""
             }
         );
-        let span = d
-            .poses
-            .rows
-            .iter()
-            .flat_map(|r| {
-                r.readings
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(i, x)| Some((x.as_ref()? - d.refs.d_ref.get(i)?).abs()))
-            })
-            .fold(0.0, f64::max);
+        let span = super::reading_span(&d.poses, &d.refs);
         for (i, f) in fits.iter().enumerate() {
             let _ = writeln!(
                 o,
