@@ -693,7 +693,9 @@ pub fn paper_study(seeds: u64) -> Result<PaperStudy> {
     let target = TABLE8[2].1 .1;
     let (gap_mean, gap_std) = (target - table8.ekf.mean, TABLE8[2].1 .2 - table8.ekf.std);
     let mut causes = Vec::new();
+    let bar = crate::progress::Progress::new(Cause::ALL.len() as u64, "study paper: causes");
     for c in Cause::ALL {
+        bar.inc();
         let (bound, _) = c.plausible();
         let reproduce = magnitude_for(&exp, c, target, &s, bound / 8.0, bound * 1e4)?;
         let at_bound = trial(&exp, &[(c, bound)], &s)?;
