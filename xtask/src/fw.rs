@@ -16,6 +16,7 @@
 //!   counts the instructions executed between the program's `bench_mark`
 //!   calls. Installs `qemu-system-arm` from Debian when it is missing.
 //!   Prints a table, or JSON with `--json` (`pipeline_insns`,
+//!   `pipeline_sphere_insns`, `app_update_insns`, `app_sync_insns`,
 //!   `ekf_update_insns`, `sqrtf_libm_insns`, `sqrtf_vsqrt_insns`, `reps`).
 //!
 //! Limits: QEMU counts instructions, not cycles (the M4 pipeline, flash
@@ -217,9 +218,9 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     let f = fs::File::open(&trace).map_err(|e| format!("{}: {e}", trace.display()))?;
     let s = count_sections(BufReader::new(f), range)?;
     let _ = fs::remove_file(&trace);
-    if s.len() < 7 {
+    if s.len() < 13 {
         return Err(format!(
-            "expected 7 sections in the trace, found {}",
+            "expected 13 sections in the trace, found {}",
             s.len()
         ));
     }
@@ -230,6 +231,9 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     r.insert("ekf_update_insns", per(s[2]));
     r.insert("sqrtf_libm_insns", per(s[4].saturating_sub(base)));
     r.insert("sqrtf_vsqrt_insns", per(s[5].saturating_sub(base)));
+    r.insert("pipeline_sphere_insns", per(s[8]));
+    r.insert("app_update_insns", per(s[10]));
+    r.insert("app_sync_insns", per(s[12]));
     r.insert("reps", BENCH_REPS);
     if json {
         println!(

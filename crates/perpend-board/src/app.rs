@@ -19,9 +19,12 @@
 //!   faults to EMCY (below).
 //! * **configuration**: the object dictionary is the source of truth for
 //!   everything it holds (0x2101..0x2104 calibration, 0x2201..0x2204
-//!   transfer functions, 0x2300 acquisition, 0x2400 CAN); on every
-//!   configuration change the pipeline's parameters are rebuilt from it
-//!   ([`params_from_device`]). Settings the dictionary does not hold (ADC
+//!   transfer functions, 0x2300 acquisition, 0x2310 surface model, 0x2400
+//!   CAN); on every configuration change the pipeline's parameters and
+//!   surface model are rebuilt from it ([`params_from_device`],
+//!   `perpend_can::SurfaceModel::to_shape`). The surface model is not in
+//!   the [`Params`] record: it is stored in the device image only (image
+//!   layout 3; images of layouts 1 and 2 load with the plane model). Settings the dictionary does not hold (ADC
 //!   reference, stuck and jump detectors, the live-zero signal span) come
 //!   from the stored record. A combination that fails [`Params::validate`]
 //!   sets status bit 21 and EMCY 0x6300; nothing invalid is ever stored.
@@ -334,9 +337,13 @@ impl<S: ParamStore> App<S> {
     fn reload(&mut self) {
         let calibrated = !self.dev.calibration_is_default();
         let old = *self.pipe.params();
-        match params_from_device(&self.dev, &self.extra) {
-            Ok(p) => self.pipe.set_params(p, calibrated),
-            Err(_) => self.pipe.invalidate(calibrated),
+        let shape = self.dev.surface().to_shape();
+        match (params_from_device(&self.dev, &self.extra), shape) {
+            (Ok(p), Ok(shape)) => {
+                self.pipe.set_params(p, calibrated);
+                self.pipe.set_shape(shape);
+            }
+            _ => self.pipe.invalidate(calibrated),
         }
         let new = self.pipe.params();
         if new.acq.period_us != old.acq.period_us

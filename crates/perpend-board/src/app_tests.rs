@@ -709,3 +709,134 @@ fn a_slow_bus_delivers_every_frame_in_order() {
     }
     assert_eq!(b.app.device().read_u32(0x2008, 1), Some(0));
 }
+
+/// A sphere of signed radius `r` through the point (0, 0, 45) with a
+/// normal tilted by about 5°, in f64.
+fn test_sphere(r: f64) -> perpend_core::surface::CurvedSurface<f64> {
+    use nalgebra::Vector3;
+    use perpend_core::surface::{CurvedSurface, Shape};
+    let n = Vector3::new(0.06, -0.07, -1.0);
+    CurvedSurface::through(
+        Vector3::new(0.0, 0.0, 45.0),
+        n,
+        &Shape::Sphere { radius: r },
+    )
+    .unwrap()
+}
+
+/// ADC counts of the four sensors looking at a curved surface.
+fn counts_for_surface(app: &HostApp, s: &perpend_core::surface::CurvedSurface<f64>) -> [u16; 4] {
+    let p = app.pipeline().params();
+    let head = p.head.cast::<f64>();
+    let mm: [f32; 4] = core::array::from_fn(|i| s.distance(&head.sensors[i], i).unwrap() as f32);
+    crate::pipeline::testutil::counts_for_mm(p, mm)
+}
+
+/// The angle [deg] between an output normal and the surface's normal where
+/// the spindle axis meets it.
+fn surface_error_deg(o: &Output, s: &perpend_core::surface::CurvedSurface<f64>) -> f64 {
+    let (_, n) = s.axis_point().unwrap();
+    let got = nalgebra::Vector3::new(o.normal[0] as f64, o.normal[1] as f64, o.normal[2] as f64);
+    got.dot(&n).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Issue 14 item 2: the surface model set over CAN (0x2310) is applied to
+/// every sample; it is stored with 0x1010 sub 3 and survives a reboot.
+#[test]
+fn surface_model_over_can_curves_the_normal_and_is_stored() {
+    let mut b = Bench::new(HostFlash::new());
+    let sphere = test_sphere(300.0);
+    let c = counts_for_surface(&b.app, &sphere);
+    let plane_err = surface_error_deg(&b.sample(c), &sphere);
+    b.write_f32(0x2310, 2, 300.0).unwrap();
+    b.write(0x2310, 1, &[1]).unwrap();
+    assert_eq!(
+        b.app.pipeline().shape(),
+        perpend_core::surface::Shape::Sphere { radius: 300.0 }
+    );
+    let o = b.sample(c);
+    assert!(o.valid(), "{o:?}");
+    let err = surface_error_deg(&o, &sphere);
+    assert!(err < 0.05, "sphere model {err}°, plane model {plane_err}°");
+    assert!(
+        err < plane_err,
+        "sphere model {err}°, plane model {plane_err}°"
+    );
+    // operational: refused with 0x08000022
+    b.nmt(0x01);
+    assert_eq!(b.write(0x2310, 1, &[0]), Err(0x0800_0022));
+    b.nmt(0x80);
+    // stored with the application parameters, back after a reboot
+    b.write(0x1010, 3, &SAVE.to_le_bytes()).unwrap();
+    let mut b = b.reboot();
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert_eq!(
+        b.app.pipeline().shape(),
+        perpend_core::surface::Shape::Sphere { radius: 300.0 }
+    );
+    assert!(surface_error_deg(&b.sample(c), &sphere) < 0.05);
+    // restore of the application parameters: the plane from the next reset
+    b.write(0x1011, 3, &LOAD.to_le_bytes()).unwrap();
+    b.nmt(0x81);
+    assert_eq!(
+        b.app.pipeline().shape(),
+        perpend_core::surface::Shape::Plane
+    );
+}
+
+/// Invalid surface models are SDO aborts and leave the model unchanged.
+#[test]
+fn invalid_surface_model_is_an_sdo_abort() {
+    let mut b = Bench::new(HostFlash::new());
+    // unknown model, radius zero / too small / NaN / too large
+    assert_eq!(b.write(0x2310, 1, &[3]), Err(0x0609_0030));
+    assert_eq!(b.write_f32(0x2310, 2, 0.0), Err(0x0609_0030));
+    assert_eq!(b.write_f32(0x2310, 2, -5.0), Err(0x0609_0030));
+    assert_eq!(b.write_f32(0x2310, 2, f32::NAN), Err(0x0609_0030));
+    assert_eq!(b.write_f32(0x2310, 2, 1e6), Err(0x0609_0031));
+    assert_eq!(b.write_f32(0x2310, 3, 2.0), Err(0x0609_0031));
+    // a cylinder with a zero axis, either order
+    for sub in 3..=5 {
+        b.write_f32(0x2310, sub, 0.0).unwrap();
+    }
+    assert_eq!(b.write(0x2310, 1, &[2]), Err(0x0609_0030));
+    b.write_f32(0x2310, 4, 1.0).unwrap();
+    b.write(0x2310, 1, &[2]).unwrap();
+    assert_eq!(b.write_f32(0x2310, 4, 0.0), Err(0x0609_0030));
+    b.write_f32(0x2310, 2, -400.0).unwrap();
+    assert!(matches!(
+        b.app.pipeline().shape(),
+        perpend_core::surface::Shape::Cylinder { radius, .. } if radius == -400.0
+    ));
+    assert!(b.app.pipeline().config_ok());
+}
+
+/// A record stored before the surface model (device image of layout 2)
+/// still boots as stored, with the plane model.
+#[test]
+fn record_of_layout_2_boots_with_the_plane_model() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2300, 1, &3000u32.to_le_bytes()).unwrap();
+    b.write_f32(0x2310, 2, 300.0).unwrap();
+    b.write(0x2310, 1, &[1]).unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    b.app.device().persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = perpend_can::device::image_as_layout(&img, 2, &mut old);
+    assert_eq!(n, perpend_can::device::IMAGE_LEN_V2);
+    let p = Params {
+        stamp: 1,
+        ..Params::factory()
+    };
+    let mut f = b.app.into_store().into_flash();
+    f.power_on();
+    let mut store = host_store(f);
+    crate::storage::save_with_tail(&mut store, &p, &old[..n]).unwrap();
+    let b = Bench::new(store.into_flash());
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert_eq!(b.app.acquisition().period_us, 3000);
+    assert_eq!(
+        b.app.pipeline().shape(),
+        perpend_core::surface::Shape::Plane
+    );
+}

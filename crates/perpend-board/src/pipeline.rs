@@ -10,7 +10,12 @@
 //! 2. the valid readings → spots (Chen eq. 17, with the sensors' extension
 //!    corrections, head temperature and run time as context) → micro-plane
 //!    (least squares or Chen eq. 18-19) → deviation and attitude, by
-//!    `perpend_core::normal::measure`, unchanged from the host;
+//!    `perpend_core::normal::measure`, unchanged from the host; with a
+//!    curved surface model (object 0x2310, [`Pipeline::set_shape`]) the
+//!    sphere or cylinder is fitted to the spots and the normal is the one
+//!    where the spindle axis meets it (`perpend_core::surface::measure`,
+//!    issue 14; the residual is then the RMS distance of the spots from
+//!    the fitted surface);
 //! 3. plausibility: three sensors → [`DEGRADED`]; four sensors with a plane
 //!    RMS residual above `max_rms_mm` → [`RESIDUAL_HIGH`]; any error of the
 //!    core or a non-finite result → [`NO_PLANE`].
@@ -30,6 +35,7 @@
 use perpend_core::ext::Context;
 use perpend_core::normal::measure;
 use perpend_core::params::Params;
+use perpend_core::surface::{self, Shape};
 
 use crate::acq::{convert, median, Channel, Class, Conversion};
 use crate::status::{
@@ -93,6 +99,15 @@ pub struct Pipeline {
     calibrated: bool,
     config_ok: bool,
     chans: [Channel; CHANNELS],
+    shape: Shape<f32>,
+}
+
+/// What step 2 yields, whichever surface model: the normal, the angles
+/// and the residual.
+struct Fitted {
+    degraded: bool,
+    rms: f32,
+    vals: [f32; 9],
 }
 
 impl Pipeline {
@@ -105,7 +120,20 @@ impl Pipeline {
             params,
             calibrated,
             chans: [Channel::default(); CHANNELS],
+            shape: Shape::Plane,
         }
+    }
+
+    /// The surface model in use ([`Shape::Plane`] unless set).
+    pub fn shape(&self) -> Shape<f32> {
+        self.shape
+    }
+
+    /// Sets the surface model applied to every sample (object 0x2310);
+    /// the detector history is kept. [`Shape::Plane`] is the micro-plane,
+    /// unchanged in result and cost.
+    pub fn set_shape(&mut self, shape: Shape<f32>) {
+        self.shape = shape;
     }
 
     /// The parameters in use.
@@ -123,9 +151,12 @@ impl Pipeline {
         self.config_ok
     }
 
-    /// Replaces the parameters and forgets the detector history.
+    /// Replaces the parameters and forgets the detector history (the
+    /// surface model stays).
     pub fn set_params(&mut self, params: Params, calibrated: bool) {
+        let shape = self.shape;
         *self = Self::new(params, calibrated);
+        self.shape = shape;
     }
 
     /// Keeps the parameters but marks them invalid (the dictionary holds a
@@ -197,31 +228,17 @@ impl Pipeline {
             temp_c: s.temp_c.filter(|t| t.is_finite()),
             t_s: s.t_s.filter(|t| t.is_finite()),
         };
-        let m = match measure(&p.head, &readings, &ctx, p.acq.method) {
-            Ok(m) => m,
-            Err(_) => {
-                out.status |= NO_PLANE;
-                return out;
-            }
+        let Some(f) = self.fit(&readings, &ctx) else {
+            out.status |= NO_PLANE;
+            return out;
         };
-        if m.plane.degraded {
+        if f.degraded {
             out.status |= DEGRADED;
-        } else if !(m.plane.rms <= p.acq.max_rms_mm) {
+        } else if !(f.rms <= p.acq.max_rms_mm) {
             out.status |= RESIDUAL_HIGH | NO_PLANE;
             return out;
         }
-        let n = m.plane.normal;
-        let vals = [
-            n.x,
-            n.y,
-            n.z,
-            m.deviation.theta1.to_degrees(),
-            m.deviation.theta2.to_degrees(),
-            m.deviation.theta.to_degrees(),
-            m.attitude.pitch.to_degrees(),
-            m.attitude.yaw.to_degrees(),
-            m.plane.rms,
-        ];
+        let vals = f.vals;
         if !vals.iter().all(|v| v.is_finite()) {
             out.status |= NO_PLANE;
             return out;
@@ -234,6 +251,39 @@ impl Pipeline {
         out.yaw_deg = vals[7];
         out.rms_mm = vals[8];
         out
+    }
+
+    /// Step 2: readings → normal, angles, residual on the surface model
+    /// (`None`: any error of the core).
+    fn fit(&self, readings: &[Option<f32>; CHANNELS], ctx: &Context<f32>) -> Option<Fitted> {
+        let p = &self.params;
+        let (degraded, normal, dev, att, rms) = match &self.shape {
+            Shape::Plane => {
+                let m = measure(&p.head, readings, ctx, p.acq.method).ok()?;
+                let pl = m.plane;
+                (pl.degraded, pl.normal, m.deviation, m.attitude, pl.rms)
+            }
+            shape => {
+                let m = surface::measure(&p.head, readings, ctx, p.acq.method, shape).ok()?;
+                let f = m.fit;
+                (f.plane.degraded, f.normal, m.deviation, m.attitude, f.rms)
+            }
+        };
+        Some(Fitted {
+            degraded,
+            rms,
+            vals: [
+                normal.x,
+                normal.y,
+                normal.z,
+                dev.theta1.to_degrees(),
+                dev.theta2.to_degrees(),
+                dev.theta.to_degrees(),
+                att.pitch.to_degrees(),
+                att.yaw.to_degrees(),
+                rms,
+            ],
+        })
     }
 }
 

@@ -274,6 +274,70 @@ impl Acquisition {
     }
 }
 
+/// Surface model code (0x2310 sub 1): plane (the micro-plane, unchanged).
+pub const SURFACE_PLANE: u8 = 0;
+/// Surface model code: sphere of the signed radius of sub 2.
+pub const SURFACE_SPHERE: u8 = 1;
+/// Surface model code: circular cylinder of the signed radius of sub 2 and
+/// the axis direction of subs 3-5.
+pub const SURFACE_CYLINDER: u8 = 2;
+/// Largest |radius| of 0x2310 sub 2 \[mm\] (the fit runs in `f32` up to
+/// ~10⁴ mm; a larger radius is a plane for the board).
+pub const SURFACE_RADIUS_MAX_MM: f32 = 100_000.0;
+/// Smallest |radius| of 0x2310 sub 2 \[mm\]: abort 0x06090030 below it
+/// (zero included).
+pub const SURFACE_RADIUS_MIN_MM: f32 = 10.0;
+/// Default radius of 0x2310 sub 2 \[mm\] (unused by the plane model).
+pub const SURFACE_RADIUS_DEFAULT_MM: f32 = 1000.0;
+/// Smallest length of the cylinder axis (0x2310 subs 3-5) with the
+/// cylinder model selected: abort 0x06090030 below it.
+pub const SURFACE_AXIS_MIN_LEN: f32 = 1e-3;
+
+/// Nominal surface under the head: object 0x2310 (issue 14), applied to
+/// every sample ([`perpend_core::surface`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceModel {
+    /// Sub 1: [`SURFACE_PLANE`], [`SURFACE_SPHERE`] or [`SURFACE_CYLINDER`].
+    pub model: u8,
+    /// Sub 2: signed radius \[mm\], `> 0` convex, `< 0` concave.
+    pub radius_mm: f32,
+    /// Subs 3-5: direction of the cylinder's axis in the TCS.
+    pub axis: [f32; 3],
+}
+
+impl SurfaceModel {
+    /// The core's shape.
+    ///
+    /// # Errors
+    /// [`perpend_core::Error::OutOfRange`] for an unknown model, a radius
+    /// outside [`SURFACE_RADIUS_MIN_MM`]..=[`SURFACE_RADIUS_MAX_MM`] in
+    /// magnitude (or not finite), or a cylinder axis shorter than
+    /// [`SURFACE_AXIS_MIN_LEN`] (the dictionary refuses all of these on
+    /// write; a stored image is checked the same way).
+    pub fn to_shape(&self) -> Result<perpend_core::surface::Shape<f32>, perpend_core::Error> {
+        use perpend_core::surface::Shape;
+        let radius = self.radius_mm;
+        let radius_ok =
+            radius.abs() >= SURFACE_RADIUS_MIN_MM && radius.abs() <= SURFACE_RADIUS_MAX_MM;
+        match self.model {
+            SURFACE_PLANE => Ok(Shape::Plane),
+            SURFACE_SPHERE if radius_ok => Ok(Shape::Sphere { radius }),
+            SURFACE_CYLINDER if radius_ok => {
+                let axis = nalgebra::Vector3::from(self.axis);
+                if axis.norm() >= SURFACE_AXIS_MIN_LEN {
+                    Ok(Shape::Cylinder { radius, axis })
+                } else {
+                    Err(perpend_core::Error::OutOfRange("cylinder axis"))
+                }
+            }
+            SURFACE_SPHERE | SURFACE_CYLINDER => {
+                Err(perpend_core::Error::OutOfRange("surface radius"))
+            }
+            _ => Err(perpend_core::Error::OutOfRange("surface model")),
+        }
+    }
+}
+
 /// Communication settings: object 0x2400. Both take effect at the next
 /// reset (communication or node).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -14,8 +14,8 @@ use perpend_core::head::Sensor;
 use perpend_core::params::Params;
 
 use crate::config::{
-    bitrate_of, Acquisition, Communication, Defaults, Measurement, SensorCalibration,
-    TransferFunction,
+    bitrate_of, Acquisition, Communication, Defaults, Measurement, SensorCalibration, SurfaceModel,
+    TransferFunction, SURFACE_AXIS_MIN_LEN, SURFACE_CYLINDER, SURFACE_RADIUS_MIN_MM,
 };
 use crate::frame::Frame;
 pub use crate::od::Group;
@@ -109,15 +109,20 @@ pub const MAX_ACTIVE_ERRORS: usize = 8;
 const EMCY_QUEUE: usize = 8;
 
 /// Length of an image of layout 1 (firmware before issue 16, without the
-/// entries marked `since_v2`): still accepted by [`Device::load_image`].
+/// entries of layout 2 and 3): still accepted by [`Device::load_image`].
 pub const IMAGE_LEN_V1: usize = 8 + 4 * od::PERSISTENT_V1;
 
-/// FNV-1a over (index, sub, type) of the persisted entries (`v1`: those of
-/// layout 1 only): changes when the persisted layout changes.
-fn layout_signature_of(v1: bool) -> u32 {
+/// Length of an image of layout 2 (firmware before the surface model
+/// 0x2310 of issue 14): still accepted by [`Device::load_image`].
+pub const IMAGE_LEN_V2: usize = 8 + 4 * od::PERSISTENT_V2;
+
+/// FNV-1a over (index, sub, type) of the entries persisted by image layout
+/// `layout` ([`od::Entry::since`]): changes when the persisted layout
+/// changes.
+fn layout_signature_of(layout: u8) -> u32 {
     let mut h: u32 = 0x811C_9DC5;
     for (_, index, e) in od::entries() {
-        if e.persist && !(v1 && e.since_v2) {
+        if e.persist && e.since <= layout {
             for b in index
                 .to_le_bytes()
                 .into_iter()
@@ -133,19 +138,27 @@ fn layout_signature_of(v1: bool) -> u32 {
 }
 
 fn layout_signature() -> u32 {
-    layout_signature_of(false)
+    layout_signature_of(od::LAYOUT)
 }
 
 /// Converts a current image ([`IMAGE_LEN`] bytes) into the layout-1 image
-/// older firmware wrote (the `since_v2` entries left out): for
-/// compatibility tests. Returns the length written ([`IMAGE_LEN_V1`]).
+/// older firmware wrote: for compatibility tests. Returns the length
+/// written ([`IMAGE_LEN_V1`]).
 pub fn image_as_v1(img: &[u8; IMAGE_LEN], out: &mut [u8; IMAGE_LEN]) -> usize {
-    out[0..4].copy_from_slice(&layout_signature_of(true).to_le_bytes());
-    out[4..8].copy_from_slice(&(od::PERSISTENT_V1 as u32).to_le_bytes());
+    image_as_layout(img, 1, out)
+}
+
+/// Converts a current image ([`IMAGE_LEN`] bytes) into the image of the
+/// older layout `layout` (1 or 2: the entries added since left out), as
+/// older firmware wrote it: for compatibility tests. Returns the length
+/// written.
+pub fn image_as_layout(img: &[u8; IMAGE_LEN], layout: u8, out: &mut [u8; IMAGE_LEN]) -> usize {
+    out[0..4].copy_from_slice(&layout_signature_of(layout).to_le_bytes());
+    out[4..8].copy_from_slice(&(od::persistent_of(layout) as u32).to_le_bytes());
     let (mut p, mut q) = (8, 8);
     for (_, _, e) in od::entries() {
         if e.persist {
-            if !e.since_v2 {
+            if e.since <= layout {
                 out[q..q + 4].copy_from_slice(&img[p..p + 4]);
                 q += 4;
             }
@@ -206,7 +219,7 @@ fn index_is_app(e: &od::Entry) -> bool {
 }
 
 fn slot(index: u16, sub: u8) -> Option<usize> {
-    od::find(index, sub).ok().map(|(s, _)| s)
+    od::slot(index, sub)
 }
 
 /// Whether an 11-bit COB-ID may be used by a TPDO (CiA 301 §7.3.5,
@@ -346,6 +359,16 @@ impl Core {
         }
     }
 
+    /// Sets subs `first..` of `index` to `vals` (they must be consecutive
+    /// sub-indices, hence consecutive slots: one lookup for all).
+    fn set_run(&mut self, index: u16, first: u8, vals: &[u32]) {
+        if let Some(s) = slot(index, first) {
+            if let Some(dst) = self.values.get_mut(s..s + vals.len()) {
+                dst.copy_from_slice(vals);
+            }
+        }
+    }
+
     fn get_f32(&self, index: u16, sub: u8) -> f32 {
         f32::from_bits(self.get(index, sub))
     }
@@ -404,10 +427,16 @@ impl Core {
 
     /// Validates one mapping entry; returns its bit length.
     fn check_map_entry(m: u32) -> Result<u8, SdoAbort> {
+        Self::map_target(m).map(|(_, bits)| bits)
+    }
+
+    /// Validates one mapping entry; returns the slot of the mapped object
+    /// and its bit length.
+    fn map_target(m: u32) -> Result<(usize, u8), SdoAbort> {
         let index = (m >> 16) as u16;
         let sub = (m >> 8) as u8;
         let bits = m as u8;
-        let (_, e) = od::find(index, sub).map_err(|l| match l {
+        let (s, e) = od::find(index, sub).map_err(|l| match l {
             Lookup::NoObject => SdoAbort::NoObject,
             Lookup::NoSub => SdoAbort::NoSub,
         })?;
@@ -417,7 +446,7 @@ impl Core {
         if e.ty.bits() != bits {
             return Err(SdoAbort::Incompatible);
         }
-        Ok(bits)
+        Ok((s, bits))
     }
 
     fn mapping_of(&self, k: usize) -> ([u32; MAX_MAPPED], usize) {
@@ -429,23 +458,29 @@ impl Core {
 
     /// The payload of TPDO `k`, or `None` if its mapping is unusable or
     /// empty (sub 0 = 0: an empty PDO is never sent).
+    /// (Hot path of every SYNC: the mapping's subs 0..=8 are consecutive
+    /// slots, read directly.)
     fn tpdo_frame(&self, k: usize) -> Option<Frame> {
-        let (map, n) = self.mapping_of(k);
+        let base = slot(0x1A00 + k as u16, 0)?;
+        let map = self.values.get(base..=base + MAX_MAPPED)?;
+        let n = (map[0] as usize).min(MAX_MAPPED);
         if n == 0 {
             return None;
         }
-        let mut data = [0u8; 8];
+        // The payload little-endian in one u64 (no byte copies).
+        let mut acc = 0u64;
         let mut len = 0usize;
-        for &m in map.iter().take(n) {
-            let bits = Self::check_map_entry(m).ok()?;
+        for &m in &map[1..=n] {
+            let (s, bits) = Self::map_target(m).ok()?;
             let bytes = bits as usize / 8;
             if len + bytes > 8 {
                 return None;
             }
-            let v = self.get((m >> 16) as u16, (m >> 8) as u8).to_le_bytes();
-            data[len..len + bytes].copy_from_slice(&v[..bytes]);
+            let mask = (1u64 << bits) - 1;
+            acc |= (u64::from(*self.values.get(s)?) & mask) << (8 * len);
             len += bytes;
         }
+        let data = acc.to_le_bytes();
         let id = (self.get(0x1800 + k as u16, 1) & 0x7FF) as u16;
         Some(Frame::new(id, &data[..len]))
     }
@@ -719,6 +754,7 @@ impl Core {
                 Ok(None)
             }
             0x2300 => self.check_scan(sub, v).map(|()| None),
+            0x2310 => self.check_surface(sub, v).map(|()| None),
             0x2010 => {
                 if v == UNLOCK_SIGNATURE {
                     self.unlocked = true;
@@ -804,6 +840,33 @@ impl Core {
         }
     }
 
+    /// 0x2310 beyond the per-entry limits: a radius of magnitude below
+    /// [`SURFACE_RADIUS_MIN_MM`] (zero included) is refused, and with the
+    /// cylinder model the axis (subs 3-5) must stay at least
+    /// [`SURFACE_AXIS_MIN_LEN`] long: selecting the cylinder with a zero
+    /// axis or zeroing the axis of a selected cylinder is refused. Both
+    /// abort 0x06090030 (value range exceeded). Set the axis before the
+    /// model.
+    fn check_surface(&self, sub: u8, v: u32) -> Result<(), SdoAbort> {
+        if sub == 2 && !(f32::from_bits(v).abs() >= SURFACE_RADIUS_MIN_MM) {
+            return Err(SdoAbort::Range);
+        }
+        let model = if sub == 1 { v } else { self.get(0x2310, 1) };
+        if model != SURFACE_CYLINDER as u32 || sub == 2 {
+            return Ok(());
+        }
+        let axis: [f32; 3] = core::array::from_fn(|k| {
+            let s = k as u8 + 3;
+            f32::from_bits(if s == sub { v } else { self.get(0x2310, s) })
+        });
+        let len2 = axis.iter().map(|a| a * a).sum::<f32>();
+        if len2 >= SURFACE_AXIS_MIN_LEN * SURFACE_AXIS_MIN_LEN {
+            Ok(())
+        } else {
+            Err(SdoAbort::Range)
+        }
+    }
+
     /// Whether a persisted value would be accepted (image load).
     fn valid_persisted(&self, index: u16, sub: u8, e: &od::Entry, v: u32) -> bool {
         if check_limits(e.limits, e.ty, v).is_err() {
@@ -823,6 +886,7 @@ impl Core {
             }
             (0x1800..=0x1803, 2) => v <= 240 || v >= 254,
             (0x1A00..=0x1A03, s) if s > 0 => v == 0 || Self::check_map_entry(v).is_ok(),
+            (0x2310, 2) => f32::from_bits(v).abs() >= SURFACE_RADIUS_MIN_MM,
             _ => true,
         }
     }
@@ -1097,17 +1161,14 @@ impl Device {
     /// next poll after the inhibit time.
     pub fn set_measurement(&mut self, m: &Measurement) {
         let c = &mut self.core;
-        for (i, v) in m.normal.iter().enumerate() {
-            c.set(0x2001, i as u8 + 1, v.to_bits());
-        }
-        c.set(0x2002, 1, m.theta1_deg.to_bits());
-        c.set(0x2002, 2, m.theta2_deg.to_bits());
-        c.set(0x2002, 3, m.theta_deg.to_bits());
-        c.set(0x2003, 1, m.pitch_deg.to_bits());
-        c.set(0x2003, 2, m.yaw_deg.to_bits());
-        for (i, v) in m.distances_mm.iter().enumerate() {
-            c.set(0x2004, i as u8 + 1, v.to_bits());
-        }
+        c.set_run(0x2001, 1, &m.normal.map(f32::to_bits));
+        c.set_run(
+            0x2002,
+            1,
+            &[m.theta1_deg, m.theta2_deg, m.theta_deg].map(f32::to_bits),
+        );
+        c.set_run(0x2003, 1, &[m.pitch_deg, m.yaw_deg].map(f32::to_bits));
+        c.set_run(0x2004, 1, &m.distances_mm.map(f32::to_bits));
         c.set(0x2005, 0, m.status);
         c.set(0x2006, 0, m.rms_mm.to_bits());
         let n = c.get(0x2007, 0).wrapping_add(1);
@@ -1241,6 +1302,15 @@ impl Device {
         })
     }
 
+    /// Surface model 0x2310 (issue 14).
+    pub fn surface(&self) -> SurfaceModel {
+        SurfaceModel {
+            model: self.core.get(0x2310, 1) as u8,
+            radius_mm: self.core.get_f32(0x2310, 2),
+            axis: core::array::from_fn(|k| self.core.get_f32(0x2310, k as u8 + 3)),
+        }
+    }
+
     /// Acquisition settings 0x2300.
     pub fn acquisition(&self) -> Acquisition {
         Acquisition {
@@ -1341,6 +1411,7 @@ impl Device {
     }
 
     /// Whether emergency `code` is active.
+    #[inline]
     pub fn emcy_active(&self, code: u16) -> bool {
         self.core.active[..self.core.n_active]
             .iter()
@@ -1478,28 +1549,33 @@ impl Device {
     /// is checked against its object's rules first; on success the values
     /// become both current and power-on values and a node-id stored in
     /// 0x2400 becomes active. An image of layout 1 ([`IMAGE_LEN_V1`]
-    /// bytes, written before issue 16) loads too: the entries added since
-    /// keep their current values.
+    /// bytes, written before issue 16) or 2 ([`IMAGE_LEN_V2`], before the
+    /// surface model 0x2310) loads too: the entries added since keep their
+    /// current values.
     ///
     /// # Errors
     /// [`Error::ImageLength`], [`Error::ImageLayout`], [`Error::Value`];
     /// the device is unchanged.
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
-        let v1 = img.len() == IMAGE_LEN_V1;
-        if img.len() != IMAGE_LEN && !v1 {
-            return Err(Error::ImageLength {
-                expected: IMAGE_LEN,
-                got: img.len(),
-            });
-        }
+        let layout = match img.len() {
+            IMAGE_LEN => od::LAYOUT,
+            IMAGE_LEN_V2 => 2,
+            IMAGE_LEN_V1 => 1,
+            got => {
+                return Err(Error::ImageLength {
+                    expected: IMAGE_LEN,
+                    got,
+                })
+            }
+        };
         let word = |p: usize| u32::from_le_bytes([img[p], img[p + 1], img[p + 2], img[p + 3]]);
-        let count = if v1 { od::PERSISTENT_V1 } else { PERSISTENT };
-        if word(0) != layout_signature_of(v1) || word(4) != count as u32 {
+        let count = od::persistent_of(layout);
+        if word(0) != layout_signature_of(layout) || word(4) != count as u32 {
             return Err(Error::ImageLayout);
         }
-        // An entry the image holds (layout 1 lacks the `since_v2` ones,
+        // An entry the image holds (an older layout lacks the newer ones,
         // which keep their current value).
-        let held = |e: &od::Entry| e.persist && !(v1 && e.since_v2);
+        let held = |e: &od::Entry| e.persist && e.since <= layout;
         // Validate everything first (mappings against the image's own
         // counts).
         let mut p = 8;

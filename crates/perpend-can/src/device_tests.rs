@@ -644,7 +644,7 @@ fn layout_1_images_still_load() {
     b.write_f32(0x2009, 1, 0.5).unwrap();
     let mut img = [0u8; IMAGE_LEN];
     b.dev.persistent_image(&mut img);
-    // drop the since_v2 words, sign as layout 1
+    // drop the words of layouts 2 and 3, sign as layout 1
     let mut buf = [0u8; IMAGE_LEN];
     let n = image_as_v1(&img, &mut buf);
     assert_eq!(n, IMAGE_LEN_V1);

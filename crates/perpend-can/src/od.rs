@@ -155,9 +155,10 @@ pub struct Entry {
     pub pdo: bool,
     /// Whether 0x1010 "save" stores it.
     pub persist: bool,
-    /// Persisted since layout 2 (issue 16): absent from images of layout 1,
-    /// which still load (the entry keeps its default).
-    pub since_v2: bool,
+    /// Image layout that first persisted it: 1, 2 (issue 16) or 3
+    /// (issue 14, the surface model 0x2310). Images of an older layout lack
+    /// it and still load (the entry keeps its current value).
+    pub since: u8,
     /// Accepted values on write.
     pub limits: Limits,
     /// Default value.
@@ -174,7 +175,7 @@ impl Entry {
             class,
             pdo: false,
             persist: false,
-            since_v2: false,
+            since: 1,
             limits: Limits::Any,
             init: Init::Fixed(0),
         }
@@ -196,7 +197,11 @@ impl Entry {
         self
     }
     const fn v2(mut self) -> Self {
-        self.since_v2 = true;
+        self.since = 2;
+        self
+    }
+    const fn v3(mut self) -> Self {
+        self.since = 3;
         self
     }
 }
@@ -759,6 +764,47 @@ pub const OBJECTS: &[Object] = &[
         ],
     ),
     rec(
+        0x2310,
+        "Surface model",
+        &[
+            sub0(5),
+            Entry::new(1, "Model", U8, Rw, Class::Config)
+                .persist()
+                .v3()
+                .limits(Limits::OneOf(&[
+                    crate::config::SURFACE_PLANE as u32,
+                    crate::config::SURFACE_SPHERE as u32,
+                    crate::config::SURFACE_CYLINDER as u32,
+                ]))
+                .init(Init::Fixed(crate::config::SURFACE_PLANE as u32)),
+            Entry::new(2, "Radius mm", Real32, Rw, Class::Config)
+                .persist()
+                .v3()
+                .limits(Limits::Real(
+                    -crate::config::SURFACE_RADIUS_MAX_MM,
+                    crate::config::SURFACE_RADIUS_MAX_MM,
+                ))
+                .init(Init::Fixed(
+                    crate::config::SURFACE_RADIUS_DEFAULT_MM.to_bits(),
+                )),
+            Entry::new(3, "Cylinder axis x", Real32, Rw, Class::Config)
+                .persist()
+                .v3()
+                .limits(Limits::Real(-1.0, 1.0))
+                .init(Init::Fixed(1.0f32.to_bits())),
+            Entry::new(4, "Cylinder axis y", Real32, Rw, Class::Config)
+                .persist()
+                .v3()
+                .limits(Limits::Real(-1.0, 1.0))
+                .init(Init::Fixed(0)),
+            Entry::new(5, "Cylinder axis z", Real32, Rw, Class::Config)
+                .persist()
+                .v3()
+                .limits(Limits::Real(-1.0, 1.0))
+                .init(Init::Fixed(0)),
+        ],
+    ),
+    rec(
         0x2400,
         "Communication",
         &[
@@ -785,14 +831,14 @@ const fn count_entries() -> usize {
     n
 }
 
-const fn count_persist(v1_only: bool) -> usize {
+const fn count_persist(layout: u8) -> usize {
     let mut n = 0;
     let mut i = 0;
     while i < OBJECTS.len() {
         let mut j = 0;
         while j < OBJECTS[i].subs.len() {
             let e = &OBJECTS[i].subs[j];
-            if e.persist && !(v1_only && e.since_v2) {
+            if e.persist && e.since <= layout {
                 n += 1;
             }
             j += 1;
@@ -805,10 +851,20 @@ const fn count_persist(v1_only: bool) -> usize {
 /// Number of entries (sub-indices) in the dictionary: the number of value
 /// slots of a [`crate::Device`].
 pub const ENTRIES: usize = count_entries();
+/// The current image layout (see [`Entry::since`]).
+pub const LAYOUT: u8 = 3;
 /// Number of entries stored by 0x1010.
-pub const PERSISTENT: usize = count_persist(false);
+pub const PERSISTENT: usize = count_persist(LAYOUT);
 /// Number of entries an image of layout 1 (before issue 16) holds.
-pub const PERSISTENT_V1: usize = count_persist(true);
+pub const PERSISTENT_V1: usize = count_persist(1);
+/// Number of entries an image of layout 2 (before the surface model 0x2310)
+/// holds.
+pub const PERSISTENT_V2: usize = count_persist(2);
+
+/// Number of persisted entries of image layout `layout` (1..=[`LAYOUT`]).
+pub const fn persistent_of(layout: u8) -> usize {
+    count_persist(layout)
+}
 
 /// Slot of the first entry of each object (prefix sums of the sub counts).
 const OFFSETS: [usize; OBJECTS.len()] = {
@@ -820,6 +876,88 @@ const OFFSETS: [usize; OBJECTS.len()] = {
     }
     o
 };
+
+/// `(index << 8) | sub` of every entry in slot order (sorted, as the table
+/// is): the flat key array [`find`] searches (the hot path of every value
+/// access, SYNC and sample).
+const KEYS: [u32; ENTRIES] = {
+    let mut k = [0u32; ENTRIES];
+    let (mut i, mut n) = (0, 0);
+    while i < OBJECTS.len() {
+        let mut j = 0;
+        while j < OBJECTS[i].subs.len() {
+            k[n] = ((OBJECTS[i].index as u32) << 8) | OBJECTS[i].subs[j].sub as u32;
+            n += 1;
+            j += 1;
+        }
+        i += 1;
+    }
+    k
+};
+
+/// Object (position in the table) of every slot.
+const OBJECT_OF: [u8; ENTRIES] = {
+    let mut o = [0u8; ENTRIES];
+    let (mut i, mut n) = (0, 0);
+    while i < OBJECTS.len() {
+        let mut j = 0;
+        while j < OBJECTS[i].subs.len() {
+            o[n] = i as u8;
+            n += 1;
+            j += 1;
+        }
+        i += 1;
+    }
+    o
+};
+
+const _: () = assert!(OBJECTS.len() <= 256, "OBJECT_OF holds u8");
+
+/// Row of the hot table [`HOT`]: the objects every SYNC and sample reads
+/// or writes (TPDO communication and mapping, measurement, deadbands).
+const fn hot_row(index: u16) -> Option<usize> {
+    match index {
+        0x1800..=0x1803 => Some((index - 0x1800) as usize),
+        0x1A00..=0x1A03 => Some(4 + (index - 0x1A00) as usize),
+        0x2001..=0x2009 => Some(8 + (index - 0x2001) as usize),
+        _ => None,
+    }
+}
+
+/// Sub-indices per row of [`HOT`] (0..=8: a TPDO mapping's).
+const HOT_SUBS: usize = 1 + MAX_MAPPED;
+/// "No such entry" in [`HOT`].
+const NO_SLOT: u16 = u16::MAX;
+
+/// The slot of `(index, sub)` for the [`hot_row`] objects, by direct
+/// lookup ([`NO_SLOT`]: no such entry).
+const HOT: [[u16; HOT_SUBS]; 17] = {
+    let mut t = [[NO_SLOT; HOT_SUBS]; 17];
+    let mut n = 0;
+    while n < ENTRIES {
+        let index = (KEYS[n] >> 8) as u16;
+        let sub = (KEYS[n] & 0xFF) as usize;
+        if let Some(r) = hot_row(index) {
+            assert!(sub < HOT_SUBS, "hot object with a sub-index above 8");
+            t[r][sub] = n as u16;
+        }
+        n += 1;
+    }
+    t
+};
+
+const _: () = assert!(ENTRIES < NO_SLOT as usize, "slots fit u16");
+
+/// The value slot of `(index, sub)` (`None`: no such entry): a direct
+/// lookup for the objects of every SYNC and sample, else a binary search.
+pub fn slot(index: u16, sub: u8) -> Option<usize> {
+    if let Some(r) = hot_row(index) {
+        let s = *HOT.get(r)?.get(sub as usize)?;
+        return (s != NO_SLOT).then_some(s as usize);
+    }
+    KEYS.binary_search(&(((index as u32) << 8) | sub as u32))
+        .ok()
+}
 
 /// Failure of a dictionary lookup.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -843,6 +981,12 @@ pub fn object(index: u16) -> Option<(usize, &'static Object)> {
 /// # Errors
 /// [`Lookup::NoObject`] / [`Lookup::NoSub`].
 pub fn find(index: u16, sub: u8) -> Result<(usize, &'static Entry), Lookup> {
+    if let Some(s) = slot(index, sub) {
+        let oi = OBJECT_OF[s] as usize;
+        if let Some(e) = OBJECTS.get(oi).and_then(|o| o.subs.get(s - OFFSETS[oi])) {
+            return Ok((s, e));
+        }
+    }
     let (oi, obj) = object(index).ok_or(Lookup::NoObject)?;
     let si = obj
         .subs
@@ -905,6 +1049,22 @@ mod tests {
             n += 1;
         }
         assert_eq!(n, ENTRIES);
+    }
+
+    #[test]
+    fn slot_lookup_agrees_with_the_table() {
+        for (n, index, e) in entries() {
+            assert_eq!(slot(index, e.sub), Some(n), "{index:#06x} sub {}", e.sub);
+        }
+        // absent subs of the direct-table objects, and around them
+        assert_eq!(slot(0x1800, 4), None);
+        assert_eq!(slot(0x1A00, 9), None);
+        assert_eq!(slot(0x2001, 200), None);
+        assert_eq!(slot(0x1804, 0), None);
+        assert_eq!(slot(0x200A, 0), None);
+        assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
+        assert_eq!(persistent_of(LAYOUT), PERSISTENT);
+        const { assert!(PERSISTENT_V1 < PERSISTENT_V2 && PERSISTENT_V2 < PERSISTENT) };
     }
 
     #[test]

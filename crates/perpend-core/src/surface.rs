@@ -314,7 +314,7 @@ impl<T: Real> Problem<'_, T> {
             let mut half = s * r * sr.v.dot(tk);
             if let (Some(a0), Some(a)) = (&self.c.axis, &c.axis) {
                 let b = a0 - st.n * st.n.dot(a0);
-                let db = -(st.n * a0.dot(tk) + tk * a0.dot(&st.n)) / b.norm();
+                let db = -(st.n * a0.dot(tk) + tk * a0.dot(&st.n)) / b.norm_squared().fast_sqrt();
                 let da = db - a * a.dot(&db);
                 half -= a.dot(&sr.v) * sr.v.dot(&da);
             }
@@ -360,7 +360,7 @@ fn solve_scaled<T: Real, const K: usize>(
         if !(a[(i, i)] > T::zero()) {
             return Err(Error::DegenerateSpots);
         }
-        sc[i] = T::one() / a[(i, i)].sqrt();
+        sc[i] = T::one() / a[(i, i)].fast_sqrt();
     }
     let scaled = SMatrix::<T, K, K>::from_fn(|i, j| a[(i, j)] * sc[i] * sc[j]);
     let l = cholesky(&scaled).ok_or(Error::DegenerateSpots)?;
@@ -373,17 +373,16 @@ fn solve_scaled<T: Real, const K: usize>(
 
 /// Gauss-Newton on `(h, α, β)` from `st`; returns the iterations made.
 fn gauss_newton<T: Real>(pb: &Problem<'_, T>, st: &mut State<T>) -> Result<usize> {
-    let spread = pb
-        .pts
-        .iter()
-        .fold(T::zero(), |acc, q| acc.max((q - pb.m).norm()));
+    let spread = pb.pts.iter().fold(T::zero(), |acc, q| {
+        acc.max((q - pb.m).norm_squared().fast_sqrt())
+    });
     let tol = degenerate_tol::<T>() * T::lit(0.01);
     for it in 1..=MAX_ITERATIONS {
         let (a, b) = pb.normal_equations(st)?;
         let d = solve_scaled(&a, &b)?;
         let (e1, e2) = tangent_basis(&st.n);
         let tilt = e1 * d[1] + e2 * d[2];
-        let step = tilt.norm();
+        let step = tilt.norm_squared().fast_sqrt();
         if !(step <= T::lit(MAX_STEP_RAD)) || !d[0].is_finite_real() {
             return Err(Error::NoConvergence);
         }

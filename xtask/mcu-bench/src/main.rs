@@ -4,8 +4,9 @@
 //! the executed instructions between calls of [`bench_mark`] (their
 //! addresses come from the ELF symbol table) and divides by [`REPS`].
 //!
-//! Sections (marks 1→2, 3→4, 5→6, 6→7; 7→8 is the loop baseline that the
-//! two square-root sections subtract):
+//! Sections (marks 1→2, 3→4, 5→6, 6→7, 9→10, 11→12, 13→14; 7→8 is the
+//! loop baseline that the two square-root sections subtract; 8→9, 10→11
+//! and 12→13 are set-up, not reported):
 //!
 //! 1. the per-sample pipeline exactly as the board runs it: four ADC
 //!    results in (a different tilted plane each repetition), status,
@@ -15,7 +16,14 @@
 //! 2. one EKF update of the calibration (`perpend_core::calib::ekf::Ekf`,
 //!    one reading of one sensor against a known plane), in `f32`;
 //! 3. `libm::sqrtf` (software square root, what `nalgebra`/`simba` call);
-//! 4. the FPU's `vsqrt.f32`.
+//! 4. the FPU's `vsqrt.f32`;
+//! 5. the pipeline of 1. with the sphere model of object 0x2310
+//!    (`R` = 300 mm, issue 14): four ADC results of a sphere in (a
+//!    different tilt each repetition), the sphere fitted to the spots and
+//!    the normal where the spindle axis meets it, the TPDO payloads out;
+//! 6. `perpend_board::app::App::on_sample` with the time set (pipeline,
+//!    measurement objects, EMCY state), operational, plane model;
+//! 7. `App::handle` of a SYNC: the four default TPDOs built and sent.
 //!
 //! The program exits through semihosting (status 0 on success).
 
@@ -26,12 +34,15 @@ use core::hint::black_box;
 
 use cortex_m_rt::entry;
 use cortex_m_semihosting::debug;
-use perpend_board::app::measurement_of;
+use perpend_board::app::{measurement_of, App};
+use perpend_board::storage::{ParamStore, StoreError};
+use perpend_can::Frame;
 use perpend_board::pipeline::{Output, Pipeline, Sample};
 use perpend_core::calib::ekf::{Ekf, EkfConfig};
 use perpend_core::geometry::Plane;
 use perpend_core::model::distance;
 use perpend_core::params::Params;
+use perpend_core::surface::{CurvedSurface, Shape};
 
 /// Repetitions of each section.
 const REPS: usize = 16;
@@ -94,16 +105,91 @@ fn pdo_payloads(o: &Output, counter: u32) -> [[u8; 8]; 4] {
     ]
 }
 
+/// Nothing stored: the App boots the factory defaults.
+struct NoStore;
+
+impl ParamStore for NoStore {
+    fn load(&mut self, _: &mut [u8]) -> Result<Option<usize>, StoreError> {
+        Ok(None)
+    }
+    fn store(&mut self, _: &[u8]) -> Result<(), StoreError> {
+        Ok(())
+    }
+}
+
+/// Sphere model radius of section 5 \[mm\].
+const SPHERE_R: f32 = 300.0;
+
+/// REPS samples of a sphere of radius [`SPHERE_R`] under the factory head,
+/// tilted a little differently each time (set-up, not measured).
+fn sphere_samples(params: &Params) -> [Sample; REPS] {
+    let mut samples = [Sample::default(); REPS];
+    for (k, s) in samples.iter_mut().enumerate() {
+        let t = k as f32 * 0.004;
+        let n = nalgebra::Vector3::new(0.03 - t, -0.05 + t, -1.0);
+        let p = nalgebra::Vector3::new(0.0, 0.0, 45.0 + t * 10.0);
+        let Ok(surf) = CurvedSurface::through(p, n, &Shape::Sphere { radius: SPHERE_R }) else {
+            fail()
+        };
+        for i in 0..4 {
+            let Ok(d) = surf.distance(&params.head.sensors[i], i) else {
+                fail()
+            };
+            let tr = &params.transfer[i];
+            let sig = perpend_board::acq::signal_for_mm(d, tr);
+            s.counts[i] = perpend_board::acq::counts_for_signal(sig, tr, &params.acq);
+        }
+        s.temp_c = Some(25.0);
+    }
+    samples
+}
+
+/// Sections 6 and 7: the App's update and SYNC (set-up between marks).
+fn bench_app() {
+    let mut app = App::new(NoStore);
+    let (samples, _) = plane_samples(app.pipeline().params());
+    let mut sent = 0u32;
+    let mut now = 1_000u64;
+    // Boot-up, then NMT start (all nodes): the TPDOs are sent on SYNC.
+    app.poll(now, &mut |_| sent += 1);
+    app.handle(&Frame::new(0, &[0x01, 0]), now, &mut |_| sent += 1);
+    app.on_sample(&samples[0], now);
+    bench_mark(11);
+    let mut ok = 0u32;
+    for s in &samples {
+        now += 1_000;
+        let o = app.on_sample(black_box(s), now);
+        ok += u32::from(o.valid());
+    }
+    bench_mark(12);
+    if ok != REPS as u32 {
+        fail();
+    }
+    let sync = Frame::new(0x80, &[]);
+    let mut frames = 0u32;
+    bench_mark(13);
+    for _ in 0..REPS {
+        now += 1_000;
+        app.handle(black_box(&sync), now, &mut |f| {
+            black_box(f);
+            frames += 1;
+        });
+    }
+    bench_mark(14);
+    if frames != 4 * REPS as u32 {
+        fail();
+    }
+    black_box(sent);
+}
+
 fn fail() -> ! {
     debug::exit(debug::EXIT_FAILURE);
     cortex_m::asm::udf()
 }
 
-#[entry]
-fn main() -> ! {
-    let params = Params::factory();
-    let mut pl = Pipeline::new(params, true);
-    // REPS tilted planes and their ADC results (setup, not measured).
+/// REPS tilted planes and their ADC results under `params` (set-up, not
+/// measured).
+fn plane_samples(params: &Params) -> ([Sample; REPS], [perpend_core::Result<Plane<f32>>; REPS]) {
     let mut samples = [Sample::default(); REPS];
     let mut planes = [Plane::from_abcd(0.0f32, 0.0, 1.0, -40.0); REPS];
     for (k, (s, pk)) in samples.iter_mut().zip(planes.iter_mut()).enumerate() {
@@ -122,6 +208,14 @@ fn main() -> ! {
         }
         s.temp_c = Some(25.0);
     }
+    (samples, planes)
+}
+
+#[entry]
+fn main() -> ! {
+    let params = Params::factory();
+    let mut pl = Pipeline::new(params, true);
+    let (samples, planes) = plane_samples(&params);
     // Warm-up sample (first-sample branches of the detectors).
     black_box(pl.process(&samples[0]));
 
@@ -171,6 +265,24 @@ fn main() -> ! {
     }
     bench_mark(8);
     black_box(acc);
+
+    let sphere = sphere_samples(&params);
+    let mut pl = Pipeline::new(params, true);
+    pl.set_shape(Shape::Sphere { radius: SPHERE_R });
+    black_box(pl.process(&sphere[0]));
+    bench_mark(9);
+    let mut ok = 0u32;
+    for (k, s) in sphere.iter().enumerate() {
+        let o = pl.process(black_box(s));
+        ok += u32::from(o.valid());
+        black_box(pdo_payloads(&o, k as u32));
+    }
+    bench_mark(10);
+    if ok != REPS as u32 {
+        fail();
+    }
+
+    bench_app();
     debug::exit(debug::EXIT_SUCCESS);
     loop {
         cortex_m::asm::wfi();

@@ -82,7 +82,7 @@ pub(crate) fn cholesky<T: Real, const P: usize>(a: &SMatrix<T, P, P>) -> Option<
         if !(s > T::zero()) {
             return None;
         }
-        let d = s.sqrt();
+        let d = s.fast_sqrt();
         l[(j, j)] = d;
         for i in (j + 1)..P {
             let mut s = a[(i, j)];
