@@ -7,6 +7,7 @@
 pub mod board;
 pub mod bus;
 pub mod canopen;
+pub mod cell;
 pub mod demo;
 pub mod node;
 pub mod slcan;

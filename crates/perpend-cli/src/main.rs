@@ -2,7 +2,7 @@
 //! diagnose what the model misses, benchmark, and run a virtual board.
 
 use clap::{Parser, Subcommand};
-use perpend_cli::{board, demo, node};
+use perpend_cli::{board, cell, demo, node};
 use perpend_lab::{bench, calibrate, diagnose, measure, sim};
 
 /// The conventions every command's output follows.
@@ -59,6 +59,8 @@ enum Cmd {
     Board(board::Args),
     /// A board on a CAN bus: info, status, nmt, monitor, push/pull calibration, capture poses.
     Node(node::Args),
+    /// Calibrate a cell end to end over the bus: before, capture, calibrate, push, after.
+    Cell(cell::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -75,6 +77,7 @@ fn main() -> std::process::ExitCode {
         Cmd::Bench(a) => bench::run(&a),
         Cmd::Board(a) => board::run(&a),
         Cmd::Node(a) => node::run(&a),
+        Cmd::Cell(a) => cell::run(&a),
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,

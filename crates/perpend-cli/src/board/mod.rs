@@ -9,7 +9,8 @@
 //! ```text
 //! perpend board --slcan 127.0.0.1:5555 --node-id 16 --plane 0.035,-0.052,1,-40 \
 //!               [--sensors sensors.csv] [--params params.json] [--noise-mm 0.002] \
-//!               [--fault 3:open] [--seed 1] [--serial 0x12345678]
+//!               [--fault 3:open] [--seed 1] [--serial 0x12345678] \
+//!               [--truth truth.csv] [--world 127.0.0.1:5556]
 //! ```
 //!
 //! * `--serial`: 0x1018 sub 4 (default: derived from `--seed` as the
@@ -20,6 +21,15 @@
 //! * `--params`: a calibration (`perpend calibrate --out`): stored on the
 //!   board and simulated as the true head (it overrides `--sensors` for
 //!   both). Without either flag the board runs the factory head.
+//! * `--truth`: the head that is really built (exchange format, 4
+//!   sensors): only simulated, never stored, so the board runs its stored
+//!   (nominal) head on the readings of this one, as a real board does
+//!   before its calibration. It overrides what `--sensors`/`--params`
+//!   would simulate.
+//! * `--world HOST:PORT` (loopback): a line-based control channel through
+//!   which a simulated robot moves the plane (`plane A,B,C,D` → `ok`, see
+//!   [`world`]); its address is the second stdout line,
+//!   `perpend board: world on HOST:PORT`.
 //! * `--noise-mm`: reading noise, 1σ (default 2 µm; 0 makes every sensor
 //!   look stuck after the stuck detector's 2 s).
 //! * `--fault SENSOR:KIND` (repeatable): `open`, `overcurrent`,
@@ -39,6 +49,7 @@
 pub mod node;
 pub mod server;
 pub mod sim;
+pub mod world;
 
 use std::io::Write as _;
 use std::net::TcpListener;
@@ -52,6 +63,7 @@ use perpend_core::params::Params;
 use crate::demo::parse_plane;
 use node::{BoardConfig, VirtualBoard};
 use sim::{Fault, SimHead};
+use world::World;
 
 /// Arguments of `perpend board`.
 #[derive(clap::Args, Debug)]
@@ -88,6 +100,13 @@ pub struct Args {
     /// ([`node::serial_for_seed`]).
     #[arg(long, value_parser = parse_serial)]
     pub serial: Option<u32>,
+    /// The head really built (sensors.csv): simulated, not stored.
+    #[arg(long)]
+    pub truth: Option<PathBuf>,
+    /// Loopback address of the world channel that moves the plane, e.g.
+    /// `127.0.0.1:0`.
+    #[arg(long)]
+    pub world: Option<String>,
 }
 
 /// Parses a serial number: decimal or `0x` hex `u32`.
@@ -163,9 +182,15 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
         }
         None => None,
     };
-    let truth = calibration
-        .or(head)
-        .unwrap_or_else(|| Params::factory().head.cast());
+    let truth = match &a.truth {
+        Some(p) => {
+            let t = perpend_lab::exchange::read_sensors(p)?;
+            head4(t.sensors()?, &p.display().to_string())?
+        }
+        None => calibration
+            .or(head)
+            .unwrap_or_else(|| Params::factory().head.cast()),
+    };
     let mut sim = SimHead::new(truth, plane, a.noise_mm, a.seed)?;
     let mut noack_us = None;
     for f in &a.fault {
@@ -198,8 +223,16 @@ pub fn run(a: &Args) -> Result<()> {
         "perpend board: node {} on {addr}",
         board.app().device().node_id()
     );
+    let world = match &a.world {
+        Some(w) => {
+            let world = World::bind(w)?;
+            println!("perpend board: world on {}", world.local_addr()?);
+            Some(world)
+        }
+        None => None,
+    };
     std::io::stdout().flush()?;
-    server::serve(listener, &mut board)
+    server::serve(listener, world, &mut board)
 }
 
 #[cfg(test)]
@@ -219,6 +252,8 @@ mod tests {
             fault: Vec::new(),
             seed: 1,
             serial: None,
+            truth: None,
+            world: None,
         }
     }
 

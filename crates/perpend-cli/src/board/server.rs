@@ -26,6 +26,7 @@ use anyhow::{Context as _, Result};
 use perpend_can::Frame;
 
 use super::node::VirtualBoard;
+use super::world::World;
 use crate::slcan::{self, Command, LineSplitter};
 
 /// Largest amount of unsent output kept for a slow client [bytes]; beyond
@@ -166,11 +167,16 @@ impl Latency {
     }
 }
 
-/// Serves the board on `listener` until the process is stopped.
+/// Serves the board on `listener` until the process is stopped; `world`,
+/// if any, moves its plane ([`super::world`]).
 ///
 /// # Errors
 /// Only if the listener cannot be made non-blocking.
-pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
+pub fn serve(
+    listener: TcpListener,
+    mut world: Option<World>,
+    board: &mut VirtualBoard,
+) -> Result<()> {
     listener
         .set_nonblocking(true)
         .context("making the listener non-blocking")?;
@@ -195,7 +201,7 @@ pub fn serve(listener: TcpListener, board: &mut VirtualBoard) -> Result<()> {
                 Err(e) => eprintln!("perpend board: accept: {e}"),
             }
         }
-        let mut busy = false;
+        let mut busy = world.as_mut().is_some_and(|w| w.poll(board));
         if let Some(c) = client.as_mut() {
             match c.read() {
                 Some(frames) => {

@@ -157,6 +157,12 @@ impl SimHead {
         &self.plane
     }
 
+    /// Moves the plane the head looks at (the simulated robot of
+    /// `perpend board --world`); stuck sensors stay frozen.
+    pub fn set_plane(&mut self, plane: Plane<f64>) {
+        self.plane = plane;
+    }
+
     /// The true distances (no extension effects, no noise); `None` where
     /// the beam misses the plane.
     pub fn true_distances(&self) -> [Option<f64>; 4] {

@@ -1,0 +1,141 @@
+//! `cargo xtask cell-demo`: the cell calibration end to end against a
+//! virtual board over slcan/TCP. Writes the paper's head (nominal and true,
+//! Chen Table 2) into `target/cell-demo/`, plans 16 poses around the
+//! paper's orientation (θ1 17.89°, θ2 −1.04°, standoff 34-37 mm so that
+//! every reading stays in the board's 20-80 mm range), starts `perpend
+//! board` storing the nominal head while simulating the true one (with a
+//! world channel for the simulated robot), runs `perpend cell run` against
+//! it and prints its figures; the board is stopped at the end.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use crate::{cargo, root, run, Result};
+
+/// A child process stopped on drop.
+struct Stopped(Child);
+
+impl Drop for Stopped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn perpend() -> PathBuf {
+    let target = std::env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join("target"));
+    target.join("debug").join("perpend")
+}
+
+/// Runs `perpend ARGS` in `dir`; fails on non-zero exit.
+fn step(dir: &Path, args: &[&str]) -> Result<()> {
+    eprintln!("\n==> perpend {}", args.join(" "));
+    let status = Command::new(perpend())
+        .args(args)
+        .current_dir(dir)
+        .status()
+        .map_err(|e| format!("perpend: {e}"))?;
+    if !status.success() {
+        return Err(format!("perpend {} failed ({status})", args.join(" ")));
+    }
+    Ok(())
+}
+
+/// Starts the board in `dir`; returns it and its slcan and world addresses.
+fn board(dir: &Path) -> Result<(Stopped, String, String)> {
+    let args = [
+        "board",
+        "--slcan",
+        "127.0.0.1:0",
+        "--node-id",
+        "16",
+        "--plane",
+        "0,0,1,-28",
+        "--noise-mm",
+        "0.01",
+        "--sensors",
+        "nominal.csv",
+        "--truth",
+        "truth.csv",
+        "--world",
+        "127.0.0.1:0",
+    ];
+    eprintln!("\n==> perpend {} &", args.join(" "));
+    let mut child = Stopped(
+        Command::new(perpend())
+            .args(args)
+            .current_dir(dir)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .map_err(|e| format!("perpend board: {e}"))?,
+    );
+    let out = child.0.stdout.take().ok_or("perpend board: no stdout")?;
+    let mut r = BufReader::new(out);
+    let mut addr = || -> Result<String> {
+        let mut line = String::new();
+        r.read_line(&mut line).map_err(|e| e.to_string())?;
+        eprintln!("{}", line.trim());
+        match line.trim().rsplit(' ').next() {
+            Some(a) if a.contains(':') => Ok(a.to_string()),
+            _ => Err(format!("perpend board: unexpected line '{}'", line.trim())),
+        }
+    };
+    let (bus, world) = (addr()?, addr()?);
+    Ok((child, bus, world))
+}
+
+/// `cargo xtask cell-demo`.
+pub fn cell_demo() -> Result<()> {
+    run(&cargo(), &["build", "--quiet", "-p", "perpend-cli"])?;
+    let dir = root().join("target").join("cell-demo");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    step(&dir, &["cell", "sim-head", "--out", "."])?;
+    step(
+        &dir,
+        &[
+            "--quiet",
+            "plan",
+            "--sensors",
+            "nominal.csv",
+            "--n",
+            "16",
+            "--tilt-max",
+            "5",
+            "--center-tilt",
+            "17.89,-1.04",
+            "--standoff",
+            "34,37",
+            "--out",
+            "plan.csv",
+        ],
+    )?;
+    let (_board, bus, world) = board(&dir)?;
+    let (bus, robot) = (format!("tcp:{bus}"), format!("sim:{world}"));
+    step(
+        &dir,
+        &[
+            "--quiet",
+            "cell",
+            "run",
+            "--bus",
+            &bus,
+            "--node-id",
+            "16",
+            "--robot",
+            &robot,
+            "--sensors",
+            "nominal.csv",
+            "--plan",
+            "plan.csv",
+            "--truth",
+            "truth.csv",
+            "--out",
+            "run",
+        ],
+    )
+}
