@@ -286,6 +286,48 @@ fn csv_error(file: &str, text: &Text, e: &csv::Error) -> ExchangeError {
     }
 }
 
+/// Every data record after the header: its line, the typed row and the raw
+/// record (for the columns found by position); the first error names file
+/// and line.
+fn for_each_record<T: serde::de::DeserializeOwned>(
+    rdr: &mut csv::Reader<&[u8]>,
+    text: &Text,
+    file: &str,
+    header: &csv::StringRecord,
+    mut f: impl FnMut(u64, T, &csv::StringRecord) -> Result<(), ExchangeError>,
+) -> Result<(), ExchangeError> {
+    let mut rec = csv::StringRecord::new();
+    loop {
+        match rdr.read_record(&mut rec) {
+            Ok(true) => {}
+            Ok(false) => return Ok(()),
+            Err(e) => return Err(csv_error(file, text, &e)),
+        }
+        let line = text.line_of(&rec);
+        let r: T = rec
+            .deserialize(Some(header))
+            .map_err(|e| de_error(file, text, line, header, &rec, &e))?;
+        f(line, r, &rec)?;
+    }
+}
+
+/// The values of the columns `cols` (`None`: column absent, a missing
+/// value), named `{prefix}{i}_mm` with i from 1 in errors.
+fn column_values(
+    file: &str,
+    line: u64,
+    prefix: &str,
+    cols: impl Iterator<Item = Option<usize>>,
+    rec: &csv::StringRecord,
+) -> Result<Vec<Option<f64>>, ExchangeError> {
+    cols.enumerate()
+        .map(|(i, c)| {
+            let name = format!("{prefix}{}_mm", i + 1);
+            parse_reading(file, line, &name, c.and_then(|c| rec.get(c)).unwrap_or(""))
+        })
+        .collect()
+}
+
 /// Reads the header row; returns it with its line number.
 fn read_header<R: Read>(
     rdr: &mut csv::Reader<R>,
@@ -648,60 +690,52 @@ pub fn parse_poses<R: Read>(
     }
 
     let mut rows: Vec<PoseRow> = Vec::new();
-    let mut rec = csv::StringRecord::new();
-    loop {
-        match rdr.read_record(&mut rec) {
-            Ok(true) => {}
-            Ok(false) => break,
-            Err(e) => return Err(csv_error(file, &text, &e)),
-        }
-        let line = text.line_of(&rec);
-        let r: PoseRecord = rec
-            .deserialize(Some(&header))
-            .map_err(|e| de_error(file, &text, line, &header, &rec, &e))?;
-        let abcd = [
-            check_finite(file, line, "a", r.a)?,
-            check_finite(file, line, "b", r.b)?,
-            check_finite(file, line, "c", r.c)?,
-            check_finite(file, line, "d_mm", r.d_mm)?,
-        ];
-        let plane = Plane::from_abcd(abcd[0], abcd[1], abcd[2], abcd[3])
-            .ok()
-            .filter(|_| Vector3::new(abcd[0], abcd[1], abcd[2]).norm() > 1e-9)
-            .ok_or_else(|| {
-                err(
-                    file,
-                    Some(line),
-                    "degenerate plane normal: (a, b, c) has zero length",
-                )
-            })?;
-        let mut readings = Vec::with_capacity(n);
-        for (i, &c) in cols.iter().enumerate() {
-            let name = format!("d{}_mm", i + 1);
-            readings.push(parse_reading(file, line, &name, rec.get(c).unwrap_or(""))?);
-        }
-        let mut sd_mm = Vec::new();
-        for (i, c) in scols.iter().enumerate().filter(|_| with_sd) {
-            let name = format!("s{}_mm", i + 1);
-            let v = parse_reading(file, line, &name, c.and_then(|c| rec.get(c)).unwrap_or(""))?;
-            sd_mm.push(v);
-        }
-        rows.push(PoseRow {
-            line,
-            pose: r.pose,
-            abcd,
-            plane,
-            readings,
-            t_s: optional_finite(file, line, "t_s", r.t_s)?,
-            temp_c: optional_finite(file, line, "temp_c", r.temp_c)?,
-            noise: RowNoise {
-                sd_mm,
-                n_samples: r.n_samples,
-                plane_rms_mm: optional_finite(file, line, "plane_rms_mm", r.plane_rms_mm)?,
-                plane_points: r.plane_points,
-            },
-        });
-    }
+    for_each_record(
+        &mut rdr,
+        &text,
+        file,
+        &header,
+        |line, r: PoseRecord, rec| {
+            let abcd = [
+                check_finite(file, line, "a", r.a)?,
+                check_finite(file, line, "b", r.b)?,
+                check_finite(file, line, "c", r.c)?,
+                check_finite(file, line, "d_mm", r.d_mm)?,
+            ];
+            let plane = Plane::from_abcd(abcd[0], abcd[1], abcd[2], abcd[3])
+                .ok()
+                .filter(|_| Vector3::new(abcd[0], abcd[1], abcd[2]).norm() > 1e-9)
+                .ok_or_else(|| {
+                    err(
+                        file,
+                        Some(line),
+                        "degenerate plane normal: (a, b, c) has zero length",
+                    )
+                })?;
+            let readings = column_values(file, line, "d", cols.iter().map(|&c| Some(c)), rec)?;
+            let sd_mm = if with_sd {
+                column_values(file, line, "s", scols.iter().copied(), rec)?
+            } else {
+                Vec::new()
+            };
+            rows.push(PoseRow {
+                line,
+                pose: r.pose,
+                abcd,
+                plane,
+                readings,
+                t_s: optional_finite(file, line, "t_s", r.t_s)?,
+                temp_c: optional_finite(file, line, "temp_c", r.temp_c)?,
+                noise: RowNoise {
+                    sd_mm,
+                    n_samples: r.n_samples,
+                    plane_rms_mm: optional_finite(file, line, "plane_rms_mm", r.plane_rms_mm)?,
+                    plane_points: r.plane_points,
+                },
+            });
+            Ok(())
+        },
+    )?;
     order_rows(file, &mut rows, |r| (r.pose, r.line))?;
     check_rows(file, rows.iter().map(|r| r.readings.as_slice()))?;
     Ok(PoseTable { n_sensors: n, rows })
@@ -822,30 +856,22 @@ pub fn parse_readings<R: Read>(
     require_columns(file, hline, &header, &["pose"])?;
     let cols = reading_columns(file, hline, &header, expect_sensors)?;
     let mut rows: Vec<ReadingRow> = Vec::new();
-    let mut rec = csv::StringRecord::new();
-    loop {
-        match rdr.read_record(&mut rec) {
-            Ok(true) => {}
-            Ok(false) => break,
-            Err(e) => return Err(csv_error(file, &text, &e)),
-        }
-        let line = text.line_of(&rec);
-        let r: ReadingRecord = rec
-            .deserialize(Some(&header))
-            .map_err(|e| de_error(file, &text, line, &header, &rec, &e))?;
-        let mut readings = Vec::with_capacity(cols.len());
-        for (i, &c) in cols.iter().enumerate() {
-            let name = format!("d{}_mm", i + 1);
-            readings.push(parse_reading(file, line, &name, rec.get(c).unwrap_or(""))?);
-        }
-        rows.push(ReadingRow {
-            line,
-            pose: r.pose,
-            readings,
-            t_s: optional_finite(file, line, "t_s", r.t_s)?,
-            temp_c: optional_finite(file, line, "temp_c", r.temp_c)?,
-        });
-    }
+    for_each_record(
+        &mut rdr,
+        &text,
+        file,
+        &header,
+        |line, r: ReadingRecord, rec| {
+            rows.push(ReadingRow {
+                line,
+                pose: r.pose,
+                readings: column_values(file, line, "d", cols.iter().map(|&c| Some(c)), rec)?,
+                t_s: optional_finite(file, line, "t_s", r.t_s)?,
+                temp_c: optional_finite(file, line, "temp_c", r.temp_c)?,
+            });
+            Ok(())
+        },
+    )?;
     order_rows(file, &mut rows, |r| (r.pose, r.line))?;
     check_rows(file, rows.iter().map(|r| r.readings.as_slice()))?;
     Ok(ReadingTable {

@@ -167,6 +167,31 @@ pub fn cone_nominal() -> Result<Vec<Sensor<f64>>> {
     Ok(h.sensors.to_vec())
 }
 
+/// `nominal` with zero-point errors uniform in ±`zero_err_mm` per axis and
+/// beam tilts uniform in ±`dir_err_rad` about each tangent axis.
+fn perturbed(
+    nominal: &[Sensor<f64>],
+    rng: &mut StdRng,
+    zero_err_mm: f64,
+    dir_err_rad: f64,
+    what: &str,
+) -> Result<Vec<Sensor<f64>>> {
+    nominal
+        .iter()
+        .map(|s| {
+            let mut u = || rng.gen_range(-1.0..=1.0);
+            let d = SVector::<f64, 5>::from([
+                zero_err_mm * u(),
+                zero_err_mm * u(),
+                zero_err_mm * u(),
+                dir_err_rad * u(),
+                dir_err_rad * u(),
+            ]);
+            s.retract(&d).map_err(|e| anyhow::anyhow!("{what}: {e}"))
+        })
+        .collect()
+}
+
 /// A random head: the nominal cone head with zero-point errors uniform in
 /// ±`zero_err_mm` per axis and beam tilts uniform in ±`dir_err_rad` about
 /// each tangent axis (the paper's Table 2 errors are up to 1.6 mm and
@@ -176,21 +201,7 @@ pub fn cone_nominal() -> Result<Vec<Sensor<f64>>> {
 /// None in practice.
 pub fn random_head(rng: &mut StdRng, zero_err_mm: f64, dir_err_rad: f64) -> Result<SimHead> {
     let nominal = cone_nominal()?;
-    let mut truth = Vec::new();
-    for s in &nominal {
-        let mut u = || rng.gen_range(-1.0..=1.0);
-        let d = SVector::<f64, 5>::from([
-            zero_err_mm * u(),
-            zero_err_mm * u(),
-            zero_err_mm * u(),
-            dir_err_rad * u(),
-            dir_err_rad * u(),
-        ]);
-        truth.push(
-            s.retract(&d)
-                .map_err(|e| anyhow::anyhow!("random head: {e}"))?,
-        );
-    }
+    let truth = perturbed(&nominal, rng, zero_err_mm, dir_err_rad, "random head")?;
     Ok(SimHead {
         name: "random".into(),
         nominal,
@@ -217,21 +228,7 @@ pub fn tian_style_head(rng: &mut StdRng, zero_err_mm: f64, dir_err_rad: f64) -> 
     let h = perpend_core::head::Head4::cone(45.0, 25f64.to_radians(), 0.0, 0.0)
         .map_err(|e| anyhow::anyhow!("cone head: {e}"))?;
     let nominal = h.sensors.to_vec();
-    let mut truth = Vec::new();
-    for s in &nominal {
-        let mut u = || rng.gen_range(-1.0..=1.0);
-        let d = SVector::<f64, 5>::from([
-            zero_err_mm * u(),
-            zero_err_mm * u(),
-            zero_err_mm * u(),
-            dir_err_rad * u(),
-            dir_err_rad * u(),
-        ]);
-        truth.push(
-            s.retract(&d)
-                .map_err(|e| anyhow::anyhow!("Tian-style head: {e}"))?,
-        );
-    }
+    let truth = perturbed(&nominal, rng, zero_err_mm, dir_err_rad, "Tian-style head")?;
     Ok(SimHead {
         name: "tian".into(),
         nominal,
