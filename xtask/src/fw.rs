@@ -218,9 +218,9 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     let f = fs::File::open(&trace).map_err(|e| format!("{}: {e}", trace.display()))?;
     let s = count_sections(BufReader::new(f), range)?;
     let _ = fs::remove_file(&trace);
-    if s.len() < 13 {
+    if s.len() < 15 {
         return Err(format!(
-            "expected 13 sections in the trace, found {}",
+            "expected 15 sections in the trace, found {}",
             s.len()
         ));
     }
@@ -234,6 +234,7 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     r.insert("pipeline_sphere_insns", per(s[8]));
     r.insert("app_update_insns", per(s[10]));
     r.insert("app_sync_insns", per(s[12]));
+    r.insert("pipeline_sphere_steep_insns", per(s[14]));
     r.insert("reps", BENCH_REPS);
     if json {
         println!(

@@ -320,3 +320,138 @@ fn measure_text_and_errors() {
     );
     assert!(v["file"].as_str().unwrap().ends_with("flat.csv"), "{v}");
 }
+
+/// Issue 14's done-criterion: for the same readings, `perpend measure`
+/// gives the numbers the board computes. The board here is
+/// `perpend_board::app::App`, the logic the firmware and the virtual board
+/// run: the sphere model set over CAN (0x2310), ADC counts of a 300 mm
+/// sphere in, its outputs (readings, normal, θ1/θ2/θ, pitch/yaw, RMS) out;
+/// the same readings and the board's head, written as files, go through
+/// the command. The board computes in `f32`, the command in `f64`:
+/// tolerances are those of `f32` rounding.
+#[test]
+fn measure_equals_the_board_for_the_same_readings() {
+    use perpend_board::acq::{counts_for_signal, signal_for_mm};
+    use perpend_board::app::App;
+    use perpend_board::pipeline::Sample;
+    use perpend_board::storage::{host_store, HostFlash};
+    use perpend_can::Frame;
+
+    let mut app = App::new(host_store(HostFlash::new()));
+    let mut t = 100u64;
+    app.poll(t, &mut |_| {}); // boot-up: pre-operational
+                              // 0x2310 sub 2 = 300.0 mm, sub 1 = 1 (sphere), expedited SDO to node 0x20.
+    for (sub, data) in [(2u8, 300f32.to_le_bytes()), (1, [1, 0, 0, 0])] {
+        let len = if sub == 1 { 1 } else { 4 };
+        let mut p = [0u8; 8];
+        p[0] = 0x23 | ((4 - len as u8) << 2);
+        p[1..3].copy_from_slice(&0x2310u16.to_le_bytes());
+        p[3] = sub;
+        p[4..4 + len].copy_from_slice(&data[..len]);
+        let mut resp = Vec::new();
+        t += 100;
+        app.handle(&Frame::new(0x620, &p), t, &mut |f| resp.push(f));
+        assert!(
+            resp.iter().any(|f| f.id == 0x5A0 && f.data[0] == 0x60),
+            "{resp:?}"
+        );
+    }
+    let params = *app.pipeline().params();
+    let head64 = params.head.cast::<f64>();
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut pf = ParamFile::new("lsq", "base", 0);
+    for (i, s) in head64.sensors.iter().enumerate() {
+        pf.sensors
+            .push(SensorParams::from_sensor(i + 1, s, Some(s)));
+    }
+    pf.write(&dir.path().join("params.json")).unwrap();
+    let file = std::fs::File::create(dir.path().join("sensors.csv")).unwrap();
+    write_sensors(file, &SensorTable::from_sensors(&head64.sensors, None), &[]).unwrap();
+
+    let mut rng = StdRng::seed_from_u64(1414);
+    let mut text = String::from("pose,d1_mm,d2_mm,d3_mm,d4_mm\n");
+    let mut outs = Vec::new();
+    for (k, s) in surfaces(&Shape::Sphere { radius: 300.0 }, &mut rng)
+        .iter()
+        .enumerate()
+    {
+        // the factory head's readings stay in range at 45 mm standoff
+        let (p, n) = s.axis_point().unwrap();
+        let s = CurvedSurface::through(p - Vector3::new(0.0, 0.0, 15.0), n, &s.shape()).unwrap();
+        let mut counts = [0u16; 4];
+        for (i, c) in counts.iter_mut().enumerate() {
+            let d = s.distance(&head64.sensors[i], i).unwrap() as f32;
+            let tr = &params.transfer[i];
+            *c = counts_for_signal(signal_for_mm(d, tr), tr, &params.acq);
+        }
+        // The robot holds the pose: samples at 1 kHz, ±1 count of ADC
+        // noise (identical counts would be a stuck sensor), until the jump
+        // detector has accepted the new distances.
+        let mut o = app.on_sample(&Sample::default(), t);
+        for j in 0..8u16 {
+            t += 1_000;
+            let c = counts.map(|x| x + (j & 1));
+            o = app.on_sample(
+                &Sample {
+                    counts: c,
+                    ..Sample::default()
+                },
+                t,
+            );
+        }
+        assert!(o.valid(), "{o:?}");
+        let mm: Vec<String> = o
+            .readings_mm
+            .iter()
+            .map(|x| format!("{}", *x as f64))
+            .collect();
+        writeln!(text, "{},{}", k + 1, mm.join(",")).unwrap();
+        outs.push(o);
+    }
+    std::fs::write(dir.path().join("r.csv"), text).unwrap();
+    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    let out = perpend(&[
+        "measure",
+        "--sensors",
+        &p("sensors.csv"),
+        "--params",
+        &p("params.json"),
+        "--poses",
+        &p("r.csv"),
+        "--surface",
+        "sphere:300",
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let rows = v["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), outs.len(), "{v}");
+    for (jr, o) in rows.iter().zip(&outs) {
+        let n: Vec<f64> = jr["normal"].as_array().unwrap().iter().map(f).collect();
+        let board = Vector3::new(o.normal[0] as f64, o.normal[1] as f64, o.normal[2] as f64);
+        let ang = Vector3::from_vec(n).angle(&board).to_degrees();
+        assert!(ang < 2e-4, "normal {ang}° apart: {jr}");
+        for (key, got) in [
+            ("theta1_deg", o.theta1_deg),
+            ("theta2_deg", o.theta2_deg),
+            ("theta_deg", o.theta_deg),
+            ("pitch_deg", o.pitch_deg),
+            ("yaw_deg", o.yaw_deg),
+        ] {
+            assert!(
+                (f(&jr[key]) - got as f64).abs() < 2e-4,
+                "{key}: board {got}, {jr}"
+            );
+        }
+        assert!(
+            (f(&jr["rms_mm"]) - o.rms_mm as f64).abs() < 1e-5,
+            "rms: board {}, {jr}",
+            o.rms_mm
+        );
+    }
+}

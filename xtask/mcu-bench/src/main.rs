@@ -4,9 +4,9 @@
 //! the executed instructions between calls of [`bench_mark`] (their
 //! addresses come from the ELF symbol table) and divides by [`REPS`].
 //!
-//! Sections (marks 1→2, 3→4, 5→6, 6→7, 9→10, 11→12, 13→14; 7→8 is the
-//! loop baseline that the two square-root sections subtract; 8→9, 10→11
-//! and 12→13 are set-up, not reported):
+//! Sections (marks 1→2, 3→4, 5→6, 6→7, 9→10, 11→12, 13→14, 15→16; 7→8
+//! is the loop baseline that the two square-root sections subtract; 8→9,
+//! 10→11, 12→13 and 14→15 are set-up, not reported):
 //!
 //! 1. the per-sample pipeline exactly as the board runs it: four ADC
 //!    results in (a different tilted plane each repetition), status,
@@ -23,7 +23,9 @@
 //!    the normal where the spindle axis meets it, the TPDO payloads out;
 //! 6. `perpend_board::app::App::on_sample` with the time set (pipeline,
 //!    measurement objects, EMCY state), operational, plane model;
-//! 7. `App::handle` of a SYNC: the four default TPDOs built and sent.
+//! 7. `App::handle` of a SYNC: the four default TPDOs built and sent;
+//! 8. the sphere pipeline of 5. under 15-17° of tilt, where the fit takes
+//!    its second Gauss-Newton step (surface.rs, stopping rule).
 //!
 //! The program exits through semihosting (status 0 on success).
 
@@ -121,12 +123,14 @@ impl ParamStore for NoStore {
 const SPHERE_R: f32 = 300.0;
 
 /// REPS samples of a sphere of radius [`SPHERE_R`] under the factory head,
-/// tilted a little differently each time (set-up, not measured).
-fn sphere_samples(params: &Params) -> [Sample; REPS] {
+/// tilted a little differently each time (set-up, not measured): about
+/// 3° of tilt, or 15-17° with `steep`.
+fn sphere_samples(params: &Params, steep: bool) -> [Sample; REPS] {
     let mut samples = [Sample::default(); REPS];
+    let base = if steep { 0.3 } else { 0.05 };
     for (k, s) in samples.iter_mut().enumerate() {
         let t = k as f32 * 0.004;
-        let n = nalgebra::Vector3::new(0.03 - t, -0.05 + t, -1.0);
+        let n = nalgebra::Vector3::new(0.03 - t, -base + t, -1.0);
         let p = nalgebra::Vector3::new(0.0, 0.0, 45.0 + t * 10.0);
         let Ok(surf) = CurvedSurface::through(p, n, &Shape::Sphere { radius: SPHERE_R }) else {
             fail()
@@ -266,7 +270,10 @@ fn main() -> ! {
     bench_mark(8);
     black_box(acc);
 
-    let sphere = sphere_samples(&params);
+    let sphere = sphere_samples(&params, false);
+    let steep = sphere_samples(&params, true);
+    let mut pl_steep = Pipeline::new(params, true);
+    pl_steep.set_shape(Shape::Sphere { radius: SPHERE_R });
     let mut pl = Pipeline::new(params, true);
     pl.set_shape(Shape::Sphere { radius: SPHERE_R });
     black_box(pl.process(&sphere[0]));
@@ -283,6 +290,19 @@ fn main() -> ! {
     }
 
     bench_app();
+
+    black_box(pl_steep.process(&steep[0]));
+    bench_mark(15);
+    let mut ok = 0u32;
+    for (k, s) in steep.iter().enumerate() {
+        let o = pl_steep.process(black_box(s));
+        ok += u32::from(o.valid());
+        black_box(pdo_payloads(&o, k as u32));
+    }
+    bench_mark(16);
+    if ok != REPS as u32 {
+        fail();
+    }
     debug::exit(debug::EXIT_SUCCESS);
     loop {
         cortex_m::asm::wfi();
