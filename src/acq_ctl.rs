@@ -23,6 +23,11 @@
 //!    is stopped, so its TRGO is ignored), counter 0; DMA EN = 1, ADSTART = 1
 //!    (the ADC waits for the trigger, §21.4.18); TIM3 CEN = 1: the first
 //!    scan one period later.
+//!
+//! Acquisition locked to SYNC (0x2301 sub 1 = 1): step 6 leaves TIM3
+//! stopped, and each SYNC starts one scan with [`trigger_scan`]: the
+//! software update event (EGR.UG, §29.4.11) is an update event, which
+//! TIM3's master mode `UPDATE` (CR2.MMS = 010, §29.4.2) puts on TRGO.
 
 use embassy_stm32::adc::RingBufferedAdc;
 use embassy_stm32::pac;
@@ -40,13 +45,15 @@ pub const RING_LEN: usize = 2 * SCAN;
 /// takes a few ADC clocks).
 const ADSTP_SPINS: u32 = 100_000;
 
-/// Restarts the acquisition with `acq` (the steps of the module docs).
+/// Restarts the acquisition with `acq` (the steps of the module docs),
+/// on the timer or, with `on_sync`, one scan per [`trigger_scan`].
 /// Returns `false` if the ADC did not acknowledge the stop (it is then
 /// restarted anyway; CFGR2 may have kept its old value).
 pub fn restart(
     ring: &mut RingBufferedAdc<'_, ADC1>,
     tim: &Timer<'_, TIM3>,
     acq: &Acquisition,
+    on_sync: bool,
 ) -> bool {
     // 1. No more triggers.
     tim.stop();
@@ -75,8 +82,16 @@ pub fn restart(
     tim.generate_update_event();
     tim.reset();
     ring.start();
-    tim.start();
+    if !on_sync {
+        tim.start();
+    }
     stopped
+}
+
+/// One scan now (acquisition locked to SYNC): a software update event of
+/// the stopped TIM3, whose TRGO starts the ADC sequence.
+pub fn trigger_scan(tim: &Timer<'_, TIM3>) {
+    tim.generate_update_event();
 }
 
 /// Whether the ADC reports an overrun (ISR.OVR, §21.4.27): its DMA requests

@@ -178,6 +178,9 @@ struct Fw {
     led: Output<'static>,
     wdg: IndependentWatchdog<'static, IWDG>,
     last_sample: Instant,
+    /// Acquisition locked to SYNC (0x2301 sub 1): TIM3 stopped, one scan
+    /// per SYNC.
+    locked: bool,
     bus_off_since: Option<Instant>,
     samples: u32,
     /// Bus errors seen by the receive side (PSR.LEC, e.g. one acknowledge
@@ -248,13 +251,15 @@ impl Fw {
         self.check_bus_off();
         if acq_ctl::overrun() {
             warn!("ADC overrun: restarting the acquisition");
-            acq_ctl::restart(&mut self.ring, &self.tim, &self.acq);
+            acq_ctl::restart(&mut self.ring, &self.tim, &self.acq, self.locked);
         }
         let now = Instant::now();
         let on = led_pattern(self.app.last_output().status, now.as_millis());
         self.led
             .set_level(if on { Level::High } else { Level::Low });
-        let acq_alive = now - self.last_sample < Duration::from_millis(20);
+        // Locked to SYNC, no SYNC means no sample: the controller's
+        // business (0x2301 sub 2 counts SYNCs without their sample).
+        let acq_alive = self.locked || now - self.last_sample < Duration::from_millis(20);
         let can_alive = self
             .bus_off_since
             .is_none_or(|t| now - t < Duration::from_secs(1));
@@ -281,12 +286,16 @@ impl Fw {
     /// After every event: configuration changes, then the transmit queue
     /// into the controller (never waits) and its counters to the App.
     fn after_event(&mut self) {
+        if self.app.take_sync_scan() && self.locked {
+            acq_ctl::trigger_scan(&self.tim);
+        }
         if let Some(a) = self.app.take_acq_change() {
+            self.locked = self.app.sync_locked();
             info!(
-                "acquisition: {} µs, 2^{} oversampling",
-                a.period_us, a.os_log2
+                "acquisition: {} µs, 2^{} oversampling, on SYNC {}",
+                a.period_us, a.os_log2, self.locked
             );
-            if !acq_ctl::restart(&mut self.ring, &self.tim, &a) {
+            if !acq_ctl::restart(&mut self.ring, &self.tim, &a, self.locked) {
                 warn!("ADC did not stop: oversampling may be unchanged");
             }
             self.acq = a;
@@ -378,6 +387,7 @@ fn setup() -> (Fw, can::CanRx<'static>) {
     }
     let can_cfg = app.can_config();
     let acq = app.acquisition();
+    let app_locked = app.sync_locked();
 
     let (tx, rx, props) = start_can(p.FDCAN1, p.PA11, p.PA12, can_cfg.bitrate).split();
     info!(
@@ -410,11 +420,12 @@ fn setup() -> (Fw, can::CanRx<'static>) {
         led,
         wdg,
         last_sample: Instant::now(),
+        locked: app_locked,
         bus_off_since: None,
         samples: 0,
         bus_errors: 0,
     };
-    acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq);
+    acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
     (fw, rx)
 }
 
@@ -429,7 +440,7 @@ async fn main(_spawner: Spawner) {
             Either3::First(Ok(_)) => fw.on_scan(&scan),
             Either3::First(Err(_)) => {
                 warn!("ADC DMA overrun: restarting the acquisition");
-                acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq);
+                acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
             }
             Either3::Second(Ok(env)) => fw.on_frame(&env.frame),
             Either3::Second(Err(_)) => fw.bus_errors = fw.bus_errors.wrapping_add(1),

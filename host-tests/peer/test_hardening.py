@@ -47,7 +47,8 @@ STATE = 0x08000022
 
 # Measurement outputs and the transmit-queue counters (0x2008) change
 # while the board runs: not part of the dump.
-LIVE = range(0x2001, 0x2009)
+# measurements, and the sample time 0x2020
+LIVE = set(range(0x2001, 0x2009)) | {0x2020}
 
 F32_NAN = struct.pack("<I", 0x7FC00000)
 F32_SNAN = struct.pack("<I", 0x7F800001)
@@ -146,7 +147,7 @@ def test_write_protection_attacks_change_nothing(board):
         (0x2300, 1, b"\x10\x27", TOO_SHORT),
         (0x2400, 1, b"\x05\x00\x00\x00", TOO_LONG),
         # no such object / sub-index
-        (0x2500, 0, b"\x00", NO_OBJECT),
+        (0x2600, 0, b"\x00", NO_OBJECT),
         (0x2300, 5, b"\x00", NO_SUB),
     ]
     for index, sub, data, code in cases:

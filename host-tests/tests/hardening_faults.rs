@@ -528,6 +528,13 @@ fn bus_off_and_recovery() {
         error_register::CURRENT | error_register::GENERIC,
         "{e:04x?}"
     );
+    // 0x1029 sub 1 = 0 (the CiA 301 default): the communication error
+    // takes the node to pre-operational; the controller starts it again
+    assert_eq!(
+        r.app.device().nmt_state(),
+        perpend_can::NmtState::PreOperational
+    );
+    r.send(Frame::new(0, &[0x01, NODE as u8]));
     let mut c = counts_for_mm(r.live_mm());
     c[2] = counts_for_ma(0.0, 2);
     let o = r.sample(c);

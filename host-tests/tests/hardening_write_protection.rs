@@ -533,8 +533,8 @@ fn writes_to_read_only_objects_are_refused() {
         }
     }
     // objects and sub-indices that do not exist
-    refused(&mut b, NO_OBJECT, 0x2500, 0, |b| {
-        Some(b.write_u32(0x2500, 0, 1))
+    refused(&mut b, NO_OBJECT, 0x2600, 0, |b| {
+        Some(b.write_u32(0x2600, 0, 1))
     });
     refused(&mut b, NO_OBJECT, 0x1FFF, 0, |b| {
         Some(b.write_u32(0x1FFF, 0, 1))

@@ -274,6 +274,14 @@ pub struct App<S: ParamStore> {
     stores: u32,
     tx_dropped: u32,
     tx_last_drop_us: Option<u64>,
+    /// A capture (0x2500) in progress.
+    capture: Option<crate::capture::Capture>,
+    /// A SYNC asked for a scan (SYNC-locked acquisition, 0x2301).
+    sync_scan: bool,
+    /// A communication error (bus-off) waits for its 0x1029 reaction.
+    comm_error: bool,
+    /// Acquisition was locked to SYNC at the last reload.
+    locked: bool,
 }
 
 impl<S: ParamStore> App<S> {
@@ -321,6 +329,10 @@ impl<S: ParamStore> App<S> {
             stores: 0,
             tx_dropped: 0,
             tx_last_drop_us: None,
+            capture: None,
+            sync_scan: false,
+            comm_error: false,
+            locked: false,
         };
         app.reload();
         // Nothing to drain: the events of the boot itself are handled.
@@ -346,12 +358,15 @@ impl<S: ParamStore> App<S> {
             _ => self.pipe.invalidate(calibrated),
         }
         let new = self.pipe.params();
+        let locked = self.dev.sync_locked();
         if new.acq.period_us != old.acq.period_us
             || new.acq.os_log2 != old.acq.os_log2
             || new.acq.os_shift != old.acq.os_shift
+            || locked != self.locked
         {
             self.acq_changed = true;
         }
+        self.locked = locked;
         self.cfg_gen = self.dev.config_generation();
     }
 
@@ -415,8 +430,9 @@ impl<S: ParamStore> App<S> {
         self.pipe.params().acq
     }
 
-    /// `Some(settings)` once after the acquisition period or oversampling
-    /// changed: the firmware reprograms the timer and the ADC.
+    /// `Some(settings)` once after the acquisition period, oversampling or
+    /// the SYNC lock ([`App::sync_locked`]) changed: the firmware
+    /// reprograms the timer and the ADC.
     pub fn take_acq_change(&mut self) -> Option<perpend_core::params::Acquisition> {
         core::mem::take(&mut self.acq_changed).then(|| self.acquisition())
     }
@@ -436,8 +452,25 @@ impl<S: ParamStore> App<S> {
     /// Runs the device's timers (heartbeat, event timers, SDO timeout,
     /// queued EMCY); call at least every millisecond.
     pub fn poll(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        if core::mem::take(&mut self.comm_error) {
+            self.dev.communication_error(now_us, out);
+        }
         self.dev.poll(now_us, out);
         self.service(out);
+    }
+
+    /// Whether acquisition is locked to SYNC (0x2301 sub 1): the firmware
+    /// and the virtual board then scan once per [`App::take_sync_scan`]
+    /// instead of on their timer.
+    pub fn sync_locked(&self) -> bool {
+        self.dev.sync_locked()
+    }
+
+    /// Whether a SYNC asked for a scan since the last call (SYNC-locked
+    /// acquisition): start one now and pass it to [`App::on_sample`] with
+    /// the time it was started.
+    pub fn take_sync_scan(&mut self) -> bool {
+        core::mem::take(&mut self.sync_scan)
     }
 
     /// Processes one ADC scan taken at `now_us`; publishes it to the
@@ -448,15 +481,22 @@ impl<S: ParamStore> App<S> {
         let mut s = *sample;
         s.t_s = Some(now_us.saturating_sub(start) as f32 * 1e-6);
         let o = self.pipe.process(&s);
+        self.dev.set_sample_time(now_us);
         self.dev.set_measurement(&measurement_of(&o));
         self.update_emcy(o.status);
+        if let Some(done) = self.capture.as_mut().and_then(|c| c.add(&o)) {
+            self.capture = None;
+            self.dev.finish_capture(done.angles_deg, done.used);
+        }
         self.last = o;
         o
     }
 
-    /// The CAN controller recovered from bus-off: EMCY 0x8140.
+    /// The CAN controller recovered from bus-off: EMCY 0x8140, and the
+    /// communication-error reaction of 0x1029 at the next poll.
     pub fn bus_off_recovered(&mut self) {
         self.pulse(emcy::BUS_OFF_RECOVERED);
+        self.comm_error = true;
     }
 
     /// Received frames were lost: EMCY 0x8110.
@@ -519,6 +559,13 @@ impl<S: ParamStore> App<S> {
 
     fn service(&mut self, out: &mut impl FnMut(Frame)) {
         let ev = self.dev.take_events();
+        if ev.contains(Events::SYNC_SAMPLE) {
+            self.sync_scan = true;
+        }
+        if ev.contains(Events::COMMAND) {
+            self.capture = (self.dev.command() == perpend_can::od::CMD_CAPTURE)
+                .then(|| crate::capture::Capture::new(self.dev.capture_samples()));
+        }
         if ev.contains(Events::REQUEST) {
             if let Some(req) = self.dev.pending_request() {
                 let ok = self.store_now(req);

@@ -840,3 +840,53 @@ fn record_of_layout_2_boots_with_the_plane_model() {
         perpend_core::surface::Shape::Plane
     );
 }
+
+/// Issue 16 item 7: the command RPDO (0x200 + node-id) starts a capture of
+/// 0x2501 samples; the board averages their angles into 0x2502 and clears
+/// the command.
+#[test]
+fn rpdo_capture_averages_the_next_samples() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2501, 0, &3u16.to_le_bytes()).unwrap();
+    b.nmt(0x01);
+    let c = good_counts(&b.app);
+    b.sample(c);
+    b.send(Frame::new(0x200 + NODE, &[perpend_can::od::CMD_CAPTURE]));
+    let mut theta1 = Vec::new();
+    for k in 0..3u16 {
+        let o = b.sample(c.map(|x| x + (k & 1)));
+        theta1.push(o.theta1_deg as f64);
+    }
+    let dev = b.app.device();
+    assert_eq!(dev.read_u32(0x2502, 6), Some(3));
+    assert_eq!(dev.read_u32(0x2502, 7), Some(1));
+    assert_eq!(dev.read_u32(0x2500, 0), Some(0));
+    let mean = theta1.iter().sum::<f64>() / 3.0;
+    let got = dev.read_f32(0x2502, 1).unwrap() as f64;
+    assert!((got - mean).abs() < 1e-5, "{got} vs {mean}");
+}
+
+/// Issue 16 item 4: with 0x2301 sub 1 = 1 a SYNC asks the board for a scan
+/// and its TPDOs carry that scan (sample counter one higher than at the
+/// previous SYNC, never repeated); a bus-off applies 0x1029.
+#[test]
+fn sync_locked_scan_and_bus_off_reaction() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2301, 1, &[1]).unwrap();
+    assert!(b.app.sync_locked());
+    b.nmt(0x01);
+    let c = good_counts(&b.app);
+    let mut counters = Vec::new();
+    for k in 0..4u16 {
+        let at_sync = b.send(Frame::new(0x80, &[]));
+        assert!(at_sync.iter().all(|f| f.id != 0x280 + NODE));
+        assert!(b.app.take_sync_scan());
+        b.sample(c.map(|x| x + (k & 1)));
+        let t2 = b.sent.iter().rev().find(|f| f.id == 0x280 + NODE).unwrap();
+        counters.push(u32::from_le_bytes([t2.data[4], t2.data[5], t2.data[6], t2.data[7]]));
+    }
+    assert_eq!(counters, vec![1, 2, 3, 4]);
+    b.app.bus_off_recovered();
+    b.poll();
+    assert_eq!(b.app.device().nmt_state(), NmtState::PreOperational);
+}

@@ -26,6 +26,7 @@
 pub mod acq;
 pub mod app;
 pub mod bittiming;
+pub mod capture;
 pub mod pipeline;
 pub mod scan;
 pub mod status;

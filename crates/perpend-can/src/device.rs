@@ -7,8 +7,11 @@
 //! `out` closure. Time is a monotonic `u64` in microseconds supplied by the
 //! caller; the device never reads a clock, so tests are deterministic.
 //!
-//! Limits: one SDO server, four TPDOs, no RPDOs, no node guarding / RTR, no
-//! LSS, no SYNC producer, no TIME, fixed SYNC COB-ID 0x80.
+//! SYNC counter, SYNC-locked acquisition, heartbeat consumer, error
+//! behaviour and the command RPDO: `device_sync.rs`.
+//!
+//! Limits: one SDO server, four TPDOs, one RPDO (fixed mapping), no node
+//! guarding / RTR, no SYNC producer, no TIME, fixed SYNC COB-ID 0x80.
 
 use perpend_core::head::Sensor;
 use perpend_core::params::Params;
@@ -20,8 +23,8 @@ use crate::config::{
 use crate::frame::Frame;
 pub use crate::od::Group;
 use crate::od::{
-    self, Access, Class, DataType, Init, Limits, Lookup, Text, ENTRIES, LOAD_SIGNATURE, MAX_MAPPED,
-    PERSISTENT, SAVE_SIGNATURE, TPDOS, UNLOCK_SIGNATURE,
+    self, Access, Class, DataType, Init, Limits, Lookup, Text, ENTRIES, HB_CONSUMERS,
+    LOAD_SIGNATURE, MAX_MAPPED, PERSISTENT, SAVE_SIGNATURE, TPDOS, UNLOCK_SIGNATURE,
 };
 use crate::sdo::{Dictionary, SdoAbort, SdoServer, Value, Written};
 use crate::status::{self, error_register};
@@ -87,6 +90,12 @@ impl Events {
     pub const STATE_CHANGED: u8 = 1 << 3;
     /// A [`Request`] is waiting ([`Device::pending_request`]).
     pub const REQUEST: u8 = 1 << 4;
+    /// SYNC-locked acquisition (0x2301): a SYNC asks for one scan now; its
+    /// TPDOs wait for [`Device::set_sample_time`] and the published sample.
+    pub const SYNC_SAMPLE: u8 = 1 << 6;
+    /// A command was written to 0x2500 (SDO or RPDO): see
+    /// [`Device::command`].
+    pub const COMMAND: u8 = 1 << 7;
 
     /// Whether `bit` is set.
     pub const fn contains(self, bit: u8) -> bool {
@@ -115,6 +124,11 @@ pub const IMAGE_LEN_V1: usize = 8 + 4 * od::PERSISTENT_V1;
 /// Length of an image of layout 2 (firmware before the surface model
 /// 0x2310 of issue 14): still accepted by [`Device::load_image`].
 pub const IMAGE_LEN_V2: usize = 8 + 4 * od::PERSISTENT_V2;
+
+/// Length of an image of layout 3 (firmware before the heartbeat consumer,
+/// SYNC counter, error behaviour, trigger, RPDO and capture objects):
+/// still accepted by [`Device::load_image`].
+pub const IMAGE_LEN_V3: usize = 8 + 4 * od::PERSISTENT_V3;
 
 /// FNV-1a over (index, sub, type) of the entries persisted by image layout
 /// `layout` ([`od::Entry::since`]): changes when the persisted layout
@@ -171,6 +185,8 @@ pub fn image_as_layout(img: &[u8; IMAGE_LEN], layout: u8, out: &mut [u8; IMAGE_L
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 struct TpdoRt {
     sync_count: u8,
+    /// The SYNC start value (sub 6) was met since the PDO became valid.
+    started: bool,
     last_tx: Option<u64>,
     /// The mapped data changed (beyond the deadband) since the last
     /// transmission.
@@ -202,6 +218,10 @@ struct Core {
     request: Option<Request>,
     events: u8,
     config_gen: u32,
+    /// SYNC-locked acquisition (`device_sync.rs`).
+    syncs: SyncRt,
+    /// Heartbeat consumers (0x1016).
+    hb_cons: [HbMonitor; HB_CONSUMERS],
 }
 
 /// A CANopen device (CiA 301 subset) holding the perpend object
@@ -528,6 +548,58 @@ impl Core {
         false
     }
 
+    /// Marks the TPDOs of type 0/254/255 whose mapped data changed since
+    /// they were last sent (beyond the deadbands).
+    fn mark_changed_tpdos(&mut self) {
+        for k in 0..TPDOS {
+            let tt = self.get(0x1800 + k as u16, 2);
+            if matches!(tt, 0 | 254 | 255) && self.tpdo_valid(k) && !self.tpdo[k].event_pending {
+                if let Some(f) = self.tpdo_frame(k) {
+                    self.tpdo[k].event_pending = self.changed(k, &f);
+                }
+            }
+        }
+    }
+
+    /// Raises emergency `code` (see [`Device::signal_emcy`]); `false` if it
+    /// was already active.
+    fn raise(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
+        if self.active[..self.n_active].iter().any(|&(k, _)| k == code) {
+            return false;
+        }
+        if self.n_active < MAX_ACTIVE_ERRORS {
+            self.active[self.n_active] = (code, reg);
+            self.n_active += 1;
+        }
+        self.update_error_register();
+        let info = u16::from_le_bytes([mfr[0], mfr[1]]) as u32;
+        self.record_error(code, info);
+        let reg_now = self.get(0x1001, 0) as u8;
+        let cb = code.to_le_bytes();
+        self.queue_emcy([
+            cb[0], cb[1], reg_now, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4],
+        ]);
+        true
+    }
+
+    /// Clears emergency `code` (see [`Device::clear_emcy`]); `false` if it
+    /// was not active.
+    fn clear(&mut self, code: u16) -> bool {
+        let Some(pos) = self.active[..self.n_active]
+            .iter()
+            .position(|&(k, _)| k == code)
+        else {
+            return false;
+        };
+        self.active.copy_within(pos + 1..self.n_active, pos);
+        self.n_active -= 1;
+        self.update_error_register();
+        let reg_now = self.get(0x1001, 0) as u8;
+        let cb = code.to_le_bytes();
+        self.queue_emcy([0, 0, reg_now, cb[0], cb[1], 0, 0, 0]);
+        true
+    }
+
     /// Sends TPDO `k` at `now_us` (nothing if it is empty or unusable) and
     /// remembers what was sent.
     fn send_tpdo(&mut self, k: usize, now_us: u64, out: &mut impl FnMut(Frame)) {
@@ -611,6 +683,8 @@ impl Core {
         self.unlocked = false;
         self.set(0x2010, 0, 0);
         self.tpdo = [TpdoRt::default(); TPDOS];
+        self.syncs = SyncRt::default();
+        self.hb_cons = [HbMonitor::default(); HB_CONSUMERS];
         self.hb_next = None;
         self.hb_restart = true;
         if self.state != NmtState::Initialising {
@@ -734,6 +808,21 @@ impl Core {
                 self.hb_restart = true;
                 Ok(Some(Written::Done))
             }
+            0x1016 => self.write_hb_consumer(sub, v),
+            0x1019 => {
+                // 1 is reserved (CiA 301 §7.5.2.22); a new value restarts
+                // the SYNC start values.
+                if v == 1 {
+                    return Err(SdoAbort::Range);
+                }
+                self.set(0x1019, 0, v);
+                for rt in self.tpdo.iter_mut() {
+                    rt.started = false;
+                }
+                Ok(Some(Written::Done))
+            }
+            0x1400 => self.write_rpdo_comm(sub, v),
+            0x2500 => self.command(v),
             0x1800..=0x1803 => self.write_tpdo_comm((index - 0x1800) as usize, sub, v),
             0x1A00..=0x1A03 => {
                 let k = (index - 0x1A00) as usize;
@@ -807,9 +896,9 @@ impl Core {
                 self.arm_event_timers(Some(k));
                 Ok(Some(Written::Done))
             }
-            3 if self.tpdo_valid(k) => {
-                // The inhibit time changes only while the PDO does
-                // not exist (CiA 301 §7.5.2.35).
+            3 | 6 if self.tpdo_valid(k) => {
+                // The inhibit time and the SYNC start value change only
+                // while the PDO does not exist (CiA 301 §7.5.2.35).
                 Err(SdoAbort::Range)
             }
             5 => {
@@ -885,6 +974,11 @@ impl Core {
                 v & 0x3FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF))
             }
             (0x1800..=0x1803, 2) => v <= 240 || v >= 254,
+            (0x1400, 1) => {
+                v & 0x7FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF))
+            }
+            (0x1019, 0) => v != 1,
+            (0x1016, _) => (v >> 16) & 0xFF <= 127,
             (0x1A00..=0x1A03, s) if s > 0 => v == 0 || Self::check_map_entry(v).is_ok(),
             (0x2310, 2) => f32::from_bits(v).abs() >= SURFACE_RADIUS_MIN_MM,
             _ => true,
@@ -963,6 +1057,8 @@ impl Device {
             request: None,
             events: 0,
             config_gen: 0,
+            syncs: SyncRt::default(),
+            hb_cons: [HbMonitor::default(); HB_CONSUMERS],
         };
         for (s, _, e) in od::entries() {
             core.values[s] = core.init_value(e, node_id);
@@ -985,11 +1081,14 @@ impl Device {
         if !frame.is_well_formed() || frame.rtr || self.core.state == NmtState::Initialising {
             return;
         }
+        if self.handle_sync(frame, now_us) {
+            return;
+        }
         let node = self.core.node_id as u16;
         let p = frame.payload();
         match frame.id {
             0x000 => self.nmt(p),
-            0x080 => self.sync(now_us, out),
+            0x080 => self.sync(p, now_us, out),
             id if id == 0x600 + node => {
                 if matches!(
                     self.core.state,
@@ -1030,35 +1129,6 @@ impl Device {
         }
     }
 
-    fn sync(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
-        if self.core.state != NmtState::Operational {
-            return;
-        }
-        for k in 0..TPDOS {
-            if !self.core.tpdo_valid(k) {
-                continue;
-            }
-            let tt = self.core.get(0x1800 + k as u16, 2);
-            let send = match tt {
-                0 => core::mem::take(&mut self.core.tpdo[k].event_pending),
-                1..=240 => {
-                    let rt = &mut self.core.tpdo[k];
-                    rt.sync_count = rt.sync_count.saturating_add(1);
-                    if rt.sync_count as u32 >= tt {
-                        rt.sync_count = 0;
-                        true
-                    } else {
-                        false
-                    }
-                }
-                _ => false,
-            };
-            if send {
-                self.core.send_tpdo(k, now_us, out);
-            }
-        }
-    }
-
     /// Produces what is due at `now_us`: the boot-up message after a
     /// power-on or reset, heartbeats, queued emergencies, event-driven
     /// TPDOs (event timer, application events after the inhibit time) and
@@ -1088,6 +1158,9 @@ impl Device {
                 c.hb_next = Some(if next > now_us { next } else { now_us + hb });
             }
         }
+        // Heartbeats consumed and TPDOs waiting for a SYNC's sample.
+        self.poll_sync(now_us, out);
+        let c = &mut self.core;
         // Emergencies (not in stopped), at most one per inhibit time.
         if c.state != NmtState::Stopped {
             c.send_emcys(now_us, out);
@@ -1173,14 +1246,7 @@ impl Device {
         c.set(0x2006, 0, m.rms_mm.to_bits());
         let n = c.get(0x2007, 0).wrapping_add(1);
         c.set(0x2007, 0, n);
-        for k in 0..TPDOS {
-            let tt = c.get(0x1800 + k as u16, 2);
-            if matches!(tt, 0 | 254 | 255) && c.tpdo_valid(k) && !c.tpdo[k].event_pending {
-                if let Some(f) = c.tpdo_frame(k) {
-                    c.tpdo[k].event_pending = c.changed(k, &f);
-                }
-            }
-        }
+        c.mark_changed_tpdos();
     }
 
     /// Publishes one sample like [`Device::set_measurement`] and keeps the
@@ -1373,23 +1439,7 @@ impl Device {
     /// history moves to sub 1). Returns `false` (and sends nothing) if
     /// `code` is already active.
     pub fn signal_emcy(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
-        let c = &mut self.core;
-        if c.active[..c.n_active].iter().any(|&(k, _)| k == code) {
-            return false;
-        }
-        if c.n_active < MAX_ACTIVE_ERRORS {
-            c.active[c.n_active] = (code, reg);
-            c.n_active += 1;
-        }
-        c.update_error_register();
-        let info = u16::from_le_bytes([mfr[0], mfr[1]]) as u32;
-        c.record_error(code, info);
-        let reg_now = c.get(0x1001, 0) as u8;
-        let cb = code.to_le_bytes();
-        c.queue_emcy([
-            cb[0], cb[1], reg_now, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4],
-        ]);
-        true
+        self.core.raise(code, reg, mfr)
     }
 
     /// Clears emergency `code`: one "error reset" EMCY (code 0x0000, CiA
@@ -1397,17 +1447,7 @@ impl Device {
     /// the cleared code in manufacturer bytes 0-1 (little-endian). Returns
     /// whether `code` was active.
     pub fn clear_emcy(&mut self, code: u16) -> bool {
-        let c = &mut self.core;
-        let Some(pos) = c.active[..c.n_active].iter().position(|&(k, _)| k == code) else {
-            return false;
-        };
-        c.active.copy_within(pos + 1..c.n_active, pos);
-        c.n_active -= 1;
-        c.update_error_register();
-        let reg_now = c.get(0x1001, 0) as u8;
-        let cb = code.to_le_bytes();
-        c.queue_emcy([0, 0, reg_now, cb[0], cb[1], 0, 0, 0]);
-        true
+        self.core.clear(code)
     }
 
     /// Whether emergency `code` is active.
@@ -1559,6 +1599,7 @@ impl Device {
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
         let layout = match img.len() {
             IMAGE_LEN => od::LAYOUT,
+            IMAGE_LEN_V3 => 3,
             IMAGE_LEN_V2 => 2,
             IMAGE_LEN_V1 => 1,
             got => {
@@ -1620,6 +1661,11 @@ impl Device {
         Ok(())
     }
 }
+
+#[path = "device_sync.rs"]
+mod sync;
+use sync::{HbMonitor, SyncRt};
+pub use sync::{EMCY_HEARTBEAT, EMCY_PDO_LENGTH, EMCY_SYNC_LENGTH};
 
 #[cfg(test)]
 #[path = "device_tests.rs"]

@@ -1107,3 +1107,6 @@ proptest! {
         }
     }
 }
+
+#[path = "device_sync_tests.rs"]
+mod sync_tests;

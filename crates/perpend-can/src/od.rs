@@ -155,9 +155,11 @@ pub struct Entry {
     pub pdo: bool,
     /// Whether 0x1010 "save" stores it.
     pub persist: bool,
-    /// Image layout that first persisted it: 1, 2 (issue 16) or 3
-    /// (issue 14, the surface model 0x2310). Images of an older layout lack
-    /// it and still load (the entry keeps its current value).
+    /// Image layout that first persisted it: 1, 2 (issue 16), 3 (issue 14,
+    /// the surface model 0x2310) or 4 (issue 16: heartbeat consumer, SYNC
+    /// counter, error behaviour, acquisition trigger, RPDO1, capture).
+    /// Images of an older layout lack it and still load (the entry keeps
+    /// its current value).
     pub since: u8,
     /// Accepted values on write.
     pub limits: Limits,
@@ -202,6 +204,10 @@ impl Entry {
     }
     const fn v3(mut self) -> Self {
         self.since = 3;
+        self
+    }
+    const fn v4(mut self) -> Self {
+        self.since = 4;
         self
     }
 }
@@ -357,6 +363,20 @@ pub const DEADBAND_MM: f32 = 0.01;
 
 /// Number of TPDOs.
 pub const TPDOS: usize = 4;
+/// Number of heartbeats 0x1016 can consume (sub 1..=this).
+pub const HB_CONSUMERS: usize = 2;
+/// 0x2301 sub 1: one scan per sample period (timer), free-running.
+pub const TRIGGER_TIMER: u8 = 0;
+/// 0x2301 sub 1: one scan per SYNC; the synchronous TPDOs of that SYNC
+/// carry its sample.
+pub const TRIGGER_SYNC: u8 = 1;
+/// 0x2500 command: nothing (the value reads back after a command ran).
+pub const CMD_NONE: u8 = 0;
+/// 0x2500 command: average the next 0x2501 valid samples into 0x2502.
+pub const CMD_CAPTURE: u8 = 1;
+/// Default of 0x2501: samples a capture averages (16 ms at 1 kHz: the
+/// angle noise of one sample divided by 4).
+pub const CAPTURE_SAMPLES_DEFAULT: u16 = 16;
 /// Largest number of objects one TPDO maps.
 pub const MAX_MAPPED: usize = 8;
 
@@ -428,7 +448,7 @@ macro_rules! transfer {
 macro_rules! tpdo_comm {
     ($k:expr) => {
         &[
-            sub0(5),
+            sub0(6),
             Entry::new(1, "COB-ID used by TPDO", U32, Rw, Class::Comm)
                 .persist()
                 .init(Init::Node(0x4000_0180 + 0x100 * $k)),
@@ -437,6 +457,10 @@ macro_rules! tpdo_comm {
                 .init(Init::Fixed(1)),
             Entry::new(3, "Inhibit time", U16, Rw, Class::Comm).persist(),
             Entry::new(5, "Event timer", U16, Rw, Class::Comm).persist(),
+            Entry::new(6, "SYNC start value", U8, Rw, Class::Comm)
+                .persist()
+                .v4()
+                .limits(Limits::Range(0, 240)),
         ]
     };
 }
@@ -588,6 +612,21 @@ pub const OBJECTS: &[Object] = &[
             .persist()
             .v2()],
     ),
+    arr(
+        0x1016,
+        "Consumer heartbeat time",
+        &[
+            sub0(HB_CONSUMERS as u8),
+            Entry::new(1, "Consumer heartbeat time", U32, Rw, Class::Comm)
+                .persist()
+                .v4()
+                .limits(Limits::Range(0, 0x007F_FFFF)),
+            Entry::new(2, "Consumer heartbeat time", U32, Rw, Class::Comm)
+                .persist()
+                .v4()
+                .limits(Limits::Range(0, 0x007F_FFFF)),
+        ],
+    ),
     var(
         0x1017,
         "Producer heartbeat time",
@@ -608,6 +647,31 @@ pub const OBJECTS: &[Object] = &[
             Entry::new(4, "Serial number", U32, Const, Class::Comm).init(Init::Identity(4)),
         ],
     ),
+    var(
+        0x1019,
+        "Synchronous counter overflow value",
+        &[Entry::new(
+            0,
+            "Synchronous counter overflow value",
+            U8,
+            Rw,
+            Class::Comm,
+        )
+        .persist()
+        .v4()
+        .limits(Limits::Range(0, 240))],
+    ),
+    arr(
+        0x1029,
+        "Error behavior",
+        &[
+            sub0(1),
+            Entry::new(1, "Communication error", U8, Rw, Class::Comm)
+                .persist()
+                .v4()
+                .limits(Limits::OneOf(&[0, 1, 2])),
+        ],
+    ),
     rec(
         0x1200,
         "SDO server parameter",
@@ -615,6 +679,32 @@ pub const OBJECTS: &[Object] = &[
             sub0(2),
             Entry::new(1, "COB-ID client to server", U32, Ro, Class::Comm).init(Init::Node(0x600)),
             Entry::new(2, "COB-ID server to client", U32, Ro, Class::Comm).init(Init::Node(0x580)),
+        ],
+    ),
+    rec(
+        0x1400,
+        "RPDO1 communication parameter",
+        &[
+            sub0(2),
+            Entry::new(1, "COB-ID used by RPDO", U32, Rw, Class::Comm)
+                .persist()
+                .v4()
+                .init(Init::Node(0x200)),
+            Entry::new(2, "Transmission type", U8, Rw, Class::Comm)
+                .persist()
+                .v4()
+                .limits(Limits::OneOf(&[254, 255]))
+                .init(Init::Fixed(255)),
+        ],
+    ),
+    rec(
+        0x1600,
+        "RPDO1 mapping parameter",
+        &[
+            Entry::new(0, "Number of mapped objects", U8, Const, Class::Comm)
+                .init(Init::Fixed(1)),
+            Entry::new(1, "Application object", U32, Const, Class::Comm)
+                .init(Init::Fixed(mapping(0x2500, 0, 8))),
         ],
     ),
     rec(0x1800, "TPDO1 communication parameter", tpdo_comm!(0)),
@@ -732,6 +822,11 @@ pub const OBJECTS: &[Object] = &[
         "Calibration unlock",
         &[Entry::new(0, "Calibration unlock", U32, Rw, Class::Command)],
     ),
+    var(
+        0x2020,
+        "Sample time us",
+        &[Entry::new(0, "Sample time us", U32, Ro, Class::Measurement).pdo()],
+    ),
     rec(0x2101, "Sensor 1 calibration", sensor_cal!(0)),
     rec(0x2102, "Sensor 2 calibration", sensor_cal!(1)),
     rec(0x2103, "Sensor 3 calibration", sensor_cal!(2)),
@@ -761,6 +856,18 @@ pub const OBJECTS: &[Object] = &[
                 .persist()
                 .limits(Limits::Real(0.0001, 100.0))
                 .init(Init::Acquisition(3)),
+        ],
+    ),
+    rec(
+        0x2301,
+        "Acquisition trigger",
+        &[
+            sub0(2),
+            Entry::new(1, "Trigger", U8, Rw, Class::Config)
+                .persist()
+                .v4()
+                .limits(Limits::OneOf(&[TRIGGER_TIMER as u32, TRIGGER_SYNC as u32])),
+            Entry::new(2, "SYNC samples missed", U32, Ro, Class::Measurement).pdo(),
         ],
     ),
     rec(
@@ -819,6 +926,35 @@ pub const OBJECTS: &[Object] = &[
                 .init(Init::BitRate),
         ],
     ),
+    var(
+        0x2500,
+        "Command",
+        &[Entry::new(0, "Command", U8, Rw, Class::Command)
+            .limits(Limits::OneOf(&[CMD_NONE as u32, CMD_CAPTURE as u32]))],
+    ),
+    var(
+        0x2501,
+        "Capture samples",
+        &[Entry::new(0, "Capture samples", U16, Rw, Class::Comm)
+            .persist()
+            .v4()
+            .limits(Limits::Range(1, 1000))
+            .init(Init::Fixed(CAPTURE_SAMPLES_DEFAULT as u32))],
+    ),
+    rec(
+        0x2502,
+        "Captured measurement",
+        &[
+            sub0m(7),
+            meas(1, "Theta1 deg"),
+            meas(2, "Theta2 deg"),
+            meas(3, "Theta deg"),
+            meas(4, "Pitch deg"),
+            meas(5, "Yaw deg"),
+            Entry::new(6, "Samples used", U16, Ro, Class::Measurement).pdo(),
+            Entry::new(7, "Capture counter", U16, Ro, Class::Measurement).pdo(),
+        ],
+    ),
 ];
 
 const fn count_entries() -> usize {
@@ -852,7 +988,7 @@ const fn count_persist(layout: u8) -> usize {
 /// slots of a [`crate::Device`].
 pub const ENTRIES: usize = count_entries();
 /// The current image layout (see [`Entry::since`]).
-pub const LAYOUT: u8 = 3;
+pub const LAYOUT: u8 = 4;
 /// Number of entries stored by 0x1010.
 pub const PERSISTENT: usize = count_persist(LAYOUT);
 /// Number of entries an image of layout 1 (before issue 16) holds.
@@ -860,6 +996,9 @@ pub const PERSISTENT_V1: usize = count_persist(1);
 /// Number of entries an image of layout 2 (before the surface model 0x2310)
 /// holds.
 pub const PERSISTENT_V2: usize = count_persist(2);
+/// Number of entries an image of layout 3 (before the objects of layout 4)
+/// holds.
+pub const PERSISTENT_V3: usize = count_persist(3);
 
 /// Number of persisted entries of image layout `layout` (1..=[`LAYOUT`]).
 pub const fn persistent_of(layout: u8) -> usize {
@@ -1064,7 +1203,13 @@ mod tests {
         assert_eq!(slot(0x200A, 0), None);
         assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
         assert_eq!(persistent_of(LAYOUT), PERSISTENT);
-        const { assert!(PERSISTENT_V1 < PERSISTENT_V2 && PERSISTENT_V2 < PERSISTENT) };
+        const {
+            assert!(
+                PERSISTENT_V1 < PERSISTENT_V2
+                    && PERSISTENT_V2 < PERSISTENT_V3
+                    && PERSISTENT_V3 < PERSISTENT
+            )
+        };
     }
 
     #[test]

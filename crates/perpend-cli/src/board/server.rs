@@ -1,6 +1,7 @@
 //! The slcan-over-TCP server of the virtual board: one client at a time
 //! (others wait in the listen queue until it disconnects), real-time
-//! clock, one sample per acquisition period.
+//! clock, one sample per acquisition period, or one per SYNC when 0x2301
+//! locks acquisition to SYNC (the scan is taken when the SYNC is read).
 //!
 //! Each loop turn: accept or read the client, parse its slcan lines
 //! ([`crate::slcan`]), hand transmitted frames to the board, run the
@@ -208,6 +209,12 @@ pub fn serve(
                     for f in &frames {
                         busy = true;
                         board.handle(f, now, &mut |o| produced.push(o));
+                        // SYNC-locked acquisition (0x2301): the scan of
+                        // this SYNC, now.
+                        if board.app_mut().take_sync_scan() {
+                            board.sample(now);
+                            last_sample = now;
+                        }
                     }
                 }
                 None => {
@@ -219,6 +226,9 @@ pub fn serve(
         }
         let period = board.period_us();
         let mut k = 0;
+        if board.app().sync_locked() {
+            next_sample = now + period;
+        }
         while next_sample <= now && k < MAX_CATCH_UP {
             board.sample(next_sample);
             last_sample = next_sample;
