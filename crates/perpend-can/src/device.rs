@@ -430,7 +430,9 @@ impl Core {
     }
 
     fn tpdo_valid(&self, k: usize) -> bool {
-        self.get(0x1800 + k as u16, 1) & 0x8000_0000 == 0
+        TPDO_COB
+            .get(k)
+            .is_some_and(|&s| self.at(s) & 0x8000_0000 == 0)
     }
 
     /// Validates the mapping of TPDO `k` with `n` entries taken from `map`.
@@ -551,8 +553,8 @@ impl Core {
     /// Marks the TPDOs of type 0/254/255 whose mapped data changed since
     /// they were last sent (beyond the deadbands).
     fn mark_changed_tpdos(&mut self) {
-        for k in 0..TPDOS {
-            let tt = self.get(0x1800 + k as u16, 2);
+        for (k, &slot) in TPDO_TYPE.iter().enumerate() {
+            let tt = self.at(slot);
             if matches!(tt, 0 | 254 | 255) && self.tpdo_valid(k) && !self.tpdo[k].event_pending {
                 if let Some(f) = self.tpdo_frame(k) {
                     self.tpdo[k].event_pending = self.changed(k, &f);
@@ -974,9 +976,7 @@ impl Core {
                 v & 0x3FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF))
             }
             (0x1800..=0x1803, 2) => v <= 240 || v >= 254,
-            (0x1400, 1) => {
-                v & 0x7FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF))
-            }
+            (0x1400, 1) => v & 0x7FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF)),
             (0x1019, 0) => v != 1,
             (0x1016, _) => (v >> 16) & 0xFF <= 127,
             (0x1A00..=0x1A03, s) if s > 0 => v == 0 || Self::check_map_entry(v).is_ok(),
@@ -1664,7 +1664,7 @@ impl Device {
 
 #[path = "device_sync.rs"]
 mod sync;
-use sync::{HbMonitor, SyncRt};
+use sync::{HbMonitor, SyncRt, TPDO_COB, TPDO_TYPE};
 pub use sync::{EMCY_HEARTBEAT, EMCY_PDO_LENGTH, EMCY_SYNC_LENGTH};
 
 #[cfg(test)]

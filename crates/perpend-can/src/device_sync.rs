@@ -41,7 +41,7 @@
 
 use super::{Core, Device, Events, NmtState, Written};
 use crate::frame::Frame;
-use crate::od::{CMD_CAPTURE, CMD_NONE, HB_CONSUMERS, TPDOS, TRIGGER_SYNC};
+use crate::od::{slot_of, CMD_CAPTURE, CMD_NONE, HB_CONSUMERS, TPDOS, TRIGGER_SYNC};
 use crate::sdo::SdoAbort;
 use crate::status::error_register;
 
@@ -57,6 +57,8 @@ pub const EMCY_PDO_LENGTH: u16 = 0x8210;
 pub(super) struct SyncRt {
     /// TPDOs (bit k) due at the last SYNC, waiting for its sample.
     pub(super) due: u8,
+    /// Which of them are acyclic (type 0: sent only if changed).
+    pub(super) acyclic: u8,
     /// A SYNC is waiting for its sample.
     pub(super) waiting: bool,
     /// The sample of the last SYNC has been published.
@@ -72,15 +74,39 @@ pub(super) struct HbMonitor {
     pub(super) lost: bool,
 }
 
+/// Value slots of the objects on the SYNC path (compile-time constants).
+const SYNC_OVERFLOW: usize = slot_of(0x1019, 0);
+const TRIGGER: usize = slot_of(0x2301, 1);
+const RPDO_COB: usize = slot_of(0x1400, 1);
+const SAMPLE_TIME: usize = slot_of(0x2020, 0);
+pub(super) const TPDO_COB: [usize; TPDOS] = [
+    slot_of(0x1800, 1),
+    slot_of(0x1801, 1),
+    slot_of(0x1802, 1),
+    slot_of(0x1803, 1),
+];
+pub(super) const TPDO_TYPE: [usize; TPDOS] = [
+    slot_of(0x1800, 2),
+    slot_of(0x1801, 2),
+    slot_of(0x1802, 2),
+    slot_of(0x1803, 2),
+];
+
 impl Core {
+    /// The value of a constant slot (always in range: the slots come from
+    /// the table the values array is sized by).
+    pub(super) fn at(&self, s: usize) -> u32 {
+        self.values.get(s).copied().unwrap_or(0)
+    }
+
     fn sync_locked(&self) -> bool {
-        self.get(0x2301, 1) == TRIGGER_SYNC as u32
+        self.at(TRIGGER) == TRIGGER_SYNC as u32
     }
 
     /// The counter of a SYNC with payload `p` (`None` without counter),
     /// keeping EMCY 0x8240 in step with its length.
     fn sync_counter(&mut self, p: &[u8]) -> Option<u8> {
-        let with_counter = self.get(0x1019, 0) >= 2;
+        let with_counter = self.at(SYNC_OVERFLOW) >= 2;
         let ok = p.len() == usize::from(with_counter);
         if ok {
             self.clear_code(EMCY_SYNC_LENGTH);
@@ -94,24 +120,22 @@ impl Core {
         (ok && with_counter).then(|| p[0])
     }
 
-    /// Whether TPDO `k` is due at a SYNC with `counter` (type 0: decided
-    /// when it is sent, by a change of its data).
-    fn sync_due(&mut self, k: usize, counter: Option<u8>) -> bool {
-        if !self.tpdo_valid(k) {
-            return false;
-        }
-        let index = 0x1800 + k as u16;
-        let tt = self.get(index, 2);
+    /// Whether TPDO `k` of transmission type `tt` is due at a SYNC with
+    /// `counter` (`None`: no counter; type 0: decided when it is sent, by a
+    /// change of its data).
+    fn sync_due(&mut self, k: usize, tt: u32, counter: Option<u8>) -> bool {
         if tt == 0 {
             return true;
         }
         if !(1..=240).contains(&tt) {
             return false;
         }
-        let start = self.get(index, 6);
-        let counted = self.get(0x1019, 0) >= 2;
+        let start = match counter {
+            Some(_) => self.get(0x1800 + k as u16, 6),
+            None => 0,
+        };
         let rt = &mut self.tpdo[k];
-        if start != 0 && counted && !rt.started {
+        if start != 0 && !rt.started {
             if counter != Some(start as u8) {
                 return false;
             }
@@ -129,15 +153,14 @@ impl Core {
         }
     }
 
-    /// Sends the synchronous TPDOs in `due` (type 0 only when its data
-    /// changed).
-    fn send_due(&mut self, due: u8, now_us: u64, out: &mut impl FnMut(Frame)) {
+    /// Sends the synchronous TPDOs in `due` (the acyclic ones, bits of
+    /// `acyclic`, only when their data changed).
+    fn send_due(&mut self, due: u8, acyclic: u8, now_us: u64, out: &mut impl FnMut(Frame)) {
         for k in 0..TPDOS {
             if due & (1 << k) == 0 {
                 continue;
             }
-            let acyclic = self.get(0x1800 + k as u16, 2) == 0;
-            if !acyclic || core::mem::take(&mut self.tpdo[k].event_pending) {
+            if acyclic & (1 << k) == 0 || core::mem::take(&mut self.tpdo[k].event_pending) {
                 self.send_tpdo(k, now_us, out);
             }
         }
@@ -149,7 +172,7 @@ impl Core {
         let s = self.syncs;
         if s.sampled && s.due != 0 {
             self.syncs.due = 0;
-            self.send_due(s.due, now_us, out);
+            self.send_due(s.due, s.acyclic, now_us, out);
         }
         if next_sync && s.waiting {
             let missed = self.get(0x2301, 2).wrapping_add(1);
@@ -274,7 +297,7 @@ impl Core {
 
     /// The COB-ID RPDO1 listens on, if it exists.
     pub(super) fn rpdo_cob(&self) -> Option<u16> {
-        let v = self.get(0x1400, 1);
+        let v = self.at(RPDO_COB);
         (v & 0x8000_0000 == 0).then_some((v & 0x7FF) as u16)
     }
 }
@@ -291,21 +314,27 @@ impl Device {
         if locked {
             c.settle_sync(now_us, true, out);
         }
-        let mut due = 0u8;
+        let (mut due, mut acyclic) = (0u8, 0u8);
         for k in 0..TPDOS {
-            if c.sync_due(k, counter) {
+            if c.at(TPDO_COB[k]) & 0x8000_0000 != 0 {
+                continue;
+            }
+            let tt = c.at(TPDO_TYPE[k]);
+            if c.sync_due(k, tt, counter) {
                 due |= 1 << k;
+                acyclic |= u8::from(tt == 0) << k;
             }
         }
         if locked {
             c.syncs = super::SyncRt {
                 due,
+                acyclic,
                 waiting: true,
                 sampled: false,
             };
             c.event(Events::SYNC_SAMPLE);
         } else {
-            c.send_due(due, now_us, out);
+            c.send_due(due, acyclic, now_us, out);
         }
     }
 
@@ -354,7 +383,9 @@ impl Device {
     /// [`Device::publish`].
     pub fn set_sample_time(&mut self, t_us: u64) {
         let c = &mut self.core;
-        c.set(0x2020, 0, t_us as u32);
+        if let Some(v) = c.values.get_mut(SAMPLE_TIME) {
+            *v = t_us as u32;
+        }
         if c.syncs.waiting {
             c.syncs.waiting = false;
             c.syncs.sampled = true;

@@ -650,16 +650,12 @@ pub const OBJECTS: &[Object] = &[
     var(
         0x1019,
         "Synchronous counter overflow value",
-        &[Entry::new(
-            0,
-            "Synchronous counter overflow value",
-            U8,
-            Rw,
-            Class::Comm,
-        )
-        .persist()
-        .v4()
-        .limits(Limits::Range(0, 240))],
+        &[
+            Entry::new(0, "Synchronous counter overflow value", U8, Rw, Class::Comm)
+                .persist()
+                .v4()
+                .limits(Limits::Range(0, 240)),
+        ],
     ),
     arr(
         0x1029,
@@ -701,8 +697,7 @@ pub const OBJECTS: &[Object] = &[
         0x1600,
         "RPDO1 mapping parameter",
         &[
-            Entry::new(0, "Number of mapped objects", U8, Const, Class::Comm)
-                .init(Init::Fixed(1)),
+            Entry::new(0, "Number of mapped objects", U8, Const, Class::Comm).init(Init::Fixed(1)),
             Entry::new(1, "Application object", U32, Const, Class::Comm)
                 .init(Init::Fixed(mapping(0x2500, 0, 8))),
         ],
@@ -1063,6 +1058,9 @@ const fn hot_row(index: u16) -> Option<usize> {
     }
 }
 
+/// Rows of [`HOT`].
+const HOT_ROWS: usize = 17;
+
 /// Sub-indices per row of [`HOT`] (0..=8: a TPDO mapping's).
 const HOT_SUBS: usize = 1 + MAX_MAPPED;
 /// "No such entry" in [`HOT`].
@@ -1070,8 +1068,8 @@ const NO_SLOT: u16 = u16::MAX;
 
 /// The slot of `(index, sub)` for the [`hot_row`] objects, by direct
 /// lookup ([`NO_SLOT`]: no such entry).
-const HOT: [[u16; HOT_SUBS]; 17] = {
-    let mut t = [[NO_SLOT; HOT_SUBS]; 17];
+const HOT: [[u16; HOT_SUBS]; HOT_ROWS] = {
+    let mut t = [[NO_SLOT; HOT_SUBS]; HOT_ROWS];
     let mut n = 0;
     while n < ENTRIES {
         let index = (KEYS[n] >> 8) as u16;
@@ -1086,6 +1084,22 @@ const HOT: [[u16; HOT_SUBS]; 17] = {
 };
 
 const _: () = assert!(ENTRIES < NO_SLOT as usize, "slots fit u16");
+
+/// The value slot of `(index, sub)`, found at compile time (a constant
+/// for the hot paths: no lookup at run time). Fails to compile when the
+/// entry does not exist.
+#[allow(clippy::panic)] // used in constants: a missing entry fails the build
+pub const fn slot_of(index: u16, sub: u8) -> usize {
+    let key = ((index as u32) << 8) | sub as u32;
+    let mut n = 0;
+    while n < ENTRIES {
+        if KEYS[n] == key {
+            return n;
+        }
+        n += 1;
+    }
+    panic!("no such object dictionary entry")
+}
 
 /// The value slot of `(index, sub)` (`None`: no such entry): a direct
 /// lookup for the objects of every SYNC and sample, else a binary search.
