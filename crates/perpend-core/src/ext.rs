@@ -24,6 +24,13 @@
 //! from `f = d − δ(d)` (the slope `1 + ∂δ/∂f` is analytic); terms that do
 //! not depend on `f` need none.
 //!
+//! Drift is for estimation only: the host passes the time since the start
+//! of the calibration run so that a drifting head does not bias the zero
+//! point and beam; the parameters handed to the board are referred to the
+//! run's end with drift 0 (`perpend_lab::paramfile::SensorParams::fold_drift`)
+//! and the board and `perpend measure` pass no time, so a drift is never
+//! extrapolated past the run.
+//!
 //! `d_prev` is the reading of the previous channel in the ADC scan; for the
 //! first channel it is the last channel of the same scan (the scan repeats
 //! every period, so at steady state that is the conversion just before). A

@@ -89,6 +89,64 @@ impl EkfPreset {
     }
 }
 
+/// The time of the run's last pose \[s\] (`t_s`; 0 without times).
+pub fn run_end_s(poses: &PoseTable) -> f64 {
+    poses.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max)
+}
+
+/// Refuses a model whose fit the board could not reproduce in use
+/// (issue 11 item 8), with the reason: the thermal term is applied with
+/// the temperature the board measures (its die sensor), so every pose of
+/// the log needs that temperature in `temp_c` (`perpend node capture`
+/// records it); drift needs `t_s` on every pose to be separated from the
+/// geometry, and is then folded into the zero points at the run's end,
+/// never applied in use ([`SensorParams::fold_drift`]).
+///
+/// # Errors
+/// The model and what the log lacks.
+fn board_can_apply(model: Effect, poses: &PoseTable) -> Result<()> {
+    let missing = |f: fn(&crate::exchange::PoseRow) -> bool| {
+        poses.rows.iter().filter(|r| !f(r)).map(|r| r.line).next()
+    };
+    match model {
+        Effect::Thermal => {
+            if let Some(line) = missing(|r| r.temp_c.is_some()) {
+                bail!(
+                    "--model thermal: pose on line {line} has no temp_c; the board corrects with the \
+                     temperature it measures (die sensor), so every pose needs that temperature \
+                     (perpend node capture records it)"
+                );
+            }
+        }
+        Effect::Drift => {
+            if let Some(line) = missing(|r| r.t_s.is_some()) {
+                bail!(
+                    "--model drift: pose on line {line} has no t_s; drift is separated from the \
+                     geometry by the time of each pose (and folded into the zero points at the \
+                     run's end: the board never extrapolates it)"
+                );
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+/// Folds the sensor's drift into its zero point at the run's end
+/// ([`SensorParams::fold_drift`]) and says so in the report.
+fn fold_drift(p: &mut SensorParams, t_end_s: f64, report: &mut String) {
+    let rate = p.ext.drift_mm_per_s;
+    let c = p.fold_drift(t_end_s);
+    let _ = writeln!(
+        report,
+        "  drift {:+.2} µm/min over the {:.0} s run: the zero point is referred to the run's end \
+         ({:+.4} mm along the beam); the board applies no drift (it is never extrapolated)",
+        rate * 6e4,
+        t_end_s,
+        -c
+    );
+}
+
 /// Arguments of `perpend calibrate`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -284,6 +342,7 @@ pub fn run(a: &Args) -> Result<()> {
         );
     }
     let model = a.model.effect();
+    board_can_apply(model, &poses)?;
     let mut file = ParamFile::new(
         method,
         if model == Effect::None {
@@ -341,7 +400,11 @@ pub fn run(a: &Args) -> Result<()> {
                             );
                         }
                         let _ = writeln!(report, "  {}", fit.diagnostic);
-                        file.sensors.push(candidates::params_of(i, &fit, s));
+                        let mut p = candidates::params_of(i, &fit, s);
+                        if model == Effect::Drift {
+                            fold_drift(&mut p, run_end_s(&poses), &mut report);
+                        }
+                        file.sensors.push(p);
                         geometry.push(fit.sensor);
                     }
                     Err(e) => {

@@ -3,8 +3,8 @@
 //! Chen's pitch/yaw (eq. 22) and the fit residual, computed by the same
 //! `perpend-core` code the board runs (`perpend-board`'s pipeline, from the
 //! millimetres on): readings → spots with the calibrated head and its
-//! extension corrections (Chen eq. 17, temperature and time of the row as
-//! context) → micro-plane (least squares or Chen eq. 18-19) → with
+//! extension corrections (Chen eq. 17, the row's temperature as context; no
+//! time, as on the board: drift is never extrapolated) → micro-plane (least squares or Chen eq. 18-19) → with
 //! `--surface sphere:R|cylinder:R:ax,ay,az` the curved model of
 //! [`perpend_core::surface`] (issue 14) → angles.
 //!
@@ -226,7 +226,13 @@ fn measure_n<const N: usize>(
     let head = Head::new(arr);
     let one = |row: &ReadingRow| {
         let r: [Option<f64>; N] = core::array::from_fn(|i| row.readings.get(i).copied().flatten());
-        let m = measure(&head, &r, &row.context(), method, shape);
+        // As on the board: the row's temperature, no time (drift is never
+        // extrapolated, `SensorParams::fold_drift`).
+        let ctx = perpend_core::ext::Context {
+            t_s: None,
+            ..row.context()
+        };
+        let m = measure(&head, &r, &ctx, method, shape);
         RowOut {
             pose: row.pose,
             line: row.line,

@@ -195,6 +195,28 @@ pub struct SensorParams {
 }
 
 impl SensorParams {
+    /// Drift is a nuisance of the calibration run (issue 11 item 8): it
+    /// is estimated so that it does not bias the zero point and beam, but
+    /// never extrapolated; the board has no clock shared with the run, and
+    /// a linear drift carried on for hours would grow without bound. This
+    /// refers the parameters to the **end** of the run: the reading excess
+    /// `c = drift·t_end` is folded into the zero point (a constant excess
+    /// `c` along the unit beam `u` is the zero point moved by `−c·u`) and
+    /// the drift coefficient becomes 0. Returns `c` \[mm\]. In use, drift
+    /// after the run is not corrected; `perpend diagnose` on a later run
+    /// shows whether it goes on.
+    pub fn fold_drift(&mut self, t_end_s: f64) -> f64 {
+        let c = self.ext.drift_mm_per_s * t_end_s;
+        let n = self.dir.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if n > 0.0 {
+            for (z, u) in self.zero_mm.iter_mut().zip(self.dir) {
+                *z -= c * u / n;
+            }
+        }
+        self.ext.drift_mm_per_s = 0.0;
+        c
+    }
+
     /// The sensor with its extension.
     ///
     /// # Errors

@@ -377,3 +377,96 @@ fn expected_accuracy_matches_the_actual_calibration_error() {
         rms(&predicted)
     );
 }
+
+/// Issue 11 item 8: a head that drifts during the calibration run (here
+/// 0.1 µm/s on every sensor over a 30-minute run: 0.18 mm by its end).
+/// `--model drift` writes parameters referred to the run's end with drift
+/// 0 (the board passes no time and never extrapolates); on planes measured
+/// after the run, with the drift stopped at its end value, they give the
+/// normal to the noise level, while the zero points of the run's start are
+/// 0.18 mm off along every beam.
+#[test]
+fn drift_is_folded_into_the_zero_points_at_the_end_of_the_run() {
+    use perpend_core::ext::{Context, Extension};
+    use perpend_core::head::Head;
+    use perpend_core::normal::{measure, Method as PlaneMethod};
+    use perpend_lab::sim::ExtensionEffect;
+
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let head = paper_head().unwrap();
+    let rate = 1e-4; // mm/s
+    let ext = Extension {
+        drift: rate,
+        ..Extension::identity()
+    };
+    let effect = ExtensionEffect {
+        ext: vec![ext; head.truth.len()],
+    };
+    let cfg = SimConfig {
+        poses: 60,
+        dt_s: Some(30.0),
+        zeta_mm: 0.002,
+        ..SimConfig::paper()
+    };
+    let mut rng = StdRng::seed_from_u64(118);
+    let data = simulate(&head, &cfg, &[&effect], &mut rng).unwrap();
+    write_dataset(d, &data.sensors, &data.poses, &["drift".into()]).unwrap();
+    let t_end = data
+        .poses
+        .rows
+        .iter()
+        .filter_map(|r| r.t_s)
+        .fold(0.0, f64::max);
+    let out = d.join("params.json");
+    let mut a = args(d, Method::Lsq, Some(&out));
+    a.model = Model::Drift;
+    calibrate::run(&a).unwrap();
+    let pf = ParamFile::read(&out).unwrap();
+    assert!(pf.sensors.iter().all(|s| s.ext.drift_mm_per_s == 0.0));
+    let folded: Head<f64, 4> = pf.to_head::<4>().unwrap();
+
+    // After the run: the true readings carry the excess of the run's end.
+    let excess = rate * t_end;
+    let ctx = Context::default();
+    let (mut err_folded, mut err_start) = (0.0f64, 0.0f64);
+    for k in 0..20 {
+        let (tx, ty) = (17.0 + (k % 5) as f64, -1.0 - (k / 5) as f64);
+        let plane = plane_from_tilts(tx.to_radians(), ty.to_radians(), 36.0);
+        let r: [Option<f64>; 4] = core::array::from_fn(|i| {
+            perpend_core::model::distance(&head.truth[i], &plane, i)
+                .ok()
+                .map(|x| x + excess)
+        });
+        let m = measure(&folded, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
+        err_folded = err_folded.max(angle_deg(&m.plane.normal, &plane.n));
+        // the same head with the start-of-run zero points (drift undone)
+        let mut start = folded;
+        for s in start.sensors.iter_mut() {
+            s.zero += s.dir * excess;
+        }
+        let m0 = measure(&start, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
+        err_start = err_start.max(angle_deg(&m0.plane.normal, &plane.n));
+    }
+    assert!(err_folded < 0.02, "folded: {err_folded}°");
+    assert!(
+        err_start > 3.0 * err_folded,
+        "start {err_start}° vs folded {err_folded}°"
+    );
+}
+
+/// Issue 11 item 8: models the board cannot reproduce from the log are
+/// refused with the reason (thermal without the temperature of every pose,
+/// drift without the time of every pose).
+#[test]
+fn models_the_board_cannot_apply_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    write_paper_run(d, 5, &SimConfig::paper());
+    for (model, needs) in [(Model::Thermal, "temp_c"), (Model::Drift, "t_s")] {
+        let mut a = args(d, Method::Lsq, None);
+        a.model = model;
+        let e = calibrate::run(&a).unwrap_err().to_string();
+        assert!(e.contains(needs) && e.contains("board"), "{e}");
+    }
+}

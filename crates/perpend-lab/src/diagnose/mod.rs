@@ -952,7 +952,9 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
             _ => fit(s, i, &d.poses, d.refs.terms(model, i), lsq)
                 .map_err(|e| anyhow!("sensor {}: {e}", i + 1))?,
         };
-        let p = candidates::params_of(i, &fit, s);
+        let mut p = candidates::params_of(i, &fit, s);
+        // Drift is removed from the estimate, never extrapolated.
+        p.fold_drift(crate::calibrate::run_end_s(&d.poses));
         f.sensors.push(p);
     }
     f.validate()?;
