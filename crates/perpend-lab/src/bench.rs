@@ -29,7 +29,7 @@ use std::time::Instant;
 use anyhow::{anyhow, bail, Result};
 use nalgebra::Vector3;
 use perpend_core::calib::{
-    ekf_sensor, fit_sensor_base, EkfConfig, Innovation, LsqConfig, Thresholds,
+    ekf_sensor, fit_sensor_base, EkfConfig, EkfFit, Innovation, LsqConfig, Thresholds,
 };
 use perpend_core::ext::Context;
 use perpend_core::geometry::Plane;
@@ -40,6 +40,7 @@ use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::calibrate::{angle_deg, residual_rms};
+use crate::exchange::PoseTable;
 use crate::sim::{
     paper_head, readings, simulate, Dataset, Moment, PoseSpread, SimConfig, SimHead,
     PAPER_STANDOFF_RANGE_MM, PAPER_TILT_RANGE_DEG,
@@ -208,6 +209,23 @@ fn normal_error(head: &Head4<f64>, r: &[Option<f64>], truth: &Plane<f64>) -> Res
     Ok(angle_deg(&fit.normal, &n_true))
 }
 
+/// The paper's EKF on sensor `i` of `poses`, or `None` when it diverged:
+/// it failed, rejected readings (the beam missed the plane at its
+/// estimate) or its residual RMS over the run exceeds
+/// [`EKF_DIVERGED_RMS_MM`]. The one divergence rule of the benches and of
+/// `perpend study paper`.
+pub fn ekf_accepted(
+    nominal: &Sensor<f64>,
+    i: usize,
+    poses: &PoseTable,
+    cfg: EkfConfig<f64>,
+) -> Option<EkfFit<f64>> {
+    ekf_sensor(nominal, i, poses, cfg).ok().filter(|f| {
+        f.rejected == 0
+            && residual_rms(&f.sensor, i, poses).is_some_and(|r| r < EKF_DIVERGED_RMS_MM)
+    })
+}
+
 /// Both calibrations of one simulated run.
 #[derive(Debug, Clone)]
 pub struct Calibrated {
@@ -238,10 +256,7 @@ pub fn calibrate_both(
         lsq: Vec::new(),
     };
     for (i, s) in head.nominal.iter().enumerate() {
-        let f = ekf_sensor(s, i, &data.poses, ekf).ok().filter(|f| {
-            f.rejected == 0
-                && residual_rms(&f.sensor, i, &data.poses).is_some_and(|r| r < EKF_DIVERGED_RMS_MM)
-        });
+        let f = ekf_accepted(s, i, &data.poses, ekf);
         out.ekf_used.push(f.as_ref().map_or(0, |f| f.used));
         out.ekf.push(f.map(|f| f.sensor));
         let g = fit_sensor_base(s, i, &data.poses, lsq).map_err(|e| anyhow!("LSQ: {e}"))?;
