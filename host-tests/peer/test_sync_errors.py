@@ -33,6 +33,24 @@ def drain(q):
             return out
 
 
+def remap_tpdo(sdo, k, cob_id, mapping=None, trans_type=None, start=None):
+    """TPDO k (1-based) invalidated, its mapping (list of (index, sub,
+    bits)), transmission type and SYNC start value written, valid again:
+    the CiA 301 order the device enforces."""
+    comm, mp = sdo[0x1800 + k - 1], sdo[0x1A00 + k - 1]
+    comm[1].raw = 0x80000000 | cob_id
+    if mapping is not None:
+        mp[0].raw = 0
+        for i, (index, sub, bits) in enumerate(mapping, start=1):
+            mp[i].raw = (index << 16) | (sub << 8) | bits
+        mp[0].raw = len(mapping)
+    if trans_type is not None:
+        comm[2].raw = trans_type
+    if start is not None:
+        comm[6].raw = start
+    comm[1].raw = cob_id
+
+
 def test_sync_counter_and_start_value(board):
     """0x1019 = 4: TPDO1 of type 2 with SYNC start value 2 goes out first at
     the SYNC counting 2, then at every second SYNC; 1 is refused."""
@@ -41,10 +59,7 @@ def test_sync_counter_and_start_value(board):
     sdo[0x1019].raw = 4
     # the start value changes only while the TPDO does not exist
     assert abort_code(lambda: sdo.download(0x1800, 6, b"\x02")) == 0x06090030
-    sdo[0x1800][1].raw = 0x80000000 | TPDO1
-    sdo[0x1800][6].raw = 2
-    sdo[0x1800][2].raw = 2
-    sdo[0x1800][1].raw = TPDO1
+    remap_tpdo(sdo, 1, TPDO1, trans_type=2, start=2)
     q = frames_of(board, TPDO1)
     board.node.nmt.state = "OPERATIONAL"
     time.sleep(0.05)
@@ -72,11 +87,7 @@ def test_sync_locked_acquisition_no_duplicates_no_skips(board):
     sdo = board.node.sdo
     sdo[0x2301][1].raw = 1
     # TPDO3: normal x and the sample time
-    sdo[0x1802][1].raw = 0x80000000 | TPDO3
-    sdo[0x1A02][0].raw = 0
-    sdo[0x1A02][2].raw = (0x2020 << 16) | 32
-    sdo[0x1A02][0].raw = 2
-    sdo[0x1802][1].raw = TPDO3
+    remap_tpdo(sdo, 3, TPDO3, [(0x2001, 1, 32), (0x2020, 0, 32)])
     t2, t3 = frames_of(board, TPDO2), frames_of(board, TPDO3)
     board.node.nmt.state = "OPERATIONAL"
     time.sleep(0.1)
@@ -155,13 +166,7 @@ def test_rpdo_triggers_a_capture(board):
     sdo = board.node.sdo
     assert sdo[0x1400][1].raw == 0x200 + NODE_ID
     sdo[0x2501].raw = 20
-    sdo[0x1803][1].raw = 0x80000000 | TPDO4
-    sdo[0x1A03][0].raw = 0
-    sdo[0x1A03][1].raw = (0x2502 << 16) | (1 << 8) | 32
-    sdo[0x1A03][2].raw = (0x2502 << 16) | (7 << 8) | 16
-    sdo[0x1A03][0].raw = 2
-    sdo[0x1803][2].raw = 254
-    sdo[0x1803][1].raw = TPDO4
+    remap_tpdo(sdo, 4, TPDO4, [(0x2502, 1, 32), (0x2502, 7, 16)], trans_type=254)
     t4 = frames_of(board, TPDO4)
     board.node.nmt.state = "OPERATIONAL"
     time.sleep(0.2)

@@ -104,17 +104,29 @@ fn surfaces(shape: &Shape<f64>, rng: &mut StdRng) -> Vec<CurvedSurface<f64>> {
         .collect()
 }
 
-fn shape32(s: &Shape<f64>) -> Shape<f32> {
-    match *s {
-        Shape::Plane => Shape::Plane,
-        Shape::Sphere { radius } => Shape::Sphere {
-            radius: radius as f32,
-        },
-        Shape::Cylinder { radius, axis } => Shape::Cylinder {
-            radius: radius as f32,
-            axis: axis.cast(),
-        },
-    }
+/// `perpend measure --json` of `dir`'s sensors.csv, params.json and r.csv
+/// on the surface `surface`.
+fn measure_json(dir: &Path, surface: &str) -> serde_json::Value {
+    let p = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let out = perpend(&[
+        "measure",
+        "--sensors",
+        &p("sensors.csv"),
+        "--params",
+        &p("params.json"),
+        "--poses",
+        &p("r.csv"),
+        "--surface",
+        surface,
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
 }
 
 fn f(v: &serde_json::Value) -> f64 {
@@ -154,7 +166,7 @@ fn check_row(v: &serde_json::Value, head: &Head4<f64>, r: &[Option<f64>; 4], sha
         &r32,
         &ctx32,
         Method::LeastSquares,
-        &shape32(shape),
+        &shape.cast::<f32>(),
     )
     .unwrap();
     let n32: Vector3<f64> = m32.fit.normal.cast();
@@ -182,7 +194,6 @@ fn measure_equals_the_core_in_f64_and_f32() {
     let dir = tempfile::tempdir().unwrap();
     let mut rng = StdRng::seed_from_u64(14);
     let (head, calibrated) = write_head(dir.path(), &mut rng);
-    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
     for (arg, shape) in [
         ("plane", Shape::Plane),
         ("sphere:600", Shape::Sphere { radius: 600.0 }),
@@ -201,24 +212,7 @@ fn measure_equals_the_core_in_f64_and_f32() {
         };
         let surf = surfaces(&truth, &mut rng);
         let rows = write_readings(&dir.path().join("r.csv"), &head, &surf, &mut rng);
-        let out = perpend(&[
-            "measure",
-            "--sensors",
-            &p("sensors.csv"),
-            "--params",
-            &p("params.json"),
-            "--poses",
-            &p("r.csv"),
-            "--surface",
-            arg,
-            "--json",
-        ]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stdout)
-        );
-        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let v = measure_json(dir.path(), arg);
         assert_eq!(v["measured"], 7, "{v}");
         assert_eq!(v["skipped"], 1);
         let json_rows = v["rows"].as_array().unwrap();
@@ -410,25 +404,7 @@ fn measure_equals_the_board_for_the_same_readings() {
         outs.push(o);
     }
     std::fs::write(dir.path().join("r.csv"), text).unwrap();
-    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
-    let out = perpend(&[
-        "measure",
-        "--sensors",
-        &p("sensors.csv"),
-        "--params",
-        &p("params.json"),
-        "--poses",
-        &p("r.csv"),
-        "--surface",
-        "sphere:300",
-        "--json",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = measure_json(dir.path(), "sphere:300");
     let rows = v["rows"].as_array().unwrap();
     assert_eq!(rows.len(), outs.len(), "{v}");
     for (jr, o) in rows.iter().zip(&outs) {

@@ -184,6 +184,22 @@ pub enum Shape<T: Real> {
     },
 }
 
+impl<T: Real> Shape<T> {
+    /// The same shape in another precision (the host's `f64` as the
+    /// board's `f32`).
+    pub fn cast<U: Real>(&self) -> Shape<U> {
+        let c = |x: T| U::lit(x.to_f64());
+        match *self {
+            Shape::Plane => Shape::Plane,
+            Shape::Sphere { radius } => Shape::Sphere { radius: c(radius) },
+            Shape::Cylinder { radius, axis } => Shape::Cylinder {
+                radius: c(radius),
+                axis: Vector3::new(c(axis.x), c(axis.y), c(axis.z)),
+            },
+        }
+    }
+}
+
 /// The surface fitted to the spots and its normal at the spindle axis.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SurfaceFit<T: Real> {
@@ -895,16 +911,7 @@ mod tests {
                 let r = readings(&head, &surf);
                 let r32 = r.map(|x| x.map(|v| v as f32));
                 let shape = surf.shape();
-                let s32 = match shape {
-                    Shape::Sphere { radius } => Shape::Sphere {
-                        radius: radius as f32,
-                    },
-                    Shape::Cylinder { radius, axis } => Shape::Cylinder {
-                        radius: radius as f32,
-                        axis: axis.cast(),
-                    },
-                    Shape::Plane => Shape::Plane,
-                };
+                let s32 = shape.cast::<f32>();
                 let m =
                     measure(&h32, &r32, &Context::default(), Method::LeastSquares, &s32).unwrap();
                 let got: Vector3<f64> = m.fit.normal.cast();
@@ -943,16 +950,7 @@ mod tests {
                         let u = ((k * 7 + i * 13 + si * 5) % 11) as f64 - 5.0;
                         *x = x.map(|d| d + u * 0.01);
                     }
-                    let s32 = match *shape {
-                        Shape::Sphere { radius } => Shape::Sphere {
-                            radius: radius as f32,
-                        },
-                        Shape::Cylinder { radius, axis } => Shape::Cylinder {
-                            radius: radius as f32,
-                            axis: axis.cast(),
-                        },
-                        Shape::Plane => Shape::Plane,
-                    };
+                    let s32 = shape.cast::<f32>();
                     let r32 = r.map(|x| x.map(|v| v as f32));
                     let f =
                         fit(&h32, &r32, &Context::default(), Method::LeastSquares, &s32).unwrap();

@@ -37,9 +37,9 @@ use core::hint::black_box;
 use cortex_m_rt::entry;
 use cortex_m_semihosting::debug;
 use perpend_board::app::{measurement_of, App};
+use perpend_board::pipeline::{Output, Pipeline, Sample};
 use perpend_board::storage::{ParamStore, StoreError};
 use perpend_can::Frame;
-use perpend_board::pipeline::{Output, Pipeline, Sample};
 use perpend_core::calib::ekf::{Ekf, EkfConfig};
 use perpend_core::geometry::Plane;
 use perpend_core::model::distance;
@@ -215,6 +215,18 @@ fn plane_samples(params: &Params) -> ([Sample; REPS], [perpend_core::Result<Plan
     (samples, planes)
 }
 
+/// Runs `samples` through `pl`, the TPDO payloads of each output built
+/// (measured); returns how many outputs were valid.
+fn run_samples(pl: &mut Pipeline, samples: &[Sample]) -> u32 {
+    let mut ok = 0u32;
+    for (k, s) in samples.iter().enumerate() {
+        let o = pl.process(black_box(s));
+        ok += u32::from(o.valid());
+        black_box(pdo_payloads(&o, k as u32));
+    }
+    ok
+}
+
 #[entry]
 fn main() -> ! {
     let params = Params::factory();
@@ -224,12 +236,7 @@ fn main() -> ! {
     black_box(pl.process(&samples[0]));
 
     bench_mark(1);
-    let mut ok = 0u32;
-    for (k, s) in samples.iter().enumerate() {
-        let o = pl.process(black_box(s));
-        ok += u32::from(o.valid());
-        black_box(pdo_payloads(&o, k as u32));
-    }
+    let ok = run_samples(&mut pl, &samples);
     bench_mark(2);
     if ok != REPS as u32 {
         fail();
@@ -278,12 +285,7 @@ fn main() -> ! {
     pl.set_shape(Shape::Sphere { radius: SPHERE_R });
     black_box(pl.process(&sphere[0]));
     bench_mark(9);
-    let mut ok = 0u32;
-    for (k, s) in sphere.iter().enumerate() {
-        let o = pl.process(black_box(s));
-        ok += u32::from(o.valid());
-        black_box(pdo_payloads(&o, k as u32));
-    }
+    let ok = run_samples(&mut pl, &sphere);
     bench_mark(10);
     if ok != REPS as u32 {
         fail();
@@ -293,12 +295,7 @@ fn main() -> ! {
 
     black_box(pl_steep.process(&steep[0]));
     bench_mark(15);
-    let mut ok = 0u32;
-    for (k, s) in steep.iter().enumerate() {
-        let o = pl_steep.process(black_box(s));
-        ok += u32::from(o.valid());
-        black_box(pdo_payloads(&o, k as u32));
-    }
+    let ok = run_samples(&mut pl_steep, &steep);
     bench_mark(16);
     if ok != REPS as u32 {
         fail();
