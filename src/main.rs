@@ -15,9 +15,18 @@
 //!   87.5 %, SJW 3 tq at every rate), Tx queue mode, automatic bus-off
 //!   recovery by the driver; the recovery is reported as EMCY 0x8140.
 //!   Frames leave through the software queue `perpend_board::txq` and
-//!   [`can_tx::FdcanTx`]: nothing in the loop waits for the bus.
+//!   [`can_tx::FdcanTx`]: nothing in the loop waits for the bus. Frames
+//!   arrive through the acceptance filters of `perpend_board::rxfilter`
+//!   and the interrupt-filled ring of [`can_rx`].
 //! * **Flash**: the parameter storage in the last four 2 KiB pages of bank 2
-//!   (`sequential-storage` via `perpend_board::storage::SeqStore`).
+//!   (`sequential-storage` via `perpend_board::storage::SeqStore`, over
+//!   [`flash::BoardFlash`] behind `EccGuard`: interrupts stay enabled
+//!   during erase/program, ECC double errors become skipped records, a low
+//!   supply refuses the store).
+//! * **Health** ([`board`]): reset cause, VREF+ from VREFINT, die
+//!   temperature, flash layout check, IWDG frozen under a debugger, DWT
+//!   worst loop time, painted stack with an MPU guard, entry into the
+//!   system bootloader (0x2500 = 0xB0).
 //! * **IWDG** (500 ms) fed by the main loop only while samples arrive
 //!   (last one < 20 ms ago) and the CAN controller is not stuck in bus-off
 //!   (< 1 s).
@@ -31,12 +40,14 @@
 #![no_main]
 
 mod acq_ctl;
+mod board;
+mod can_rx;
 mod can_tx;
+mod flash;
 
 use core::num::{NonZeroU16, NonZeroU8};
 
 use defmt::{info, warn};
-use embassy_embedded_hal::adapter::BlockingAsync;
 use embassy_executor::Spawner;
 use embassy_futures::select::{select3, Either3};
 use embassy_stm32::adc::{
@@ -45,7 +56,6 @@ use embassy_stm32::adc::{
 use embassy_stm32::can::config::{NominalBitTiming, TxBufferMode};
 use embassy_stm32::can::enums::BusErrorMode;
 use embassy_stm32::can::{self, CanConfigurator};
-use embassy_stm32::flash::{Blocking, Flash};
 use embassy_stm32::gpio::{Level, Output, Speed};
 use embassy_stm32::peripherals::{ADC1, DMA1_CH1, FDCAN1, IWDG, PA11, PA12, TIM3};
 use embassy_stm32::time::Hertz;
@@ -55,44 +65,30 @@ use embassy_stm32::{bind_interrupts, dma, rcc, Config, Peri};
 use embassy_time::{Duration, Instant, Ticker};
 use perpend_board::app::App;
 use perpend_board::bittiming::{self, FDCAN_KERNEL_HZ};
+use perpend_board::health::{self, LoopTimer};
 use perpend_board::pipeline::Sample;
-use perpend_board::storage::{Boot, SeqStore};
+use perpend_board::rxfilter::{self, RxSet};
+use perpend_board::storage::{Boot, EccGuard, SeqStore};
 use perpend_board::txq::{TxQueue, TX_QUEUE_LEN};
 use perpend_core::params::{Acquisition, Bitrate};
 use {defmt_rtt as _, panic_probe as _};
 
 use acq_ctl::{RING_LEN, SCAN};
-use can_tx::{from_hal, FdcanTx};
+use can_tx::FdcanTx;
 
 bind_interrupts!(struct Irqs {
-    FDCAN1_IT0 => can::IT0InterruptHandler<FDCAN1>;
+    FDCAN1_IT0 => can::IT0InterruptHandler<FDCAN1>, can_rx::RxInterrupt;
     FDCAN1_IT1 => can::IT1InterruptHandler<FDCAN1>;
     DMA1_CHANNEL1 => dma::InterruptHandler<DMA1_CH1>;
 });
 
-/// Storage range (flash offsets): the last four 2 KiB pages of bank 2,
-/// 0x0807E000..0x08080000, outside FLASH in memory.x.
-const STORAGE: core::ops::Range<u32> = 0x7_E000..0x8_0000;
-
-/// Factory-calibrated temperature sensor readings (RM0440 §21.4.32): 12-bit
-/// raw values at 30 °C and 130 °C, taken with VREF+ = 3.0 V.
-const TS_CAL1: *const u16 = 0x1FFF_75A8 as *const u16;
-const TS_CAL2: *const u16 = 0x1FFF_75CA as *const u16;
-
-/// Die temperature [°C] from a raw (oversampled) result: the thermal
-/// extension's head temperature (the board sits in the head; the die
-/// temperature is its proxy).
-fn die_temp_c(raw: u16, acq: &Acquisition) -> Option<f32> {
-    // SAFETY: the calibration words are in the system memory of every
-    // STM32G4 and always readable.
-    let (c1, c2) = unsafe { (TS_CAL1.read_volatile(), TS_CAL2.read_volatile()) };
-    if c2 <= c1 {
-        return None;
+/// Oversampling gain of the scan's results.
+fn scan_gain(acq: &Acquisition) -> f32 {
+    if acq.os_log2 == 0 {
+        1.0
+    } else {
+        health::os_gain(acq.os_log2, acq.os_shift)
     }
-    let gain = (1u32 << acq.os_log2) as f32 / (1u32 << acq.os_shift) as f32;
-    // result at VREF+ = vref, scaled to the 3.0 V of the calibration
-    let raw12 = raw as f32 / gain * (acq.vref_mv as f32 / 3000.0);
-    Some((raw12 - c1 as f32) * 100.0 / (c2 as f32 - c1 as f32) + 30.0)
 }
 
 /// LED pattern: on = valid measurement; slow blink (1 Hz) = running without
@@ -161,13 +157,35 @@ fn start_can(
         }
         None => cc.set_bitrate(b.bps()),
     }
+    // Reject what no acceptance filter takes (set before the filters).
+    cc.set_config(can_rx::with_global_filter(cc.config()));
     info!("FDCAN NBTP {=u32:#010x}", bittiming::for_board(b).nbtp());
     cc.into_normal_mode()
 }
 
+/// Re-programs the FDCAN's nominal bit timing at run time, for LSS
+/// "activate bit timing" (RM0440 §44.3.2: INIT and CCE set, NBTP written,
+/// INIT cleared; frames pending in the transmit buffers are dropped by
+/// CCE, the bus is re-joined after 11 recessive bits). The split driver
+/// halves keep working.
+fn switch_bitrate(b: Bitrate) {
+    let r = embassy_stm32::pac::FDCAN1;
+    r.cccr().modify(|w| w.set_init(true));
+    while !r.cccr().read().init() {}
+    r.cccr().modify(|w| w.set_cce(true));
+    r.nbtp().write_value(embassy_stm32::pac::can::regs::Nbtp(
+        bittiming::for_board(b).nbtp(),
+    ));
+    r.cccr().modify(|w| {
+        w.set_cce(false);
+        w.set_init(false);
+    });
+    while r.cccr().read().init() {}
+}
+
 /// The firmware's state between events.
 struct Fw {
-    app: App<SeqStore<BlockingAsync<Flash<'static, Blocking>>>>,
+    app: App<SeqStore<EccGuard<flash::BoardFlash>>>,
     txq: TxQueue<TX_QUEUE_LEN>,
     can_tx: FdcanTx<'static>,
     props: can::Properties,
@@ -183,6 +201,21 @@ struct Fw {
     locked: bool,
     bus_off_since: Option<Instant>,
     samples: u32,
+    /// What the acceptance filters are programmed for.
+    rx_set: RxSet,
+    /// Ring overflows already reported.
+    rx_lost_seen: u32,
+    /// VREF+ measured with VREFINT at boot [mV] (`None`: implausible, the
+    /// record's `vref_mv` is used unchanged).
+    vref_mv: Option<f32>,
+    /// Factory TS_CAL1, TS_CAL2.
+    ts_cal: (u16, u16),
+    /// Worst main-loop turn (DWT cycles).
+    loop_timer: LoopTimer,
+    /// 1 ms ticks since boot.
+    ticks: u32,
+    /// The health figures (0x200B) are due.
+    health_due: bool,
     /// Bus errors seen by the receive side (PSR.LEC, e.g. one acknowledge
     /// error per retransmission when alone on the bus): counted, logged
     /// with the per-1000-sample line, not one warning each.
@@ -198,9 +231,13 @@ impl Fw {
     /// One ADC scan through the pipeline.
     fn on_scan(&mut self, scan: &[u16; SCAN]) {
         let t_acq = now_us();
+        let assumed = f32::from(self.acq.vref_mv);
+        let vref = self.vref_mv.unwrap_or(assumed);
+        let c = |k: usize| health::correct_count(scan[k], vref, assumed);
+        let (c1, c2) = self.ts_cal;
         let s = Sample {
-            counts: [scan[0], scan[1], scan[2], scan[3]],
-            temp_c: die_temp_c(scan[4], &self.acq),
+            counts: [c(0), c(1), c(2), c(3)],
+            temp_c: health::die_temp_c(scan[4], scan_gain(&self.acq), vref, c1, c2),
             t_s: None,
         };
         let o = self.app.on_sample(&s, t_acq);
@@ -222,12 +259,27 @@ impl Fw {
     }
 
     /// A received frame to the application.
-    fn on_frame(&mut self, f: &can::frame::Frame) {
-        if let Some(f) = from_hal(f) {
-            let q = &mut self.txq;
-            self.app.handle(&f, now_us(), &mut |o| {
-                q.push(o);
-            });
+    fn on_frame(&mut self, f: &perpend_can::Frame) {
+        let q = &mut self.txq;
+        self.app.handle(f, now_us(), &mut |o| {
+            q.push(o);
+        });
+    }
+
+    /// Reprograms the acceptance filters when what the node listens to
+    /// changed (node-id, RPDO COB-IDs, heartbeat consumers).
+    fn update_filters(&mut self) {
+        let set = RxSet::from_device(self.app.device());
+        if set == self.rx_set {
+            return;
+        }
+        match rxfilter::filters(&set) {
+            Ok(f) => {
+                can_rx::program(&self.props, &f);
+                info!("CAN acceptance filters: {} elements", f.len());
+                self.rx_set = set;
+            }
+            Err(_) => warn!("CAN acceptance filters do not fit: unchanged"),
         }
     }
 
@@ -239,11 +291,29 @@ impl Fw {
         // report it; the App turns it into EMCY 0x8110. The flag is cleared
         // by writing 1 (other bits written 0 are kept).
         let ir = embassy_stm32::pac::FDCAN1.ir();
-        if ir.read().rfl(0) {
-            ir.write(|w| w.set_rfl(0, true));
+        let irv = ir.read();
+        if irv.rfl(0) || irv.rfl(1) {
+            ir.write(|w| {
+                w.set_rfl(0, true);
+                w.set_rfl(1, true);
+            });
             warn!("CAN receive FIFO overrun");
             self.app.rx_overrun();
         }
+        // Frames that arrived before the receiver was handed to the
+        // interrupt (or any the interrupt left) go to the ring now.
+        can_rx::drain();
+        // The interrupt's RAM ring overflowed (frames lost too).
+        let lost = can_rx::LOST.load(core::sync::atomic::Ordering::Relaxed);
+        if lost != self.rx_lost_seen {
+            self.rx_lost_seen = lost;
+            warn!("CAN receive ring overflow: {} frames lost", lost);
+            self.app.rx_overrun();
+        }
+        self.bus_errors = can_rx::BUS_ERRORS.load(core::sync::atomic::Ordering::Relaxed);
+        self.update_filters();
+        self.ticks = self.ticks.wrapping_add(1);
+        self.health_due |= self.ticks.is_multiple_of(1000);
         let q = &mut self.txq;
         self.app.poll(now_us(), &mut |o| {
             q.push(o);
@@ -308,8 +378,34 @@ impl Fw {
                 );
             }
         }
+        // LSS "activate bit timing" (CiA 305): the switch delay has passed.
+        let lss = self.app.device_mut().take_bit_rate_switch();
+        if let Some(b) = lss.and_then(perpend_can::config::bitrate_of) {
+            switch_bitrate(b);
+            info!("LSS: bit rate now {} bit/s", b.bps());
+            self.bitrate = b;
+        }
         self.txq.service(&mut self.can_tx);
         self.app.tx_stats(self.txq.stats(), now_us());
+        if self.app.take_bootloader_request() {
+            self.enter_bootloader();
+        }
+    }
+
+    /// 0x2500 = bootloader in pre-operational: the SDO answer and what else
+    /// is queued leave (at most 20 ms), then a reset into the ROM
+    /// bootloader.
+    fn enter_bootloader(&mut self) -> ! {
+        warn!("0x2500: resetting into the system bootloader (field update)");
+        let end = Instant::now() + Duration::from_millis(20);
+        while Instant::now() < end {
+            self.txq.service(&mut self.can_tx);
+            let pending = embassy_stm32::pac::FDCAN1.txbrp().read().0 & 0b111;
+            if self.txq.is_empty() && pending == 0 {
+                break;
+            }
+        }
+        board::reset_into_bootloader()
     }
 }
 
@@ -320,8 +416,8 @@ fn start_adc(
     dma: Peri<'static, DMA1_CH1>,
     inputs: [AnyAdcChannel<'static, ADC1>; 4],
     acq: &Acquisition,
-) -> RingBufferedAdc<'static, ADC1> {
-    let adc = Adc::new(
+) -> (RingBufferedAdc<'static, ADC1>, Option<f32>) {
+    let mut adc = Adc::new(
         adc1,
         AdcConfig {
             oversampling_ratio: Some(acq.os_log2.clamp(1, 8) - 1),
@@ -335,6 +431,14 @@ fn start_adc(
         },
     );
     let temp = adc.enable_temperature();
+    // VREF+ from VREFINT (RM0440 §21.4.34), once at boot: 8 conversions
+    // averaged, at the scan's oversampling (4 µs minimum sampling time).
+    let mut vrefint = adc.enable_vrefint();
+    let sum: u32 = (0..8)
+        .map(|_| u32::from(adc.blocking_read(&mut vrefint, SampleTime::CYCLES247_5)))
+        .sum();
+    let (vcal, _, _) = board::factory_cal();
+    let vref = health::vref_mv(vcal, (sum / 8) as u16, scan_gain(acq));
     // Sample times of perpend_board::scan (the 0x2300 period check):
     // SENSOR_SAMPLE_HALF_CYCLES = 95 (47.5), TEMP_SAMPLE_HALF_CYCLES = 495.
     let st = SampleTime::CYCLES47_5;
@@ -349,36 +453,67 @@ fn start_adc(
     static mut DMA_BUF: [u16; RING_LEN] = [0; RING_LEN];
     // SAFETY: the only reference to the buffer, taken once before the loop.
     let dma_buf: &'static mut [u16; RING_LEN] = unsafe { &mut *core::ptr::addr_of_mut!(DMA_BUF) };
-    adc.into_ring_buffered(
+    let ring = adc.into_ring_buffered(
         dma,
         dma_buf,
         Irqs,
         seq.into_iter(),
         embassy_stm32::triggers::TIM3_TRGO,
         Exten::RISING_EDGE,
-    )
+    );
+    (ring, vref)
 }
 
 /// Brings up the peripherals and the application (a plain function, so
 /// that its locals do not take room in the main task's future).
-fn setup() -> (Fw, can::CanRx<'static>) {
+fn setup() -> Fw {
+    board::enter_bootloader_if_requested();
     let p = embassy_stm32::init(config());
     info!("perpend-fw {}", env!("CARGO_PKG_VERSION"));
+    let reset = board::take_reset_flags();
+    info!(
+        "reset cause {} (RCC_CSR flags {=u8:#04x})",
+        defmt::Debug2Format(&reset.cause()),
+        reset.0
+    );
+    board::freeze_iwdg_in_debug();
+    board::start_cycle_counter();
+    board::paint_and_guard_stack();
+    let flash_ok = match board::check_flash() {
+        Ok(()) => true,
+        Err(e) => {
+            defmt::error!(
+                "flash layout {} (DBANK {}, {} KiB): parameter storage disabled, factory defaults",
+                defmt::Debug2Format(&e),
+                embassy_stm32::pac::FLASH.optr().read().dbank(),
+                board::flash_size_kib()
+            );
+            false
+        }
+    };
 
     let led = Output::new(p.PA5, Level::Low, Speed::Low);
     let mut wdg = IndependentWatchdog::new(p.IWDG, 500_000);
     wdg.unleash();
 
     // Parameters and the CANopen device.
-    let flash = BlockingAsync::new(Flash::new_blocking(p.FLASH));
-    let store = match SeqStore::new(flash, STORAGE) {
+    flash::enable_pvd();
+    let flash = EccGuard::new(flash::BoardFlash::new(p.FLASH, flash_ok));
+    let store = match SeqStore::new(flash, flash::STORAGE) {
         Ok(s) => s,
         Err(_) => defmt::panic!("storage range is not a valid map range"),
     };
     // 0x1018 sub 4: the 96-bit unique ID folded to 32 bits.
     let serial = perpend_can::config::serial_from_uid(&embassy_stm32::uid::uid());
     info!("serial number {=u32:#010x}", serial);
-    let app = App::with_serial(store, serial);
+    let mut app = App::with_serial(store, serial);
+    app.report_reset(reset);
+    if app.boot_read_faults() > 0 {
+        warn!(
+            "boot: {} unreadable flash double word(s) (ECC) skipped",
+            app.boot_read_faults()
+        );
+    }
     match app.boot() {
         Boot::Stored => info!("boot: stored parameters"),
         Boot::Missing => info!("boot: no stored parameters, factory defaults (uncalibrated)"),
@@ -390,6 +525,12 @@ fn setup() -> (Fw, can::CanRx<'static>) {
     let app_locked = app.sync_locked();
 
     let (tx, rx, props) = start_can(p.FDCAN1, p.PA11, p.PA12, can_cfg.bitrate).split();
+    let rx_set = RxSet::from_device(app.device());
+    match rxfilter::filters(&rx_set) {
+        Ok(f) => can_rx::program(&props, &f),
+        Err(_) => defmt::panic!("CAN acceptance filters do not fit"),
+    }
+    can_rx::install(rx);
     info!(
         "CAN node {} at {} bit/s",
         can_cfg.node_id,
@@ -403,7 +544,12 @@ fn setup() -> (Fw, can::CanRx<'static>) {
         p.PB0.degrade_adc(),
         p.PC1.degrade_adc(),
     ];
-    let ring = start_adc(p.ADC1, p.DMA1_CH1, inputs, &acq);
+    let (ring, vref_mv) = start_adc(p.ADC1, p.DMA1_CH1, inputs, &acq);
+    match vref_mv {
+        Some(v) => info!("VREF+ {} mV (VREFINT), assumed {} mV", v, acq.vref_mv),
+        None => warn!("VREFINT implausible: VREF+ taken as {} mV", acq.vref_mv),
+    }
+    let (_, ts1, ts2) = board::factory_cal();
     // TIM3 update event = scan trigger.
     let tim = Timer::new(p.TIM3);
     tim.set_master_mode(MasterMode::UPDATE);
@@ -423,29 +569,44 @@ fn setup() -> (Fw, can::CanRx<'static>) {
         locked: app_locked,
         bus_off_since: None,
         samples: 0,
+        rx_set,
+        rx_lost_seen: 0,
+        vref_mv,
+        ts_cal: (ts1, ts2),
+        loop_timer: LoopTimer::default(),
+        ticks: 0,
+        health_due: false,
         bus_errors: 0,
     };
     acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
-    (fw, rx)
+    fw
 }
 
 #[embassy_executor::main]
 async fn main(_spawner: Spawner) {
-    let (mut fw, mut rx) = setup();
+    let mut fw = setup();
 
     let mut ticker = Ticker::every(Duration::from_millis(1));
     let mut scan = [0u16; SCAN];
     loop {
-        match select3(fw.ring.read(&mut scan), rx.read(), ticker.next()).await {
+        let event = select3(fw.ring.read(&mut scan), can_rx::next(), ticker.next()).await;
+        let t0 = board::cycles();
+        match event {
             Either3::First(Ok(_)) => fw.on_scan(&scan),
             Either3::First(Err(_)) => {
                 warn!("ADC DMA overrun: restarting the acquisition");
                 acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
             }
-            Either3::Second(Ok(env)) => fw.on_frame(&env.frame),
-            Either3::Second(Err(_)) => fw.bus_errors = fw.bus_errors.wrapping_add(1),
+            Either3::Second(f) => fw.on_frame(&f),
             Either3::Third(()) => fw.on_tick(),
         }
         fw.after_event();
+        fw.loop_timer.record(t0, board::cycles());
+        // Outside the timed turn: the health figures once a second.
+        if core::mem::take(&mut fw.health_due) {
+            let vref = fw.vref_mv.map_or(0, |v| v as u32);
+            let stack = board::stack_used() as u32;
+            fw.app.set_health(fw.loop_timer.worst(), stack, vref);
+        }
     }
 }

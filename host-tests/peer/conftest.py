@@ -169,3 +169,52 @@ def canopen_warnings():
         yield records
     finally:
         root.removeHandler(h)
+
+
+class Cell(Board):
+    """Several virtual boards on one bus behind one slcan port (`perpend
+    board --serial S1 --serial S2 ...`, a cell of heads) and a master
+    without nodes (LSS commissioning adds them)."""
+
+    def __init__(self, serials, *args: str, node_id: int = 0xFF):
+        self.serials = list(serials)
+        self.node_id = node_id
+        cmd = [perpend_bin(), "board", "--slcan", "127.0.0.1:0", "--node-id", str(node_id)]
+        for s in self.serials:
+            cmd += ["--serial", hex(s)]
+        self.proc = subprocess.Popen([*cmd, *args], stdout=subprocess.PIPE, text=True)
+        line = self._first_line()
+        # "perpend board: N boards, nodes A,B,.. on 127.0.0.1:PORT"
+        self.port = int(line.rsplit(":", 1)[1])
+        self.network = canopen.Network()
+        self.network.connect(
+            interface="slcan",
+            channel=f"socket://127.0.0.1:{self.port}",
+            sleep_after_open=0,
+        )
+        # A board answers within a millisecond: no need for canopen's 0.5 s
+        # per unanswered fastscan step.
+        self.network.lss.RESPONSE_TIMEOUT = 0.05
+
+
+class Recorder:
+    """Every frame the master receives from now on: (can_id, data)."""
+
+    def __init__(self, network: canopen.Network):
+        self.frames: "queue.Queue[tuple[int, bytes]]" = queue.Queue()
+        import can  # noqa: PLC0415 (python-can, a canopen dependency)
+
+        rec = self
+
+        class _L(can.Listener):
+            def on_message_received(self, msg):
+                rec.frames.put((msg.arbitration_id, bytes(msg.data)))
+
+        self.listener = _L()
+        network.notifier.add_listener(self.listener)
+
+    def drain(self):
+        out = []
+        while not self.frames.empty():
+            out.append(self.frames.get_nowait())
+        return out

@@ -14,7 +14,7 @@ use std::process::{Child, Command, Stdio};
 use crate::{cargo, root, run, Result};
 
 /// A child process stopped on drop.
-struct Stopped(Child);
+pub(crate) struct Stopped(pub(crate) Child);
 
 impl Drop for Stopped {
     fn drop(&mut self) {

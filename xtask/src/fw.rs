@@ -9,7 +9,12 @@
 //!   data, the initial values of `.data`) and the static RAM use (the
 //!   memory size of every loadable segment whose run address is in RAM:
 //!   `.data`, `.bss`, `.uninit`; the stack is what remains). Fails above
-//!   [`FLASH_BUDGET`] / [`RAM_BUDGET`].
+//!   [`FLASH_BUDGET`] / [`RAM_BUDGET`]. Also prints the stack room: the
+//!   RAM region of `memory.x` ([`RAM_REGION`]) minus static RAM minus the
+//!   32-byte MPU guard (`src/board.rs`); the stack actually used is
+//!   measured on the board (painted stack, object 0x200B sub 3), as a
+//!   static worst case needs `-Z emit-stack-sizes` (nightly) and cannot
+//!   bound the interrupt nesting or the async state machines anyway.
 //! * `mcu-bench` — builds `xtask/mcu-bench` (its own workspace) for
 //!   thumbv7em-none-eabihf, runs it on QEMU `mps2-an386` (Cortex-M4F) with
 //!   one instruction per translation block and `-d exec,nochain`, and
@@ -36,6 +41,11 @@ use object::{Object, ObjectSymbol};
 pub const FLASH_BUDGET: u64 = 128 * 1024;
 /// Static RAM budget of the firmware [bytes].
 pub const RAM_BUDGET: u64 = 48 * 1024;
+/// RAM region of `memory.x` (SRAM1 + SRAM2) [bytes]: static data from its
+/// start, the stack down from its end.
+pub const RAM_REGION: u64 = 96 * 1024;
+/// The MPU stack guard at the bottom of the stack (`src/board.rs`) [bytes].
+const STACK_GUARD: u64 = 32;
 
 const TARGET: &str = "thumbv7em-none-eabihf";
 const FLASH_RANGE: std::ops::Range<u64> = 0x0800_0000..0x0810_0000;
@@ -111,6 +121,12 @@ pub fn size(args: &[String]) -> Result<()> {
         ram as f64 / 1024.0,
         pct(ram, RAM_BUDGET),
         RAM_BUDGET / 1024
+    );
+    println!(
+        "stack: {} B room (RAM region {} KiB - static - {} B MPU guard); used: measured on the board, object 0x200B sub 3",
+        RAM_REGION.saturating_sub(ram + STACK_GUARD),
+        RAM_REGION / 1024,
+        STACK_GUARD
     );
     let mut over = Vec::new();
     if flash > FLASH_BUDGET {

@@ -6,6 +6,8 @@
 //! * `demo` — build and run `perpend demo`.
 //! * `cell-demo` — the cell calibration end to end against a virtual
 //!   board whose true head has the paper's errors (`perpend cell run`).
+//! * `bring-up --bus BUS --node-id N | --virtual` — the bus side of
+//!   docs/bring-up.md against a board or a virtual board.
 //! * `fw` — build the release firmware image; `size` — its flash and static
 //!   RAM use against the budget (128 KiB / 48 KiB); `mcu-bench [--json]` —
 //!   instructions per update on an emulated Cortex-M4F (QEMU mps2-an386).
@@ -15,6 +17,7 @@
 //!
 //! Each step prints a banner and stops the run at the first failure.
 
+mod bringup;
 mod cell;
 mod ci;
 mod fw;
@@ -181,11 +184,12 @@ fn main() -> ExitCode {
         Some("setup") => ci::setup_only(&args[1..]),
         Some("demo") => demo(),
         Some("cell-demo") => cell::cell_demo(),
+        Some("bring-up") => bringup::bring_up(&args[1..]),
         Some("fuzz") => fuzz(&args[1..]),
         Some("fw") => fw::fw(&args[1..]),
         Some("size") => fw::size(&args[1..]),
         Some("mcu-bench") => fw::mcu_bench(&args[1..]),
-        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|cell-demo|fw|size|mcu-bench [--json]|fuzz [--seconds N] [TARGET...]>".to_string()),
+        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw|size|mcu-bench [--json]|fuzz [--seconds N] [TARGET...]>".to_string()),
     };
     match res {
         Ok(()) => ExitCode::SUCCESS,

@@ -51,6 +51,8 @@
 //! | sensor i not valid otherwise (out of range, stuck, jumped) | 0xFF11 + i | manufacturer | sensor 1..4, nibble, stuck 0/1 |
 //! | no valid plane (bit 19) | 0xFF02 | manufacturer | sensors used |
 //! | configuration invalid (bit 21), boot record rejected | 0x6300 | generic | 0 |
+//! | boot met unreadable (ECC) flash words ([`App::boot_read_faults`]) | 0x6300 | generic | 1, count (u32 LE) |
+//! | store refused: supply below the PVD threshold | 0x3220 | voltage | 0 (raised and reset at once; SDO abort 0x08000020) |
 //! | bus-off recovered ([`App::bus_off_recovered`]) | 0x8140 | communication | 0 |
 //! | receive overrun ([`App::rx_overrun`]) | 0x8110 | communication | 0 |
 //! | transmit queue full, frames dropped ([`App::tx_stats`]) | 0x8110 | communication | 1, dropped count (u32 LE) |
@@ -78,7 +80,7 @@ use crate::status::{
     sensor_nibble, CONFIG_INVALID, NO_PLANE, SENSOR_OPEN_LOOP, SENSOR_OVERCURRENT, SENSOR_STUCK,
     SENSOR_VALID,
 };
-use crate::storage::{load_with_tail, save_with_tail, Boot, ParamStore};
+use crate::storage::{load_with_tail, save_with_tail, Boot, ParamStore, SaveError, StoreError};
 
 /// Samples without a condition before its EMCY is cleared (100 ms at
 /// 1 kHz).
@@ -186,7 +188,13 @@ pub fn params_from_device(dev: &Device, extra: &Params) -> Result<Params, Error>
     p.acq.max_rms_mm = a.residual_limit_mm;
     let c = dev.communication();
     p.can = CanConfig {
-        node_id: c.node_id,
+        // A non-configured node (LSS, 0xFF) keeps the record's last valid
+        // node-id: the device image holds the 0xFF that wins at boot.
+        node_id: if c.node_id == perpend_can::lss::UNCONFIGURED {
+            dev.node_id()
+        } else {
+            c.node_id
+        },
         bitrate: match c.bit_rate_kbps {
             1000 => Bitrate::M1,
             500 => Bitrate::K500,
@@ -262,6 +270,12 @@ pub struct App<S: ParamStore> {
     store: S,
     extra: Params,
     boot: Boot,
+    /// Unreadable flash words met at boot.
+    read_faults: u32,
+    /// Die temperature of the last sample, published at the next poll.
+    temp_c: Option<f32>,
+    /// 0x2500 = bootloader was written in pre-operational.
+    bootloader: bool,
     boot_bad: bool,
     /// The stored record: `extra` after the next reset node.
     next_extra: Params,
@@ -269,7 +283,6 @@ pub struct App<S: ParamStore> {
     quiet: [u16; CONDS],
     acq_changed: bool,
     can_changed: bool,
-    start_us: Option<u64>,
     last: Output,
     stores: u32,
     tx_dropped: u32,
@@ -300,6 +313,7 @@ impl<S: ParamStore> App<S> {
         let defaults = defaults_for(&factory).with_serial(serial);
         let mut image = [0u8; IMAGE_LEN];
         let (stored, mut boot, n) = load_with_tail(&mut store, &mut image);
+        let read_faults = store.take_read_faults();
         let mut dev = Device::new(factory.can.node_id, &defaults);
         let mut extra = factory;
         if boot == Boot::Stored {
@@ -311,7 +325,7 @@ impl<S: ParamStore> App<S> {
                 }
             }
         }
-        let boot_bad = matches!(boot, Boot::Rejected(_) | Boot::Unreadable(_));
+        let boot_bad = matches!(boot, Boot::Rejected(_) | Boot::Unreadable(_)) || read_faults > 0;
         let mut app = Self {
             pipe: Pipeline::new(factory, false),
             cfg_gen: dev.config_generation(),
@@ -320,11 +334,13 @@ impl<S: ParamStore> App<S> {
             extra,
             boot,
             boot_bad,
+            read_faults,
+            temp_c: None,
+            bootloader: false,
             next_extra: extra,
             quiet: [0; CONDS],
             acq_changed: false,
             can_changed: false,
-            start_us: None,
             last: Output::default(),
             stores: 0,
             tx_dropped: 0,
@@ -339,8 +355,13 @@ impl<S: ParamStore> App<S> {
         app.dev.take_events();
         app.acq_changed = false;
         if app.boot_bad {
+            let mut data = [0; 5];
+            if read_faults > 0 {
+                data[0] = 1;
+                data[1..].copy_from_slice(&read_faults.to_le_bytes());
+            }
             app.dev
-                .signal_emcy(emcy::DATA_SET, error_register::GENERIC, [0; 5]);
+                .signal_emcy(emcy::DATA_SET, error_register::GENERIC, data);
         }
         app
     }
@@ -373,6 +394,12 @@ impl<S: ParamStore> App<S> {
     /// Where the boot parameters came from.
     pub fn boot(&self) -> Boot {
         self.boot
+    }
+
+    /// Unreadable (ECC) flash double words met while loading at boot: the
+    /// records holding them were skipped (EMCY 0x6300 `[1, count]`).
+    pub fn boot_read_faults(&self) -> u32 {
+        self.read_faults
     }
 
     /// The CANopen device.
@@ -438,7 +465,8 @@ impl<S: ParamStore> App<S> {
     }
 
     /// `Some(settings)` once after an NMT reset (node or communication):
-    /// the firmware re-initialises the CAN controller with them.
+    /// the firmware re-initialises the CAN controller with them. (An LSS
+    /// bit-rate switch comes from `device_mut().take_bit_rate_switch()`.)
     pub fn take_can_change(&mut self) -> Option<CanConfig> {
         core::mem::take(&mut self.can_changed).then(|| self.can_config())
     }
@@ -456,7 +484,39 @@ impl<S: ParamStore> App<S> {
             self.dev.communication_error(now_us, out);
         }
         self.dev.poll(now_us, out);
+        if let Some(t) = self.temp_c.take() {
+            self.dev.set_die_temperature(t);
+        }
         self.service(out);
+    }
+
+    /// Whether 0x2500 = [`perpend_can::od::CMD_BOOTLOADER`] was written in
+    /// pre-operational since the last call: the firmware then resets into
+    /// the system bootloader (docs/bring-up.md, field update).
+    pub fn take_bootloader_request(&mut self) -> bool {
+        core::mem::take(&mut self.bootloader)
+    }
+
+    /// Reports the reset cause read at boot: 0x200B sub 1 = the RCC_CSR
+    /// flags; after a watchdog reset EMCY 0x6010 `[flags, 0, 0, 0, 0]`
+    /// (raised and reset at once).
+    pub fn report_reset(&mut self, flags: crate::health::ResetFlags) {
+        self.dev.set_board_health(1, u32::from(flags.0));
+        if flags.is_watchdog() {
+            let code = crate::health::EMCY_WATCHDOG_RESET;
+            self.dev
+                .signal_emcy(code, error_register::GENERIC, [flags.0, 0, 0, 0, 0]);
+            self.dev.clear_emcy(code);
+        }
+    }
+
+    /// Publishes the firmware's health figures in 0x200B: worst main-loop
+    /// time [cycles] (sub 2), stack used [bytes] (sub 3), VREF+ [mV]
+    /// (sub 4, 0 = not measured).
+    pub fn set_health(&mut self, worst_loop_cycles: u32, stack_used: u32, vref_mv: u32) {
+        self.dev.set_board_health(2, worst_loop_cycles);
+        self.dev.set_board_health(3, stack_used);
+        self.dev.set_board_health(4, vref_mv);
     }
 
     /// Whether acquisition is locked to SYNC (0x2301 sub 1): the firmware
@@ -474,13 +534,18 @@ impl<S: ParamStore> App<S> {
     }
 
     /// Processes one ADC scan taken at `now_us`; publishes it to the
-    /// dictionary and updates the EMCY state. The drift extension's time is
-    /// the time since the first sample after boot.
+    /// dictionary and updates the EMCY state. No time reaches the
+    /// corrections: drift is a nuisance of the calibration run, folded into
+    /// the zero points at its end and never extrapolated (issue 11 item 8,
+    /// `perpend_lab::paramfile::SensorParams::fold_drift`); a stored drift
+    /// coefficient is not applied.
     pub fn on_sample(&mut self, sample: &Sample, now_us: u64) -> Output {
-        let start = *self.start_us.get_or_insert(now_us);
-        let mut s = *sample;
-        s.t_s = Some(now_us.saturating_sub(start) as f32 * 1e-6);
+        let s = Sample {
+            t_s: None,
+            ..*sample
+        };
         let o = self.pipe.process(&s);
+        self.temp_c = s.temp_c;
         self.dev.set_sample_time(now_us);
         self.dev.set_measurement(&measurement_of(&o));
         self.update_emcy(o.status);
@@ -565,6 +630,8 @@ impl<S: ParamStore> App<S> {
         if ev.contains(Events::COMMAND) {
             self.capture = (self.dev.command() == perpend_can::od::CMD_CAPTURE)
                 .then(|| crate::capture::Capture::new(self.dev.capture_samples()));
+            self.bootloader = self.dev.command() == perpend_can::od::CMD_BOOTLOADER
+                && self.dev.nmt_state() == perpend_can::NmtState::PreOperational;
         }
         if ev.contains(Events::REQUEST) {
             if let Some(req) = self.dev.pending_request() {
@@ -619,10 +686,20 @@ impl<S: ParamStore> App<S> {
                 }
                 true
             }
+            Err(SaveError::Store(StoreError::LowSupply)) => {
+                self.dev
+                    .signal_emcy(EMCY_LOW_SUPPLY, error_register::VOLTAGE, [0; 5]);
+                self.dev.clear_emcy(EMCY_LOW_SUPPLY);
+                false
+            }
             Err(_) => false,
         }
     }
 }
+
+/// EMCY code of a store refused for low supply voltage (CiA 301 0x3220
+/// "input voltage too low").
+pub const EMCY_LOW_SUPPLY: u16 = 0x3220;
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::panic)]

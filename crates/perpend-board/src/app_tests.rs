@@ -883,7 +883,9 @@ fn sync_locked_scan_and_bus_off_reaction() {
         assert!(b.app.take_sync_scan());
         b.sample(c.map(|x| x + (k & 1)));
         let t2 = b.sent.iter().rev().find(|f| f.id == 0x280 + NODE).unwrap();
-        counters.push(u32::from_le_bytes([t2.data[4], t2.data[5], t2.data[6], t2.data[7]]));
+        counters.push(u32::from_le_bytes([
+            t2.data[4], t2.data[5], t2.data[6], t2.data[7],
+        ]));
     }
     assert_eq!(counters, vec![1, 2, 3, 4]);
     b.app.bus_off_recovered();

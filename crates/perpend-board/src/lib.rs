@@ -16,6 +16,10 @@
 //! * [`txq`] — the software transmit queue in CAN priority order between
 //!   the application and the controller (never blocks the acquisition);
 //! * [`bittiming`] — the FDCAN nominal bit timing of the four bit rates;
+//! * [`health`] — reset cause, VREF+ from VREFINT, die temperature, flash
+//!   layout check, worst loop time, stack high-water mark;
+//! * [`rxfilter`] — the FDCAN receive acceptance filters and a model of the
+//!   receive path (FIFOs, interrupt ring) around a flash store;
 //! * [`scan`] — the ADC scan time and the shortest sample period an
 //!   oversampling ratio allows.
 //!
@@ -27,7 +31,9 @@ pub mod acq;
 pub mod app;
 pub mod bittiming;
 pub mod capture;
+pub mod health;
 pub mod pipeline;
+pub mod rxfilter;
 pub mod scan;
 pub mod status;
 pub mod storage;
@@ -36,3 +42,8 @@ pub mod txq;
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod fault_matrix;
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::panic)]
+#[path = "flash_fault_tests.rs"]
+mod flash_fault_tests;

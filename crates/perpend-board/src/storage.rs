@@ -27,13 +27,32 @@
 //! driver (the STM32 one behind an async adapter, or [`FaultFlash`]) the
 //! futures never pend, so this costs nothing.
 //!
-//! Limits: on the real STM32G4 a double word whose programming was cut
-//! holds an ECC error, and reading it raises an NMI (the double-error flag
-//! ECCD); [`FaultFlash`] models a cut write as a partially programmed word
-//! that reads back garbage, which `sequential-storage`'s CRCs reject. The
-//! firmware notes list what the board does about the NMI.
+//! ## Flash faults (ECC) and the supply
+//!
+//! On the STM32G4 a double word whose programming (or page erase) was cut
+//! by a power loss may hold an ECC double error; reading it raises the NMI
+//! with FLASH_ECCR.ECCD (RM0440 §5.3.9). The firmware's NMI handler clears
+//! ECCD for an address inside the storage range and its flash driver then
+//! returns an error whose [`EccAddress::ecc_address`] is that address.
+//! [`EccGuard`] sits between that driver and `sequential-storage`: it reads
+//! such a range again word by word and hands every unreadable double word
+//! up as [`ECC_FILL`] (a programmed, non-erased pattern), which the crate's
+//! CRCs reject like any torn item: the previous record, or factory
+//! defaults, is loaded, and [`ParamStore::take_read_faults`] tells the
+//! application (EMCY 0x6300). The bad word is not erased at once (its page
+//! may also hold the previous record); the crate erases the page when its
+//! ring reaches it. [`FaultFlash::with_ecc`] models the cut: the torn double
+//! word (and some words of a cut erase) fail every read until erased.
+//!
+//! [`FlashHealth::supply_ok`] is asked before every store: with the supply
+//! below the PVD threshold (the firmware reads PWR_SR2.PVDO) nothing is
+//! written and the store fails with [`StoreError::LowSupply`].
 
 use core::ops::Range;
+
+/// The `NorFlash` traits the storage is written against (re-exported for
+/// the firmware's flash driver).
+pub use embedded_storage_async::nor_flash;
 
 use embassy_futures::block_on;
 use embedded_storage_async::nor_flash::{
@@ -76,6 +95,9 @@ pub enum StoreError {
     TooBig,
     /// Any other error of the storage crate (logic bug, serialization).
     Other,
+    /// The supply monitor reports a voltage below its threshold: the store
+    /// was not started (nothing written).
+    LowSupply,
 }
 
 impl<E> From<sequential_storage::Error<E>> for StoreError {
@@ -108,6 +130,147 @@ pub trait ParamStore {
     /// previous record or the new one (when the cut came after the new
     /// record was complete), never a mix.
     fn store(&mut self, record: &[u8]) -> Result<(), StoreError>;
+
+    /// Number of unreadable (ECC) double words met since the last call,
+    /// each read back as [`ECC_FILL`]; 0 for a store without such faults.
+    fn take_read_faults(&mut self) -> u32 {
+        0
+    }
+}
+
+/// What the board's flash reports beyond `NorFlash`: unreadable words met
+/// and the supply monitor. Defaults: no faults, supply good.
+pub trait FlashHealth {
+    /// Number of unreadable (ECC) double words substituted since the last
+    /// call.
+    fn take_read_faults(&mut self) -> u32 {
+        0
+    }
+    /// Whether the supply allows programming (the PVD reports no low
+    /// voltage).
+    fn supply_ok(&mut self) -> bool {
+        true
+    }
+}
+
+/// A flash error that may be an ECC double error at a known address.
+pub trait EccAddress {
+    /// The flash offset of the unreadable double word, if this error is an
+    /// ECC double error.
+    fn ecc_address(&self) -> Option<u32>;
+}
+
+/// What [`EccGuard`] hands up for an unreadable double word: programmed
+/// (not 0xFF, so never taken for erased space) and rejected by the CRCs.
+pub const ECC_FILL: u8 = 0x00;
+
+/// A `NorFlash` adapter that turns ECC double errors on reads into
+/// [`ECC_FILL`] words and counts them (see the module docs).
+#[derive(Debug, Clone)]
+pub struct EccGuard<F> {
+    inner: F,
+    faults: u32,
+    last: Option<u32>,
+}
+
+impl<F> EccGuard<F> {
+    /// Wraps `inner`.
+    pub const fn new(inner: F) -> Self {
+        Self {
+            inner,
+            faults: 0,
+            last: None,
+        }
+    }
+    /// The wrapped flash.
+    pub fn inner_mut(&mut self) -> &mut F {
+        &mut self.inner
+    }
+    /// Gives the wrapped flash back.
+    pub fn into_inner(self) -> F {
+        self.inner
+    }
+    /// Offset of the last unreadable double word met, if any.
+    pub fn last_fault(&self) -> Option<u32> {
+        self.last
+    }
+}
+
+impl<F: ErrorType> ErrorType for EccGuard<F> {
+    type Error = F::Error;
+}
+
+impl<F: ReadNorFlash> EccGuard<F>
+where
+    F::Error: EccAddress,
+{
+    /// Reads `bytes` at `offset` one double word at a time, substituting
+    /// the unreadable ones.
+    async fn read_words(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), F::Error> {
+        let mut done = 0usize;
+        while done < bytes.len() {
+            let at = offset as usize + done;
+            let word_end = (at / WORD + 1) * WORD;
+            let n = (word_end - at).min(bytes.len() - done);
+            let dst = &mut bytes[done..done + n];
+            match self.inner.read(at as u32, dst).await {
+                Ok(()) => {}
+                Err(e) => match e.ecc_address() {
+                    Some(a) => {
+                        dst.fill(ECC_FILL);
+                        self.faults = self.faults.saturating_add(1);
+                        self.last = Some(a);
+                    }
+                    None => return Err(e),
+                },
+            }
+            done += n;
+        }
+        Ok(())
+    }
+}
+
+impl<F: ReadNorFlash> ReadNorFlash for EccGuard<F>
+where
+    F::Error: EccAddress,
+{
+    const READ_SIZE: usize = F::READ_SIZE;
+
+    async fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        match self.inner.read(offset, bytes).await {
+            Err(e) if e.ecc_address().is_some() => self.read_words(offset, bytes).await,
+            r => r,
+        }
+    }
+
+    fn capacity(&self) -> usize {
+        self.inner.capacity()
+    }
+}
+
+impl<F: NorFlash> NorFlash for EccGuard<F>
+where
+    F::Error: EccAddress,
+{
+    const WRITE_SIZE: usize = F::WRITE_SIZE;
+    const ERASE_SIZE: usize = F::ERASE_SIZE;
+
+    async fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        self.inner.erase(from, to).await
+    }
+
+    async fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        self.inner.write(offset, bytes).await
+    }
+}
+
+impl<F: FlashHealth> FlashHealth for EccGuard<F> {
+    fn take_read_faults(&mut self) -> u32 {
+        core::mem::take(&mut self.faults)
+    }
+    fn supply_ok(&mut self) -> bool {
+        self.inner.supply_ok()
+    }
 }
 
 /// [`ParamStore`] over any `NorFlash` through `sequential-storage`'s map.
@@ -151,7 +314,11 @@ impl<F: NorFlash> SeqStore<F> {
     }
 }
 
-impl<F: NorFlash> ParamStore for SeqStore<F> {
+impl<F: NorFlash + FlashHealth> ParamStore for SeqStore<F> {
+    fn take_read_faults(&mut self) -> u32 {
+        self.map.flash().take_read_faults()
+    }
+
     fn load(&mut self, out: &mut [u8]) -> Result<Option<usize>, StoreError> {
         let item: Option<&[u8]> = block_on(self.map.fetch_item(&mut self.buf, &PARAMS_KEY))?;
         match item {
@@ -165,6 +332,9 @@ impl<F: NorFlash> ParamStore for SeqStore<F> {
     }
 
     fn store(&mut self, record: &[u8]) -> Result<(), StoreError> {
+        if !self.map.flash().supply_ok() {
+            return Err(StoreError::LowSupply);
+        }
         let r = block_on(self.map.store_item(&mut self.buf, &PARAMS_KEY, &record));
         match r.map_err(StoreError::from) {
             // The crate could not repair the range: nothing in it is
@@ -296,6 +466,18 @@ pub enum FlashFault {
     NotAligned,
     /// Outside the flash.
     OutOfBounds,
+    /// ECC double error reading the double word at this offset (a torn
+    /// word of [`FaultFlash::with_ecc`]).
+    Ecc(u32),
+}
+
+impl EccAddress for FlashFault {
+    fn ecc_address(&self) -> Option<u32> {
+        match self {
+            FlashFault::Ecc(a) => Some(*a),
+            _ => None,
+        }
+    }
 }
 
 impl NorFlashError for FlashFault {
@@ -303,7 +485,9 @@ impl NorFlashError for FlashFault {
         match self {
             FlashFault::NotAligned => NorFlashErrorKind::NotAligned,
             FlashFault::OutOfBounds => NorFlashErrorKind::OutOfBounds,
-            FlashFault::PowerLoss | FlashFault::NotErased => NorFlashErrorKind::Other,
+            FlashFault::PowerLoss | FlashFault::NotErased | FlashFault::Ecc(_) => {
+                NorFlashErrorKind::Other
+            }
         }
     }
 }
@@ -319,6 +503,10 @@ pub const PAGE: usize = 2048;
 /// step is one double-word program or one page erase; the step that is cut
 /// leaves a torn word or a half-erased page), and bit flips.
 ///
+/// With [`FaultFlash::with_ecc`] a torn double word is unreadable (ECC
+/// double error, [`FlashFault::Ecc`]) until its page is erased, as on the
+/// STM32G4; [`FaultFlash::set_low_supply`] models the PVD.
+///
 /// `SIZE` is the capacity in bytes (a multiple of [`PAGE`]).
 #[derive(Debug, Clone)]
 pub struct FaultFlash<const SIZE: usize> {
@@ -328,6 +516,20 @@ pub struct FaultFlash<const SIZE: usize> {
     steps: u32,
     erases: u32,
     rng: u32,
+    ecc: bool,
+    /// Offsets of unreadable double words ([`FaultFlash::with_ecc`]).
+    bad: heapless::Vec<u32, MAX_BAD_WORDS>,
+    low_supply: bool,
+}
+
+/// Most unreadable double words [`FaultFlash`] keeps track of (more torn
+/// words than that are kept as garbage only).
+pub const MAX_BAD_WORDS: usize = 64;
+
+impl<const SIZE: usize> FlashHealth for FaultFlash<SIZE> {
+    fn supply_ok(&mut self) -> bool {
+        !self.low_supply
+    }
 }
 
 impl<const SIZE: usize> Default for FaultFlash<SIZE> {
@@ -346,6 +548,33 @@ impl<const SIZE: usize> FaultFlash<SIZE> {
             steps: 0,
             erases: 0,
             rng: 0x2545_F491,
+            ecc: false,
+            bad: heapless::Vec::new(),
+            low_supply: false,
+        }
+    }
+
+    /// This flash with ECC modelling: a torn double word fails every read
+    /// with [`FlashFault::Ecc`] until its page is erased.
+    pub fn with_ecc(mut self) -> Self {
+        self.ecc = true;
+        self
+    }
+
+    /// Sets the supply monitor's "low voltage" output (PVDO).
+    pub fn set_low_supply(&mut self, low: bool) {
+        self.low_supply = low;
+    }
+
+    /// Offsets of the double words that are unreadable now.
+    pub fn bad_words(&self) -> &[u32] {
+        &self.bad
+    }
+
+    fn mark_bad(&mut self, at: usize) {
+        if self.ecc && !self.bad.contains(&(at as u32)) {
+            // Beyond the capacity the word stays readable garbage.
+            let _ = self.bad.push(at as u32);
         }
     }
 
@@ -435,7 +664,9 @@ impl<const SIZE: usize> FaultFlash<SIZE> {
         let r = Self::range(offset, bytes.len(), WORD)?;
         for (k, chunk) in bytes.chunks(WORD).enumerate() {
             let at = r.start + k * WORD;
-            if self.data[at..at + WORD].iter().any(|&b| b != 0xFF) {
+            if self.data[at..at + WORD].iter().any(|&b| b != 0xFF)
+                || self.bad.contains(&(at as u32))
+            {
                 return Err(FlashFault::NotErased);
             }
             if self.step()? {
@@ -444,6 +675,7 @@ impl<const SIZE: usize> FaultFlash<SIZE> {
                     let keep = self.next_rand() as u8;
                     self.data[at + i] &= *b | keep;
                 }
+                self.mark_bad(at);
                 return Err(FlashFault::PowerLoss);
             }
             self.data[at..at + WORD].copy_from_slice(chunk);
@@ -460,14 +692,23 @@ impl<const SIZE: usize> FaultFlash<SIZE> {
             self.erases += 1;
             if self.step()? {
                 // A cut erase leaves a mixture of erased and old words.
+                // With ECC modelling a quarter of the words are left
+                // half-erased: unreadable.
+                self.bad
+                    .retain(|&b| !(page..page + PAGE).contains(&(b as usize)));
                 for w in (page..page + PAGE).step_by(WORD) {
-                    if self.next_rand() & 1 == 0 {
+                    let r = self.next_rand();
+                    if r & 1 == 0 {
                         self.data[w..w + WORD].fill(0xFF);
+                    } else if r & 6 == 0 {
+                        self.mark_bad(w);
                     }
                 }
                 return Err(FlashFault::PowerLoss);
             }
             self.data[page..page + PAGE].fill(0xFF);
+            self.bad
+                .retain(|&b| !(page..page + PAGE).contains(&(b as usize)));
         }
         Ok(())
     }
@@ -485,6 +726,13 @@ impl<const SIZE: usize> ReadNorFlash for FaultFlash<SIZE> {
             return Err(FlashFault::PowerLoss);
         }
         let r = Self::range(offset, bytes.len(), 1)?;
+        if let Some(&b) = self
+            .bad
+            .iter()
+            .find(|&&b| (b as usize) < r.end && b as usize + WORD > r.start)
+        {
+            return Err(FlashFault::Ecc(b));
+        }
         bytes.copy_from_slice(&self.data[r]);
         Ok(())
     }
@@ -510,6 +758,18 @@ impl<const SIZE: usize> NorFlash for FaultFlash<SIZE> {
 /// The host's stand-in for the board's storage: four 2 KiB pages, as on
 /// the board.
 pub type HostFlash = FaultFlash<{ 4 * PAGE }>;
+
+/// The board's storage stack on the host: [`EccGuard`] over a
+/// [`HostFlash`] (use [`FaultFlash::with_ecc`] to model ECC errors).
+pub type EccHostFlash = EccGuard<HostFlash>;
+
+/// A [`SeqStore`] over a whole [`EccHostFlash`], as the firmware builds it.
+pub fn ecc_host_store(flash: HostFlash) -> SeqStore<EccHostFlash> {
+    SeqStore::with_config(
+        EccGuard::new(flash),
+        const { MapConfig::new(0..(4 * PAGE) as u32) },
+    )
+}
 
 /// A [`SeqStore`] over a whole [`HostFlash`] (the range is checked at
 /// compile time).

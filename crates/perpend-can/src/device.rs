@@ -69,6 +69,14 @@ pub enum Request {
     /// excepted, see [`od::restorable`]); they become active at the next
     /// reset node or power-on (CiA 301 §7.5.2.14).
     Restore(Group),
+    /// LSS "store configuration" (CiA 305, [`crate::lss`]): 0x2400 is
+    /// stored (sub 1 the pending node-id, sub 2 `bit_rate_kbps`), every
+    /// other object keeps its stored value; the LSS answer follows
+    /// [`Device::finish_request`].
+    StoreLss {
+        /// The configured bit rate \[kbit/s\].
+        bit_rate_kbps: u16,
+    },
 }
 
 /// Things that happened since the application last called
@@ -230,6 +238,8 @@ struct Core {
 pub struct Device {
     core: Core,
     sdo: SdoServer,
+    /// LSS slave (`device_lss.rs`).
+    lss: lss_glue::LssRt,
 }
 
 /// Whether an entry belongs to the stored parameter record (calibration
@@ -354,6 +364,10 @@ impl Core {
     fn staged(&self, req: Request, s: usize, index: u16, e: &od::Entry) -> u32 {
         match req {
             Request::Store(g) if g.contains(index) => self.values[s],
+            Request::StoreLss { bit_rate_kbps } if index == 0x2400 => match e.sub {
+                2 => u32::from(bit_rate_kbps),
+                _ => self.values[s],
+            },
             Request::Restore(g) if g.contains(index) && od::restorable(index) => {
                 self.init_value(e, self.boot_node())
             }
@@ -960,6 +974,9 @@ impl Core {
 
     /// Whether a persisted value would be accepted (image load).
     fn valid_persisted(&self, index: u16, sub: u8, e: &od::Entry, v: u32) -> bool {
+        if (index, sub, v) == (0x2400, 1, u32::from(crate::lss::UNCONFIGURED)) {
+            return true; // non-configured (LSS), see device_lss.rs
+        }
         if check_limits(e.limits, e.ty, v).is_err() {
             return false;
         }
@@ -1034,6 +1051,8 @@ impl Device {
     /// application may call [`Device::load_image`] before the first
     /// [`Device::poll`], which sends the boot-up message.
     pub fn new(node_id: u8, defaults: &Defaults) -> Self {
+        // 0xFF: a non-configured node (CiA 305), waiting for LSS.
+        let unconfigured = node_id == crate::lss::UNCONFIGURED;
         let node_id = if (1..=127).contains(&node_id) {
             node_id
         } else {
@@ -1063,10 +1082,14 @@ impl Device {
         for (s, _, e) in od::entries() {
             core.values[s] = core.init_value(e, node_id);
         }
+        if unconfigured {
+            core.set(0x2400, 1, u32::from(crate::lss::UNCONFIGURED));
+        }
         core.boot = core.values;
         Self {
             sdo: SdoServer::new(defaults.sdo_timeout_us),
             core,
+            lss: lss_glue::LssRt::default(),
         }
     }
 
@@ -1078,7 +1101,11 @@ impl Device {
     /// frames not addressed to this node are ignored; so is everything
     /// until the boot-up message has been sent.
     pub fn handle(&mut self, frame: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
-        if !frame.is_well_formed() || frame.rtr || self.core.state == NmtState::Initialising {
+        if !frame.is_well_formed()
+            || frame.rtr
+            || self.lss_handle(frame, now_us, out)
+            || self.core.state == NmtState::Initialising
+        {
             return;
         }
         if self.handle_sync(frame, now_us) {
@@ -1134,6 +1161,10 @@ impl Device {
     /// TPDOs (event timer, application events after the inhibit time) and
     /// SDO timeout aborts. Call it at least every millisecond.
     pub fn poll(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        // Non-configured (LSS only) or switching the bit rate: silent.
+        if self.lss_poll(now_us) {
+            return;
+        }
         let c = &mut self.core;
         let node = c.node_id as u16;
         if c.state == NmtState::Initialising {
@@ -1341,6 +1372,18 @@ impl Device {
         self.core.set(0x2008, 2, peak);
     }
 
+    /// Sets the die temperature 0x200A [°C] (not a measurement of the
+    /// pipeline: no TPDO event).
+    pub fn set_die_temperature(&mut self, t_c: f32) {
+        self.core.set(0x200A, 0, t_c.to_bits());
+    }
+
+    /// Sets board-health value 0x200B sub `sub` (1 reset flags, 2 worst
+    /// loop cycles, 3 stack used bytes, 4 VREF+ mV).
+    pub fn set_board_health(&mut self, sub: u8, v: u32) {
+        self.core.set(0x200B, sub, v);
+    }
+
     // ------------------------------------------------------------------
     // Application side: calibration and configuration
 
@@ -1487,6 +1530,10 @@ impl Device {
                     self.core.boot[s] = self.core.staged(req, s, index, e);
                 }
             }
+        }
+        if let Request::StoreLss { .. } = req {
+            out(Frame::new(crate::lss::SLAVE_ID, &lss_glue::store_done(ok)));
+            return Ok(());
         }
         let err = (!ok).then_some(SdoAbort::Store);
         if let Some(r) = self.sdo.complete(err) {
@@ -1661,6 +1708,9 @@ impl Device {
         Ok(())
     }
 }
+
+#[path = "device_lss.rs"]
+mod lss_glue;
 
 #[path = "device_sync.rs"]
 mod sync;

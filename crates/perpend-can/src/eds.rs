@@ -4,8 +4,13 @@
 //! repository root is [`write()`] with [`crate::Defaults::nominal`]; a test
 //! checks that they are identical.
 //!
-//! Node-relative defaults are written as `$NODEID+0x...`; limits of
-//! writable objects as `LowLimit`/`HighLimit`.
+//! Node-relative defaults are written as `$NODEID+0x...`; integer limits
+//! of writable objects as `LowLimit`/`HighLimit`. REAL32 limits are
+//! written as a comment line `;Range=LO..HI` instead: CiA 306 makes both
+//! keys optional and does not fix a notation for REAL limits, and
+//! CanFestival's `objdictgen` refuses any non-integer `LowLimit` (python
+//! canopen ignores one); the device enforces the range itself
+//! (0x06090031/0x06090032). `LSS_Supported=1`: see [`crate::lss`].
 //!
 //! Limits: the file describes the nominal defaults; a board whose firmware
 //! uses other defaults (serial number, calibrated head) reports its actual
@@ -115,8 +120,10 @@ fn write_entry(w: &mut impl Write, d: &Defaults, section: &str, e: &od::Entry) -
             writeln!(w, "HighLimit={}", InitText::Int(hi, e.ty))?;
         }
         Limits::Real(lo, hi) => {
-            writeln!(w, "LowLimit={}", InitText::Real(lo))?;
-            writeln!(w, "HighLimit={}", InitText::Real(hi))?;
+            // CiA 306 leaves the notation of REAL limits open and
+            // CanFestival's importer accepts integer limits only: the range
+            // goes into a comment, the device enforces it (0x06090031/32).
+            writeln!(w, ";Range={}..{}", InitText::Real(lo), InitText::Real(hi))?;
         }
         Limits::OneOf(set) => {
             let lo = set.iter().copied().min().unwrap_or(0);
@@ -253,7 +260,7 @@ pub fn write(w: &mut impl Write, d: &Defaults) -> fmt::Result {
     writeln!(w, "GroupMessaging=0")?;
     writeln!(w, "NrOfRXPDO=0")?;
     writeln!(w, "NrOfTXPDO={}", od::TPDOS)?;
-    writeln!(w, "LSS_Supported=0")?;
+    writeln!(w, "LSS_Supported=1")?;
     writeln!(w)?;
     writeln!(w, "[DummyUsage]")?;
     for k in 1..=7 {

@@ -77,6 +77,11 @@
 //!   [`SensorCalibration`] (`to_sensor`, `from_sensor`), [`TransferFunction`],
 //!   [`Acquisition`], [`Communication`], [`Measurement`] (`invalid`,
 //!   `from_core`).
+//! * LSS (CiA 305): [`lss`] (the slave's protocol state machine, COB-IDs,
+//!   command specifiers, bit timing table 0); on the device
+//!   `lss_unconfigured()`, `active_node_id()`, `lss_state()`,
+//!   `take_bit_rate_switch()` (the application re-programs its controller),
+//!   `set_pending_node_id(id)`; [`Request::StoreLss`].
 //! * [`status`]: status-word bits and EMCY codes; [`od`]: the dictionary
 //!   table and signatures; [`sdo::SdoAbort`]: abort codes; [`eds`]: the EDS
 //!   writer.
@@ -120,6 +125,16 @@
 //!   mfr 0-1) per clear; none in stopped and nothing queued before a stop
 //!   after it; 0x1003 holds the last 8 distinct codes (a repeated code
 //!   moves to sub 1; write 0 to sub 0 clears it).
+//! * **LSS slave** (CiA 305, [`lss`]): 0x7E5 → 0x7E4; switch state global
+//!   and selective, configure node-id (pending = 0x2400 sub 1, active at
+//!   the next reset communication) and bit timing (1000/500/250/125
+//!   kbit/s), activate bit timing (silent for twice the switch delay, the
+//!   application switches the controller at [`Device::take_bit_rate_switch`]),
+//!   store configuration ([`Request::StoreLss`]: 0x2400 only), inquire
+//!   identity and node-id, identify (non-configured) remote slave,
+//!   fastscan. A node started with node-id 0xFF is non-configured: it
+//!   stays in initialisation, sends nothing and serves LSS only until it
+//!   is given a node-id.
 //! * **Store/restore** 0x1010/0x1011 sub 1 (all), 2 (0x1000..0x1FFF), 3
 //!   (0x2000..) with "save" 0x65766173 / "load" 0x64616F6C (other values:
 //!   0x08000020); read as 1 (on command). Persisted: 0x1015, 0x1017,
@@ -168,6 +183,7 @@ pub mod device;
 pub mod eds;
 pub mod error;
 pub mod frame;
+pub mod lss;
 pub mod od;
 pub mod sdo;
 pub mod status;

@@ -363,6 +363,11 @@ pub const DEADBAND_MM: f32 = 0.01;
 
 /// Number of TPDOs.
 pub const TPDOS: usize = 4;
+/// Value of 0x200A (die temperature) before the first measurement, and
+/// on a board without a temperature sensor (the virtual board): absolute
+/// zero, -273.15 °C.
+pub const DIE_TEMP_UNKNOWN: f32 = -273.15;
+
 /// Number of heartbeats 0x1016 can consume (sub 1..=this).
 pub const HB_CONSUMERS: usize = 2;
 /// 0x2301 sub 1: one scan per sample period (timer), free-running.
@@ -374,6 +379,10 @@ pub const TRIGGER_SYNC: u8 = 1;
 pub const CMD_NONE: u8 = 0;
 /// 0x2500 command: average the next 0x2501 valid samples into 0x2502.
 pub const CMD_CAPTURE: u8 = 1;
+/// 0x2500 command: enter the MCU's system bootloader (field update,
+/// docs/bring-up.md); honoured only in pre-operational (the firmware
+/// resets into the ROM bootloader, the virtual board ignores it).
+pub const CMD_BOOTLOADER: u8 = 0xB0;
 /// Default of 0x2501: samples a capture averages (16 ms at 1 kHz: the
 /// angle noise of one sample divided by 4).
 pub const CAPTURE_SAMPLES_DEFAULT: u16 = 16;
@@ -813,6 +822,22 @@ pub const OBJECTS: &[Object] = &[
         ],
     ),
     var(
+        0x200A,
+        "Die temperature degC",
+        &[meas(0, "Die temperature degC").init(Init::Fixed(DIE_TEMP_UNKNOWN.to_bits()))],
+    ),
+    rec(
+        0x200B,
+        "Board health",
+        &[
+            sub0m(4),
+            Entry::new(1, "Reset flags", U32, Ro, Class::Measurement).pdo(),
+            Entry::new(2, "Worst loop cycles", U32, Ro, Class::Measurement).pdo(),
+            Entry::new(3, "Stack used bytes", U32, Ro, Class::Measurement).pdo(),
+            Entry::new(4, "VREF+ mV", U32, Ro, Class::Measurement).pdo(),
+        ],
+    ),
+    var(
         0x2010,
         "Calibration unlock",
         &[Entry::new(0, "Calibration unlock", U32, Rw, Class::Command)],
@@ -924,8 +949,13 @@ pub const OBJECTS: &[Object] = &[
     var(
         0x2500,
         "Command",
-        &[Entry::new(0, "Command", U8, Rw, Class::Command)
-            .limits(Limits::OneOf(&[CMD_NONE as u32, CMD_CAPTURE as u32]))],
+        &[
+            Entry::new(0, "Command", U8, Rw, Class::Command).limits(Limits::OneOf(&[
+                CMD_NONE as u32,
+                CMD_CAPTURE as u32,
+                CMD_BOOTLOADER as u32,
+            ])),
+        ],
     ),
     var(
         0x2501,
@@ -1214,7 +1244,7 @@ mod tests {
         assert_eq!(slot(0x1A00, 9), None);
         assert_eq!(slot(0x2001, 200), None);
         assert_eq!(slot(0x1804, 0), None);
-        assert_eq!(slot(0x200A, 0), None);
+        assert_eq!(slot(0x200C, 0), None);
         assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
         assert_eq!(persistent_of(LAYOUT), PERSISTENT);
         const {

@@ -15,6 +15,13 @@
 //!
 //! * `--serial`: 0x1018 sub 4 (default: derived from `--seed` as the
 //!   firmware derives it from the MCU's unique ID, [`node::serial_for_seed`]).
+//!   Repeated (`--serial 0x101 --serial 0x102 ...`): one board per serial on
+//!   one virtual bus, a cell of heads behind one slcan port (board k has
+//!   seed `--seed` + k; the world channel moves the first); the first
+//!   stdout line is then `perpend board: N boards, nodes A,B,.. on HOST:PORT`.
+//! * `--node-id 0xFF`: the board is not configured (CiA 305): it sends
+//!   nothing and waits for an LSS master to give it a node-id
+//!   (`perpend_can::lss`, docs/can.md "LSS commissioning").
 //! * `--plane A,B,C,D`: the surface `A·x + B·y + C·z + D = 0` in the TCS.
 //! * `--sensors`: the head the board is built with (exchange format,
 //!   4 sensors): stored on the board and simulated.
@@ -72,7 +79,8 @@ pub struct Args {
     /// free port, printed at start).
     #[arg(long)]
     pub slcan: String,
-    /// CANopen node-id, 1..127 (decimal or 0x hex).
+    /// CANopen node-id, 1..127 (decimal or 0x hex), or 0xFF: not
+    /// configured, the board waits for LSS (CiA 305).
     #[arg(long, default_value = "0x20", value_parser = parse_node_id)]
     pub node_id: u8,
     /// Plane `A,B,C,D` (`A·x + B·y + C·z + D = 0`, TCS, +z = feed).
@@ -97,9 +105,10 @@ pub struct Args {
     pub seed: u64,
     /// Serial number of the board (0x1018 sub 4), decimal or 0x hex;
     /// default: derived from --seed like the firmware folds the MCU UID
-    /// ([`node::serial_for_seed`]).
+    /// ([`node::serial_for_seed`]). Repeated: one board per serial, all
+    /// on one virtual bus (a cell), each with the other options.
     #[arg(long, value_parser = parse_serial)]
-    pub serial: Option<u32>,
+    pub serial: Vec<u32>,
     /// The head really built (sensors.csv): simulated, not stored.
     #[arg(long)]
     pub truth: Option<PathBuf>,
@@ -141,15 +150,16 @@ impl FromStr for FaultArg {
     }
 }
 
-/// Parses a node-id: decimal or `0x` hex, 1..=127.
+/// Parses a node-id: decimal or `0x` hex, 1..=127, or 0xFF (not
+/// configured: waits for LSS).
 pub fn parse_node_id(s: &str) -> Result<u8> {
     let v = match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
         Some(h) => u8::from_str_radix(h, 16),
         None => s.parse::<u8>(),
     }
-    .map_err(|_| anyhow!("node-id '{s}': expected 1..127"))?;
-    if !(1..=127).contains(&v) {
-        bail!("node-id '{s}': expected 1..127");
+    .map_err(|_| anyhow!("node-id '{s}': expected 1..127 or 0xFF"))?;
+    if !((1..=127).contains(&v) || v == perpend_can::lss::UNCONFIGURED) {
+        bail!("node-id '{s}': expected 1..127 or 0xFF");
     }
     Ok(v)
 }
@@ -162,7 +172,36 @@ fn head4(v: Vec<perpend_core::head::Sensor<f64>>, what: &str) -> Result<Head4<f6
     Ok(Head4::new(arr))
 }
 
-/// Builds the board from the arguments (no network).
+/// Builds the boards of the arguments: one per `--serial` (board k with
+/// seed `--seed` + k), or one.
+///
+/// # Errors
+/// As [`build`].
+pub fn build_all(a: &Args) -> Result<Vec<VirtualBoard>> {
+    if a.serial.len() <= 1 {
+        return Ok(vec![build(a)?]);
+    }
+    a.serial
+        .iter()
+        .enumerate()
+        .map(|(k, &s)| {
+            build(&Args {
+                serial: vec![s],
+                seed: a.seed.wrapping_add(k as u64),
+                slcan: a.slcan.clone(),
+                plane: a.plane.clone(),
+                sensors: a.sensors.clone(),
+                params: a.params.clone(),
+                fault: a.fault.clone(),
+                truth: a.truth.clone(),
+                world: None,
+                ..*a
+            })
+        })
+        .collect()
+}
+
+/// Builds the board from the arguments (no network; the first `--serial`).
 ///
 /// # Errors
 /// Unreadable or invalid files, a bad plane, noise or node-id.
@@ -204,7 +243,11 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
         head,
         calibration,
     };
-    let serial = a.serial.unwrap_or_else(|| node::serial_for_seed(a.seed));
+    let serial = a
+        .serial
+        .first()
+        .copied()
+        .unwrap_or_else(|| node::serial_for_seed(a.seed));
     let mut board = VirtualBoard::with_serial(&cfg, sim, serial)?;
     board.set_bus_noack(noack_us);
     Ok(board)
@@ -215,14 +258,22 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
 /// # Errors
 /// As [`build`], or when the address cannot be bound.
 pub fn run(a: &Args) -> Result<()> {
-    let mut board = build(a)?;
+    let mut boards = build_all(a)?;
     let listener = TcpListener::bind(&a.slcan)
         .with_context(|| format!("--slcan {}: cannot listen", a.slcan))?;
     let addr = listener.local_addr()?;
-    println!(
-        "perpend board: node {} on {addr}",
-        board.app().device().node_id()
-    );
+    let nodes: Vec<String> = boards
+        .iter()
+        .map(|b| b.app().device().active_node_id().to_string())
+        .collect();
+    match nodes.as_slice() {
+        [one] => println!("perpend board: node {one} on {addr}"),
+        _ => println!(
+            "perpend board: {} boards, nodes {} on {addr}",
+            nodes.len(),
+            nodes.join(",")
+        ),
+    }
     let world = match &a.world {
         Some(w) => {
             let world = World::bind(w)?;
@@ -232,7 +283,7 @@ pub fn run(a: &Args) -> Result<()> {
         None => None,
     };
     std::io::stdout().flush()?;
-    server::serve(listener, world, &mut board)
+    server::serve(listener, world, &mut boards)
 }
 
 #[cfg(test)]
@@ -251,7 +302,7 @@ mod tests {
             noise_mm: 0.0,
             fault: Vec::new(),
             seed: 1,
-            serial: None,
+            serial: Vec::new(),
             truth: None,
             world: None,
         }
@@ -302,7 +353,7 @@ mod tests {
         assert_eq!(b.app().device().read_u32(0x1018, 4), Some(seed1));
         assert_ne!(node::serial_for_seed(2), seed1);
         let b = build(&Args {
-            serial: Some(0xABCD),
+            serial: vec![0xABCD],
             ..args()
         })
         .unwrap();

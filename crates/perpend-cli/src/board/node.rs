@@ -19,14 +19,20 @@
 //! then the slots stay full, the queue fills and counts what it drops
 //! (0x2008, EMCY 0x8110), and acquisition and SDO handling go on.
 //!
-//! Limits: no temperature input; the bit rate in 0x2400 has no effect on
-//! the virtual bus.
+//! Bit rate: the board's controller runs at the rate of 0x2400 sub 2 as of
+//! the last NMT reset or LSS bit-rate switch ([`VirtualBoard::bit_rate_kbps`]);
+//! the server passes a frame between the board and a client or another
+//! board only when their rates agree (a client that never set one hears
+//! every rate).
+//!
+//! Limits: no temperature input.
 
 use anyhow::{anyhow, Result};
 use perpend_board::app::{defaults_for, App};
 use perpend_board::pipeline::{Output, Sample};
 use perpend_board::storage::{host_store, save_with_tail, HostFlash, SeqStore};
 use perpend_board::txq::{TryWrite, TxController, TxQueue, TX_QUEUE_LEN};
+use perpend_can::lss::UNCONFIGURED;
 use perpend_can::{Device, Frame, IMAGE_LEN};
 use perpend_core::head::Head4;
 use perpend_core::params::Params;
@@ -39,7 +45,8 @@ pub type HostApp = App<SeqStore<HostFlash>>;
 /// What the board starts with.
 #[derive(Debug, Clone)]
 pub struct BoardConfig {
-    /// Node-id 1..=127.
+    /// Node-id 1..=127, or 0xFF ([`UNCONFIGURED`]): the board waits for
+    /// LSS (CiA 305).
     pub node_id: u8,
     /// Head the board is built with (its stored geometry), if not the
     /// factory head.
@@ -50,22 +57,31 @@ pub struct BoardConfig {
 }
 
 /// The stored record the board starts from, or `None` for a factory board.
+/// Node-id [`UNCONFIGURED`] (0xFF): the record keeps the factory node-id,
+/// the device image the 0xFF of a node that waits for LSS (CiA 305), as
+/// LSS "configure node-id 0xFF" + "store configuration" would leave it.
 fn seed_record(cfg: &BoardConfig) -> Result<Option<(Params, [u8; IMAGE_LEN])>> {
     let factory = Params::factory();
     if cfg.node_id == factory.can.node_id && cfg.head.is_none() && cfg.calibration.is_none() {
         return Ok(None);
     }
+    let unconfigured = cfg.node_id == UNCONFIGURED;
     let mut p = factory;
-    p.can.node_id = cfg.node_id;
+    if !unconfigured {
+        p.can.node_id = cfg.node_id;
+    }
     if let Some(h) = cfg.calibration.as_ref().or(cfg.head.as_ref()) {
         p.head = h.cast();
         p.validate()
             .map_err(|e| anyhow!("the head cannot be stored on the board: {e}"))?;
     }
     p.stamp = 1;
-    let mut dev = Device::new(cfg.node_id, &defaults_for(&p));
+    let mut dev = Device::new(p.can.node_id, &defaults_for(&p));
     dev.load_params(&p)
         .map_err(|e| anyhow!("the head does not fit the object dictionary: {e}"))?;
+    if unconfigured {
+        dev.set_pending_node_id(UNCONFIGURED);
+    }
     let mut img = [0u8; IMAGE_LEN];
     dev.persistent_image(&mut img);
     Ok(Some((p, img)))
@@ -129,6 +145,8 @@ pub struct VirtualBoard {
     sim: SimHead,
     txq: TxQueue<TX_QUEUE_LEN>,
     can: VirtualCan,
+    /// The bit rate its controller runs at \[kbit/s\].
+    kbps: u16,
 }
 
 impl VirtualBoard {
@@ -147,8 +165,8 @@ impl VirtualBoard {
     /// # Errors
     /// A head or node-id the board cannot store.
     pub fn with_serial(cfg: &BoardConfig, sim: SimHead, serial: u32) -> Result<Self> {
-        if !(1..=127).contains(&cfg.node_id) {
-            return Err(anyhow!("--node-id {}: must be 1..127", cfg.node_id));
+        if !((1..=127).contains(&cfg.node_id) || cfg.node_id == UNCONFIGURED) {
+            return Err(anyhow!("--node-id {}: must be 1..127 or 0xFF", cfg.node_id));
         }
         let mut store = host_store(HostFlash::new());
         if let Some((p, img)) = seed_record(cfg)? {
@@ -156,11 +174,13 @@ impl VirtualBoard {
                 .map_err(|e| anyhow!("writing the start-up record: {e:?}"))?;
         }
         let app = App::with_serial(store, serial);
+        let kbps = (app.can_config().bitrate.bps() / 1000) as u16;
         Ok(Self {
             app,
             sim,
             txq: TxQueue::new(),
             can: VirtualCan::default(),
+            kbps,
         })
     }
 
@@ -177,6 +197,13 @@ impl VirtualBoard {
     /// The simulated head, mutable (inject faults).
     pub fn sim_mut(&mut self) -> &mut SimHead {
         &mut self.sim
+    }
+
+    /// The bit rate the board's CAN controller runs at \[kbit/s\]: the
+    /// configured one (0x2400 sub 2) from the last NMT reset or LSS
+    /// bit-rate switch on, as the firmware re-programs the FDCAN.
+    pub fn bit_rate_kbps(&self) -> u16 {
+        self.kbps
     }
 
     /// The sample period the application asks for \[µs\].
@@ -217,6 +244,12 @@ impl VirtualBoard {
     /// Moves the queue through the controller onto the bus as far as the
     /// bus takes it; the counters go to the application.
     fn transmit(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        if let Some(c) = self.app.take_can_change() {
+            self.kbps = (c.bitrate.bps() / 1000) as u16;
+        }
+        if let Some(k) = self.app.device_mut().take_bit_rate_switch() {
+            self.kbps = k;
+        }
         loop {
             self.txq.service(&mut self.can);
             if self.can.transmit(now_us, out) == 0 || self.txq.is_empty() {
@@ -400,6 +433,69 @@ mod tests {
             .filter(|f| f.id == 0x80 + NODE as u16)
             .collect();
         assert_eq!(emcy[0].data[..4], [0x10, 0x81, 0x11, 1]);
+    }
+
+    /// LSS requests to `app` at `t`; the LSS answers.
+    fn lss(app: &mut HostApp, t: u64, reqs: &[[u8; 8]]) -> Vec<[u8; 8]> {
+        let mut out = Vec::new();
+        for r in reqs {
+            app.handle(&Frame::new(0x7E5, r), t, &mut |f| {
+                if f.id == 0x7E4 {
+                    out.push(f.data)
+                }
+            });
+        }
+        out
+    }
+
+    #[test]
+    fn lss_commissioning_of_a_non_configured_board_survives_a_power_cycle() {
+        let cfg = BoardConfig {
+            node_id: UNCONFIGURED,
+            ..cfg()
+        };
+        let (p, img) = seed_record(&cfg).unwrap().unwrap();
+        let mut store = host_store(HostFlash::new());
+        save_with_tail(&mut store, &p, &img).unwrap();
+        let mut app = App::with_serial(store, 9);
+        let mut out = Vec::new();
+        app.poll(0, &mut |f| out.push(f));
+        app.poll(2_000_000, &mut |f| out.push(f));
+        assert!(out.is_empty(), "non-configured: silent, {out:?}");
+        assert!(app.device().lss_unconfigured());
+        let got = lss(
+            &mut app,
+            2_000_100,
+            &[
+                [0x04, 1, 0, 0, 0, 0, 0, 0],
+                [0x5E, 0, 0, 0, 0, 0, 0, 0],
+                [0x11, 0x15, 0, 0, 0, 0, 0, 0],
+                [0x13, 0, 3, 0, 0, 0, 0, 0],
+                [0x17, 0, 0, 0, 0, 0, 0, 0],
+                [0x04, 0, 0, 0, 0, 0, 0, 0],
+            ],
+        );
+        let code = |c: u8, e: u8| [c, e, 0, 0, 0, 0, 0, 0];
+        let want = [
+            code(0x5E, 0xFF),
+            code(0x11, 0),
+            code(0x13, 0),
+            code(0x17, 0),
+        ];
+        assert_eq!(got, want);
+        assert_eq!(app.stores(), 1, "stored in the flash");
+        app.poll(2_000_200, &mut |f| out.push(f));
+        assert_eq!(out, vec![Frame::new(0x715, &[0])], "starts at once");
+        // Power cycle: the stored node-id and bit rate.
+        let mut app = App::with_serial(app.into_store(), 9);
+        out.clear();
+        app.poll(0, &mut |f| out.push(f));
+        assert_eq!(out, vec![Frame::new(0x715, &[0])]);
+        assert_eq!(
+            app.can_config().bitrate,
+            perpend_core::params::Bitrate::K250
+        );
+        assert_eq!(app.device().read_u32(0x1018, 4), Some(9));
     }
 
     #[test]

@@ -47,6 +47,20 @@ struct Client {
     open: bool,
     listen_only: bool,
     out: Vec<u8>,
+    /// The bit rate set with `Sn` \[kbit/s\] (`None`: never set, hears
+    /// every rate).
+    kbps: Option<u16>,
+}
+
+/// The slcan `Sn` rates \[kbit/s\] (n = 0..8).
+const SLCAN_KBPS: [u16; 9] = [10, 20, 50, 100, 125, 250, 500, 800, 1000];
+
+/// The rate of an `Sn` line, if it is one.
+fn slcan_rate(line: &[u8]) -> Option<u16> {
+    match line {
+        [b'S', d @ b'0'..=b'8'] => SLCAN_KBPS.get((d - b'0') as usize).copied(),
+        _ => None,
+    }
 }
 
 impl Client {
@@ -59,6 +73,7 @@ impl Client {
             open: false,
             listen_only: false,
             out: Vec::new(),
+            kbps: None,
         })
     }
 
@@ -71,10 +86,17 @@ impl Client {
             match self.stream.read(&mut buf) {
                 Ok(0) => return None,
                 Ok(n) => {
-                    let (open, listen_only, out) =
-                        (&mut self.open, &mut self.listen_only, &mut self.out);
-                    self.lines
-                        .feed(&buf[..n], |line| match line.and_then(slcan::parse) {
+                    let (open, listen_only, out, kbps) = (
+                        &mut self.open,
+                        &mut self.listen_only,
+                        &mut self.out,
+                        &mut self.kbps,
+                    );
+                    self.lines.feed(&buf[..n], |line| {
+                        if let Some(k) = line.ok().and_then(slcan_rate) {
+                            *kbps = Some(k);
+                        }
+                        match line.and_then(slcan::parse) {
                             Ok(cmd) => {
                                 match cmd {
                                     Command::Open => {
@@ -95,11 +117,15 @@ impl Client {
                                     out.extend_from_slice(slcan::reply(&cmd));
                                 }
                             }
+                            // python-can's set_bitrate sends an empty
+                            // data-bit-rate line: not an error.
+                            Err(slcan::SlcanError::Empty) => {}
                             Err(_) if out.len() < MAX_BACKLOG => {
                                 out.extend_from_slice(slcan::ERROR)
                             }
                             Err(_) => {}
-                        });
+                        }
+                    });
                     return Some(frames);
                 }
                 Err(e) if e.kind() == ErrorKind::WouldBlock => return Some(frames),
@@ -168,25 +194,116 @@ impl Latency {
     }
 }
 
-/// Serves the board on `listener` until the process is stopped; `world`,
-/// if any, moves its plane ([`super::world`]).
+/// A frame on the virtual bus: its sender (`None`: the client), its rate
+/// \[kbit/s\] (`None`: a client that never set one) and the frame.
+type Wire = (Option<usize>, Option<u16>, Frame);
+
+/// Most board-to-board deliveries per loop turn (an echo storm between
+/// boards cannot hold the loop).
+const MAX_BUS_HOPS: usize = 4096;
+
+/// Puts `f` of board `from` (at rate `kbps`) into `wire` unless an
+/// identical frame of another board is there already: identical frames
+/// sent at the same time are one frame on CAN (LSS answers of several
+/// slaves, for instance).
+fn push_merged(wire: &mut Vec<Wire>, from: usize, kbps: u16, f: Frame) {
+    if !wire
+        .iter()
+        .any(|&(s, k, g)| s != Some(from) && k == Some(kbps) && g == f)
+    {
+        wire.push((Some(from), Some(kbps), f));
+    }
+}
+
+/// Whether a frame sent at `a` is received at `b` (a rate of `None`
+/// hears and is heard at every rate).
+fn rates_agree(a: Option<u16>, b: Option<u16>) -> bool {
+    a.is_none() || b.is_none() || a == b
+}
+
+/// The virtual bus: the boards, one sample clock each.
+struct Bus<'a> {
+    boards: &'a mut [VirtualBoard],
+    next_sample: Vec<u64>,
+    last_sample: Vec<u64>,
+}
+
+impl Bus<'_> {
+    /// Delivers `w` to every board but its sender whose rate agrees; what
+    /// they send goes to `out` (merged).
+    fn deliver(&mut self, w: Wire, now: u64, out: &mut Vec<Wire>) {
+        let (from, kbps, f) = w;
+        for (i, b) in self.boards.iter_mut().enumerate() {
+            if from == Some(i) || !rates_agree(kbps, Some(b.bit_rate_kbps())) {
+                continue;
+            }
+            let mut sent = Vec::new();
+            b.handle(&f, now, &mut |o| sent.push(o));
+            // SYNC-locked acquisition (0x2301): the scan of this SYNC, now.
+            if b.app_mut().take_sync_scan() {
+                b.sample(now);
+                self.last_sample[i] = now;
+            }
+            let k = b.bit_rate_kbps();
+            sent.into_iter().for_each(|o| push_merged(out, i, k, o));
+        }
+    }
+
+    /// Runs the samples that are due and polls every board.
+    fn tick(&mut self, now: u64, out: &mut Vec<Wire>) {
+        for (i, b) in self.boards.iter_mut().enumerate() {
+            let period = b.period_us();
+            let next = &mut self.next_sample[i];
+            if b.app().sync_locked() {
+                *next = now + period;
+            }
+            let mut k = 0;
+            while *next <= now && k < MAX_CATCH_UP {
+                b.sample(*next);
+                self.last_sample[i] = *next;
+                *next += period;
+                k += 1;
+            }
+            if *next <= now {
+                *next = now + period;
+            }
+            let mut sent = Vec::new();
+            b.poll(now, &mut |o| sent.push(o));
+            let kb = b.bit_rate_kbps();
+            sent.into_iter().for_each(|o| push_merged(out, i, kb, o));
+        }
+    }
+
+    /// The time to the next sample of any board.
+    fn next_due(&self) -> u64 {
+        self.next_sample.iter().copied().min().unwrap_or(0)
+    }
+}
+
+/// Serves the boards on `listener` until the process is stopped: one
+/// board, or several on one virtual bus (a cell; every frame a board sends
+/// reaches the client and the other boards whose bit rate agrees);
+/// `world`, if any, moves the plane of the first board ([`super::world`]).
 ///
 /// # Errors
 /// Only if the listener cannot be made non-blocking.
 pub fn serve(
     listener: TcpListener,
     mut world: Option<World>,
-    board: &mut VirtualBoard,
+    boards: &mut [VirtualBoard],
 ) -> Result<()> {
     listener
         .set_nonblocking(true)
         .context("making the listener non-blocking")?;
     let start = Instant::now();
     let mut client: Option<Client> = None;
-    let mut next_sample = 0u64;
-    let mut last_sample = 0u64;
+    let n = boards.len();
+    let mut bus = Bus {
+        boards,
+        next_sample: vec![0; n],
+        last_sample: vec![0; n],
+    };
     let mut latency = Latency::default();
-    let mut produced: Vec<Frame> = Vec::new();
     loop {
         let now = start.elapsed().as_micros() as u64;
         if client.is_none() {
@@ -202,20 +319,18 @@ pub fn serve(
                 Err(e) => eprintln!("perpend board: accept: {e}"),
             }
         }
-        let mut busy = world.as_mut().is_some_and(|w| w.poll(board));
+        let mut busy = match (world.as_mut(), bus.boards.first_mut()) {
+            (Some(w), Some(b)) => w.poll(b),
+            _ => false,
+        };
+        // The bus of this turn: the client's frames, then what the boards
+        // send (handed to the client and to the other boards).
+        let mut wire: Vec<Wire> = Vec::new();
         if let Some(c) = client.as_mut() {
             match c.read() {
                 Some(frames) => {
-                    for f in &frames {
-                        busy = true;
-                        board.handle(f, now, &mut |o| produced.push(o));
-                        // SYNC-locked acquisition (0x2301): the scan of
-                        // this SYNC, now.
-                        if board.app_mut().take_sync_scan() {
-                            board.sample(now);
-                            last_sample = now;
-                        }
-                    }
+                    busy |= !frames.is_empty();
+                    wire.extend(frames.into_iter().map(|f| (None, c.kbps, f)));
                 }
                 None => {
                     eprintln!("perpend board: client disconnected");
@@ -224,36 +339,40 @@ pub fn serve(
                 }
             }
         }
-        let period = board.period_us();
-        let mut k = 0;
-        if board.app().sync_locked() {
-            next_sample = now + period;
+        let mut heard: Vec<Wire> = Vec::new();
+        let (mut i, mut polled) = (0, false);
+        loop {
+            if i < wire.len() && i < MAX_BUS_HOPS {
+                let w = wire[i];
+                i += 1;
+                bus.deliver(w, now, &mut wire);
+                if w.0.is_some() {
+                    heard.push(w);
+                }
+            } else if polled {
+                break;
+            } else {
+                bus.tick(now, &mut wire);
+                polled = true;
+            }
         }
-        while next_sample <= now && k < MAX_CATCH_UP {
-            board.sample(next_sample);
-            last_sample = next_sample;
-            next_sample += period;
-            k += 1;
-        }
-        if next_sample <= now {
-            next_sample = now + period;
-        }
-        board.poll(now, &mut |o| produced.push(o));
         if let Some(c) = client.as_mut() {
-            let mut tpdo1 = 0usize;
+            let mut tpdo1 = Vec::new();
             if c.open {
-                for f in &produced {
-                    if c.out.len() < MAX_BACKLOG {
-                        slcan::format_frame(f, &mut c.out);
-                        tpdo1 += usize::from(f.id & 0x780 == 0x180 && f.id != 0x180);
+                for &(from, kbps, f) in &heard {
+                    if rates_agree(kbps, c.kbps) && c.out.len() < MAX_BACKLOG {
+                        slcan::format_frame(&f, &mut c.out);
+                        if f.id & 0x780 == 0x180 && f.id != 0x180 {
+                            tpdo1.push(bus.last_sample[from.unwrap_or(0)]);
+                        }
                     }
                 }
             }
             busy |= !c.out.is_empty();
             let ok = c.flush();
             let sent = start.elapsed().as_micros() as u64;
-            for _ in 0..tpdo1 {
-                latency.note(sent.saturating_sub(last_sample));
+            for t in tpdo1 {
+                latency.note(sent.saturating_sub(t));
             }
             if !ok {
                 eprintln!("perpend board: client disconnected");
@@ -261,9 +380,10 @@ pub fn serve(
                 client = None;
             }
         }
-        produced.clear();
         if !busy {
-            let until_sample = next_sample.saturating_sub(start.elapsed().as_micros() as u64);
+            let until_sample = bus
+                .next_due()
+                .saturating_sub(start.elapsed().as_micros() as u64);
             std::thread::sleep(Duration::from_micros(until_sample.clamp(20, 200)));
         }
     }
@@ -273,6 +393,64 @@ pub fn serve(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    use super::super::node::BoardConfig;
+    use super::super::sim::SimHead;
+    use perpend_core::geometry::Plane;
+
+    fn boards(n: usize, node_id: u8) -> Vec<VirtualBoard> {
+        (0..n)
+            .map(|k| {
+                let plane = Plane::from_abcd(0.0, 0.0, 1.0, -40.0).unwrap();
+                let head = perpend_core::params::Params::factory().head.cast();
+                let sim = SimHead::new(head, plane, 0.002, k as u64).unwrap();
+                let cfg = BoardConfig {
+                    node_id,
+                    head: None,
+                    calibration: None,
+                };
+                VirtualBoard::with_serial(&cfg, sim, 0x100 + k as u32).unwrap()
+            })
+            .collect()
+    }
+
+    /// Sends `f` from the client at `kbps` to the bus; what the client hears.
+    fn exchange(bus: &mut Bus, f: Frame, kbps: Option<u16>) -> Vec<Frame> {
+        let mut wire = Vec::new();
+        bus.deliver((None, kbps, f), 1000, &mut wire);
+        wire.into_iter()
+            .filter(|w| rates_agree(w.1, kbps))
+            .map(|w| w.2)
+            .collect()
+    }
+
+    #[test]
+    fn identical_answers_of_several_boards_are_one_frame() {
+        let mut b = boards(3, 0x20);
+        let mut bus = Bus {
+            next_sample: vec![0; b.len()],
+            last_sample: vec![0; b.len()],
+            boards: &mut b,
+        };
+        let lss = |c: u8, v: u8| Frame::new(0x7E5, &[c, v, 0, 0, 0, 0, 0, 0]);
+        assert!(exchange(&mut bus, lss(0x04, 1), None).is_empty());
+        // Same answer from all three: one frame.
+        let a = exchange(&mut bus, lss(0x5E, 0), None);
+        assert_eq!(a, vec![Frame::new(0x7E4, &[0x5E, 0x20, 0, 0, 0, 0, 0, 0])]);
+        // Different answers (serials): three frames.
+        assert_eq!(exchange(&mut bus, lss(0x5D, 0), None).len(), 3);
+        // A master at another bit rate reaches nobody.
+        assert!(exchange(&mut bus, lss(0x5E, 0), Some(500)).is_empty());
+        assert_eq!(exchange(&mut bus, lss(0x5E, 0), Some(1000)).len(), 1);
+    }
+
+    #[test]
+    fn slcan_rates_parse() {
+        assert_eq!(slcan_rate(b"S8"), Some(1000));
+        assert_eq!(slcan_rate(b"S6"), Some(500));
+        assert_eq!(slcan_rate(b"S9"), None);
+        assert_eq!(slcan_rate(b"s0014"), None);
+    }
 
     #[test]
     fn latency_summary_quantiles() {

@@ -17,9 +17,12 @@
 //!   the columns `pose, a, b, c, d_mm, d1_mm…dN_mm` for the board's N
 //!   sensors and not have the pose yet; the row follows its column order
 //!   (optional columns it lacks are not recorded, with a warning).
+//! * `temp_c` is the mean of the board's die temperature 0x200A read with
+//!   every sample (the temperature the board's thermal correction uses,
+//!   docs/can.md); it stays empty when the board does not have it (older
+//!   firmware: SDO abort; the virtual board: 0x200A at its "unknown" value
+//!   -273.15 °C) in any sample.
 //! * Ctrl-C appends nothing.
-//!
-//! Limits: the board exposes no temperature, so there is no `temp_c`.
 
 use std::collections::HashMap;
 use std::io::Write as _;
@@ -87,6 +90,7 @@ fn new_header(n: usize) -> Vec<String> {
         .collect();
     h.extend((1..=n).map(|i| format!("d{i}_mm")));
     h.push("t_s".into());
+    h.push("temp_c".into());
     h.extend((1..=n).map(|i| format!("s{i}_mm")));
     h.push("n_samples".into());
     h
@@ -150,6 +154,11 @@ struct Acquired {
     invalid: Vec<(u32, u32)>,
     /// Status bits beyond the sensors seen in any sample.
     flags: u32,
+    /// Die temperatures (0x200A), one per sample while every sample had
+    /// one.
+    temps: Vec<f64>,
+    /// A sample had no die temperature.
+    no_temp: bool,
     /// Unix time of the middle of the acquisition.
     t_mid: f64,
     /// Duration of the acquisition.
@@ -197,6 +206,12 @@ fn acquire(node: &mut Node, n: usize, samples: u32, cancel: &AtomicBool) -> Resu
             d.push(node.client.read_f32(id, 0x2004, i as u8 + 1)? as f64);
         }
         let s1 = node.client.read_u32(id, 0x2005, 0)?;
+        if !acq.no_temp {
+            match die_temp(node.client.read_f32(id, 0x200A, 0).ok()) {
+                Some(t) => acq.temps.push(t),
+                None => acq.no_temp = true,
+            }
+        }
         acq.flags |= (s0 | s1) & !0xFFFF;
         for (i, &x) in d.iter().enumerate() {
             let (a, b) = (status::sensor_nibble(s0, i), status::sensor_nibble(s1, i));
@@ -212,6 +227,13 @@ fn acquire(node: &mut Node, n: usize, samples: u32, cancel: &AtomicBool) -> Resu
     acq.took = started.elapsed();
     acq.t_mid = t_start + acq.took.as_secs_f64() / 2.0;
     Ok(acq)
+}
+
+/// A die temperature read from 0x200A, if it is one (not the "unknown"
+/// value, finite).
+fn die_temp(v: Option<f32>) -> Option<f64> {
+    v.filter(|t| t.is_finite() && *t > perpend_can::od::DIE_TEMP_UNKNOWN + 1.0)
+        .map(f64::from)
 }
 
 /// Mean and sample standard deviation (empty for one value).
@@ -257,6 +279,10 @@ fn row_cells(
     c.insert("n_samples".into(), a.samples.to_string());
     if let Some(t) = t_s {
         c.insert("t_s".into(), format!("{t:.3}"));
+    }
+    if !acq.no_temp && !acq.temps.is_empty() {
+        let (m, _) = mean_sd(&acq.temps);
+        c.insert("temp_c".into(), format!("{m:.3}"));
     }
     c
 }
@@ -418,9 +444,46 @@ mod tests {
         write_row(&p, Some(&ex), 4, &cells2, 0.0, &mut warn).unwrap();
         let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
         assert_eq!(t.rows.len(), 2);
+        assert_eq!(t.rows[0].temp_c, None);
         assert_eq!(t.rows[0].readings[1], None);
         assert_eq!(t.rows[0].readings[0], Some(40.002));
         assert_eq!(t.rows[0].noise.n_samples, Some(3));
         assert!((t.rows[0].noise.sd_mm[0].unwrap() - 0.002).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_die_temperature_goes_into_temp_c() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("poses.csv");
+        let a = Args {
+            plane: "0,0,1,-40".into(),
+            pose: 1,
+            out: p.clone(),
+            samples: 3,
+        };
+        let acq = Acquired {
+            readings: vec![vec![40.0; 3]; 4],
+            invalid: vec![(0, 0); 4],
+            temps: vec![31.0, 31.5, 32.0],
+            ..Acquired::default()
+        };
+        let mut warn = Vec::new();
+        let cells = row_cells(&a, [0.0, 0.0, 1.0, -40.0], &acq, Some(0.0), &mut warn);
+        write_row(&p, None, 4, &cells, 1000.0, &mut warn).unwrap();
+        let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+        assert_eq!(t.rows[0].temp_c, Some(31.5));
+        // a sample without it leaves the column empty
+        let acq2 = Acquired {
+            no_temp: true,
+            ..acq
+        };
+        let cells = row_cells(&a, [0.0, 0.0, 1.0, -40.0], &acq2, Some(0.0), &mut warn);
+        assert!(!cells.contains_key("temp_c"));
+        // what 0x200A may hold
+        assert_eq!(die_temp(Some(25.25)), Some(25.25));
+        assert_eq!(die_temp(Some(perpend_can::od::DIE_TEMP_UNKNOWN)), None);
+        assert_eq!(die_temp(Some(f32::NAN)), None);
+        assert_eq!(die_temp(None), None);
+        assert!(warn.is_empty(), "{warn:?}");
     }
 }

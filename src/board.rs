@@ -1,0 +1,196 @@
+//! Register reads and writes behind `perpend_board::health`: reset cause,
+//! factory calibration words, flash layout, debugger freeze of the IWDG,
+//! the DWT cycle counter, stack painting and the MPU stack guard.
+//!
+//! Addresses (RM0440 / STM32G474 datasheet): VREFINT_CAL 0x1FFF75AA, TS_CAL1
+//! 0x1FFF75A8 (30 °C), TS_CAL2 0x1FFF75CA (130 °C), all at VREF+ = 3.0 V;
+//! FLASH_SIZE 0x1FFF75E0 (KiB). RCC_CSR reset flags are cleared by RMVF
+//! (§7.4.29); DBGMCU_APB1FZR1.DBG_IWDG_STOP freezes the IWDG while the core
+//! is halted (§46.16.4).
+//!
+//! Stack guard: the stack grows down from the end of RAM towards
+//! `_stack_end` (cortex-m-rt: the end of `.bss`/`.uninit`). MPU region 0
+//! makes the 32 bytes above `_stack_end` inaccessible (AP = 000, XN), so an
+//! overflow faults (MemManage, then the IWDG resets the board, reported as
+//! a watchdog reset) instead of silently overwriting static data. The
+//! stack below the boot-time SP is painted ([`health::STACK_PAINT`]); the
+//! high-water mark is published in 0x200B sub 3. flip-link would need
+//! `cargo install flip-link` in every build environment (`cargo xtask
+//! setup` installs nothing with cargo), hence the MPU.
+
+use core::sync::atomic::{AtomicUsize, Ordering};
+
+use cortex_m::peripheral::{DCB, DWT};
+use embassy_stm32::pac;
+use perpend_board::health::{self, HealthError, ResetFlags};
+
+const VREFINT_CAL: *const u16 = 0x1FFF_75AA as *const u16;
+const TS_CAL1: *const u16 = 0x1FFF_75A8 as *const u16;
+const TS_CAL2: *const u16 = 0x1FFF_75CA as *const u16;
+const FLASH_SIZE_KIB: *const u16 = 0x1FFF_75E0 as *const u16;
+/// Flash the storage range needs [KiB] (its end, 0x0808_0000).
+pub const FLASH_NEED_KIB: u16 = 512;
+
+extern "C" {
+    static mut _stack_end: u32;
+    static mut _stack_start: u32;
+}
+
+/// Reads and clears the reset flags (RCC_CSR, RMVF).
+pub fn take_reset_flags() -> ResetFlags {
+    let csr = pac::RCC.csr().read();
+    pac::RCC.csr().modify(|w| w.set_rmvf(true));
+    ResetFlags::from_csr(csr.0)
+}
+
+/// Freezes the IWDG while the core is halted by a debugger.
+pub fn freeze_iwdg_in_debug() {
+    pac::DBGMCU.apb1lfzr().modify(|w| w.set_iwdg(true));
+}
+
+/// The flash layout the storage and read-while-write need.
+pub fn check_flash() -> Result<(), HealthError> {
+    // SAFETY: the flash size word is in system memory, always readable.
+    let size = unsafe { FLASH_SIZE_KIB.read_volatile() };
+    health::check_flash(pac::FLASH.optr().read().dbank(), size, FLASH_NEED_KIB)
+}
+
+/// Flash size from the size register [KiB].
+pub fn flash_size_kib() -> u16 {
+    // SAFETY: as in `check_flash`.
+    unsafe { FLASH_SIZE_KIB.read_volatile() }
+}
+
+/// Factory calibration: (VREFINT_CAL, TS_CAL1, TS_CAL2).
+pub fn factory_cal() -> (u16, u16, u16) {
+    // SAFETY: calibration words in system memory, always readable.
+    unsafe {
+        (
+            VREFINT_CAL.read_volatile(),
+            TS_CAL1.read_volatile(),
+            TS_CAL2.read_volatile(),
+        )
+    }
+}
+
+/// Starts the DWT cycle counter.
+pub fn start_cycle_counter() {
+    // SAFETY: only this module touches DCB/DWT, once at boot.
+    let mut p = unsafe { cortex_m::Peripherals::steal() };
+    p.DCB.enable_trace();
+    p.DWT.enable_cycle_counter();
+    let _ = DCB::is_debugger_attached();
+}
+
+/// The cycle counter.
+pub fn cycles() -> u32 {
+    DWT::cycle_count()
+}
+
+fn stack_bounds() -> (usize, usize) {
+    // Linker symbols; only their addresses are used.
+    (
+        core::ptr::addr_of!(_stack_end) as usize,
+        core::ptr::addr_of!(_stack_start) as usize,
+    )
+}
+
+/// Paints the free stack below the current SP (minus a margin) and arms
+/// the MPU guard at its bottom.
+pub fn paint_and_guard_stack() {
+    let (bottom, _) = stack_bounds();
+    let sp = cortex_m::register::msp::read() as usize;
+    let mut p = (bottom + 31) & !31;
+    while p + 4 <= sp.saturating_sub(256) {
+        // SAFETY: between the end of the static data and the live stack:
+        // unused RAM.
+        unsafe { (p as *mut u32).write_volatile(health::STACK_PAINT) };
+        p += 4;
+    }
+    guard((bottom + 31) & !31);
+}
+
+/// Lowest stack address found used so far (0: not scanned yet).
+static LOW: AtomicUsize = AtomicUsize::new(0);
+/// Words below the last mark scanned on each later call (2 KiB).
+const WINDOW_WORDS: usize = 512;
+
+/// Stack used so far [bytes] (from the painted region). The first call
+/// scans the whole painted region (≈ 85 KiB, ≈ 0.4 ms); later calls only
+/// the 2 KiB below the mark found, ≈ 10 µs (a frame that leaves more than
+/// 2 KiB of its locals untouched below the mark is missed until the next
+/// boot's first scan).
+pub fn stack_used() -> usize {
+    let (bottom, top) = stack_bounds();
+    let start = ((bottom + 31) & !31) + 32; // above the guard
+    let (low, end) = match LOW.load(Ordering::Relaxed) {
+        0 => (start, top),
+        l => (l.saturating_sub(4 * WINDOW_WORDS).max(start), l),
+    };
+    let words = (end - low) / 4;
+    // SAFETY: reads of RAM between the guard and the top of the stack.
+    let it = (0..words).map(|k| unsafe { ((low + 4 * k) as *const u32).read_volatile() });
+    let mark = end - health::stack_used(it);
+    LOW.store(mark, Ordering::Relaxed);
+    top - mark
+}
+
+/// MPU region 0: 32 bytes at `base` (32-byte aligned), no access, XN;
+/// default map for everything else (PRIVDEFENA); MemManage enabled.
+fn guard(base: usize) {
+    // SAFETY: boot time, before any task runs; the region is unused RAM.
+    unsafe {
+        let p = cortex_m::Peripherals::steal();
+        p.MPU.rnr.write(0);
+        p.MPU.rbar.write(base as u32 & !31);
+        // XN (28), AP = 000 (26:24), SIZE = 4 (2^(4+1) = 32 B), ENABLE.
+        p.MPU.rasr.write((1 << 28) | (4 << 1) | 1);
+        // PRIVDEFENA (2) | ENABLE (0)
+        p.MPU.ctrl.write((1 << 2) | 1);
+        let mut scb = p.SCB;
+        scb.enable(cortex_m::peripheral::scb::Exception::MemoryManagement);
+        cortex_m::asm::dsb();
+        cortex_m::asm::isb();
+    }
+}
+
+/// Magic word of a bootloader request in `.uninit` RAM (kept across a
+/// system reset, random after power-on).
+const BOOT_MAGIC: u32 = 0xB007_10AD;
+
+#[link_section = ".uninit.perpend_boot"]
+static mut BOOT_REQUEST: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::uninit();
+
+/// Resets into the system bootloader (field update, docs/bring-up.md):
+/// stores the magic word, then a system reset; [`enter_bootloader_if_requested`]
+/// takes it from there before anything is set up.
+pub fn reset_into_bootloader() -> ! {
+    // SAFETY: a plain word in `.uninit`, written once before the reset.
+    unsafe {
+        core::ptr::addr_of_mut!(BOOT_REQUEST)
+            .cast::<u32>()
+            .write_volatile(BOOT_MAGIC)
+    };
+    cortex_m::asm::dsb();
+    cortex_m::peripheral::SCB::sys_reset()
+}
+
+/// First thing at boot: when the previous run asked for the bootloader,
+/// clear the request, map system memory at 0 (SYSCFG_MEMRMP.MEM_MODE = 01,
+/// RM0440 §9.1.1) and jump to the ROM bootloader at 0x1FFF0000 (its stack
+/// pointer and reset vector, AN2606 "jump to the bootloader from
+/// application code"). Clocks and peripherals are still in their reset
+/// state here.
+pub fn enter_bootloader_if_requested() {
+    let p = core::ptr::addr_of_mut!(BOOT_REQUEST).cast::<u32>();
+    // SAFETY: a word in `.uninit`: any value is valid.
+    if unsafe { p.read_volatile() } != BOOT_MAGIC {
+        return;
+    }
+    // SAFETY: as above.
+    unsafe { p.write_volatile(0) };
+    pac::RCC.apb2enr().modify(|w| w.set_syscfgen(true));
+    pac::SYSCFG.memrmp().modify(|w| w.set_mem_mode(1));
+    // SAFETY: the system memory holds the ROM bootloader's vector table.
+    unsafe { cortex_m::asm::bootload(0x1FFF_0000 as *const u32) }
+}
