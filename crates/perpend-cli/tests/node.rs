@@ -206,6 +206,30 @@ fn capture_appends_rows_in_the_exchange_format() {
     assert_eq!(std::fs::read_to_string(&p).unwrap(), before);
 }
 
+/// Issue 11 item 7: a log taken over CAN records the temperature the
+/// board measures (0x200A, the temperature its thermal correction uses).
+#[test]
+fn capture_records_the_board_temperature() {
+    let b = Board::start(&["--temp-c", "31.5"]);
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("poses.csv");
+    let ps = p.to_str().unwrap();
+    ok(&b.node(&[
+        "capture",
+        "--plane",
+        PLANE,
+        "--pose",
+        "1",
+        "--out",
+        ps,
+        "--samples",
+        "4",
+    ]));
+    let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+    let temp = t.rows[0].temp_c.unwrap();
+    assert!((temp - 31.5).abs() < 1e-3, "{temp}");
+}
+
 #[test]
 fn capture_with_a_faulted_sensor_keeps_the_row_and_warns() {
     let b = Board::start(&["--fault", "2:open"]);

@@ -37,6 +37,8 @@
 //!   which a simulated robot moves the plane (`plane A,B,C,D` → `ok`, see
 //!   [`world`]); its address is the second stdout line,
 //!   `perpend board: world on HOST:PORT`.
+//! * `--temp-c T`: the die temperature the board measures (0x200A, the
+//!   thermal correction, `temp_c` of `perpend node capture`); default none.
 //! * `--noise-mm`: reading noise, 1σ (default 2 µm; 0 makes every sensor
 //!   look stuck after the stuck detector's 2 s).
 //! * `--fault SENSOR:KIND` (repeatable): `open`, `overcurrent`,
@@ -95,6 +97,11 @@ pub struct Args {
     /// Reading noise [mm, 1σ].
     #[arg(long, default_value_t = 0.002)]
     pub noise_mm: f64,
+    /// Die temperature the board measures [°C] (default: none, as a board
+    /// without its temperature sensor): published in 0x200A, recorded by
+    /// `perpend node capture` in `temp_c`, used by the thermal correction.
+    #[arg(long, allow_hyphen_values = true)]
+    pub temp_c: Option<f64>,
     /// Fault `SENSOR:KIND` (1-based sensor; open, overcurrent, saturated,
     /// stuck, noisy) or `bus:noack:SECONDS` (nothing the board sends is
     /// acknowledged for the first SECONDS); repeatable.
@@ -231,6 +238,12 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
             .unwrap_or_else(|| Params::factory().head.cast()),
     };
     let mut sim = SimHead::new(truth, plane, a.noise_mm, a.seed)?;
+    if let Some(t) = a.temp_c {
+        if !(-40.0..=125.0).contains(&t) {
+            bail!("--temp-c {t}: outside the die sensor's -40..125 °C");
+        }
+    }
+    sim.set_temp_c(a.temp_c);
     let mut noack_us = None;
     for f in &a.fault {
         match *f {
@@ -300,6 +313,7 @@ mod tests {
             sensors: None,
             params: None,
             noise_mm: 0.0,
+            temp_c: None,
             fault: Vec::new(),
             seed: 1,
             serial: Vec::new(),

@@ -266,7 +266,7 @@ impl VirtualBoard {
         self.app.on_sample(
             &Sample {
                 counts,
-                temp_c: None,
+                temp_c: self.sim.temp_c().map(|t| t as f32),
                 t_s: None,
             },
             now_us,

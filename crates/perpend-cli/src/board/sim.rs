@@ -117,6 +117,8 @@ pub struct SimHead {
     rng: StdRng,
     faults: [Option<FaultKind>; 4],
     frozen: [Option<u16>; 4],
+    /// Die temperature the board measures \[°C\] (`None`: no sensor).
+    temp_c: Option<f64>,
 }
 
 impl SimHead {
@@ -141,7 +143,20 @@ impl SimHead {
             rng: StdRng::seed_from_u64(seed),
             faults: [None; 4],
             frozen: [None; 4],
+            temp_c: None,
         })
+    }
+
+    /// Sets the die temperature the board measures (`perpend board
+    /// --temp-c`): every sample carries it, the board publishes it in
+    /// 0x200A and applies the thermal correction with it.
+    pub fn set_temp_c(&mut self, t: Option<f64>) {
+        self.temp_c = t.filter(|t| t.is_finite());
+    }
+
+    /// The die temperature of the next sample, if simulated.
+    pub fn temp_c(&self) -> Option<f64> {
+        self.temp_c
     }
 
     /// Injects (or with `None` removes) a fault on sensor `i` (0-based).
