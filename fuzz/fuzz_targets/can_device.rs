@@ -1,4 +1,5 @@
-//! The CANopen device (NMT, SYNC, SDO server, PDO configuration, EMCY) on an
+//! The CANopen device (NMT, SYNC, SDO server, PDO configuration, EMCY,
+//! LSS, heartbeat consumer, the command RPDO) on an
 //! arbitrary sequence of frames and time steps: it never panics, every SDO
 //! request is answered by exactly one valid response or abort, read-only
 //! identity objects never change, and the output frames are well-formed.
@@ -27,8 +28,10 @@ fuzz_target!(|data: &[u8]| {
             0x600 + NODE as u16,
             0x700,
             0x200 + NODE as u16,
+            0x7E5,
+            0x705,
         ];
-        let id = if (rec[0] as usize) < ids.len() * 40 {
+        let id = if (rec[0] as usize) < ids.len() * 28 {
             ids[rec[0] as usize % ids.len()]
         } else {
             (u16::from(rec[0]) << 3 | u16::from(rec[1] >> 5)) & 0x7FF
