@@ -135,11 +135,7 @@ pub fn check_errors(v: &Value) -> Check {
 }
 
 fn perpend_bin() -> PathBuf {
-    std::env::var_os("CARGO_TARGET_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| root().join("target"))
-        .join("debug")
-        .join("perpend")
+    crate::cell::perpend()
 }
 
 /// `perpend node --bus BUS --node-id N ARGS`: its stdout.
@@ -208,7 +204,6 @@ pub fn checks(bus: &str, id: &str, dir: &Path) -> Result<Vec<Check>> {
 
 /// Starts `perpend board` on a free loopback port; returns it and its bus.
 fn virtual_board() -> Result<(crate::cell::Stopped, String)> {
-    use std::io::{BufRead, BufReader};
     let args = [
         "board",
         "--slcan",
@@ -218,23 +213,9 @@ fn virtual_board() -> Result<(crate::cell::Stopped, String)> {
         "--plane",
         "0,0,1,-40",
     ];
-    let mut child = crate::cell::Stopped(
-        Command::new(perpend_bin())
-            .args(args)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .map_err(|e| format!("perpend board: {e}"))?,
-    );
-    let out = child.0.stdout.take().ok_or("perpend board: no stdout")?;
-    let mut line = String::new();
-    BufReader::new(out)
-        .read_line(&mut line)
-        .map_err(|e| e.to_string())?;
-    match line.trim().rsplit(' ').next() {
-        Some(a) if a.contains(':') => Ok((child, format!("tcp:{a}"))),
-        _ => Err(format!("perpend board: unexpected line '{}'", line.trim())),
-    }
+    let (child, a) = crate::cell::spawn_board(&root(), &args, 1)?;
+    let bus = a.first().ok_or("perpend board: no bus address")?;
+    Ok((child, format!("tcp:{bus}")))
 }
 
 /// `cargo xtask bring-up`.

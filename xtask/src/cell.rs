@@ -23,7 +23,8 @@ impl Drop for Stopped {
     }
 }
 
-fn perpend() -> PathBuf {
+/// The workspace's debug `perpend` binary.
+pub(crate) fn perpend() -> PathBuf {
     let target = std::env::var_os("CARGO_TARGET_DIR")
         .map(PathBuf::from)
         .unwrap_or_else(|| root().join("target"));
@@ -42,6 +43,35 @@ fn step(dir: &Path, args: &[&str]) -> Result<()> {
         return Err(format!("perpend {} failed ({status})", args.join(" ")));
     }
     Ok(())
+}
+
+/// Starts `perpend ARGS` (a `perpend board`) in `dir` and reads the
+/// `n` addresses it prints first (its slcan port, then the world channel
+/// if asked for): the child (stopped on drop) and the addresses.
+pub(crate) fn spawn_board(dir: &Path, args: &[&str], n: usize) -> Result<(Stopped, Vec<String>)> {
+    eprintln!("\n==> perpend {} &", args.join(" "));
+    let mut child = Stopped(
+        Command::new(perpend())
+            .args(args)
+            .current_dir(dir)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .map_err(|e| format!("perpend board: {e}"))?,
+    );
+    let out = child.0.stdout.take().ok_or("perpend board: no stdout")?;
+    let mut r = BufReader::new(out);
+    let mut addrs = Vec::new();
+    for _ in 0..n {
+        let mut line = String::new();
+        r.read_line(&mut line).map_err(|e| e.to_string())?;
+        eprintln!("{}", line.trim());
+        match line.trim().rsplit(' ').next() {
+            Some(a) if a.contains(':') => addrs.push(a.to_string()),
+            _ => return Err(format!("perpend board: unexpected line '{}'", line.trim())),
+        }
+    }
+    Ok((child, addrs))
 }
 
 /// Starts the board in `dir`; returns it and its slcan and world addresses.
@@ -63,28 +93,9 @@ fn board(dir: &Path) -> Result<(Stopped, String, String)> {
         "--world",
         "127.0.0.1:0",
     ];
-    eprintln!("\n==> perpend {} &", args.join(" "));
-    let mut child = Stopped(
-        Command::new(perpend())
-            .args(args)
-            .current_dir(dir)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .map_err(|e| format!("perpend board: {e}"))?,
-    );
-    let out = child.0.stdout.take().ok_or("perpend board: no stdout")?;
-    let mut r = BufReader::new(out);
-    let mut addr = || -> Result<String> {
-        let mut line = String::new();
-        r.read_line(&mut line).map_err(|e| e.to_string())?;
-        eprintln!("{}", line.trim());
-        match line.trim().rsplit(' ').next() {
-            Some(a) if a.contains(':') => Ok(a.to_string()),
-            _ => Err(format!("perpend board: unexpected line '{}'", line.trim())),
-        }
-    };
-    let (bus, world) = (addr()?, addr()?);
+    let (child, mut a) = spawn_board(dir, &args, 2)?;
+    let world = a.pop().ok_or("perpend board: no world address")?;
+    let bus = a.pop().ok_or("perpend board: no bus address")?;
     Ok((child, bus, world))
 }
 
