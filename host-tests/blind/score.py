@@ -8,9 +8,13 @@ noise, pose spread, pose count, head geometry) and one class of truth
 only sensors.csv and poses.csv; the truth is read after it answered.
 
     score.py --perpend target/release/perpend [--quick] [--json OUT] [--md OUT]
-             [--check]
+             [--check] [--seed-base N] [--nulls N] [--only TRUTHS]
+             [--regime NAMES] [--runs OUT.jsonl]
 
---quick runs a reduced grid (CI); --check exits 1 when a goal is missed:
+Seeds: the diagnosis was tuned on the default range (from 1000); the
+figures of docs/diagnosis.md come from --seed-base 500000, never used for
+tuning, with --nulls 200 effect-free runs per regime (enough to bound a 5 %
+false-positive rate per cell). --quick runs a reduced grid (CI); --check exits 1 when a goal is missed:
 false positives <= 5 % per regime, singles named >= 90 %, pairs both named
 >= 80 %, blunders found >= 95 %, extended held-out RMS <= 1.15x floor
 where effects are named. Only the standard library is used.
@@ -150,16 +154,27 @@ def grade(r):
     floor = out["expected_rms_mm"]
     if effect not in ("none", "unexplained") and floor > 0:
         g["rms_ratio"] = ext / floor
+        # against the named model's own floor (its held-out RMS on
+        # effect-free re-simulations), where one effect is named
+        own = [c.get("expected_rms_mm", 0.0) for c in out["candidates"] if c["effect"] == effect]
+        if len(named) == 1 and own and own[0] > 0:
+            g["own_ratio"] = ext / own[0]
     return g
 
 
-def plan(quick):
+# Seed ranges: the diagnosis was tuned on runs from seed 1000 up (the
+# default, and what CI runs); the figures of docs/diagnosis.md are reported
+# from a range it was never tuned on (--seed-base 500000).
+TUNE_SEEDS = 1000
+
+
+def plan(quick, seed_base=TUNE_SEEDS, nulls=None):
     regimes = REGIMES[:1] + [r for r in REGIMES[1:] if not quick or r[0] in (
         "sigma 0.03", "declared x0.5", "declared missing", "tracker x3", "spread 2 deg", "30 poses")]
-    n_null = 12 if quick else 20
+    n_null = nulls if nulls is not None else (12 if quick else 20)
     n_eff = 2 if quick else 5
     jobs = []
-    seed = 1000
+    seed = seed_base
     for reg in regimes:
         for j in range(n_null):
             seed += 1
@@ -193,7 +208,9 @@ def summarise(results):
             v = g["visible"]
             reg = "limit %.2f" % min((0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0), key=lambda b: abs(math.log(max(v, 1e-3) / b)))
         c = cells.setdefault(reg, {})
-        k = c.setdefault(cls, {"n": 0, "ok": 0, "found": 0, "rms_max": 0.0, "wrong": []})
+        k = c.setdefault(cls, {"n": 0, "ok": 0, "found": 0, "rms_max": 0.0, "own_max": 0.0, "wrong": []})
+        if g.get("own_ratio"):
+            k["own_max"] = max(k["own_max"], g["own_ratio"])
         k["n"] += 1
         k["ok"] += int(g.get("ok", False))
         if cls == "blunders":
@@ -260,8 +277,8 @@ def check(cells):
 
 
 def markdown(cells):
-    lines = ["| regime | false positives (none) | singles named | pairs both named | blunders found (verdict none) | ripple unexplained | max ext. RMS / floor | small singles / pairs named (not graded) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| regime | false positives (none) | singles named | pairs both named | blunders found (verdict none) | ripple unexplained | max ext. RMS / floor | max ext. RMS / own floor (singles) | small singles / pairs named (not graded) |",
+             "|---|---|---|---|---|---|---|---|---|"]
 
     def cell(c, cls, key="ok"):
         k = c.get(cls)
@@ -273,9 +290,10 @@ def markdown(cells):
         fp = c.get("none")
         fps = "–" if not fp else "%d/%d" % (fp["n"] - fp["ok"], fp["n"])
         rm = max(c.get("single", {}).get("rms_max", 0), c.get("pair", {}).get("rms_max", 0))
-        lines.append("| %s | %s | %s | %s | %s (%s) | %s | %.2f | %s / %s |" % (
+        own = c.get("single", {}).get("own_max", 0)
+        lines.append("| %s | %s | %s | %s | %s (%s) | %s | %.2f | %.2f | %s / %s |" % (
             reg, fps, cell(c, "single"), cell(c, "pair"), cell(c, "blunders", "found"),
-            cell(c, "blunders"), cell(c, "ripple"), rm, cell(c, "small single"), cell(c, "small pair")))
+            cell(c, "blunders"), cell(c, "ripple"), rm, own, cell(c, "small single"), cell(c, "small pair")))
     lim = [(reg, c) for reg, c in cells.items() if reg.startswith("limit")]
     if lim:
         lines += ["", "| visible effect (RMS the paper's model cannot absorb, × noise) | singles named |", "|---|---|"]
@@ -343,12 +361,32 @@ def main():
     ap.add_argument("--check", action="store_true")
     ap.add_argument("--svg", help="write the detection-limit curve (full grid) as SVG")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
+    ap.add_argument("--seed-base", type=int, default=TUNE_SEEDS,
+                    help="first seed of the grid (default: the tuning range; report with another)")
+    ap.add_argument("--nulls", type=int,
+                    help="effect-free runs per regime (default 20, 12 with --quick)")
+    ap.add_argument("--runs", help="write one JSON line per run (case, truth, answer, grade) here")
+    ap.add_argument("--only", help="comma-separated truths to run (e.g. none): a subset of the grid")
+    ap.add_argument("--regime", help="comma-separated regimes to run (e.g. '120 poses'): a subset of the grid")
     a = ap.parse_args()
-    jobs = plan(a.quick)
+    jobs = plan(a.quick, a.seed_base, a.nulls)
+    if a.only:
+        keep = set(a.only.split(","))
+        jobs = [j for j in jobs if (j[1] if isinstance(j[1], str) else "+".join(j[1])) in keep]
+    if a.regime:
+        keep = set(a.regime.split(","))
+        jobs = [j for j in jobs if j[0] in keep]
     with cf.ThreadPoolExecutor(a.jobs) as ex:
         outs = list(ex.map(run_one, [(a.perpend, j[2]) for j in jobs]))
     results = [(j[0], j[1], o) for j, o in zip(jobs, outs)]
     cells = summarise(results)
+    if a.runs:
+        with open(a.runs, "w") as f:
+            for reg, truth, r in results:
+                t = truth if isinstance(truth, str) else "+".join(truth)
+                f.write(json.dumps({"regime": reg, "truth": t, "grade": grade(r),
+                                    "seed": r["case"]["seed"], "hidden": r.get("truth"),
+                                    "answer": r.get("out")}) + "\n")
     md = markdown(cells)
     print(md)
     for reg, c in cells.items():

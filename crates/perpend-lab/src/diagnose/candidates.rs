@@ -11,13 +11,16 @@
 //! | `gain` | `d − d_ref` | scale error of the analog chain |
 //! | `nonlinearity` | `d − d_ref`, `(d − d_ref)²`, `(d − d_ref)³` | polynomial linearity error (the linear term keeps the polynomial independent of the reference `d_ref`) |
 //! | `incidence` | `1/cos γ − 1` | spot/speckle bias growing with the angle between beam and surface normal |
-//! | `crosstalk` | `d_prev − d` | ADC sample-and-hold carry-over from the channel converted just before |
+//! | `crosstalk` | `d_src − d` | ADC sample-and-hold carry-over from the channel converted just before: the previous one in sensor order unless another fits the run better ([`sources`]) |
 //! | `thermal` | `T − T_ref` | drift with the head temperature (`temp_c`) |
 //! | `drift` | `t` | drift with time since the start of the run (`t_s`) |
 //!
 //! `d_ref` is each sensor's mean reading over the run and `T_ref` the mean
 //! temperature: both only re-parameterise the fit (a constant is the zero
 //! point's job) and keep the columns well conditioned.
+//!
+//! `d_src` is the source channel's measured reading (known without the
+//! reading predicted); `d` is the distance the geometry predicts.
 //!
 //! Limits: at most five extension terms per sensor (the solver's
 //! parameter count is a compile-time constant, dispatched here for 5..10).
@@ -296,6 +299,47 @@ pub struct SensorFit {
     pub sigma_dir: [f64; 3],
     /// The solver's identifiability verdict.
     pub diagnostic: perpend_core::calib::Diagnostic<f64>,
+    /// The channel (0-based) whose reading feeds the crosstalk term: the
+    /// previous one in sensor order unless [`sources`] found another.
+    pub source: usize,
+}
+
+/// The channel converted just before `idx` in sensor order (1 → 2 → … →
+/// N → 1): the crosstalk source [`perpend_core::ext`] applies.
+pub fn previous(idx: usize, n: usize) -> usize {
+    (idx + n.max(1) - 1) % n.max(1)
+}
+
+/// A view of `inner` in which the crosstalk term of sensor `sensor` reads
+/// channel `source` instead of the previous one (a scan order other than
+/// the sensor numbering).
+struct Rewired<'a, P: ?Sized> {
+    inner: &'a P,
+    sensor: usize,
+    source: usize,
+}
+
+impl<P: Poses<f64> + ?Sized> Poses<f64> for Rewired<'_, P> {
+    fn len(&self) -> usize {
+        self.inner.len()
+    }
+    fn sensors(&self) -> usize {
+        self.inner.sensors()
+    }
+    fn plane(&self, k: usize) -> Plane<f64> {
+        self.inner.plane(k)
+    }
+    fn reading(&self, k: usize, sensor: usize) -> Option<f64> {
+        let n = self.inner.sensors();
+        if n > 1 && sensor != self.sensor && sensor == previous(self.sensor, n) {
+            self.inner.reading(k, self.source)
+        } else {
+            self.inner.reading(k, sensor)
+        }
+    }
+    fn context(&self, k: usize) -> perpend_core::ext::Context<f64> {
+        self.inner.context(k)
+    }
 }
 
 fn convert<const P: usize>(
@@ -317,6 +361,7 @@ fn convert<const P: usize>(
         sigma_zero: f.sigma_zero().into(),
         sigma_dir: f.sigma_dir().into(),
         diagnostic: f.diagnostic,
+        source: 0,
     })
 }
 
@@ -336,11 +381,148 @@ pub fn params_of(idx: usize, fit: &SensorFit, nominal: &Sensor<f64>) -> SensorPa
     p
 }
 
-/// Fits sensor `idx` with the regressors `terms` (0 to 3 columns).
+/// Fits sensor `idx` with the regressors `terms` (0 to 5 columns), the
+/// crosstalk term (if any) fed by the previous channel.
 ///
 /// # Errors
 /// The solver's message (not identifiable, no convergence, …).
 pub fn fit<PS: Poses<f64> + ?Sized>(
+    nominal: &Sensor<f64>,
+    idx: usize,
+    poses: &PS,
+    terms: ExtTerms<f64>,
+    cfg: &LsqConfig<f64>,
+) -> Result<SensorFit, String> {
+    fit_from(
+        nominal,
+        idx,
+        poses,
+        terms,
+        previous(idx, poses.sensors()),
+        cfg,
+    )
+}
+
+/// [`fit`] with the crosstalk term fed by channel `source`.
+///
+/// # Errors
+/// The solver's message (not identifiable, no convergence, …).
+pub fn fit_from<PS: Poses<f64> + ?Sized>(
+    nominal: &Sensor<f64>,
+    idx: usize,
+    poses: &PS,
+    terms: ExtTerms<f64>,
+    source: usize,
+    cfg: &LsqConfig<f64>,
+) -> Result<SensorFit, String> {
+    let view = Rewired {
+        inner: poses,
+        sensor: idx,
+        source,
+    };
+    let mut f = fit_terms(nominal, idx, &view, terms, cfg)?;
+    f.source = source;
+    Ok(f)
+}
+
+/// Whether the model `effect` (with [`Refs::extra`]) has a crosstalk term.
+pub fn has_crosstalk(effect: Effect, refs: &Refs) -> bool {
+    effect
+        .terms()
+        .iter()
+        .chain(refs.extra.iter().flat_map(|e| e.terms()))
+        .any(|t| *t == Term::Crosstalk)
+}
+
+/// χ²₁ quantile at 1 %: how much better than the previous channel another
+/// must fit before it is taken as the crosstalk source ([`sources`]).
+pub const SOURCE_CHI2: f64 = 6.63;
+
+/// The channel feeding each sensor's crosstalk term in model `effect`:
+/// the previous channel in sensor order, unless another channel fits the
+/// whole run `poses` clearly better (in-sample, [`SOURCE_CHI2`]; a scan order other than
+/// the numbering, or a multiplexer that converts the channels in another
+/// order). The choice is made on the table analysed, so the effect-free
+/// re-simulations make it too and its optimism enters the candidate's null.
+pub fn sources<PS: Poses<f64> + ?Sized>(
+    nominal: &[Sensor<f64>],
+    poses: &PS,
+    refs: &Refs,
+    effect: Effect,
+    cfg: &LsqConfig<f64>,
+) -> Vec<usize> {
+    let n = nominal.len();
+    (0..n)
+        .map(|i| {
+            let prev = previous(i, n);
+            if n < 3 || !has_crosstalk(effect, refs) {
+                return prev;
+            }
+            // Residual sum of squares and its degrees of freedom.
+            let rss = |j: usize| {
+                fit_from(&nominal[i], i, poses, refs.terms(effect, i), j, cfg).map_or(
+                    (f64::INFINITY, 1.0),
+                    |f| {
+                        let dof = f.used.saturating_sub(5 + f.terms.count()).max(1);
+                        (f.rms * f.rms * f.used as f64, dof as f64)
+                    },
+                )
+            };
+            let (r0, _) = rss(prev);
+            (0..n)
+                .filter(|&j| j != i && j != prev)
+                .map(|j| (j, rss(j)))
+                // Another channel only when it lowers the residual sum of
+                // squares by more than the 1 % χ²₁ point in units of its
+                // own residual variance: among channels that explain about
+                // as much (a datum-plane error is common to all of them)
+                // the previous one stays.
+                .filter(|(_, (r, dof))| r0 - r > SOURCE_CHI2 * r / dof)
+                .min_by(|a, b| a.1 .0.total_cmp(&b.1 .0))
+                .map_or(prev, |(j, _)| j)
+        })
+        .collect()
+}
+
+/// Every sensor fitted with `effect` (and [`Refs::extra`]) on all of
+/// `poses`, crosstalk from the channels [`sources`] picks.
+///
+/// # Errors
+/// The sensor that cannot be fitted and why.
+pub fn fit_all<PS: Poses<f64> + ?Sized>(
+    nominal: &[Sensor<f64>],
+    poses: &PS,
+    refs: &Refs,
+    effect: Effect,
+    cfg: &LsqConfig<f64>,
+) -> Result<Vec<SensorFit>, String> {
+    let src = sources(nominal, poses, refs, effect, cfg);
+    nominal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            fit_from(s, i, poses, refs.terms(effect, i), src[i], cfg)
+                .map_err(|e| format!("sensor {}: {e}", i + 1))
+        })
+        .collect()
+}
+
+/// Whether the board can apply `fit` as stored: its carry-over, if any,
+/// comes from the previous channel ([`perpend_core::ext`]). `Err` says
+/// which channel it comes from instead.
+pub fn storable(idx: usize, n: usize, fit: &SensorFit) -> Result<(), String> {
+    if fit.sensor.ext.crosstalk != 0.0 && fit.source != previous(idx, n) {
+        return Err(format!(
+            "sensor {}: its carry-over comes from sensor {}, not from the previous channel {}, which is the only source the board applies",
+            idx + 1,
+            fit.source + 1,
+            previous(idx, n) + 1
+        ));
+    }
+    Ok(())
+}
+
+fn fit_terms<PS: Poses<f64> + ?Sized>(
     nominal: &Sensor<f64>,
     idx: usize,
     poses: &PS,
@@ -374,7 +556,12 @@ pub fn predict<PS: Poses<f64> + ?Sized>(
     let f = distance(&fit.sensor, &poses.plane(k), idx).ok()?;
     let mut x = [0.0; 8];
     let n = fit.terms.count().min(x.len());
-    fit.terms.fill(poses, k, idx, &fit.sensor, &mut x[..n]);
+    let view = Rewired {
+        inner: poses,
+        sensor: idx,
+        source: fit.source,
+    };
+    fit.terms.fill(&view, k, idx, &fit.sensor, &mut x[..n]);
     Some(f + (0..n).map(|j| fit.coeffs[j] * x[j]).sum::<f64>())
 }
 
@@ -498,6 +685,62 @@ mod tests {
                 e.name()
             );
         }
+    }
+
+    /// A carry-over from sensor 3 into sensor 1 (a scan order other than
+    /// the numbering) is fitted from sensor 3, its coefficient recovered
+    /// within 3σ, and reported as not storable; the other sensors keep the
+    /// previous channel or pick one, but their carry-over stays near 0.
+    #[test]
+    fn crosstalk_source_is_found_in_another_scan_order() {
+        use crate::sim::{paper_head, simulate, SimConfig};
+        use rand::SeedableRng;
+        let head = paper_head().unwrap();
+        let mut cfg = SimConfig::paper();
+        cfg.poses = 80;
+        cfg.spread.tilt_x_range_deg = 15.0;
+        cfg.spread.tilt_y_range_deg = 15.0;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let mut run = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
+        let c = 0.08;
+        for row in &mut run.rows {
+            if let (Some(d0), Some(d2)) = (row.readings[0], row.readings[2]) {
+                row.readings[0] = Some(d0 + c * (d2 - d0));
+            }
+        }
+        let refs = Refs::of(&run);
+        let lsq = LsqConfig::default();
+        let src = sources(&head.nominal, &run, &refs, Effect::Crosstalk, &lsq);
+        assert_eq!(src[0], 2, "{src:?}");
+        let fits = fit_all(&head.nominal, &run, &refs, Effect::Crosstalk, &lsq).unwrap();
+        let (got, sd) = (fits[0].coeffs[0], fits[0].sigma[0]);
+        assert!((got - c).abs() < 3.0 * sd + 1e-3, "{got} ± {sd}");
+        assert!(storable(0, 4, &fits[0]).is_err());
+        // models without a crosstalk term keep the previous channel
+        let base = sources(&head.nominal, &run, &refs, Effect::Gain, &lsq);
+        assert_eq!(base, vec![3, 0, 1, 2]);
+        // and the held-out prediction still ignores its own reading
+        let k = 5;
+        let train: Vec<usize> = (0..run.rows.len()).filter(|&j| j != k).collect();
+        let sub = Subset {
+            all: &run,
+            idx: &train,
+        };
+        let f = fit_from(
+            &head.nominal[0],
+            0,
+            &sub,
+            refs.terms(Effect::Crosstalk, 0),
+            2,
+            &lsq,
+        )
+        .unwrap();
+        let mut moved = run.clone();
+        moved.rows[k].readings[0] = moved.rows[k].readings[0].map(|d| d + 0.5);
+        assert_eq!(predict(&f, &run, k, 0), predict(&f, &moved, k, 0));
+        // while the source channel's reading does enter it
+        moved.rows[k].readings[2] = moved.rows[k].readings[2].map(|d| d + 0.5);
+        assert_ne!(predict(&f, &run, k, 0), predict(&f, &moved, k, 0));
     }
 
     #[test]

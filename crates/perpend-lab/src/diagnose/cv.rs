@@ -101,6 +101,9 @@ pub fn cross_validate(
     let ns = nominal.len();
     let mut resid = vec![vec![None; ns]; n_poses];
     let mut heads = Vec::with_capacity(folds.k);
+    // Crosstalk sources are picked once on the whole table (the null
+    // re-simulations pick theirs the same way).
+    let src = super::candidates::sources(nominal, poses, refs, effect, cfg);
     for f in 0..folds.k {
         let train = folds.train(f);
         let sub = Subset {
@@ -109,7 +112,7 @@ pub fn cross_validate(
         };
         let mut fitted = Vec::with_capacity(ns);
         for (i, s) in nominal.iter().enumerate() {
-            let sf = super::candidates::fit(s, i, &sub, refs.terms(effect, i), cfg)
+            let sf = super::candidates::fit_from(s, i, &sub, refs.terms(effect, i), src[i], cfg)
                 .map_err(|e| format!("fold {} of {}, sensor {}: {e}", f + 1, folds.k, i + 1))?;
             fitted.push(sf);
         }
@@ -204,6 +207,35 @@ pub fn measure_normal(
     }
 }
 
+/// The sensors of `fits` and the readings as `perpend-core` takes them: a
+/// carry-over from a channel other than the previous one (which is all the
+/// core applies) is removed from the reading here, `f = (d − c·d_src)/(1 − c)`,
+/// and left out of the sensor's extension.
+fn rewired_head(
+    fits: &[SensorFit],
+    readings: &[Option<f64>],
+) -> (Vec<Sensor<f64>>, Vec<Option<f64>>) {
+    let n = fits.len();
+    fits.iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let d = readings.get(i).copied().flatten();
+            let c = f.sensor.ext.crosstalk;
+            if c == 0.0 || f.source == super::candidates::previous(i, n) {
+                return (f.sensor, d);
+            }
+            let mut s = f.sensor;
+            s.ext.crosstalk = 0.0;
+            let src = readings.get(f.source).copied().flatten();
+            let d = match (d, src) {
+                (Some(d), Some(p)) => Some((d - c * p) / (1.0 - c)),
+                (d, _) => d,
+            };
+            (s, d)
+        })
+        .unzip()
+}
+
 /// Held-out normal error [deg] of every pose (`None` where the normal
 /// cannot be measured): the head of the fold that holds the pose out,
 /// against the pose's plane normal.
@@ -213,18 +245,13 @@ pub fn normal_errors(
     folds: &Folds,
     method: Method,
 ) -> Vec<Option<f64>> {
-    let heads: Vec<Vec<Sensor<f64>>> = cv
-        .heads
-        .iter()
-        .map(|h| h.iter().map(|s| s.sensor).collect())
-        .collect();
     poses
         .rows
         .iter()
         .enumerate()
         .map(|(k, row)| {
-            let h = heads.get(folds.of_pose[k])?;
-            let n = measure_normal(h, &row.readings, &poses.context(k), method).ok()?;
+            let (h, r) = rewired_head(cv.heads.get(folds.of_pose[k])?, &row.readings);
+            let n = measure_normal(&h, &r, &poses.context(k), method).ok()?;
             Some(line_angle_deg(&n, &row.plane.n))
         })
         .collect()

@@ -35,8 +35,9 @@
 //!
 //! Limits: the expectation is only as good as the stated noise (datasheet
 //! σ, tracker ξ / points / patch: pass your tracker's with `--xi-mm`,
-//! `--tracker-points`, `--tracker-patch-mm`); one effect is named at a
-//! time; heads of 3 to 8 sensors for the normal errors.
+//! `--tracker-points`, `--tracker-patch-mm`); up to [`MAX_EFFECTS`]
+//! effects are named by forward selection ([`Step`]); heads of 3 to 8
+//! sensors for the normal errors.
 //!
 //! Everything is seeded: the same files and options give the same report.
 
@@ -63,7 +64,7 @@ use serde::{Deserialize, Serialize};
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
 use crate::sim::Tracker;
-use candidates::{available, fit, Effect, Refs, SensorFit};
+use candidates::{available, Effect, Refs, SensorFit};
 use cv::{normal_errors, Folds};
 use expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
 use noise::{NoiseEstimate, Outlier};
@@ -238,6 +239,10 @@ pub struct CandidateJson {
     pub effect: String,
     /// Held-out residual RMS [mm].
     pub heldout_rms_mm: f64,
+    /// Its simulated held-out RMS on effect-free data (the model's own
+    /// floor: more parameters predict held-out poses worse) [mm].
+    #[serde(default)]
+    pub expected_rms_mm: f64,
     /// Parameters of the whole head.
     pub n_params: usize,
 }
@@ -332,6 +337,9 @@ pub struct Diagnosis {
     pub decision: Decision,
     /// The simulated expectation.
     pub expected: Expectation,
+    /// Simulated held-out RMS of the paper's model on effect-free data at
+    /// the noise left by every effect named (the floor reported) [mm].
+    pub floor_mm: f64,
     /// The analysis of the measured run.
     pub measured: Analysis,
     /// The noise the expectation assumed.
@@ -445,7 +453,7 @@ impl Diagnosis {
                 .map(|(e, w)| (e.name().to_string(), w.clone()))
                 .collect(),
             warnings: self.warnings.clone(),
-            expected_rms_mm: self.expected.rms_of(Effect::None).map_or(0.0, |s| s.mean),
+            expected_rms_mm: self.floor_mm,
             base: self.base,
             extended: self.extended,
             candidates: self
@@ -455,6 +463,7 @@ impl Diagnosis {
                 .map(|v| CandidateJson {
                     effect: v.effect.name().into(),
                     heldout_rms_mm: v.rms,
+                    expected_rms_mm: v.expected.mean,
                     n_params: v.n_params,
                 })
                 .collect(),
@@ -519,11 +528,7 @@ fn implausible_fits(
         .iter()
         .filter(|e| **e != Effect::None)
         .filter_map(|&e| {
-            let fits: Vec<SensorFit> = nominal
-                .iter()
-                .enumerate()
-                .map(|(i, sn)| fit(sn, i, poses, refs.terms(e, i), lsq).ok())
-                .collect::<Option<_>>()?;
+            let fits = candidates::fit_all(nominal, poses, refs, e, lsq).ok()?;
             candidates::plausible(e, &fits, span)
                 .err()
                 .map(|why| (e, why))
@@ -591,7 +596,9 @@ fn forward(
 ) -> Result<Vec<Step>> {
     let mut with = vec![first];
     let mut steps = Vec::new();
-    while with.len() < MAX_EFFECTS {
+    // A model the solver cannot fit on this run (more terms than the pose
+    // set identifies) ends the selection: what was named so far stands.
+    'add: while with.len() < MAX_EFFECTS {
         let r = Refs {
             extra: with.clone(),
             ..refs.clone()
@@ -613,7 +620,9 @@ fn forward(
             lsq: &s.lsq,
             method: s.method,
         };
-        let measured = analyse(poses, &plan, false).map_err(|e| anyhow!("{e}"))?;
+        let Ok(measured) = analyse(poses, &plan, false) else {
+            break;
+        };
         let fitted: Vec<Effect> = measured
             .cv
             .iter()
@@ -628,29 +637,37 @@ fn forward(
             .into_iter()
             .map(|(e, _)| e)
             .collect();
-        let (_, _, _, d) = settle(
-            Effect::None,
-            nominal,
-            poses,
-            &r,
-            &plan,
-            &measured,
-            declared.clone(),
-            s,
-            &bad,
-        )?;
+        // As for the first effect: the noise is re-estimated once from the
+        // residuals of the candidate that clearly beats the model so far.
+        let mut from = Effect::None;
+        let d = loop {
+            let Ok((_, _, _, d)) = settle(
+                from,
+                nominal,
+                poses,
+                &r,
+                &plan,
+                &measured,
+                declared.clone(),
+                s,
+                &bad,
+            ) else {
+                break 'add;
+            };
+            match raw_best(&d, &bad) {
+                Some(b) if from == Effect::None && b != Effect::None => from = b,
+                _ => break d,
+            }
+        };
         let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
             break;
         };
         if d.effect != e {
             break;
         }
-        let fits: Vec<SensorFit> = nominal
-            .iter()
-            .enumerate()
-            .map(|(i, sn)| fit(sn, i, poses, r.terms(e, i), &s.lsq))
-            .collect::<std::result::Result<_, _>>()
-            .map_err(|why| anyhow!("{}: {why}", e.name()))?;
+        let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
+            break;
+        };
         with.push(e);
         steps.push(Step {
             effect: e,
@@ -810,7 +827,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     let bad: Vec<Effect> = implausible.iter().map(|(e, _)| *e).collect();
     let declared = declared_sigma(sensors, s.sigma_mm);
     let mut noise_from = Effect::None;
-    let (estimate, noise, expected, decision) = loop {
+    let (estimate, noise, expected, mut decision) = loop {
         let round = settle(
             noise_from,
             &nominal,
@@ -830,28 +847,37 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
             _ => break round,
         }
     };
-    let effect = decision.effect;
+    let mut effect = decision.effect;
     let base_normals = measured.base_normal.clone();
     let base = Perf {
         heldout_rms_mm: base_cv.rms,
         heldout_normal_err_deg: mean_opt(&base_normals),
     };
+    // A winner that leaves structure may be one of two effects: the
+    // forward selection looks for the other before `unexplained` stands.
+    let first = match (effect, decision.winner) {
+        (Effect::Unexplained, Some(w)) => w,
+        (e, _) => e,
+    };
+    let also = match first {
+        Effect::None | Effect::Unexplained => Vec::new(),
+        e => forward(e, &nominal, poses, &refs, &folds, declared.clone(), s)?,
+    };
+    if let (Effect::Unexplained, Some(st)) = (effect, also.last()) {
+        decision.reasons.push(format!(
+            "with {} added the residuals are explained: {} are named together",
+            st.effect.name(),
+            st.with
+                .iter()
+                .map(|e| e.name())
+                .collect::<Vec<_>>()
+                .join(" + ")
+        ));
+        effect = first;
+    }
     let ext_model = match effect {
         Effect::None | Effect::Unexplained => Effect::None,
         e => e,
-    };
-    let also = if ext_model == Effect::None {
-        Vec::new()
-    } else {
-        forward(
-            ext_model,
-            &nominal,
-            poses,
-            &refs,
-            &folds,
-            declared.clone(),
-            s,
-        )?
     };
     // The noise reported is the one left by every effect named.
     let estimate = match also.last() {
@@ -867,6 +893,24 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         ),
         None => estimate,
     };
+    // The floor at that noise: a second effect left in the residuals of
+    // the first inflates the first estimate, and with it the floor.
+    let floor_mm = match also.last() {
+        Some(_) => {
+            let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
+            let noise = NoiseModel {
+                sigma: estimate.reading_mm.clone(),
+                tracker: estimate.tracker,
+            };
+            let base_only = Plan {
+                models: &[Effect::None],
+                ..plan.clone()
+            };
+            expect(&truth, poses, &noise, &base_only, s.draws, s.seed).rms_of(Effect::None)
+        }
+        None => expected.rms_of(Effect::None),
+    }
+    .map_or(0.0, |x| x.mean);
     let ext_cv = also.last().map(|st| &st.cv).or(measured.cv_of(ext_model));
     let (extended, ext_normals) = match ext_cv {
         Some(c) if ext_model != Effect::None => {
@@ -887,12 +931,9 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         e => Some(e),
     };
     let refit = refit_model.and_then(|e| {
-        let fits: std::result::Result<Vec<SensorFit>, String> = nominal
-            .iter()
-            .enumerate()
-            .map(|(i, sn)| fit(sn, i, poses, refs.terms(e, i), &s.lsq))
-            .collect();
-        fits.ok().map(|f| (e, f))
+        candidates::fit_all(&nominal, poses, &refs, e, &s.lsq)
+            .ok()
+            .map(|f| (e, f))
     });
     let checks = report::checks(&measured, &expected, &fitted, &decision);
     let warnings = noise_warnings(&estimate, effect);
@@ -900,6 +941,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         effect,
         decision,
         expected,
+        floor_mm,
         measured,
         noise,
         estimate,
@@ -949,9 +991,12 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
                 .ok_or_else(|| anyhow!("no fit"))?,
             (Some((e, fits)), m) if *e == m => fits[i].clone(),
             (_, Effect::None) => d.measured.base_fit[i].clone(),
-            _ => fit(s, i, &d.poses, d.refs.terms(model, i), lsq)
-                .map_err(|e| anyhow!("sensor {}: {e}", i + 1))?,
+            _ => candidates::fit_all(&d.nominal, &d.poses, &d.refs, model, lsq)
+                .map_err(|e| anyhow!("{e}"))?
+                .swap_remove(i),
         };
+        candidates::storable(i, d.nominal.len(), &fit)
+            .map_err(|why| anyhow!("not stored: {why}"))?;
         let mut p = candidates::params_of(i, &fit, s);
         // Drift is removed from the estimate, never extrapolated.
         p.fold_drift(crate::calibrate::run_end_s(&d.poses));

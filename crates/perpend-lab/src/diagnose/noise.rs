@@ -291,11 +291,7 @@ pub fn model_residuals(
     refs: &Refs,
     lsq: &LsqConfig<f64>,
 ) -> Option<(Vec<SensorFit>, Residuals)> {
-    let fits: Vec<SensorFit> = nominal
-        .iter()
-        .enumerate()
-        .map(|(i, s)| fit(s, i, poses, refs.terms(e, i), lsq).ok())
-        .collect::<Option<_>>()?;
+    let fits = super::candidates::fit_all(nominal, poses, refs, e, lsq).ok()?;
     let resid = residuals_of(&fits, poses);
     Some((fits, resid))
 }

@@ -387,7 +387,7 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
         d.base.heldout_rms_mm,
         d.extended.heldout_rms_mm,
         pct(d.base.heldout_rms_mm, d.extended.heldout_rms_mm),
-        d.expected.rms_of(Effect::None).map_or(0.0, |s| s.mean)
+        d.floor_mm
     );
     if !b.is_empty() {
         let _ = writeln!(
@@ -510,7 +510,7 @@ fn reconcile(d: &Diagnosis) -> Vec<String> {
 
 /// A fitted extension in units a metrology engineer reads: gain in %,
 /// linearity as µm at the run's range ends, incidence in µm at 30°,
-/// carry-over in %, thermal in µm/°C, drift in µm/min.
+/// carry-over in % (and the sensor it comes from), thermal in µm/°C, drift in µm/min.
 pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> String {
     let x = &f.sensor.ext;
     let sd = |j: usize| f.sigma.get(j).copied().unwrap_or(0.0);
@@ -533,9 +533,10 @@ pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> Strin
             1000.0 * sd(0) * inc30
         ),
         Effect::Crosstalk => format!(
-            "carry-over {:+.2} % ± {:.2} %",
+            "carry-over {:+.2} % ± {:.2} % from sensor {}",
             100.0 * x.crosstalk,
-            100.0 * sd(0)
+            100.0 * sd(0),
+            f.source + 1
         ),
         Effect::Thermal => format!(
             "thermal {:+.2} µm/°C ± {:.2}",

@@ -476,6 +476,60 @@ mod tests {
             .collect()
     }
 
+    /// Two effects at once, neither in the exact form of a candidate: a
+    /// per-sensor gain and an exponential settling drift (the candidate is
+    /// linear in time). Both are named, by forward selection, from the
+    /// measured run alone.
+    #[test]
+    fn two_effects_are_named_together() {
+        use crate::sim::{paper_head, simulate, SimConfig};
+        use rand::SeedableRng;
+        let head = paper_head().unwrap();
+        let mut cfg = SimConfig::paper();
+        cfg.poses = 80;
+        cfg.dt_s = Some(30.0);
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let mut data = simulate(&head, &cfg, &[], &mut rng).unwrap();
+        let mean: Vec<f64> = (0..4)
+            .map(|i| {
+                let v: Vec<f64> = data
+                    .poses
+                    .rows
+                    .iter()
+                    .filter_map(|r| r.readings[i])
+                    .collect();
+                stats::mean(&v)
+            })
+            .collect();
+        let gain = [0.02, -0.015, 0.012, -0.02];
+        let settle = [0.06, -0.05, 0.04, -0.06];
+        for row in &mut data.poses.rows {
+            let t = row.t_s.unwrap();
+            for i in 0..4 {
+                if let Some(d) = row.readings[i] {
+                    let drift = settle[i] * (1.0 - (-t / 900.0).exp());
+                    row.readings[i] = Some(d + gain[i] * (d - mean[i]) + drift);
+                }
+            }
+        }
+        let d = crate::diagnose::diagnose(&data.sensors, &data.poses, &Default::default()).unwrap();
+        let named = d.effects();
+        assert!(
+            named.contains(&Effect::Gain) || named.contains(&Effect::Nonlinearity),
+            "{named:?}"
+        );
+        assert!(named.contains(&Effect::Drift), "{named:?}");
+        assert!(d.outliers.is_empty());
+        // The floor is simulated at the noise left by both: the extended
+        // model comes back to it.
+        assert!(
+            d.extended.heldout_rms_mm < 1.15 * d.floor_mm,
+            "{} vs {}",
+            d.extended.heldout_rms_mm,
+            d.floor_mm
+        );
+    }
+
     #[test]
     fn clean_data_is_none() {
         let base = cv(Effect::None, &losses(0.01, 100, 1));
