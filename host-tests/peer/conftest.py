@@ -76,9 +76,16 @@ class Board:
             ",".join(repr(float(x)) for x in plane),
             *args,
         ]
+        self._start(cmd)
+        self.node = self.network.add_node(node_id, str(EDS))
+        self.raw = RawSdo(self.network, node_id)
+
+    def _start(self, cmd):
+        """Starts `cmd` (a `perpend board`), reads its port from the first
+        stdout line ("perpend board: ... on 127.0.0.1:PORT") and connects a
+        master to it."""
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
         line = self._first_line()
-        # "perpend board: node N on 127.0.0.1:PORT"
         self.port = int(line.rsplit(":", 1)[1])
         self.network = canopen.Network()
         self.network.connect(
@@ -86,8 +93,6 @@ class Board:
             channel=f"socket://127.0.0.1:{self.port}",
             sleep_after_open=0,
         )
-        self.node = self.network.add_node(node_id, str(EDS))
-        self.raw = RawSdo(self.network, node_id)
 
     def bootup_queue(self, node_id=None) -> "queue.Queue[float]":
         """A queue that receives the time of every boot-up message of
@@ -182,16 +187,7 @@ class Cell(Board):
         cmd = [perpend_bin(), "board", "--slcan", "127.0.0.1:0", "--node-id", str(node_id)]
         for s in self.serials:
             cmd += ["--serial", hex(s)]
-        self.proc = subprocess.Popen([*cmd, *args], stdout=subprocess.PIPE, text=True)
-        line = self._first_line()
-        # "perpend board: N boards, nodes A,B,.. on 127.0.0.1:PORT"
-        self.port = int(line.rsplit(":", 1)[1])
-        self.network = canopen.Network()
-        self.network.connect(
-            interface="slcan",
-            channel=f"socket://127.0.0.1:{self.port}",
-            sleep_after_open=0,
-        )
+        self._start([*cmd, *args])
         # A board answers within a millisecond: no need for canopen's 0.5 s
         # per unanswered fastscan step.
         self.network.lss.RESPONSE_TIMEOUT = 0.05
