@@ -109,9 +109,9 @@ impl Core {
         let with_counter = self.at(SYNC_OVERFLOW) >= 2;
         let ok = p.len() == usize::from(with_counter);
         if ok {
-            self.clear_code(EMCY_SYNC_LENGTH);
+            self.clear(EMCY_SYNC_LENGTH);
         } else {
-            self.raise_code(
+            self.raise(
                 EMCY_SYNC_LENGTH,
                 error_register::COMMUNICATION,
                 [p.len() as u8, 0, 0, 0, 0],
@@ -181,14 +181,6 @@ impl Core {
         }
     }
 
-    fn raise_code(&mut self, code: u16, reg: u8, mfr: [u8; 5]) {
-        self.raise(code, reg, mfr);
-    }
-
-    fn clear_code(&mut self, code: u16) {
-        self.clear(code);
-    }
-
     /// The communication-error reaction of 0x1029 sub 1; queued EMCYs go
     /// out first (nothing is sent in stopped).
     fn comm_error(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
@@ -215,7 +207,7 @@ impl Core {
             if self.hb_cons[i].lost {
                 self.hb_cons[i].lost = false;
                 if !self.hb_cons.iter().any(|m| m.lost) {
-                    self.clear_code(EMCY_HEARTBEAT);
+                    self.clear(EMCY_HEARTBEAT);
                 }
             }
         }
@@ -233,7 +225,7 @@ impl Core {
             }
             self.hb_cons[i].lost = true;
             let node = (v >> 16) as u8;
-            self.raise_code(
+            self.raise(
                 EMCY_HEARTBEAT,
                 error_register::COMMUNICATION,
                 [node, 0, 0, 0, 0],
@@ -261,7 +253,7 @@ impl Core {
             *m = HbMonitor::default();
         }
         if !self.hb_cons.iter().any(|m| m.lost) {
-            self.clear_code(EMCY_HEARTBEAT);
+            self.clear(EMCY_HEARTBEAT);
         }
         Ok(Some(Written::Done))
     }
@@ -362,13 +354,15 @@ impl Device {
         }
         if c.state == NmtState::Operational {
             match p.first() {
-                None => c.raise_code(
-                    EMCY_PDO_LENGTH,
-                    error_register::COMMUNICATION,
-                    [0, 1, 0, 0, 0],
-                ),
+                None => {
+                    c.raise(
+                        EMCY_PDO_LENGTH,
+                        error_register::COMMUNICATION,
+                        [0, 1, 0, 0, 0],
+                    );
+                }
                 Some(&cmd) if cmd == CMD_CAPTURE || cmd == CMD_NONE => {
-                    c.clear_code(EMCY_PDO_LENGTH);
+                    c.clear(EMCY_PDO_LENGTH);
                     let _ = c.command(u32::from(cmd));
                 }
                 Some(_) => {}

@@ -58,8 +58,7 @@ use perpend_lab::sim::{gauss, Tracker};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use crate::bus::{self, BusSpec};
-use crate::canopen::{Client, Nmt};
+use crate::canopen::Nmt;
 use crate::node::{capture, params, Node};
 
 /// Arguments of `perpend cell`.
@@ -82,18 +81,9 @@ pub enum Cmd {
 /// Options of `cell run`.
 #[derive(clap::Args, Debug)]
 pub struct RunArgs {
-    /// The CAN bus: `tcp:HOST:PORT`, `slcan:/dev/ttyACM0[@BAUD]`, `socketcan:can0`.
-    #[arg(long)]
-    pub bus: String,
-    /// Node-id of the board, 1..127.
-    #[arg(long, value_parser = crate::board::parse_node_id)]
-    pub node_id: u8,
-    /// CAN bit rate of an slcan adapter [kbit/s].
-    #[arg(long, default_value_t = 1000)]
-    pub bitrate: u32,
-    /// How long the board may take to answer one SDO request [ms].
-    #[arg(long, default_value_t = 500)]
-    pub timeout_ms: u64,
+    /// The bus and the node.
+    #[command(flatten)]
+    pub link: crate::node::LinkArgs,
     /// The nominal head (sensors.csv) the calibration starts from.
     #[arg(long)]
     pub sensors: PathBuf,
@@ -586,13 +576,6 @@ fn calibrate(sensors: &Path, poses: &Path, params: &Path) -> Result<()> {
     })
 }
 
-fn connect(a: &RunArgs) -> Result<Node> {
-    let spec: BusSpec = a.bus.parse()?;
-    let mut client = Client::new(bus::open(&spec, a.bitrate)?);
-    client.timeout = Duration::from_millis(a.timeout_ms.max(1));
-    Ok(Node::new(client, a.node_id))
-}
-
 /// `perpend cell run`.
 ///
 /// # Errors
@@ -614,7 +597,7 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Figures> {
         );
     }
     let mut robot = Robot::open(&a.robot, a.seed)?;
-    let mut node = connect(a)?;
+    let mut node = Node::connect(&a.link)?;
     node.hello()?;
     let fresh = fresh_poses(&plan, a.verify, a.seed);
     let before = verify_before(&mut node, &mut robot, &fresh, a)?;

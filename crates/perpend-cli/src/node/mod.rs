@@ -40,9 +40,10 @@ use anyhow::{bail, Result};
 use crate::bus::{self, BusSpec};
 use crate::canopen::{Client, ClientError, NodeState};
 
-/// Arguments of `perpend node`.
+/// How to reach one board: the bus and the node (`perpend node`,
+/// `perpend cell run`).
 #[derive(clap::Args, Debug)]
-pub struct Args {
+pub struct LinkArgs {
     /// The CAN bus: `tcp:HOST:PORT` (virtual board), `slcan:/dev/ttyACM0[@BAUD]`
     /// (slcan adapter on a serial port), `socketcan:can0` (Linux SocketCAN).
     #[arg(long)]
@@ -57,6 +58,14 @@ pub struct Args {
     /// How long the board may take to answer one SDO request [ms].
     #[arg(long, default_value_t = 500)]
     pub timeout_ms: u64,
+}
+
+/// Arguments of `perpend node`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The bus and the node.
+    #[command(flatten)]
+    pub link: LinkArgs,
     /// What to do.
     #[command(subcommand)]
     pub cmd: Cmd,
@@ -116,7 +125,7 @@ impl Node {
     ///
     /// # Errors
     /// A bad `--bus`, a bus that cannot be opened.
-    pub fn connect(a: &Args) -> Result<Self> {
+    pub fn connect(a: &LinkArgs) -> Result<Self> {
         let spec: BusSpec = a.bus.parse()?;
         let bus = bus::open(&spec, a.bitrate)?;
         let mut client = Client::new(bus);
@@ -202,7 +211,7 @@ pub fn run(a: &Args) -> Result<()> {
         a.cmd,
         Cmd::Monitor(_) | Cmd::Push(_) | Cmd::Pull(_) | Cmd::Capture(_)
     ));
-    let mut node = Node::connect(a)?;
+    let mut node = Node::connect(&a.link)?;
     let cancel = &CANCEL;
     match &a.cmd {
         Cmd::Info(x) => info::info(&mut node, x),
