@@ -315,16 +315,18 @@ def solve(a, b):
     return x
 
 
-def refit_residuals(e, u, planes, target):
-    """Residuals of the best zero point + beam direction (5 parameters:
-    E moves in 3-D, u tilts about two axes normal to it) for readings
-    `target` of `planes`: Gauss-Newton, numerical derivatives."""
+def refit(e, u, planes, target):
+    """The best zero point + beam direction (5 parameters: E moves in 3-D,
+    u tilts about two axes normal to it) for readings `target` of `planes`
+    (Gauss-Newton, numerical derivatives): returns (E, u)."""
     t1 = unit(cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0]))
     t2 = cross(u, t1)
 
+    def head(p):
+        return add(e, p[:3]), unit(add(add(u, scale(t1, p[3])), scale(t2, p[4])))
+
     def model(p):
-        e2 = add(e, p[:3])
-        u2 = unit(add(add(u, scale(t1, p[3])), scale(t2, p[4])))
+        e2, u2 = head(p)
         return [beam_distance(e2, u2, pl) for pl in planes]
 
     p = [0.0] * 5
@@ -343,7 +345,36 @@ def refit_residuals(e, u, planes, target):
         if step is None:
             break
         p = [a + b for a, b in zip(p, step)]
-    return [t - f for t, f in zip(target, model(p))]
+    return head(p)
+
+
+def refit_residuals(e, u, planes, target):
+    """Residuals of `target` after the best zero point + beam direction."""
+    e2, u2 = refit(e, u, planes, target)
+    return [t - beam_distance(e2, u2, pl) for t, pl in zip(target, planes)]
+
+
+def oracle_heldout(head, planes, target, skip, rng, k=5):
+    """The floor on these very draws, held out as the diagnosis holds out:
+    readings with the true effects removed (`target`), every sensor's zero
+    point and direction fitted on k-1 folds of the poses (those in `skip`,
+    the blunders, left out) and each held-out reading predicted. What a
+    calibration that knew the effects exactly would achieve on this run.
+    Returns the held-out residual of every pose and sensor (None for
+    `skip`)."""
+    keep = [j for j in range(len(planes)) if j not in skip]
+    order = keep[:]
+    rng.shuffle(order)
+    fold = {j: n % k for n, j in enumerate(order)}
+    out = [[None] * len(head) for _ in planes]
+    for f in range(k):
+        train = [j for j in keep if fold[j] != f]
+        test = [j for j in keep if fold[j] == f]
+        for i, (e, u) in enumerate(head):
+            e2, u2 = refit(e, u, [planes[j] for j in train], [target[j][i] for j in train])
+            for j in test:
+                out[j][i] = target[j][i] - beam_distance(e2, u2, planes[j])
+    return out
 
 
 def visible_rms(head, planes, true_d, errs):
@@ -451,7 +482,7 @@ def generate(case):
         blunders = set(rng.sample(range(n_poses), case["blunders"]))
 
     n_samples = case.get("n_samples")
-    rows = []
+    rows, clean = [], []
     for k, p in enumerate(planes):
         ctx = context(k)
         reads, sds = [], []
@@ -471,12 +502,18 @@ def generate(case):
         meas = tracker_fit(p, rng, xi, 20, 150.0, centre)
         if k in blunders:
             meas = (meas[0], meas[1] + 0.4 * rng.choice([-1, 1]))
+        # the readings less the true effects, for the floor on these draws
+        clean.append([reads[i] - sum(effect_error(kind, par, i, ctx) for kind, par in effects)
+                      for i in range(4)])
         rows.append({"pose": k + 1, "plane": meas, "reads": reads, "sds": sds,
                      "t": times[k], "T": head_T[k] + rng.gauss(0, 0.05)})
+    oracle = oracle_heldout(truth, [r["plane"] for r in rows], clean, blunders,
+                            random.Random(case["seed"] + 11))
     return nominal, rows, {"effects": [[k, s] for k, s in case["effects"]],
                            "visible_rms_mm": visible,
                            "crosstalk_order": [p.get("order") for _, p in effects if "order" in p],
                            "blunder_poses": sorted(b + 1 for b in blunders),
+                           "oracle_heldout_mm": oracle,
                            "sigma_mm": sig_i, "tracker_xi_mm": xi,
                            "temp_rise_c": dT, "run_s": t_end}
 

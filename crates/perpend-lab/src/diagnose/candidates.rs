@@ -381,7 +381,7 @@ pub fn params_of(idx: usize, fit: &SensorFit, nominal: &Sensor<f64>) -> SensorPa
     p
 }
 
-/// Fits sensor `idx` with the regressors `terms` (0 to 5 columns), the
+/// Fits sensor `idx` with the regressors `terms` (0 to 7 columns: every candidate at once), the
 /// crosstalk term (if any) fed by the previous channel.
 ///
 /// # Errors
@@ -538,7 +538,9 @@ fn fit_terms<PS: Poses<f64> + ?Sized>(
         3 => convert::<8>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
         4 => convert::<9>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
         5 => convert::<10>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
-        n => Err(format!("{n} extension terms: at most 5 are supported")),
+        6 => convert::<11>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        7 => convert::<12>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        n => Err(format!("{n} extension terms: at most 7 are supported")),
     }
 }
 

@@ -561,6 +561,34 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     w
 }
 
+/// Above this |r| between temperature and time, a thermal coefficient and
+/// a drift in time are the same pattern within the run.
+pub const CONFOUNDED_R: f64 = 0.9;
+
+/// A warning when a time-like effect (thermal, drift) is named on a run
+/// whose temperature follows its time (a warm-up that only rises): the run
+/// cannot tell one from the other; which is named is the better fit of
+/// this run's pattern, not evidence for its cause.
+fn time_warning(poses: &PoseTable, named: &[Effect]) -> Option<String> {
+    if !named
+        .iter()
+        .any(|e| matches!(e, Effect::Thermal | Effect::Drift))
+    {
+        return None;
+    }
+    let (t, temp): (Vec<f64>, Vec<f64>) = poses
+        .rows
+        .iter()
+        .filter_map(|r| Some((r.t_s?, r.temp_c?)))
+        .unzip();
+    let r = stats::pearson(&t, &temp);
+    (r.abs() > CONFOUNDED_R).then(|| {
+        format!(
+            "thermal and drift are confounded in this run: the temperature follows the time (r = {r:.2}), so the run cannot tell a temperature coefficient from a drift in time; the correction fits this run, but would extrapolate differently. A run in which the temperature falls or is held (a cool-down, a second warm-up after a pause) separates them"
+        )
+    })
+}
+
 /// A further effect of the forward selection: named by the same
 /// calibrated decision as the first, with the effects before it added to
 /// every model (the paper's model included) and the noise and the
@@ -637,27 +665,19 @@ fn forward(
             .into_iter()
             .map(|(e, _)| e)
             .collect();
-        // As for the first effect: the noise is re-estimated once from the
-        // residuals of the candidate that clearly beats the model so far.
-        let mut from = Effect::None;
-        let d = loop {
-            let Ok((_, _, _, d)) = settle(
-                from,
-                nominal,
-                poses,
-                &r,
-                &plan,
-                &measured,
-                declared.clone(),
-                s,
-                &bad,
-            ) else {
-                break 'add;
-            };
-            match raw_best(&d, &bad) {
-                Some(b) if from == Effect::None && b != Effect::None => from = b,
-                _ => break d,
-            }
+        // As for the first effect: the noise from the full model.
+        let Ok((_, _, _, d)) = settle(
+            Effect::None,
+            nominal,
+            poses,
+            &r,
+            &plan,
+            &measured,
+            declared.clone(),
+            s,
+            &bad,
+        ) else {
+            break 'add;
         };
         let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
             break;
@@ -708,17 +728,6 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
 /// Most effects named together.
 pub const MAX_EFFECTS: usize = 3;
 
-/// The candidate with the lowest held-out RMS among those whose raw paired
-/// z passes `z*` and that are plausible (before the null calibration);
-/// `None` when none does.
-fn raw_best(d: &Decision, implausible: &[Effect]) -> Option<Effect> {
-    d.verdicts
-        .iter()
-        .filter(|v| v.effect != Effect::None && v.z > d.z_star && !implausible.contains(&v.effect))
-        .min_by(|a, b| a.rms.total_cmp(&b.rms))
-        .map(|v| v.effect)
-}
-
 /// One round of noise → expectation → decision, with the noise estimated
 /// from the residuals of model `from` fitted on all poses.
 #[allow(clippy::too_many_arguments)]
@@ -734,7 +743,8 @@ fn settle(
     implausible: &[Effect],
 ) -> Result<(NoiseEstimate, NoiseModel, Expectation, Decision)> {
     let (fits, resid) = if from == Effect::None {
-        (measured.base_fit.clone(), measured.insample.clone())
+        noise::full_residuals(nominal, poses, refs, plan.models, &s.lsq)
+            .unwrap_or_else(|| (measured.base_fit.clone(), measured.insample.clone()))
     } else {
         noise::model_residuals(from, nominal, poses, refs, &s.lsq)
             .ok_or_else(|| anyhow!("{} cannot be fitted on all poses", from.name()))?
@@ -826,27 +836,19 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     let implausible = implausible_fits(&nominal, poses, &refs, &fitted, &s.lsq);
     let bad: Vec<Effect> = implausible.iter().map(|(e, _)| *e).collect();
     let declared = declared_sigma(sensors, s.sigma_mm);
-    let mut noise_from = Effect::None;
-    let (estimate, noise, expected, mut decision) = loop {
-        let round = settle(
-            noise_from,
-            &nominal,
-            poses,
-            &refs,
-            &plan,
-            &measured,
-            declared.clone(),
-            s,
-            &bad,
-        )?;
-        // The noise is re-estimated once from the residuals of the model
-        // that clearly beats the base one (a large effect inflates the
-        // base model's within-pose scatter, and with it every null).
-        match raw_best(&round.3, &bad) {
-            Some(b) if noise_from == Effect::None && b != Effect::None => noise_from = b,
-            _ => break round,
-        }
-    };
+    // The noise comes from the full model (every candidate at once): an
+    // effect not yet named is not counted as noise.
+    let (estimate, noise, expected, mut decision) = settle(
+        Effect::None,
+        &nominal,
+        poses,
+        &refs,
+        &plan,
+        &measured,
+        declared.clone(),
+        s,
+        &bad,
+    )?;
     let mut effect = decision.effect;
     let base_normals = measured.base_normal.clone();
     let base = Perf {
@@ -879,38 +881,9 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         Effect::None | Effect::Unexplained => Effect::None,
         e => e,
     };
-    // The noise reported is the one left by every effect named.
-    let estimate = match also.last() {
-        Some(st) => noise::estimate(
-            &nominal,
-            poses,
-            &refs,
-            &s.lsq,
-            &st.fits,
-            &noise::residuals_of(&st.fits, poses),
-            declared,
-            s.tracker,
-        ),
-        None => estimate,
-    };
-    // The floor at that noise: a second effect left in the residuals of
-    // the first inflates the first estimate, and with it the floor.
-    let floor_mm = match also.last() {
-        Some(_) => {
-            let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
-            let noise = NoiseModel {
-                sigma: estimate.reading_mm.clone(),
-                tracker: estimate.tracker,
-            };
-            let base_only = Plan {
-                models: &[Effect::None],
-                ..plan.clone()
-            };
-            expect(&truth, poses, &noise, &base_only, s.draws, s.seed).rms_of(Effect::None)
-        }
-        None => expected.rms_of(Effect::None),
-    }
-    .map_or(0.0, |x| x.mean);
+    // The noise (from the full model) and the floor at it: the paper's
+    // model on effect-free re-simulations.
+    let floor_mm = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
     let ext_cv = also.last().map(|st| &st.cv).or(measured.cv_of(ext_model));
     let (extended, ext_normals) = match ext_cv {
         Some(c) if ext_model != Effect::None => {
@@ -936,7 +909,14 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
             .map(|f| (e, f))
     });
     let checks = report::checks(&measured, &expected, &fitted, &decision);
-    let warnings = noise_warnings(&estimate, effect);
+    let mut warnings = noise_warnings(&estimate, effect);
+    let named: Vec<Effect> = match effect {
+        Effect::None | Effect::Unexplained => Vec::new(),
+        e => std::iter::once(e)
+            .chain(also.iter().map(|st| st.effect))
+            .collect(),
+    };
+    warnings.extend(time_warning(poses, &named));
     Ok(Diagnosis {
         effect,
         decision,
@@ -1039,4 +1019,39 @@ pub fn run(a: &Args) -> Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::sim::{paper_head, simulate, SimConfig, TempProfile};
+    use rand::SeedableRng;
+
+    fn run(swing_c: f64) -> PoseTable {
+        let head = paper_head().unwrap();
+        let mut cfg = SimConfig::paper();
+        cfg.dt_s = Some(30.0);
+        cfg.temp = Some(TempProfile {
+            start_c: 21.0,
+            rate_c_per_s: 0.003,
+            swing_c,
+            period_s: 300.0,
+        });
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        simulate(&head, &cfg, &[], &mut rng).unwrap().poses
+    }
+
+    /// A warm-up (temperature following time) makes thermal and drift the
+    /// same pattern: named, either one is flagged; a temperature that swings
+    /// separates them, and nothing is said; nor when neither is named.
+    #[test]
+    fn thermal_and_drift_are_flagged_only_when_the_run_confounds_them() {
+        let warm = run(0.0);
+        assert!(time_warning(&warm, &[Effect::Thermal]).is_some());
+        assert!(time_warning(&warm, &[Effect::Gain, Effect::Drift]).is_some());
+        assert!(time_warning(&warm, &[Effect::Gain]).is_none());
+        let swing = run(3.0);
+        assert!(time_warning(&swing, &[Effect::Thermal]).is_none());
+    }
 }
