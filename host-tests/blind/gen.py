@@ -315,10 +315,12 @@ def solve(a, b):
     return x
 
 
-def refit(e, u, planes, target):
+def refit(e, u, planes, target, damped=False):
     """The best zero point + beam direction (5 parameters: E moves in 3-D,
     u tilts about two axes normal to it) for readings `target` of `planes`
-    (Gauss-Newton, numerical derivatives): returns (E, u)."""
+    (Gauss-Newton, numerical derivatives): returns (E, u). `damped` halves
+    a step that does not lower the residual sum of squares (noisy data and
+    few poses; noise-free refits converge without)."""
     t1 = unit(cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0]))
     t2 = cross(u, t1)
 
@@ -344,6 +346,15 @@ def refit(e, u, planes, target):
         step = solve(ata, atr)
         if step is None:
             break
+        if damped:
+            rss0 = sum(x * x for x in r)
+            for _ in range(30):
+                q = [a + b for a, b in zip(p, step)]
+                if sum((t - f) ** 2 for t, f in zip(target, model(q))) <= rss0:
+                    break
+                step = [x / 2 for x in step]
+            else:
+                break
         p = [a + b for a, b in zip(p, step)]
     return head(p)
 
@@ -371,7 +382,8 @@ def oracle_heldout(head, planes, target, skip, rng, k=5):
         train = [j for j in keep if fold[j] != f]
         test = [j for j in keep if fold[j] == f]
         for i, (e, u) in enumerate(head):
-            e2, u2 = refit(e, u, [planes[j] for j in train], [target[j][i] for j in train])
+            e2, u2 = refit(e, u, [planes[j] for j in train], [target[j][i] for j in train],
+                           damped=True)
             for j in test:
                 out[j][i] = target[j][i] - beam_distance(e2, u2, planes[j])
     return out
