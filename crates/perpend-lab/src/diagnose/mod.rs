@@ -667,7 +667,6 @@ fn forward(
             .collect();
         // As for the first effect: the noise from the full model.
         let Ok((_, _, _, d)) = settle(
-            Effect::None,
             nominal,
             poses,
             &r,
@@ -728,11 +727,11 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
 /// Most effects named together.
 pub const MAX_EFFECTS: usize = 3;
 
-/// One round of noise → expectation → decision, with the noise estimated
-/// from the residuals of model `from` fitted on all poses.
+/// Noise → expectation → decision, with the noise estimated from the
+/// residuals of the full model fitted on all poses (of the paper's model
+/// when not even one candidate fits).
 #[allow(clippy::too_many_arguments)]
 fn settle(
-    from: Effect,
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
     refs: &Refs,
@@ -742,13 +741,8 @@ fn settle(
     s: &Settings,
     implausible: &[Effect],
 ) -> Result<(NoiseEstimate, NoiseModel, Expectation, Decision)> {
-    let (fits, resid) = if from == Effect::None {
-        noise::full_residuals(nominal, poses, refs, plan.models, &s.lsq)
-            .unwrap_or_else(|| (measured.base_fit.clone(), measured.insample.clone()))
-    } else {
-        noise::model_residuals(from, nominal, poses, refs, &s.lsq)
-            .ok_or_else(|| anyhow!("{} cannot be fitted on all poses", from.name()))?
-    };
+    let (fits, resid) = noise::full_residuals(nominal, poses, refs, plan.models, &s.lsq)
+        .unwrap_or_else(|| (measured.base_fit.clone(), measured.insample.clone()));
     let estimate = noise::estimate(
         nominal, poses, refs, &s.lsq, &fits, &resid, declared, s.tracker,
     );
@@ -839,7 +833,6 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     // The noise comes from the full model (every candidate at once): an
     // effect not yet named is not counted as noise.
     let (estimate, noise, expected, mut decision) = settle(
-        Effect::None,
         &nominal,
         poses,
         &refs,
