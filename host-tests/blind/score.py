@@ -328,10 +328,13 @@ def markdown(cells):
         same = max(c.get("single", {}).get("same_max", 0), c.get("pair", {}).get("same_max", 0))
         fl = sorted(c.get("_floor", {}).get("ratios", []))
         fls = "–" if not fl else "%.2f (%.2f-%.2f)" % (fl[len(fl) // 2], fl[0], fl[-1])
-        lines.append("| %s | %s | %s | %s | %s (%s) | %s | %.2f | %.2f | %s | %s / %s |" % (
+        def ratio(x):
+            return "%.2f" % x if x > 0 else "–"
+
+        lines.append("| %s | %s | %s | %s | %s (%s) | %s | %s | %s | %s | %s / %s |" % (
             reg, fps, cell(c, "single"), cell(c, "pair"), cell(c, "blunders", "found"),
-            cell(c, "blunders"), cell(c, "ripple"), same, rm, fls, cell(c, "small single"),
-            cell(c, "small pair")))
+            cell(c, "blunders"), cell(c, "ripple"), ratio(same), ratio(rm), fls,
+            cell(c, "small single"), cell(c, "small pair")))
     lim = [(reg, c) for reg, c in cells.items() if reg.startswith("limit")]
     if lim:
         lines += ["", "| visible effect (RMS the paper's model cannot absorb, × noise) | singles named |", "|---|---|"]
