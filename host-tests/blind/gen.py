@@ -315,6 +315,39 @@ def solve(a, b):
     return x
 
 
+def gauss_newton(model, npar, target, iters, step_of, damped):
+    """Parameters (from 0) of `model` (parameters -> predictions) that best
+    fit `target`: `iters` Gauss-Newton steps with forward differences of
+    step `step_of(j)`; `damped` halves a step that does not lower the
+    residual sum of squares (and stops when 30 halvings do not)."""
+    p = [0.0] * npar
+    for _ in range(iters):
+        f0 = model(p)
+        r = [t - f for t, f in zip(target, f0)]
+        jac = []
+        for j in range(npar):
+            h = step_of(j)
+            q = p[:]
+            q[j] += h
+            jac.append([(a - b) / h for a, b in zip(model(q), f0)])
+        ata = [[sum(x * y for x, y in zip(jac[a], jac[b])) for b in range(npar)] for a in range(npar)]
+        atr = [sum(x * y for x, y in zip(jac[a], r)) for a in range(npar)]
+        step = solve(ata, atr)
+        if step is None:
+            break
+        if damped:
+            rss0 = sum(x * x for x in r)
+            for _ in range(30):
+                q = [a + b for a, b in zip(p, step)]
+                if sum((t - f) ** 2 for t, f in zip(target, model(q))) <= rss0:
+                    break
+                step = [x / 2 for x in step]
+            else:
+                break
+        p = [a + b for a, b in zip(p, step)]
+    return p
+
+
 def refit(e, u, planes, target, damped=False):
     """The best zero point + beam direction (5 parameters: E moves in 3-D,
     u tilts about two axes normal to it) for readings `target` of `planes`
@@ -331,32 +364,7 @@ def refit(e, u, planes, target, damped=False):
         e2, u2 = head(p)
         return [beam_distance(e2, u2, pl) for pl in planes]
 
-    p = [0.0] * 5
-    for _ in range(6):
-        f0 = model(p)
-        r = [t - f for t, f in zip(target, f0)]
-        jac = []
-        for j in range(5):
-            h = 1e-6 if j < 3 else 1e-8
-            q = p[:]
-            q[j] += h
-            jac.append([(a - b) / h for a, b in zip(model(q), f0)])
-        ata = [[sum(x * y for x, y in zip(jac[a], jac[b])) for b in range(5)] for a in range(5)]
-        atr = [sum(x * y for x, y in zip(jac[a], r)) for a in range(5)]
-        step = solve(ata, atr)
-        if step is None:
-            break
-        if damped:
-            rss0 = sum(x * x for x in r)
-            for _ in range(30):
-                q = [a + b for a, b in zip(p, step)]
-                if sum((t - f) ** 2 for t, f in zip(target, model(q))) <= rss0:
-                    break
-                step = [x / 2 for x in step]
-            else:
-                break
-        p = [a + b for a, b in zip(p, step)]
-    return head(p)
+    return head(gauss_newton(model, 5, target, 6, lambda j: 1e-6 if j < 3 else 1e-8, damped))
 
 
 def refit_residuals(e, u, planes, target):

@@ -30,7 +30,7 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import gen  # noqa: E402
 import score  # noqa: E402
-from gen import add, beam_distance, cross, scale, solve, unit  # noqa: E402
+from gen import add, beam_distance, cross, gauss_newton, scale, unit  # noqa: E402
 
 
 def power_basis(deg):
@@ -69,30 +69,8 @@ def fit_poly(e, u, planes, target, basis, nb, dref):
             out.append(f + sum(p[5 + j] * b[j] for j in range(nb)))
         return out
 
-    p = [0.0] * npar
-    for _ in range(8):
-        f0 = model(p, planes)
-        r = [t - f for t, f in zip(target, f0)]
-        jac = []
-        for j in range(npar):
-            h = 1e-8 if j in (3, 4) else 1e-6
-            q = p[:]
-            q[j] += h
-            jac.append([(a - b) / h for a, b in zip(model(q, planes), f0)])
-        ata = [[sum(x * y for x, y in zip(jac[a], jac[b])) for b in range(npar)] for a in range(npar)]
-        atr = [sum(x * y for x, y in zip(jac[a], r)) for a in range(npar)]
-        step = solve(ata, atr)
-        if step is None:
-            break
-        rss0 = sum(x * x for x in r)
-        for _ in range(30):  # halve a step that does not lower the RSS
-            q = [a + b for a, b in zip(p, step)]
-            if sum((t - f) ** 2 for t, f in zip(target, model(q, planes))) <= rss0:
-                break
-            step = [x / 2 for x in step]
-        else:
-            break
-        p = [a + b for a, b in zip(p, step)]
+    p = gauss_newton(lambda q: model(q, planes), npar, target, 8,
+                     lambda j: 1e-8 if j in (3, 4) else 1e-6, True)
     return lambda pls: model(p, pls)
 
 

@@ -386,12 +386,7 @@ impl Diagnosis {
     /// Every effect named, in the order selected (empty for `none` and
     /// `unexplained`).
     pub fn effects(&self) -> Vec<Effect> {
-        match self.effect {
-            Effect::None | Effect::Unexplained => Vec::new(),
-            e => std::iter::once(e)
-                .chain(self.also.iter().map(|st| st.effect))
-                .collect(),
-        }
+        named(self.effect, &self.also)
     }
 
     /// The `--json` object.
@@ -559,6 +554,17 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
         }
     }
     w
+}
+
+/// The effects named: the verdict `effect` and those the forward
+/// selection added (`also`); none for `none` and `unexplained`.
+fn named(effect: Effect, also: &[Step]) -> Vec<Effect> {
+    match effect {
+        Effect::None | Effect::Unexplained => Vec::new(),
+        e => std::iter::once(e)
+            .chain(also.iter().map(|st| st.effect))
+            .collect(),
+    }
 }
 
 /// Above this |r| between temperature and time, a thermal coefficient and
@@ -903,13 +909,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     });
     let checks = report::checks(&measured, &expected, &fitted, &decision);
     let mut warnings = noise_warnings(&estimate, effect);
-    let named: Vec<Effect> = match effect {
-        Effect::None | Effect::Unexplained => Vec::new(),
-        e => std::iter::once(e)
-            .chain(also.iter().map(|st| st.effect))
-            .collect(),
-    };
-    warnings.extend(time_warning(poses, &named));
+    warnings.extend(time_warning(poses, &named(effect, &also)));
     Ok(Diagnosis {
         effect,
         decision,
