@@ -273,6 +273,45 @@ def test_calibration_store_reset_read_back(board):
     assert abort_code(lambda: sdo.download(0x2101, 8, struct.pack("<f", 0.002))) == 0x08000021
 
 
+RANGE = 0x06090030
+TABLE_KNOTS = (-6.0, -3.0, 0.0, 2.0, 6.0)  # mm about d_ref, exact in REAL32
+TABLE_COEFFS = (0.001, -0.002, 0.0015)  # per mm
+
+
+def test_linearity_table_through_the_eds_store_and_reset(board):
+    """0x2101..0x2104 sub 16..23 (the linearity table) as the EDS describes
+    them: knots first, then values; a write that would leave an active
+    table with knots out of order is refused and changes nothing; the table
+    survives store and reset node, and the board keeps measuring."""
+    sdo = board.node.sdo
+    od = board.node.object_dictionary
+    for index in (0x2101, 0x2102, 0x2103, 0x2104):
+        assert sdo[index][0].raw == 23
+        assert od[index][16].name == "Linearity table knot 0 mm"
+        assert od[index][23].name == "Linearity table value 2 mm"
+    sdo[0x2010].raw = UNLOCK
+    # a value on the default knots (all zero) is refused
+    assert abort_code(lambda: sdo.download(0x2103, 21, struct.pack("<f", 0.001))) == RANGE
+    assert sdo[0x2103][21].raw == 0.0
+    for k, v in enumerate(TABLE_KNOTS):
+        sdo[0x2103][16 + k].raw = v
+    for k, v in enumerate(TABLE_COEFFS):
+        sdo[0x2103][21 + k].raw = v
+    # knots out of order under the active table
+    assert abort_code(lambda: sdo.download(0x2103, 19, struct.pack("<f", 0.0))) == RANGE
+    assert sdo[0x2103][19].raw == 2.0
+    sdo[0x1010][1].raw = SAVE
+    reset_node(board)
+    got = [sdo[0x2103][16 + k].raw for k in range(8)]
+    want = [struct.unpack("<f", struct.pack("<f", v))[0] for v in TABLE_KNOTS + TABLE_COEFFS]
+    assert got == want
+    assert [sdo[0x2102][16 + k].raw for k in range(8)] == [0.0] * 8
+    # a new sample: the board finds the calibration valid (status bit 21 clear)
+    n0 = sdo[0x2007].raw
+    assert wait_until(lambda: sdo[0x2007].raw != n0)
+    assert sdo[0x2005].raw & (1 << 21) == 0
+
+
 def test_restore_defaults_applies_at_reset(board):
     sdo = board.node.sdo
     default_period = canopen.import_od(str(EDS), node_id=NODE_ID)[0x2300][1].default

@@ -485,7 +485,7 @@ fn nan_and_infinity_into_every_real32_calibration_object() {
         .into_iter()
         .filter(|(_, e)| e.ty == DataType::Real32)
         .collect();
-    assert_eq!(reals.len(), 4 * 15 + 4 * 3);
+    assert_eq!(reals.len(), 4 * 23 + 4 * 3);
     for (index, e) in reals {
         for v in nans {
             refused(&mut b, RANGE, index, e.sub, |b| {
@@ -539,8 +539,8 @@ fn writes_to_read_only_objects_are_refused() {
     refused(&mut b, NO_OBJECT, 0x1FFF, 0, |b| {
         Some(b.write_u32(0x1FFF, 0, 1))
     });
-    refused(&mut b, NO_SUB, 0x2101, 16, |b| {
-        Some(b.write_u32(0x2101, 16, 1))
+    refused(&mut b, NO_SUB, 0x2101, 24, |b| {
+        Some(b.write_u32(0x2101, 24, 1))
     });
     refused(&mut b, NO_SUB, 0x2300, 5, |b| {
         Some(b.write_u32(0x2300, 5, 1))
@@ -962,7 +962,7 @@ fn attacks_on_the_board_reach_neither_pipeline_nor_flash() {
         .unwrap()
         .unwrap();
     let before_nan = dump(b.app.device());
-    for sub in 1..=15u8 {
+    for sub in 1..=23u8 {
         let r = b.write(0x2103, sub, &f32::NAN.to_le_bytes());
         match r {
             Some(Err((c, _, _))) => assert_eq!(c, RANGE),

@@ -21,7 +21,9 @@
 //!   counts the instructions executed between the program's `bench_mark`
 //!   calls. Installs `qemu-system-arm` from Debian when it is missing.
 //!   Prints a table, or JSON with `--json` (`pipeline_insns`,
-//!   `pipeline_sphere_insns`, `app_update_insns`, `app_sync_insns`,
+//!   `pipeline_sphere_insns`, `pipeline_sphere_steep_insns`,
+//!   `pipeline_table_insns` (plane pipeline with an active linearity table
+//!   on every sensor), `app_update_insns`, `app_sync_insns`,
 //!   `ekf_update_insns`, `sqrtf_libm_insns`, `sqrtf_vsqrt_insns`, `reps`).
 //!
 //! Limits: QEMU counts instructions, not cycles (the M4 pipeline, flash
@@ -234,9 +236,9 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     let f = fs::File::open(&trace).map_err(|e| format!("{}: {e}", trace.display()))?;
     let s = count_sections(BufReader::new(f), range)?;
     let _ = fs::remove_file(&trace);
-    if s.len() < 15 {
+    if s.len() < 17 {
         return Err(format!(
-            "expected 15 sections in the trace, found {}",
+            "expected 17 sections in the trace, found {}",
             s.len()
         ));
     }
@@ -251,6 +253,7 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     r.insert("app_update_insns", per(s[10]));
     r.insert("app_sync_insns", per(s[12]));
     r.insert("pipeline_sphere_steep_insns", per(s[14]));
+    r.insert("pipeline_table_insns", per(s[16]));
     r.insert("reps", BENCH_REPS);
     if json {
         println!(

@@ -892,3 +892,89 @@ fn sync_locked_scan_and_bus_off_reaction() {
     b.poll();
     assert_eq!(b.app.device().nmt_state(), NmtState::PreOperational);
 }
+
+/// The stored item as it is in flash: the record's version and the whole
+/// item (record + device image).
+fn stored_item(store: &mut SeqStore<HostFlash>) -> Vec<u8> {
+    let mut raw = [0u8; crate::storage::MAX_ITEM];
+    let n = store.load(&mut raw).unwrap().expect("an item");
+    raw[..n].to_vec()
+}
+
+/// A board whose flash holds a version-1 record (firmware before the
+/// linearity table: record version 1 followed by a device image of layout
+/// 4) boots from it, record-only settings included, with inactive tables;
+/// the next store (0x1010) writes a version-2 record that decodes to the
+/// same values.
+#[test]
+fn v1_record_boots_and_the_next_store_writes_v2() {
+    use perpend_core::params::{record_as_v1, RECORD_LEN, V1_RECORD_LEN};
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 1, 50.5).unwrap();
+    b.write_f32(0x2103, 8, 2e-3).unwrap();
+    b.write(0x2300, 1, &3000u32.to_le_bytes()).unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    b.app.device().persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = perpend_can::device::image_as_layout(&img, 4, &mut old);
+    // settings only the record holds prove that the record was read
+    let mut p = *b.app.pipeline().params();
+    p.stamp = 5;
+    p.acq.jump_mm = 0.8;
+    p.acq.vref_mv = 3000;
+    assert!(p.head.sensors.iter().all(|s| !s.ext.table.is_active()));
+    let mut v2 = [0u8; RECORD_LEN];
+    p.encode(&mut v2).unwrap();
+    let mut item = record_as_v1(&v2).to_vec();
+    item.extend_from_slice(&old[..n]);
+    let mut f = b.app.into_store().into_flash();
+    f.power_on();
+    let mut store = host_store(f);
+    store.store(&item).unwrap();
+    let raw = stored_item(&mut store);
+    assert_eq!((raw.len(), &raw[4..6]), (V1_RECORD_LEN + n, &[1u8, 0][..]));
+    let mut b = Bench::new(store.into_flash());
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert!(!b.app.device().emcy_active(emcy::DATA_SET));
+    assert!(b.app.pipeline().calibrated());
+    assert_eq!(*b.app.pipeline().params(), p);
+    // store: version 2 of the same values (stamp + 1), then the image
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    assert_eq!(b.app.stores(), 1);
+    let mut store = b.app.into_store();
+    let raw = stored_item(&mut store);
+    assert_eq!(raw.len(), RECORD_LEN + IMAGE_LEN);
+    assert_eq!(&raw[4..6], &2u16.to_le_bytes());
+    let want = Params { stamp: 6, ..p };
+    assert_eq!(Params::decode_with_len(&raw), Ok((want, RECORD_LEN)));
+    let b = Bench::new(store.into_flash());
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert_eq!(*b.app.pipeline().params(), want);
+}
+
+/// A linearity table written over CAN (0x2102 sub 16..23) is stored in the
+/// version-2 record and in the image, and boots again.
+#[test]
+fn table_written_over_can_is_stored_in_the_v2_record() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    let knots = [-12.0f32, -5.0, 0.0, 4.5, 12.0];
+    let coeffs = [1e-3f32, -2.5e-3, 1.25e-3];
+    for (k, v) in knots.iter().chain(coeffs.iter()).enumerate() {
+        b.write_f32(0x2102, 16 + k as u8, *v).unwrap();
+    }
+    let table = b.app.pipeline().params().head.sensors[1].ext.table;
+    assert_eq!((table.knots, table.coeffs), (knots, coeffs));
+    assert!(b.app.pipeline().config_ok());
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    let before = *b.app.pipeline().params();
+    let mut store = b.app.into_store();
+    let raw = stored_item(&mut store);
+    let (rec, _) = Params::decode_with_len(&raw).unwrap();
+    assert_eq!(rec.head.sensors[1].ext.table, table);
+    assert!(!rec.head.sensors[0].ext.table.is_active());
+    let b = Bench::new(store.into_flash());
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert_eq!(b.app.pipeline().params().head, before.head);
+}

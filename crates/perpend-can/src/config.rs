@@ -6,7 +6,7 @@
 //! dictionary holds (REAL32); conversions to the core's generic types
 //! ([`SensorCalibration::to_sensor`]) go through [`perpend_core::Real`].
 
-use perpend_core::ext::Extension;
+use perpend_core::ext::{Extension, LinTable, TABLE_COEFFS, TABLE_KNOTS};
 use perpend_core::head::{Head4, Sensor};
 use perpend_core::normal::Method;
 use perpend_core::params::{Bitrate, Frontend, Params, Transfer};
@@ -108,9 +108,20 @@ pub struct Identity {
     pub serial: u32,
 }
 
+/// Number of values of a sensor calibration object (0x2101..0x2104 sub
+/// 1..=23).
+pub const CAL_VALUES: usize = 15 + TABLE_KNOTS + TABLE_COEFFS;
+
+/// First sub-index of the linearity table's knots in 0x2101..0x2104.
+pub const CAL_SUB_KNOTS: u8 = 16;
+/// First sub-index of the linearity table's values in
+/// 0x2101..0x2104.
+pub const CAL_SUB_COEFFS: u8 = CAL_SUB_KNOTS + TABLE_KNOTS as u8;
+
 /// Calibration of one sensor: objects 0x2101..0x2104, one per sensor.
 /// Sub-index order is the field order below (sub 1 = `zero[0]` ...
-/// sub 15 = `drift`). Units: mm, mm/°C, °C, mm/s as in
+/// sub 15 = `drift`, sub 16..20 the table's knots, sub 21..23 its
+/// values). Units: mm, mm/°C, °C, mm/s, mm⁻¹ as in
 /// [`perpend_core::ext::Extension`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SensorCalibration {
@@ -136,11 +147,19 @@ pub struct SensorCalibration {
     pub temp_ref: f32,
     /// Sub 15: drift with time [mm/s].
     pub drift: f32,
+    /// Sub 16-20: knots `ξ_0..ξ_4` of the linearity table \[mm\] about
+    /// `d_ref` ([`perpend_core::ext::LinTable`]).
+    pub knots: [f32; TABLE_KNOTS],
+    /// Sub 21-23: values `v_0..v_2` \[mm\] of the linearity table at its
+    /// interior knots (all zero: no table, the knots are ignored).
+    pub coeffs: [f32; TABLE_COEFFS],
 }
 
 impl SensorCalibration {
-    /// The 15 values in sub-index order (sub 1 first).
-    pub fn to_array(&self) -> [f32; 15] {
+    /// The [`CAL_VALUES`] values in sub-index order (sub 1 first).
+    pub fn to_array(&self) -> [f32; CAL_VALUES] {
+        let [k0, k1, k2, k3, k4] = self.knots;
+        let [c0, c1, c2] = self.coeffs;
         [
             self.zero[0],
             self.zero[1],
@@ -157,11 +176,19 @@ impl SensorCalibration {
             self.thermal,
             self.temp_ref,
             self.drift,
+            k0,
+            k1,
+            k2,
+            k3,
+            k4,
+            c0,
+            c1,
+            c2,
         ]
     }
 
-    /// From the 15 values in sub-index order.
-    pub fn from_array(v: &[f32; 15]) -> Self {
+    /// From the [`CAL_VALUES`] values in sub-index order.
+    pub fn from_array(v: &[f32; CAL_VALUES]) -> Self {
         Self {
             zero: [v[0], v[1], v[2]],
             dir: [v[3], v[4], v[5]],
@@ -174,6 +201,8 @@ impl SensorCalibration {
             thermal: v[12],
             temp_ref: v[13],
             drift: v[14],
+            knots: [v[15], v[16], v[17], v[18], v[19]],
+            coeffs: [v[20], v[21], v[22]],
         }
     }
 
@@ -192,6 +221,8 @@ impl SensorCalibration {
             thermal: f(s.ext.thermal),
             temp_ref: f(s.ext.temp_ref),
             drift: f(s.ext.drift),
+            knots: s.ext.table.knots.map(f),
+            coeffs: s.ext.table.coeffs.map(f),
         }
     }
 
@@ -199,22 +230,45 @@ impl SensorCalibration {
     ///
     /// # Errors
     /// [`perpend_core::Error`] for a non-finite zero point or a zero-length
-    /// or non-finite direction.
+    /// or non-finite direction; [`perpend_core::Error::OutOfRange`] for an
+    /// active linearity table whose knots are not finite and strictly
+    /// ascending ([`SensorCalibration::table_valid`]).
     pub fn to_sensor<T: Real>(&self) -> perpend_core::Result<Sensor<T>> {
         let c = |x: f32| T::lit(x as f64);
         let v3 = |a: [f32; 3]| nalgebra::Vector3::new(c(a[0]), c(a[1]), c(a[2]));
         let mut s = Sensor::new(v3(self.zero), v3(self.dir))?;
+        if !self.table_valid() {
+            return Err(perpend_core::Error::OutOfRange("linearity table knots"));
+        }
         s.ext = self.extension();
         Ok(s)
     }
 
-    /// The extension coefficients (sub 7..15) as the core's type.
+    /// The linearity table (sub 16..23) as the core's type.
+    pub fn table<T: Real>(&self) -> LinTable<T> {
+        let c = |x: f32| T::lit(x as f64);
+        LinTable {
+            knots: self.knots.map(c),
+            coeffs: self.coeffs.map(c),
+        }
+    }
+
+    /// Whether the linearity table is usable: inactive (every coefficient
+    /// zero, the knots are then ignored) or with finite, strictly
+    /// ascending knots ([`LinTable::knots_valid`]).
+    pub fn table_valid(&self) -> bool {
+        let t = self.table::<f32>();
+        !t.is_active() || t.knots_valid()
+    }
+
+    /// The extension coefficients (sub 7..23) as the core's type.
     pub fn extension<T: Real>(&self) -> Extension<T> {
         let c = |x: f32| T::lit(x as f64);
         Extension {
             d_ref: c(self.d_ref),
             gain: c(self.gain),
             nonlinearity: [c(self.nl2), c(self.nl3)],
+            table: self.table(),
             incidence: c(self.incidence),
             crosstalk: c(self.crosstalk),
             thermal: c(self.thermal),
@@ -631,8 +685,63 @@ mod tests {
 
     #[test]
     fn calibration_array_round_trip() {
-        let a: [f32; 15] = core::array::from_fn(|i| i as f32 * 1.5 - 3.0);
-        assert_eq!(SensorCalibration::from_array(&a).to_array(), a);
+        let a: [f32; CAL_VALUES] = core::array::from_fn(|i| i as f32 * 1.5 - 3.0);
+        let c = SensorCalibration::from_array(&a);
+        assert_eq!(c.to_array(), a);
+        // sub 16..20 are the knots, 21..23 the coefficients
+        assert_eq!(c.knots[0], a[CAL_SUB_KNOTS as usize - 1]);
+        assert_eq!(c.coeffs[0], a[CAL_SUB_COEFFS as usize - 1]);
+        assert_eq!(c.coeffs[TABLE_COEFFS - 1], a[CAL_VALUES - 1]);
+    }
+
+    fn table_sensor() -> Sensor<f64> {
+        let mut s = Params::factory().head.sensors[2].cast::<f64>();
+        s.ext.d_ref = 45.0;
+        s.ext.table = LinTable {
+            knots: [-6.0, -3.0, 0.0, 2.0, 6.0],
+            coeffs: [1e-3, -2e-3, 1.5e-3],
+        };
+        s
+    }
+
+    /// The table goes from a core sensor through the object values and
+    /// back unchanged (values exact in `f32`).
+    #[test]
+    fn table_round_trips_through_the_calibration() {
+        let s = table_sensor();
+        let c = SensorCalibration::from_sensor(&s);
+        assert_eq!(c.knots, [-6.0, -3.0, 0.0, 2.0, 6.0]);
+        let back = c.to_sensor::<f64>().unwrap();
+        let tol = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
+        assert_eq!(back.ext.table.knots, s.ext.table.knots);
+        for (a, b) in back.ext.table.coeffs.iter().zip(s.ext.table.coeffs) {
+            assert!(tol(*a, b), "{a} {b}");
+        }
+        // the correction the board applies is the core's, within f32
+        let ctx = perpend_core::ext::Context::default();
+        let want = s.ext.correct(47.0, None, 1.0, &ctx);
+        let got = c.extension::<f64>().correct(47.0, None, 1.0, &ctx);
+        assert_relative_eq!(got, want, epsilon = 1e-6);
+        assert!(got != 47.0);
+    }
+
+    /// An active table with knots not strictly ascending is refused; the
+    /// same knots without coefficients are ignored.
+    #[test]
+    fn bad_table_is_refused_only_when_active() {
+        let mut c = SensorCalibration::from_sensor(&table_sensor());
+        c.knots[3] = c.knots[2];
+        assert!(!c.table_valid());
+        assert_eq!(
+            c.to_sensor::<f32>().unwrap_err(),
+            perpend_core::Error::OutOfRange("linearity table knots")
+        );
+        c.knots = [0.0; TABLE_KNOTS];
+        c.knots[1] = f32::NAN;
+        assert!(c.to_sensor::<f32>().is_err());
+        c.coeffs = [0.0; TABLE_COEFFS];
+        assert!(c.table_valid());
+        assert!(!c.to_sensor::<f32>().unwrap().ext.table.is_active());
     }
 
     #[test]

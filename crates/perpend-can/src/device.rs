@@ -18,7 +18,8 @@ use perpend_core::params::Params;
 
 use crate::config::{
     bitrate_of, Acquisition, Communication, Defaults, Measurement, SensorCalibration, SurfaceModel,
-    TransferFunction, SURFACE_AXIS_MIN_LEN, SURFACE_CYLINDER, SURFACE_RADIUS_MIN_MM,
+    TransferFunction, CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_VALUES, SURFACE_AXIS_MIN_LEN,
+    SURFACE_CYLINDER, SURFACE_RADIUS_MIN_MM,
 };
 use crate::frame::Frame;
 pub use crate::od::Group;
@@ -138,6 +139,10 @@ pub const IMAGE_LEN_V2: usize = 8 + 4 * od::PERSISTENT_V2;
 /// still accepted by [`Device::load_image`].
 pub const IMAGE_LEN_V3: usize = 8 + 4 * od::PERSISTENT_V3;
 
+/// Length of an image of layout 4 (firmware before the linearity tables,
+/// 0x2101..0x2104 sub 16..23): still accepted by [`Device::load_image`].
+pub const IMAGE_LEN_V4: usize = 8 + 4 * od::PERSISTENT_V4;
+
 /// FNV-1a over (index, sub, type) of the entries persisted by image layout
 /// `layout` ([`od::Entry::since`]): changes when the persisted layout
 /// changes.
@@ -240,6 +245,39 @@ pub struct Device {
     sdo: SdoServer,
     /// LSS slave (`device_lss.rs`).
     lss: lss_glue::LssRt,
+}
+
+/// Whether the linearity table held in subs 16..23 of a sensor calibration
+/// object (`value(sub)`, raw bits) is usable
+/// ([`SensorCalibration::table_valid`]).
+fn table_ok(value: impl Fn(u8) -> u32) -> bool {
+    let f = |s: u8| f32::from_bits(value(s));
+    let c = SensorCalibration {
+        knots: core::array::from_fn(|k| f(CAL_SUB_KNOTS + k as u8)),
+        coeffs: core::array::from_fn(|k| f(CAL_SUB_COEFFS + k as u8)),
+        ..SensorCalibration::from_array(&[0.0; CAL_VALUES])
+    };
+    c.table_valid()
+}
+
+/// Whether every sensor's linearity table in the value slots `values` is
+/// usable (image and record loads check it after the per-entry limits).
+fn tables_ok(values: &[u32; ENTRIES]) -> Result<(), Error> {
+    for index in 0x2101..=0x2104u16 {
+        let value = |s: u8| {
+            slot(index, s)
+                .and_then(|n| values.get(n))
+                .copied()
+                .unwrap_or(0)
+        };
+        if !table_ok(value) {
+            return Err(Error::Value {
+                index,
+                sub: CAL_SUB_KNOTS,
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Whether an entry belongs to the stored parameter record (calibration
@@ -860,6 +898,7 @@ impl Core {
             }
             0x2300 => self.check_scan(sub, v).map(|()| None),
             0x2310 => self.check_surface(sub, v).map(|()| None),
+            0x2101..=0x2104 => self.check_table(index, sub, v).map(|()| None),
             0x2010 => {
                 if v == UNLOCK_SIGNATURE {
                     self.unlocked = true;
@@ -966,6 +1005,30 @@ impl Core {
         });
         let len2 = axis.iter().map(|a| a * a).sum::<f32>();
         if len2 >= SURFACE_AXIS_MIN_LEN * SURFACE_AXIS_MIN_LEN {
+            Ok(())
+        } else {
+            Err(SdoAbort::Range)
+        }
+    }
+
+    /// 0x2101..0x2104 sub 16..23 beyond the per-entry limits: the
+    /// linearity table the write leaves must be inactive (coefficients all
+    /// zero) or have strictly ascending knots
+    /// ([`SensorCalibration::table_valid`]); otherwise 0x06090030. Write
+    /// the knots before the coefficients, and zero the coefficients before
+    /// changing the knots of an active table.
+    fn check_table(&self, index: u16, sub: u8, v: u32) -> Result<(), SdoAbort> {
+        if sub < CAL_SUB_KNOTS {
+            return Ok(());
+        }
+        let value = |s: u8| {
+            if s == sub {
+                v
+            } else {
+                self.get(index, s)
+            }
+        };
+        if table_ok(value) {
             Ok(())
         } else {
             Err(SdoAbort::Range)
@@ -1393,7 +1456,7 @@ impl Device {
             return None;
         }
         let idx = 0x2101 + i as u16;
-        let a: [f32; 15] = core::array::from_fn(|k| self.core.get_f32(idx, k as u8 + 1));
+        let a: [f32; CAL_VALUES] = core::array::from_fn(|k| self.core.get_f32(idx, k as u8 + 1));
         Some(SensorCalibration::from_array(&a))
     }
 
@@ -1571,6 +1634,7 @@ impl Device {
             }
             next[s] = v;
         }
+        tables_ok(&next)?;
         self.core.values = next;
         for (s, _, e) in od::entries() {
             if e.persist && index_is_app(e) {
@@ -1646,6 +1710,7 @@ impl Device {
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
         let layout = match img.len() {
             IMAGE_LEN => od::LAYOUT,
+            IMAGE_LEN_V4 => 4,
             IMAGE_LEN_V3 => 3,
             IMAGE_LEN_V2 => 2,
             IMAGE_LEN_V1 => 1,
@@ -1684,6 +1749,7 @@ impl Device {
                 p += 4;
             }
         }
+        tables_ok(&next)?;
         for k in 0..TPDOS {
             let base = od::find(0x1A00 + k as u16, 0).map(|(s, _)| s).unwrap_or(0);
             let n = next[base] as usize;

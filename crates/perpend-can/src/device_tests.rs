@@ -1110,3 +1110,113 @@ proptest! {
 
 #[path = "device_sync_tests.rs"]
 mod sync_tests;
+
+/// Knots and coefficients of the linearity table used below [mm, mm⁻¹]:
+/// exact in `f32`.
+const KNOTS: [f32; 5] = [-6.0, -3.0, 0.0, 2.0, 6.0];
+const COEFFS: [f32; 3] = [1.0e-3, -2.0e-3, 1.5e-3];
+
+/// Writes the table into sensor calibration object `index`, knots first.
+fn write_table(b: &mut Bus, index: u16) {
+    for (k, v) in KNOTS.iter().enumerate() {
+        b.write_f32(index, CAL_SUB_KNOTS + k as u8, *v).unwrap();
+    }
+    for (k, v) in COEFFS.iter().enumerate() {
+        b.write_f32(index, CAL_SUB_COEFFS + k as u8, *v).unwrap();
+    }
+}
+
+/// The linearity table (0x2101..0x2104 sub 16..23) goes in and out by
+/// SDO bit for bit, reaches the typed view, the stored record bridge and
+/// the persistence image, and sub 0 announces 23.
+#[test]
+fn linearity_table_round_trips_through_sdo() {
+    let mut b = Bus::new();
+    assert_eq!(b.upload(0x2103, 0).unwrap(), vec![23]);
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    write_table(&mut b, 0x2103);
+    for (k, v) in KNOTS.iter().chain(COEFFS.iter()).enumerate() {
+        let got = b.upload(0x2103, CAL_SUB_KNOTS + k as u8).unwrap();
+        assert_eq!(got, v.to_le_bytes().to_vec(), "sub {}", 16 + k);
+    }
+    let c = b.dev.calibration(2).unwrap();
+    assert_eq!((c.knots, c.coeffs), (KNOTS, COEFFS));
+    // the other sensors keep no table
+    assert!(!b.dev.calibration(1).unwrap().table::<f32>().is_active());
+    let p = b.dev.params(&perpend_core::params::Params::factory());
+    let t = p.head.sensors[2].ext.table;
+    assert_eq!((t.knots, t.coeffs), (KNOTS, COEFFS));
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_image(&img).unwrap();
+    assert_eq!(d.calibration(2), Some(c));
+    // and through load_params (the stored record at boot)
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_params(&p).unwrap();
+    assert_eq!(d.calibration(2), Some(c));
+}
+
+/// A write that would leave an active table with knots not strictly
+/// ascending is refused (0x06090030) and changes nothing; inactive
+/// tables take any knots. Loads of such a table are refused as a whole.
+#[test]
+fn bad_linearity_table_is_refused() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    // coefficients on the default knots (all 0): refused
+    assert_eq!(b.write_f32(0x2101, CAL_SUB_COEFFS, 1e-3), Err(0x0609_0030));
+    assert_eq!(b.dev.calibration(0).unwrap().coeffs, [0.0; 3]);
+    write_table(&mut b, 0x2101);
+    // a knot that coincides with its neighbour, or goes backwards
+    assert_eq!(b.write_f32(0x2101, 19, 0.0), Err(0x0609_0030));
+    assert_eq!(b.write_f32(0x2101, 16, -2.0), Err(0x0609_0030));
+    assert_eq!(b.dev.calibration(0).unwrap().knots, KNOTS);
+    // a move that keeps the order is taken
+    b.write_f32(0x2101, 20, 8.0).unwrap();
+    // with the coefficients zeroed the knots are free again
+    for k in 0..3 {
+        b.write_f32(0x2101, CAL_SUB_COEFFS + k, 0.0).unwrap();
+    }
+    b.write_f32(0x2101, 19, 0.0).unwrap();
+    // a forged image and a record with such a table: refused whole
+    write_table(&mut b, 0x2102);
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let pos = od::entries()
+        .filter(|(_, _, e)| e.persist)
+        .position(|(_, i, e)| i == 0x2102 && e.sub == 18)
+        .unwrap();
+    img[8 + 4 * pos..12 + 4 * pos].copy_from_slice(&(-3.0f32).to_bits().to_le_bytes());
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    let bad = Error::Value {
+        index: 0x2102,
+        sub: 16,
+    };
+    assert_eq!(d.load_image(&img), Err(bad));
+    let mut p = perpend_core::params::Params::factory();
+    p.head.sensors[1].ext.table.coeffs = [1e-3, 0.0, 0.0];
+    assert_eq!(d.load_params(&p), Err(bad));
+    assert!(d.calibration_is_default());
+}
+
+/// An image written before layout 5 (no linearity tables) loads; the
+/// tables keep their current values.
+#[test]
+fn layout_4_image_loads() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2104, 7, 42.0).unwrap();
+    write_table(&mut b, 0x2104);
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = image_as_layout(&img, 4, &mut old);
+    assert_eq!(n, IMAGE_LEN_V4);
+    assert_eq!(IMAGE_LEN - IMAGE_LEN_V4, 4 * 4 * 8);
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_image(&old[..n]).unwrap();
+    let c = d.calibration(3).unwrap();
+    assert_eq!(c.d_ref, 42.0);
+    assert_eq!((c.knots, c.coeffs), ([0.0; 5], [0.0; 3]));
+}

@@ -25,7 +25,7 @@ use crate::od::{self, Access, DataType, Init, Kind, Limits, Object, Text};
 /// layout, changed by hand together with [`FILE_VERSION`].
 pub const FILE_DATE: &str = "11-24-2026";
 /// `FileVersion` of the EDS: increment when the dictionary changes.
-pub const FILE_VERSION: u32 = 2;
+pub const FILE_VERSION: u32 = 3;
 
 fn access(a: Access) -> &'static str {
     match a {

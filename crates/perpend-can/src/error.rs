@@ -17,7 +17,9 @@ pub enum Error {
     /// (firmware with other persisted objects): it is ignored as a whole.
     ImageLayout,
     /// A value of a persistence image or parameter record is outside its
-    /// object's limits (a corrupted or forged record): nothing was loaded.
+    /// object's limits, or a sensor's linearity table is active with knots
+    /// not strictly ascending (reported as sub 16 of its object): a
+    /// corrupted or forged record; nothing was loaded.
     Value {
         /// Object index.
         index: u16,

@@ -156,7 +156,7 @@
 //! | 0x2007 | 0 | sample counter, UNSIGNED32 | ro, PDO |
 //! | 0x2008 | 1, 2 | CAN transmit queue: frames dropped (queue full), peak fill; UNSIGNED32, since power-on | ro, PDO |
 //! | 0x2010 | 0 | calibration unlock, UNSIGNED32: write "ucal" 0x6C616375 to unlock, 0 to lock; reads 1/0 | rw, pre-op |
-//! | 0x2101..4 | 1..15 | sensor calibration: zero x,y,z \[mm\], direction x,y,z, d_ref \[mm\], gain, nl2, nl3, incidence \[mm\], crosstalk, thermal [mm/°C], temp_ref [°C], drift [mm/s] | rw, pre-op + unlock |
+//! | 0x2101..4 | 1..23 | sensor calibration: zero x,y,z \[mm\], direction x,y,z, d_ref \[mm\], gain, nl2, nl3, incidence \[mm\], crosstalk, thermal [mm/°C], temp_ref [°C], drift [mm/s]; 16..20 linearity table knots \[mm\] about d_ref, 21..23 its coefficients [mm⁻¹] (an active table needs strictly ascending knots, else 0x06090030) | rw, pre-op + unlock |
 //! | 0x2201..4 | 1..4 | transfer function: kind U8 (0 = 4-20 mA shunt, 1 = 0-10 V divider), shunt \[Ω\] / divider ratio, mm at 4 mA / 0 V, mm at 20 mA / 10 V | rw, pre-op + unlock |
 //! | 0x2300 | 1..4 | period \[µs\] U32 100..100000, oversampling U16 1..256 power of 2, method U8 (0 Chen, 1 LS), residual limit \[mm\]; period and oversampling together: oversampling × [`Defaults::adc_scan_ns`] ≤ period, else 0x06090030 | rw, pre-op |
 //! | 0x2310 | 1..5 | surface model (issue 14): model U8 (0 plane, 1 sphere, 2 cylinder), signed radius \[mm\] REAL32 (10 ≤ \|R\| ≤ 100000, else 0x06090030 / 0x06090031 / 0x06090032), cylinder axis x, y, z REAL32 in −1..1 (not all zero with the cylinder selected: 0x06090030; set the axis before the model); applied per sample by the board | rw, pre-op |

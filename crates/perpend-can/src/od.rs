@@ -156,8 +156,9 @@ pub struct Entry {
     /// Whether 0x1010 "save" stores it.
     pub persist: bool,
     /// Image layout that first persisted it: 1, 2 (issue 16), 3 (issue 14,
-    /// the surface model 0x2310) or 4 (issue 16: heartbeat consumer, SYNC
-    /// counter, error behaviour, acquisition trigger, RPDO1, capture).
+    /// the surface model 0x2310), 4 (issue 16: heartbeat consumer, SYNC
+    /// counter, error behaviour, acquisition trigger, RPDO1, capture) or 5
+    /// (the linearity tables, 0x2101..0x2104 sub 16..23).
     /// Images of an older layout lack it and still load (the entry keeps
     /// its current value).
     pub since: u8,
@@ -208,6 +209,10 @@ impl Entry {
     }
     const fn v4(mut self) -> Self {
         self.since = 4;
+        self
+    }
+    const fn v5(mut self) -> Self {
+        self.since = 5;
         self
     }
 }
@@ -392,7 +397,7 @@ pub const MAX_MAPPED: usize = 8;
 macro_rules! sensor_cal {
     ($s:expr) => {
         &[
-            sub0(15),
+            sub0(23),
             cal($s, 1, "Zero point x mm", -1000.0, 1000.0),
             cal($s, 2, "Zero point y mm", -1000.0, 1000.0),
             cal($s, 3, "Zero point z mm", -1000.0, 1000.0),
@@ -408,6 +413,14 @@ macro_rules! sensor_cal {
             cal($s, 13, "Thermal drift mm per degC", -1.0, 1.0),
             cal($s, 14, "Reference temperature degC", -50.0, 150.0),
             cal($s, 15, "Drift mm per s", -1.0, 1.0),
+            cal($s, 16, "Linearity table knot 0 mm", -1000.0, 1000.0).v5(),
+            cal($s, 17, "Linearity table knot 1 mm", -1000.0, 1000.0).v5(),
+            cal($s, 18, "Linearity table knot 2 mm", -1000.0, 1000.0).v5(),
+            cal($s, 19, "Linearity table knot 3 mm", -1000.0, 1000.0).v5(),
+            cal($s, 20, "Linearity table knot 4 mm", -1000.0, 1000.0).v5(),
+            cal($s, 21, "Linearity table value 0 mm", -1.0, 1.0).v5(),
+            cal($s, 22, "Linearity table value 1 mm", -1.0, 1.0).v5(),
+            cal($s, 23, "Linearity table value 2 mm", -1.0, 1.0).v5(),
         ]
     };
 }
@@ -1013,7 +1026,7 @@ const fn count_persist(layout: u8) -> usize {
 /// slots of a [`crate::Device`].
 pub const ENTRIES: usize = count_entries();
 /// The current image layout (see [`Entry::since`]).
-pub const LAYOUT: u8 = 4;
+pub const LAYOUT: u8 = 5;
 /// Number of entries stored by 0x1010.
 pub const PERSISTENT: usize = count_persist(LAYOUT);
 /// Number of entries an image of layout 1 (before issue 16) holds.
@@ -1024,6 +1037,9 @@ pub const PERSISTENT_V2: usize = count_persist(2);
 /// Number of entries an image of layout 3 (before the objects of layout 4)
 /// holds.
 pub const PERSISTENT_V3: usize = count_persist(3);
+/// Number of entries an image of layout 4 (before the linearity tables of
+/// layout 5) holds.
+pub const PERSISTENT_V4: usize = count_persist(4);
 
 /// Number of persisted entries of image layout `layout` (1..=[`LAYOUT`]).
 pub const fn persistent_of(layout: u8) -> usize {
@@ -1251,7 +1267,8 @@ mod tests {
             assert!(
                 PERSISTENT_V1 < PERSISTENT_V2
                     && PERSISTENT_V2 < PERSISTENT_V3
-                    && PERSISTENT_V3 < PERSISTENT
+                    && PERSISTENT_V3 < PERSISTENT_V4
+                    && PERSISTENT_V4 < PERSISTENT
             )
         };
     }
@@ -1261,8 +1278,8 @@ mod tests {
         assert_eq!(find(0x1234, 0), Err(Lookup::NoObject));
         assert_eq!(find(0x1018, 5), Err(Lookup::NoSub));
         assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
-        assert!(find(0x2104, 15).is_ok());
-        assert_eq!(find(0x2104, 16), Err(Lookup::NoSub));
+        assert!(find(0x2104, 23).is_ok());
+        assert_eq!(find(0x2104, 24), Err(Lookup::NoSub));
     }
 
     #[test]

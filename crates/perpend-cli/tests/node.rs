@@ -148,7 +148,7 @@ fn push_reset_pull_round_trip() {
     let p = dir.path().join("params.json");
     let file = params_file(&p, 4);
     let out = ok(&b.node(&["push", p.to_str().unwrap()]));
-    assert!(out.contains("76 values written"), "{out}");
+    assert!(out.contains("108 values written"), "{out}");
     assert!(
         out.contains("read back identical after the boot-up"),
         "{out}"

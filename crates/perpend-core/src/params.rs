@@ -7,34 +7,50 @@
 //! settings. It is stored in `f32` (the board computes in `f32`; the host
 //! casts its `f64` calibration with [`crate::head::Head::cast`]).
 //!
-//! ## Record layout (version 1, little endian)
+//! ## Record layout (version 2, little endian)
 //!
 //! ```text
 //! offset  size  field
 //!      0     4  magic "PPND"
-//!      4     2  version (u16) = 1
-//!      6     2  payload length (u16) = PAYLOAD_LEN = 353
-//!      8   353  payload: stamp u32; 4 × sensor (zero xyz, dir xyz, the nine
-//!               extension coefficients in declaration order: 15 × f32);
+//!      4     2  version (u16) = 2
+//!      6     2  payload length (u16) = PAYLOAD_LEN = 481
+//!      8   481  payload: stamp u32; 4 × sensor (zero xyz, dir xyz, the nine
+//!               scalar extension coefficients d_ref, gain, nonlinearity[0..2],
+//!               incidence, crosstalk, thermal, temp_ref, drift, then the
+//!               linearity table's knots[0..5] and coeffs[0..3]: 23 × f32);
 //!               4 × transfer (front end u8 0 = shunt / 1 = divider, its
 //!               f32, sig_lo, sig_hi, mm_lo, mm_hi: f32); acquisition
 //!               (period_us u32, os_log2 u8, os_shift u8, vref_mv u16,
 //!               method u8 0 = least squares / 1 = Chen, stuck_samples u16,
 //!               stuck_counts u16, jump_mm f32, jump_hold u16,
 //!               max_rms_mm f32); CAN (node_id u8, bit-rate code u8)
-//!    361     4  CRC-32 (IEEE 802.3, reflected, as zlib) of bytes 0..361
+//!    489     4  CRC-32 (IEEE 802.3, reflected, as zlib) of bytes 0..489
 //! ```
 //!
+//! ## Version 1 (read only: migration)
+//!
+//! Version 1 is the same layout without the linearity table: 15 × f32 per
+//! sensor (ending with `drift`), payload length [`V1_PAYLOAD_LEN`] = 353,
+//! record length [`V1_RECORD_LEN`] = 365, CRC over bytes 0..361. A board
+//! whose flash holds a version-1 record (firmware before the table) boots
+//! from it: [`Params::decode`] reads it with every structural check of its
+//! own length (magic, payload length, CRC) and gives each sensor
+//! [`LinTable::none`]; the next store writes version 2. [`Params::encode`]
+//! writes version 2 only.
+//!
 //! [`Params::decode`] rejects, in this order: a short buffer, a wrong magic,
-//! an unknown version, a wrong payload length, a checksum mismatch, an
-//! unknown enum code, and then any value that [`Params::validate`] refuses.
-//! A decoded record is therefore always usable as it is; the board falls
-//! back to [`Params::factory`] on any error. [`Params::encode`] validates
-//! first, so an invalid record is never written.
+//! an unknown version, a wrong payload length (for that version), a
+//! checksum mismatch, an unknown enum code, and then any value that
+//! [`Params::validate`] refuses (for the table: an active table whose
+//! knots are not strictly ascending within ±1000 mm or whose coefficients
+//! exceed 1 mm). A decoded record is therefore always usable as it is;
+//! the board falls back to [`Params::factory`] on any error.
+//! [`Params::encode`] validates first, so an invalid record is never
+//! written.
 //!
 //! Versioning: a later layout gets a new version number; the decoder keeps
-//! reading every older version it knows (none before 1) and the board
-//! writes the newest layout on the next store (0x1010).
+//! reading every older version it knows (1 and 2) and the board writes the
+//! newest layout on the next store (0x1010).
 //!
 //! Limits: exactly four sensors (the product's head); the CRC detects every
 //! error burst up to 32 bits and any odd number of bit errors; it is not a
@@ -42,7 +58,7 @@
 
 use nalgebra::Vector3;
 
-use crate::ext::Extension;
+use crate::ext::{Extension, LinTable, TABLE_COEFFS, TABLE_KNOTS};
 use crate::head::{Head4, Sensor};
 use crate::normal::Method;
 use crate::{Error, Result};
@@ -50,19 +66,32 @@ use crate::{Error, Result};
 /// Magic bytes at the start of a record.
 pub const MAGIC: [u8; 4] = *b"PPND";
 /// The layout version this code writes.
-pub const VERSION: u16 = 1;
+pub const VERSION: u16 = 2;
+/// The previous layout version (no linearity table), still decoded.
+pub const VERSION_1: u16 = 1;
 /// Number of sensors in a record.
 pub const SENSORS: usize = 4;
 /// Header length: magic, version, payload length.
 pub const HEADER_LEN: usize = 8;
-/// Payload length of version 1.
+/// Payload length of the current version ([`VERSION`]).
 pub const PAYLOAD_LEN: usize = 4 + SENSORS * SENSOR_LEN + SENSORS * TRANSFER_LEN + ACQ_LEN + 2;
-/// Total length of an encoded version-1 record.
+/// Total length of an encoded record of the current version.
 pub const RECORD_LEN: usize = HEADER_LEN + PAYLOAD_LEN + 4;
+/// Payload length of a version-1 record (no linearity table).
+pub const V1_PAYLOAD_LEN: usize = PAYLOAD_LEN - SENSORS * TABLE_LEN;
+/// Total length of a version-1 record.
+pub const V1_RECORD_LEN: usize = HEADER_LEN + V1_PAYLOAD_LEN + 4;
 
-const SENSOR_LEN: usize = 15 * 4;
+/// Per sensor: zero, dir, nine scalar coefficients (as version 1), table.
+const SENSOR_LEN: usize = 15 * 4 + TABLE_LEN;
+/// The linearity table: knots then coefficients, f32 each.
+const TABLE_LEN: usize = (TABLE_KNOTS + TABLE_COEFFS) * 4;
 const TRANSFER_LEN: usize = 1 + 5 * 4;
 const ACQ_LEN: usize = 4 + 1 + 1 + 2 + 1 + 2 + 2 + 4 + 2 + 4;
+/// Largest table knot magnitude [mm] (about `d_ref`).
+pub const TABLE_KNOT_MAX_MM: f32 = 1000.0;
+/// Largest table value (`LinTable::coeffs`) magnitude \[mm\].
+pub const TABLE_COEFF_MAX: f32 = 1.0;
 
 /// The analog front end between a sensor's output and the ADC pin.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -359,7 +388,7 @@ impl CanConfig {
 }
 
 /// Checks one sensor's calibration: finite, zero point within ±10 m, unit
-/// beam direction (±1e-3), finite extension.
+/// beam direction (±1e-3), finite extension, and [`validate_table`].
 ///
 /// # Errors
 /// [`Error::NonFinite`] / [`Error::OutOfRange`] naming the field.
@@ -378,6 +407,32 @@ pub fn validate_sensor(s: &Sensor<f32>) -> Result<()> {
     }
     if !s.ext.is_finite() {
         return Err(Error::NonFinite("extension"));
+    }
+    validate_table(&s.ext.table)
+}
+
+/// Checks a linearity table: every value finite; when it is active
+/// ([`LinTable::is_active`]) its knots strictly ascending within
+/// ±[`TABLE_KNOT_MAX_MM`] and its coefficients within
+/// ±[`TABLE_COEFF_MAX`]. The knots of an inactive table are not used and
+/// not checked beyond finiteness.
+///
+/// # Errors
+/// [`Error::NonFinite`]`("linearity table")`, [`Error::OutOfRange`]
+/// `("linearity table knots")` / `("linearity table values")`.
+pub fn validate_table(t: &LinTable<f32>) -> Result<()> {
+    if !t.knots.iter().chain(t.coeffs.iter()).all(|x| x.is_finite()) {
+        return Err(Error::NonFinite("linearity table"));
+    }
+    if !t.is_active() {
+        return Ok(());
+    }
+    let in_range = t.knots.iter().all(|k| k.abs() <= TABLE_KNOT_MAX_MM);
+    if !(in_range && t.knots_valid()) {
+        return Err(Error::OutOfRange("linearity table knots"));
+    }
+    if !t.coeffs.iter().all(|c| c.abs() <= TABLE_COEFF_MAX) {
+        return Err(Error::OutOfRange("linearity table values"));
     }
     Ok(())
 }
@@ -460,6 +515,9 @@ impl Params {
             ] {
                 w.f32(v);
             }
+            for v in e.table.knots.iter().chain(e.table.coeffs.iter()) {
+                w.f32(*v);
+            }
         }
         for t in &self.transfer {
             match t.frontend {
@@ -497,7 +555,8 @@ impl Params {
         Ok(w.pos)
     }
 
-    /// Decodes and validates a record (the layout in the module docs).
+    /// Decodes and validates a record of version 2 or 1 (the layouts in the
+    /// module docs; a version-1 record gets inactive linearity tables).
     /// Trailing bytes after the record are ignored (flash items are padded).
     ///
     /// # Errors
@@ -507,6 +566,16 @@ impl Params {
     /// an unknown bit-rate code, or the error of [`Params::validate`] for a
     /// well-formed record with bad values.
     pub fn decode(buf: &[u8]) -> Result<Self> {
+        Self::decode_with_len(buf).map(|(p, _)| p)
+    }
+
+    /// As [`Params::decode`], and returns the length of the record in `buf`
+    /// ([`RECORD_LEN`], or [`V1_RECORD_LEN`] for a version-1 record): where
+    /// the bytes stored after it start.
+    ///
+    /// # Errors
+    /// As [`Params::decode`].
+    pub fn decode_with_len(buf: &[u8]) -> Result<(Self, usize)> {
         if buf.len() < HEADER_LEN {
             return Err(Error::Decode("short record"));
         }
@@ -514,17 +583,20 @@ impl Params {
         if r.take::<4>()? != MAGIC {
             return Err(Error::Decode("bad magic"));
         }
-        if r.u16()? != VERSION {
-            return Err(Error::Decode("unsupported version"));
-        }
-        if r.u16()? as usize != PAYLOAD_LEN {
+        let (payload_len, has_table) = match r.u16()? {
+            VERSION => (PAYLOAD_LEN, true),
+            VERSION_1 => (V1_PAYLOAD_LEN, false),
+            _ => return Err(Error::Decode("unsupported version")),
+        };
+        if r.u16()? as usize != payload_len {
             return Err(Error::Decode("bad length"));
         }
+        let record_len = HEADER_LEN + payload_len + 4;
         let body = buf
-            .get(..RECORD_LEN - 4)
+            .get(..record_len - 4)
             .ok_or(Error::Decode("short record"))?;
         let stored = buf
-            .get(RECORD_LEN - 4..RECORD_LEN)
+            .get(record_len - 4..record_len)
             .ok_or(Error::Decode("short record"))?;
         if crc32(body).to_le_bytes() != stored {
             return Err(Error::Decode("checksum mismatch"));
@@ -536,58 +608,13 @@ impl Params {
             ext: Extension::identity(),
         }; SENSORS];
         for s in sensors.iter_mut() {
-            let zero = Vector3::new(r.f32()?, r.f32()?, r.f32()?);
-            let dir = Vector3::new(r.f32()?, r.f32()?, r.f32()?);
-            let ext = Extension {
-                d_ref: r.f32()?,
-                gain: r.f32()?,
-                nonlinearity: [r.f32()?, r.f32()?],
-                incidence: r.f32()?,
-                crosstalk: r.f32()?,
-                thermal: r.f32()?,
-                temp_ref: r.f32()?,
-                drift: r.f32()?,
-            };
-            *s = Sensor { zero, dir, ext };
+            *s = r.sensor(has_table)?;
         }
         let mut transfer = [Transfer::current(150.0, 0.0, 1.0); SENSORS];
         for t in transfer.iter_mut() {
-            let kind = r.u8()?;
-            let v = r.f32()?;
-            let frontend = match kind {
-                0 => Frontend::Shunt { ohm: v },
-                1 => Frontend::Divider { ratio: v },
-                _ => return Err(Error::Decode("unknown front end")),
-            };
-            *t = Transfer {
-                frontend,
-                sig_lo: r.f32()?,
-                sig_hi: r.f32()?,
-                mm_lo: r.f32()?,
-                mm_hi: r.f32()?,
-            };
+            *t = r.transfer()?;
         }
-        let period_us = r.u32()?;
-        let os_log2 = r.u8()?;
-        let os_shift = r.u8()?;
-        let vref_mv = r.u16()?;
-        let method = match r.u8()? {
-            0 => Method::LeastSquares,
-            1 => Method::Chen,
-            _ => return Err(Error::Decode("unknown method")),
-        };
-        let acq = Acquisition {
-            period_us,
-            os_log2,
-            os_shift,
-            vref_mv,
-            method,
-            stuck_samples: r.u16()?,
-            stuck_counts: r.u16()?,
-            jump_mm: r.f32()?,
-            jump_hold: r.u16()?,
-            max_rms_mm: r.f32()?,
-        };
+        let acq = r.acquisition()?;
         let node_id = r.u8()?;
         let bitrate = Bitrate::from_code(r.u8()?)?;
         let p = Params {
@@ -598,8 +625,35 @@ impl Params {
             can: CanConfig { node_id, bitrate },
         };
         p.validate()?;
-        Ok(p)
+        Ok((p, record_len))
     }
+}
+
+/// Converts a current (version-2) record into the version-1 record of the
+/// same values, as the firmware before the linearity table wrote it: each
+/// sensor's table bytes left out, header and CRC rewritten. For
+/// compatibility tests and fuzz seeds (the board never writes version 1).
+/// The input is not checked: a record that fails to decode converts into
+/// one that fails too, unless only its tables were bad.
+pub fn record_as_v1(v2: &[u8; RECORD_LEN]) -> [u8; V1_RECORD_LEN] {
+    const V1_SENSOR_LEN: usize = SENSOR_LEN - TABLE_LEN;
+    let mut v1 = [0u8; V1_RECORD_LEN];
+    let mut w = Writer {
+        buf: &mut v1,
+        pos: 0,
+    };
+    w.bytes(&MAGIC);
+    w.u16(VERSION_1);
+    w.u16(V1_PAYLOAD_LEN as u16);
+    let sensors = HEADER_LEN + 4;
+    w.bytes(&v2[HEADER_LEN..sensors]);
+    for s in v2[sensors..sensors + SENSORS * SENSOR_LEN].chunks_exact(SENSOR_LEN) {
+        w.bytes(&s[..V1_SENSOR_LEN]);
+    }
+    w.bytes(&v2[sensors + SENSORS * SENSOR_LEN..RECORD_LEN - 4]);
+    let crc = crc32(&w.buf[..V1_RECORD_LEN - 4]);
+    w.u32(crc);
+    v1
 }
 
 /// CRC-32 (IEEE 802.3 polynomial 0x04C11DB7, reflected, init and final XOR
@@ -623,9 +677,10 @@ struct Writer<'a> {
 }
 
 impl Writer<'_> {
-    // The buffer is exactly RECORD_LEN long and the layout constants add up
-    // to it (checked by the tests), so `get_mut` never fails; it is used
-    // instead of indexing to keep the encoder panic-free.
+    // The buffer is exactly RECORD_LEN (or V1_RECORD_LEN) long and the
+    // layout constants add up to it (checked by the tests), so `get_mut`
+    // never fails; it is used instead of indexing to keep the encoder
+    // panic-free.
     fn bytes(&mut self, b: &[u8]) {
         if let Some(dst) = self.buf.get_mut(self.pos..self.pos + b.len()) {
             dst.copy_from_slice(b);
@@ -675,6 +730,83 @@ impl Reader<'_> {
     fn f32(&mut self) -> Result<f32> {
         Ok(f32::from_le_bytes(self.take()?))
     }
+    fn f32s<const K: usize>(&mut self) -> Result<[f32; K]> {
+        let mut a = [0.0; K];
+        for v in a.iter_mut() {
+            *v = self.f32()?;
+        }
+        Ok(a)
+    }
+
+    /// One sensor; `has_table`: version 2 (else the table is inactive).
+    fn sensor(&mut self, has_table: bool) -> Result<Sensor<f32>> {
+        let zero = Vector3::from(self.f32s::<3>()?);
+        let dir = Vector3::from(self.f32s::<3>()?);
+        let [d_ref, gain, nl0, nl1, incidence, crosstalk, thermal, temp_ref, drift] =
+            self.f32s::<9>()?;
+        let table = if has_table {
+            LinTable {
+                knots: self.f32s::<TABLE_KNOTS>()?,
+                coeffs: self.f32s::<TABLE_COEFFS>()?,
+            }
+        } else {
+            LinTable::none()
+        };
+        let ext = Extension {
+            d_ref,
+            gain,
+            nonlinearity: [nl0, nl1],
+            table,
+            incidence,
+            crosstalk,
+            thermal,
+            temp_ref,
+            drift,
+        };
+        Ok(Sensor { zero, dir, ext })
+    }
+
+    fn transfer(&mut self) -> Result<Transfer> {
+        let kind = self.u8()?;
+        let v = self.f32()?;
+        let frontend = match kind {
+            0 => Frontend::Shunt { ohm: v },
+            1 => Frontend::Divider { ratio: v },
+            _ => return Err(Error::Decode("unknown front end")),
+        };
+        let [sig_lo, sig_hi, mm_lo, mm_hi] = self.f32s::<4>()?;
+        Ok(Transfer {
+            frontend,
+            sig_lo,
+            sig_hi,
+            mm_lo,
+            mm_hi,
+        })
+    }
+
+    fn acquisition(&mut self) -> Result<Acquisition> {
+        let period_us = self.u32()?;
+        let os_log2 = self.u8()?;
+        let os_shift = self.u8()?;
+        let vref_mv = self.u16()?;
+        let method = match self.u8()? {
+            0 => Method::LeastSquares,
+            1 => Method::Chen,
+            _ => return Err(Error::Decode("unknown method")),
+        };
+        Ok(Acquisition {
+            period_us,
+            os_log2,
+            os_shift,
+            vref_mv,
+            method,
+            stuck_samples: self.u16()?,
+            stuck_counts: self.u16()?,
+            jump_mm: self.f32()?,
+            jump_hold: self.u16()?,
+            max_rms_mm: self.f32()?,
+        })
+    }
 }
 
 #[cfg(test)]
@@ -692,8 +824,11 @@ mod tests {
 
     #[test]
     fn layout_constants_add_up() {
-        assert_eq!(PAYLOAD_LEN, 353);
-        assert_eq!(RECORD_LEN, 365);
+        assert_eq!(PAYLOAD_LEN, 481);
+        assert_eq!(RECORD_LEN, 493);
+        assert_eq!(SENSOR_LEN, 23 * 4);
+        assert_eq!(V1_PAYLOAD_LEN, 353);
+        assert_eq!(V1_RECORD_LEN, 365);
         let mut buf = [0u8; RECORD_LEN + 3];
         assert_eq!(Params::factory().encode(&mut buf).unwrap(), RECORD_LEN);
         // the padding after the record is untouched
@@ -726,12 +861,21 @@ mod tests {
         let mut b = buf;
         b[0] = b'X';
         assert_eq!(Params::decode(&b), Err(Error::Decode("bad magic")));
+        for v in [0u8, 3, 9] {
+            let mut b = buf;
+            b[4] = v;
+            assert_eq!(
+                Params::decode(&b),
+                Err(Error::Decode("unsupported version"))
+            );
+        }
+        // a version-1 header over a version-2 payload (and the reverse)
         let mut b = buf;
-        b[4] = 2;
-        assert_eq!(
-            Params::decode(&b),
-            Err(Error::Decode("unsupported version"))
-        );
+        b[4] = 1;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
+        let mut b1 = record_as_v1(&buf);
+        b1[4] = 2;
+        assert_eq!(Params::decode(&b1), Err(Error::Decode("bad length")));
         let mut b = buf;
         b[6] = 0;
         assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
@@ -741,11 +885,142 @@ mod tests {
         let mut b = buf;
         b[RECORD_LEN - 1] ^= 0x80;
         assert_eq!(Params::decode(&b), Err(Error::Decode("checksum mismatch")));
+        // the same checks on a version-1 record, at its own length
+        let v1 = record_as_v1(&buf);
+        assert_eq!(
+            Params::decode(&v1[..V1_RECORD_LEN - 1]),
+            Err(Error::Decode("short record"))
+        );
+        let mut b = v1;
+        b[2] = b'Q';
+        assert_eq!(Params::decode(&b), Err(Error::Decode("bad magic")));
+        let mut b = v1;
+        b[7] = 2;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
+        let mut b = v1;
+        b[V1_RECORD_LEN - 3] ^= 0x01;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("checksum mismatch")));
         // erased flash
         assert_eq!(
             Params::decode(&[0xFF; RECORD_LEN]),
             Err(Error::Decode("bad magic"))
         );
+    }
+
+    /// A record written by the version-1 encoder (the code before the
+    /// linearity table, run once on [`golden_params`] with
+    /// `LinTable::none()`): 365 bytes.
+    const GOLDEN_V1_HEX: &str = "50504e4401006101785634120000c841000000000000c0bf00000000000000000000803f000034426f12833a17b75139000000800ad7a33c0ad7a33b000000800000b441acc527b7000000000000c841000010409a99193f00000000cdcc4c3f000038426f12033b17b7513982a8fbb70ad7233c0ad7a33b6f1283ba0000b441acc527b70000c8c1000000000000003e000000009a9919bfcdcc4c3f00003c42a69b443b17b7513982a87bb8000000000ad7a33b6f1203bb0000b441acc527b7000000000000c8c1000040bf295c8fbe000000008fc2753f000040426f12833b17b7513962bebcb80ad723bc0ad7a33ba69b44bb0000b441acc527b70000001643000080400000a0410000a0410000a042010000003f0000000000002041000020410000b4420000007a43000080400000a041000000000000c842010000803e00000000000020410000a0420000a041e80300000400e40c01d00703000000403f1400cdcc4c3d3101009b4158";
+
+    fn unhex(s: &str) -> Vec<u8> {
+        (0..s.len())
+            .step_by(2)
+            .map(|i| u8::from_str_radix(&s[i..i + 2], 16).unwrap())
+            .collect()
+    }
+
+    /// Non-default values in every field, exactly representable where it
+    /// matters (unit directions 0.6/0.8, 0.28/0.96).
+    fn golden_params() -> Params {
+        let dirs = [
+            [0.0f32, 0.0, 1.0],
+            [0.6, 0.0, 0.8],
+            [0.0, -0.6, 0.8],
+            [-0.28, 0.0, 0.96],
+        ];
+        let zeros = [
+            [25.0f32, 0.0, -1.5],
+            [0.0, 25.0, 2.25],
+            [-25.0, 0.0, 0.125],
+            [0.0, -25.0, -0.75],
+        ];
+        let sensor = |i: usize| {
+            let k = i as f32;
+            Sensor {
+                zero: Vector3::from(zeros[i]),
+                dir: Vector3::from(dirs[i]),
+                ext: Extension {
+                    d_ref: 45.0 + k,
+                    gain: 1e-3 * (k + 1.0),
+                    nonlinearity: [2e-4, -3e-5 * k],
+                    table: LinTable::none(),
+                    incidence: 0.02 - 0.01 * k,
+                    crosstalk: 0.005,
+                    thermal: -0.001 * k,
+                    temp_ref: 22.5,
+                    drift: -1e-5,
+                },
+            }
+        };
+        Params {
+            stamp: 0x1234_5678,
+            head: Head4::new([sensor(0), sensor(1), sensor(2), sensor(3)]),
+            transfer: [
+                Transfer::current(150.0, 20.0, 80.0),
+                Transfer::voltage(0.5, 10.0, 90.0),
+                Transfer::current(250.0, 0.0, 100.0),
+                Transfer::voltage(0.25, 80.0, 20.0),
+            ],
+            acq: Acquisition {
+                method: Method::Chen,
+                jump_mm: 0.75,
+                stuck_counts: 3,
+                ..Acquisition::factory()
+            },
+            can: CanConfig {
+                node_id: 0x31,
+                bitrate: Bitrate::K500,
+            },
+        }
+    }
+
+    fn active_table() -> LinTable<f32> {
+        LinTable {
+            knots: [-12.0, -5.0, 0.0, 4.5, 12.0],
+            coeffs: [1e-3, -2.5e-3, 1.25e-3],
+        }
+    }
+
+    /// The migration path: a version-1 record from the old encoder decodes
+    /// to the values it was made from, with inactive tables, and says where
+    /// it ends; re-encoding writes version 2 with the same values.
+    #[test]
+    fn golden_v1_record_decodes_with_inactive_tables() {
+        let v1 = unhex(GOLDEN_V1_HEX);
+        assert_eq!(v1.len(), V1_RECORD_LEN);
+        assert_eq!(&v1[4..6], &[1, 0]);
+        let (p, len) = Params::decode_with_len(&v1).unwrap();
+        assert_eq!(len, V1_RECORD_LEN);
+        assert_eq!(p, golden_params());
+        assert!(p.head.sensors.iter().all(|s| !s.ext.table.is_active()));
+        // trailing bytes (a stored tail) are ignored
+        let mut padded = v1.clone();
+        padded.extend_from_slice(&[0xA5; 40]);
+        assert_eq!(Params::decode_with_len(&padded), Ok((p, V1_RECORD_LEN)));
+        // the next store writes version 2 of the same values
+        let mut v2 = [0u8; RECORD_LEN];
+        assert_eq!(p.encode(&mut v2), Ok(RECORD_LEN));
+        assert_eq!(&v2[4..6], &VERSION.to_le_bytes());
+        assert_eq!(Params::decode_with_len(&v2), Ok((p, RECORD_LEN)));
+        // the test's converter reproduces the old encoder byte for byte
+        assert_eq!(&record_as_v1(&v2)[..], &v1[..]);
+    }
+
+    /// An active table round-trips bit-exactly; a v1 record of the same
+    /// values loses only the table.
+    #[test]
+    fn table_round_trips_and_v1_drops_it() {
+        let mut p = golden_params();
+        p.head.sensors[2].ext.table = active_table();
+        let mut buf = [0u8; RECORD_LEN];
+        p.encode(&mut buf).unwrap();
+        let (q, len) = Params::decode_with_len(&buf).unwrap();
+        assert_eq!((q, len), (p, RECORD_LEN));
+        // sensor 2's table sits after its 15 v1 values
+        let at = HEADER_LEN + 4 + 2 * SENSOR_LEN + 15 * 4;
+        assert_eq!(&buf[at..at + 4], &(-12.0f32).to_le_bytes());
+        assert_eq!(&buf[at + 28..at + 32], &1.25e-3f32.to_le_bytes());
+        assert_eq!(Params::decode(&record_as_v1(&buf)), Ok(golden_params()));
     }
 
     /// Rewrites bytes and fixes the CRC, to reach the value checks.
@@ -789,6 +1064,70 @@ mod tests {
     }
 
     #[test]
+    fn bad_table_behind_a_good_crc_is_rejected() {
+        let mut p = golden_params();
+        p.head.sensors[1].ext.table = active_table();
+        let mut buf = [0u8; RECORD_LEN];
+        p.encode(&mut buf).unwrap();
+        let knots = HEADER_LEN + 4 + SENSOR_LEN + 15 * 4;
+        let coeffs = knots + TABLE_KNOTS * 4;
+        let knot = |b: &mut [u8; RECORD_LEN], k: usize, v: f32| {
+            patch(b, knots + 4 * k, &v.to_le_bytes());
+        };
+        // descending knots with active coefficients
+        let mut b = buf;
+        knot(&mut b, 1, -20.0);
+        let want = Err(Error::OutOfRange("linearity table knots"));
+        assert_eq!(Params::decode(&b), want);
+        // coinciding knots
+        let mut b = buf;
+        knot(&mut b, 3, 0.0);
+        assert_eq!(Params::decode(&b), want);
+        // a knot beyond ±1000 mm
+        let mut b = buf;
+        knot(&mut b, 4, 1000.5);
+        assert_eq!(Params::decode(&b), want);
+        // a value beyond 1 mm
+        let mut b = buf;
+        patch(&mut b, coeffs + 4, &(-1.5f32).to_le_bytes());
+        let want = Err(Error::OutOfRange("linearity table values"));
+        assert_eq!(Params::decode(&b), want);
+        // a non-finite knot
+        let mut b = buf;
+        knot(&mut b, 0, f32::NAN);
+        assert_eq!(Params::decode(&b), Err(Error::NonFinite("extension")));
+        // inactive (all coefficients zero): descending knots are ignored
+        let mut b = buf;
+        patch(&mut b, coeffs, &[0u8; TABLE_COEFFS * 4]);
+        knot(&mut b, 0, 500.0);
+        let q = Params::decode(&b).unwrap();
+        assert!(!q.head.sensors[1].ext.table.is_active());
+        assert_eq!(q.head.sensors[1].ext.table.knots[0], 500.0);
+        // encode refuses the same table
+        p.head.sensors[1].ext.table.knots.swap(0, 1);
+        assert_eq!(
+            p.encode(&mut buf),
+            Err(Error::OutOfRange("linearity table knots"))
+        );
+    }
+
+    #[test]
+    fn validate_table_limits() {
+        let mut t = active_table();
+        assert_eq!(validate_table(&t), Ok(()));
+        t.knots = [-1000.0, -1.0, 0.0, 1.0, 1000.0];
+        t.coeffs = [1.0, -1.0, 0.0];
+        assert_eq!(validate_table(&t), Ok(()));
+        t.coeffs[2] = f32::INFINITY;
+        assert_eq!(validate_table(&t), Err(Error::NonFinite("linearity table")));
+        let mut t = LinTable::none();
+        t.knots = [5.0, 5.0, -1e6, 0.0, 0.0];
+        assert_eq!(validate_table(&t), Ok(()));
+        t.knots[2] = f32::NAN;
+        assert_eq!(validate_table(&t), Err(Error::NonFinite("linearity table")));
+    }
+
+    #[test]
     fn validate_rejects_bad_configuration() {
         let mut p = Params::factory();
         p.acq.os_log2 = 8;
@@ -818,11 +1157,36 @@ mod tests {
         );
     }
 
+    /// Active tables (ascending knots within ±1000 mm, coefficients up to
+    /// the 1 mm limit) and inactive ones (zero coefficients, knots any
+    /// finite values in any order).
+    fn arb_table() -> impl Strategy<Value = LinTable<f32>> {
+        let active = (
+            -1000.0f32..0.0,
+            prop::array::uniform4(0.01f32..250.0),
+            prop::array::uniform3(-1.0f32..=1.0),
+        )
+            .prop_filter_map("inactive", |(k0, steps, coeffs)| {
+                let mut knots = [k0; TABLE_KNOTS];
+                for i in 1..TABLE_KNOTS {
+                    knots[i] = knots[i - 1] + steps[i - 1];
+                }
+                let t = LinTable { knots, coeffs };
+                (t.is_active() && t.knots_valid()).then_some(t)
+            });
+        let inactive = prop::array::uniform5(-1e30f32..1e30).prop_map(|knots| LinTable {
+            knots,
+            coeffs: [0.0; TABLE_COEFFS],
+        });
+        prop_oneof![Just(LinTable::none()), active, inactive]
+    }
+
     fn arb_ext() -> impl Strategy<Value = Extension<f32>> {
-        prop::array::uniform9(-1.0f32..1.0).prop_map(|a| Extension {
+        (prop::array::uniform9(-1.0f32..1.0), arb_table()).prop_map(|(a, table)| Extension {
             d_ref: a[0] * 50.0 + 50.0,
             gain: a[1] * 1e-2,
             nonlinearity: [a[2] * 1e-3, a[3] * 1e-4],
+            table,
             incidence: a[4] * 0.1,
             crosstalk: a[5] * 0.01,
             thermal: a[6] * 0.01,
@@ -919,7 +1283,30 @@ mod tests {
         }
 
         #[test]
-        fn arbitrary_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
+        fn v1_of_any_params_decodes_without_table(p in arb_params()) {
+            let mut buf = [0u8; RECORD_LEN];
+            p.encode(&mut buf).unwrap();
+            let mut want = p;
+            for s in want.head.sensors.iter_mut() {
+                s.ext.table = LinTable::none();
+            }
+            prop_assert_eq!(Params::decode_with_len(&record_as_v1(&buf)), Ok((want, V1_RECORD_LEN)));
+        }
+
+        #[test]
+        fn any_single_bit_flip_of_a_v1_record_is_rejected(
+            p in arb_params(),
+            bit in 0usize..V1_RECORD_LEN * 8,
+        ) {
+            let mut buf = [0u8; RECORD_LEN];
+            p.encode(&mut buf).unwrap();
+            let mut v1 = record_as_v1(&buf);
+            v1[bit / 8] ^= 1 << (bit % 8);
+            prop_assert!(Params::decode(&v1).is_err());
+        }
+
+        #[test]
+        fn arbitrary_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..600)) {
             // Either an error or a record that validates.
             if let Ok(p) = Params::decode(&bytes) {
                 prop_assert!(p.validate().is_ok());
@@ -927,17 +1314,28 @@ mod tests {
         }
 
         #[test]
-        fn valid_header_random_body_never_panics(body in prop::collection::vec(any::<u8>(), PAYLOAD_LEN)) {
-            // A header that passes, a random payload and a matching CRC: the
-            // value checks must reject or accept without panicking.
+        fn valid_header_random_body_never_panics(
+            body in prop::collection::vec(any::<u8>(), PAYLOAD_LEN),
+            v1 in any::<bool>(),
+        ) {
+            // A header that passes (either version), a random payload and a
+            // matching CRC: the value checks must reject or accept without
+            // panicking.
+            let (version, payload) = if v1 {
+                (VERSION_1, V1_PAYLOAD_LEN)
+            } else {
+                (VERSION, PAYLOAD_LEN)
+            };
+            let len = HEADER_LEN + payload + 4;
             let mut buf = [0u8; RECORD_LEN];
             buf[..4].copy_from_slice(&MAGIC);
-            buf[4..6].copy_from_slice(&VERSION.to_le_bytes());
-            buf[6..8].copy_from_slice(&(PAYLOAD_LEN as u16).to_le_bytes());
-            buf[HEADER_LEN..RECORD_LEN - 4].copy_from_slice(&body);
-            let crc = crc32(&buf[..RECORD_LEN - 4]);
-            buf[RECORD_LEN - 4..].copy_from_slice(&crc.to_le_bytes());
-            if let Ok(p) = Params::decode(&buf) {
+            buf[4..6].copy_from_slice(&version.to_le_bytes());
+            buf[6..8].copy_from_slice(&(payload as u16).to_le_bytes());
+            buf[HEADER_LEN..len - 4].copy_from_slice(&body[..payload]);
+            let crc = crc32(&buf[..len - 4]);
+            buf[len - 4..len].copy_from_slice(&crc.to_le_bytes());
+            if let Ok((p, n)) = Params::decode_with_len(&buf[..len]) {
+                prop_assert_eq!(n, len);
                 prop_assert!(p.validate().is_ok());
             }
         }

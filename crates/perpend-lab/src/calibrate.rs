@@ -42,6 +42,8 @@ pub enum Model {
     Gain,
     /// + per-sensor gain, quadratic and cubic linearity error.
     Nonlinearity,
+    /// + per-sensor gain and a linearity table (natural spline, 5 knots).
+    LinearityTable,
     /// + bias with the beam's incidence angle on the surface.
     Incidence,
     /// + carry-over from the previously converted channel.
@@ -59,6 +61,7 @@ impl Model {
             Model::Base => Effect::None,
             Model::Gain => Effect::Gain,
             Model::Nonlinearity => Effect::Nonlinearity,
+            Model::LinearityTable => Effect::LinearityTable,
             Model::Incidence => Effect::Incidence,
             Model::Crosstalk => Effect::Crosstalk,
             Model::Thermal => Effect::Thermal,

@@ -12,7 +12,8 @@
 //! { "format": "perpend-calibration", "version": 1, "method": "lsq",
 //!   "model": "base", "poses": 100,
 //!   "sensors": [ { "sensor": 1, "zero_mm": [..], "dir": [..],
-//!                  "ext": { "d_ref_mm": 0, "gain": 0, ... },
+//!                  "ext": { "d_ref_mm": 0, "gain": 0, ...,
+//!                           "linearity_table": { "knots_mm": [..5], "values_mm": [..3] } },
 //!                  "correction": { "zero_mm": [..], "dir": [..] },
 //!                  "sigma": { "zero_mm": [..], "dir": [..] },
 //!                  "residual_rms_mm": 0.012, "readings": 100,
@@ -27,6 +28,10 @@
 //! `0-10V` through a divider of ratio `scale`; the distances at 4 mA / 0 V
 //! and at 20 mA / 10 V).
 //!
+//! `linearity_table` (the natural-spline table of
+//! [`perpend_core::ext::LinTable`], knots about `d_ref_mm`) is present only
+//! when a table was fitted; files without it read as before.
+//!
 //! The reader ([`ParamFile::read`]) rejects anything else with a message
 //! naming the file and the problem (serde's line/column for syntax and
 //! type errors; the sensor and field for values out of range). Unknown
@@ -36,7 +41,7 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Context as _, Result};
 use nalgebra::Vector3;
-use perpend_core::ext::Extension;
+use perpend_core::ext::{Extension, LinTable, TABLE_COEFFS, TABLE_KNOTS};
 use perpend_core::head::{Head, Sensor};
 use serde::{Deserialize, Serialize};
 
@@ -65,6 +70,19 @@ pub struct ExtParams {
     pub temp_ref_c: f64,
     /// Drift with time [mm/s].
     pub drift_mm_per_s: f64,
+    /// Linearity table, when one was fitted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub linearity_table: Option<TableParams>,
+}
+
+/// The linearity table of one sensor ([`perpend_core::ext::LinTable`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TableParams {
+    /// Knots [mm] about `d_ref_mm`, strictly ascending.
+    pub knots_mm: [f64; TABLE_KNOTS],
+    /// Values [mm] of the spline at the interior knots (0 at the end knots).
+    pub values_mm: [f64; TABLE_COEFFS],
 }
 
 impl From<&Extension<f64>> for ExtParams {
@@ -78,6 +96,10 @@ impl From<&Extension<f64>> for ExtParams {
             thermal_mm_per_c: e.thermal,
             temp_ref_c: e.temp_ref,
             drift_mm_per_s: e.drift,
+            linearity_table: e.table.is_active().then_some(TableParams {
+                knots_mm: e.table.knots,
+                values_mm: e.table.coeffs,
+            }),
         }
     }
 }
@@ -93,6 +115,10 @@ impl From<&ExtParams> for Extension<f64> {
             thermal: p.thermal_mm_per_c,
             temp_ref: p.temp_ref_c,
             drift: p.drift_mm_per_s,
+            table: p.linearity_table.map_or_else(LinTable::none, |t| LinTable {
+                knots: t.knots_mm,
+                coeffs: t.values_mm,
+            }),
         }
     }
 }
@@ -344,6 +370,13 @@ impl ParamFile {
                 ],
                 "ext",
             )?;
+            if let Some(t) = &e.linearity_table {
+                finite(&t.knots_mm, "linearity_table.knots_mm")?;
+                finite(&t.values_mm, "linearity_table.values_mm")?;
+                if !t.knots_mm.windows(2).all(|w| w[1] > w[0]) {
+                    bail!("sensor {id}: linearity_table.knots_mm must be strictly ascending");
+                }
+            }
             let len = Vector3::from(s.dir).norm();
             if (len - 1.0).abs() > 1e-6 {
                 bail!("sensor {id}: dir has length {len}, expected a unit vector");

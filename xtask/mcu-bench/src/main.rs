@@ -4,9 +4,10 @@
 //! the executed instructions between calls of [`bench_mark`] (their
 //! addresses come from the ELF symbol table) and divides by [`REPS`].
 //!
-//! Sections (marks 1→2, 3→4, 5→6, 6→7, 9→10, 11→12, 13→14, 15→16; 7→8
-//! is the loop baseline that the two square-root sections subtract; 8→9,
-//! 10→11, 12→13 and 14→15 are set-up, not reported):
+//! Sections (marks 1→2, 3→4, 5→6, 6→7, 9→10, 11→12, 13→14, 15→16,
+//! 17→18; 7→8 is the loop baseline that the two square-root sections
+//! subtract; 8→9, 10→11, 12→13, 14→15 and 16→17 are set-up, not
+//! reported):
 //!
 //! 1. the per-sample pipeline exactly as the board runs it: four ADC
 //!    results in (a different tilted plane each repetition), status,
@@ -25,7 +26,10 @@
 //!    measurement objects, EMCY state), operational, plane model;
 //! 7. `App::handle` of a SYNC: the four default TPDOs built and sent;
 //! 8. the sphere pipeline of 5. under 15-17° of tilt, where the fit takes
-//!    its second Gauss-Newton step (surface.rs, stopping rule).
+//!    its second Gauss-Newton step (surface.rs, stopping rule);
+//! 9. the pipeline of 1. with an active linearity table on every sensor
+//!    (stored-parameter record version 2, [`table_params`]): each reading
+//!    is corrected by three Newton steps through the spline (ext.rs).
 //!
 //! The program exits through semihosting (status 0 on success).
 
@@ -215,6 +219,24 @@ fn plane_samples(params: &Params) -> ([Sample; REPS], [perpend_core::Result<Plan
     (samples, planes)
 }
 
+/// The factory parameters with an active linearity table on every sensor:
+/// knots 10 mm apart about the reference distance (50 mm), coefficients
+/// of a few 10⁻⁵ mm⁻¹ (a linearity error of some µm over the range).
+fn table_params() -> Params {
+    let mut p = Params::factory();
+    for (i, s) in p.head.sensors.iter_mut().enumerate() {
+        let k = i as f32;
+        s.ext.table = perpend_core::ext::LinTable {
+            knots: [-20.0, -10.0, 0.0, 10.0, 20.0],
+            coeffs: [2e-5 + 1e-6 * k, -4e-5, 2.5e-5],
+        };
+    }
+    if p.validate().is_err() {
+        fail()
+    }
+    p
+}
+
 /// Runs `samples` through `pl`, the TPDO payloads of each output built
 /// (measured); returns how many outputs were valid.
 fn run_samples(pl: &mut Pipeline, samples: &[Sample]) -> u32 {
@@ -297,6 +319,17 @@ fn main() -> ! {
     bench_mark(15);
     let ok = run_samples(&mut pl_steep, &steep);
     bench_mark(16);
+    if ok != REPS as u32 {
+        fail();
+    }
+
+    let tabled = table_params();
+    let (samples, _) = plane_samples(&tabled);
+    let mut pl = Pipeline::new(tabled, true);
+    black_box(pl.process(&samples[0]));
+    bench_mark(17);
+    let ok = run_samples(&mut pl, &samples);
+    bench_mark(18);
     if ok != REPS as u32 {
         fail();
     }

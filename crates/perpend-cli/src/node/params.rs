@@ -8,10 +8,15 @@
 //! 2. the NMT state from the heartbeat: a board in operational (or
 //!    stopped) is refused unless `--preop`, which switches it to
 //!    pre-operational (the robot controller may be using its PDOs);
-//! 3. unlock (0x2010 ← "ucal"), write every value of 0x2101.. (15 per
-//!    sensor) and, when the file has them, 0x2201.. (4 per sensor), then
-//!    read each one back and compare bit for bit; check that the board
-//!    finds the result valid (status bit 21 clear);
+//! 3. unlock (0x2010 ← "ucal"), write every value of 0x2101.. (23 per
+//!    sensor: sub 1..15, the linearity table's knots 16..20 and
+//!    values 21..23, zeros when the file has no table) and, when the
+//!    file has them, 0x2201.. (4 per sensor), then read each one back and
+//!    compare bit for bit; check that the board finds the result valid
+//!    (status bit 21 clear). The board refuses knots that are not
+//!    ascending under an active table, so a table whose knots change is
+//!    switched off first (its coefficients zeroed), then the knots and the
+//!    coefficients are written;
 //! 4. store (0x1010 sub 3 "save application parameters" where the firmware
 //!    has it, else sub 1 "save all"; answered after the flash write), reset node,
 //!    wait for the boot-up, read everything back again, lock (0x2010 ← 0).
@@ -21,7 +26,8 @@
 //! runs its previous stored calibration again, and says so.
 //!
 //! Pull reads the same objects into a params.json (`method` "board",
-//! `model` from the non-zero extension terms) that push and
+//! `model` from the non-zero extension terms, `linearity_table` when a
+//! coefficient is non-zero) that push and
 //! `ParamFile::read` accept; a beam direction the board holds with a
 //! length off 1 by more than 1e-6 is normalised in the file (the board
 //! normalises it too) with a warning.
@@ -32,9 +38,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _, Result};
+use perpend_can::config::{CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_VALUES};
 use perpend_can::od::{self, Limits, SAVE_SIGNATURE, UNLOCK_SIGNATURE};
 use perpend_lab::paramfile::{
-    ExtParams, ParamFile, SensorParams, TransferParams, TRANSFER_CURRENT, TRANSFER_VOLTAGE,
+    ExtParams, ParamFile, SensorParams, TableParams, TransferParams, TRANSFER_CURRENT,
+    TRANSFER_VOLTAGE,
 };
 use perpend_lab::progress::Progress;
 
@@ -60,8 +68,8 @@ pub struct PullArgs {
     pub out: Option<PathBuf>,
 }
 
-/// Names of the calibration sub-indices 1..15.
-const CAL_NAMES: [&str; 15] = [
+/// Names of the calibration sub-indices 1..23.
+const CAL_NAMES: [&str; CAL_VALUES] = [
     "zero x",
     "zero y",
     "zero z",
@@ -77,7 +85,19 @@ const CAL_NAMES: [&str; 15] = [
     "thermal",
     "temp_ref",
     "drift",
+    "linearity table knot 0",
+    "linearity table knot 1",
+    "linearity table knot 2",
+    "linearity table knot 3",
+    "linearity table knot 4",
+    "linearity table value 0",
+    "linearity table value 1",
+    "linearity table value 2",
 ];
+/// Index of the first knot and the first coefficient in the calibration
+/// values (sub-index − 1).
+const KNOT0: usize = CAL_SUB_KNOTS as usize - 1;
+const COEFF0: usize = CAL_SUB_COEFFS as usize - 1;
 /// Names of the transfer-function sub-indices 1..4.
 const TF_NAMES: [&str; 4] = ["kind", "scale", "mm at 4 mA / 0 V", "mm at 20 mA / 10 V"];
 
@@ -162,8 +182,15 @@ fn real(index: u16, sub: u8, label: String, v: f64) -> Result<Value> {
     })
 }
 
-fn calibration_values(s: &SensorParams) -> [f64; 15] {
+/// The values of sub 1..23 (a missing table as zeros: no table).
+fn calibration_values(s: &SensorParams) -> [f64; CAL_VALUES] {
     let e = &s.ext;
+    let t = e.linearity_table.unwrap_or(TableParams {
+        knots_mm: [0.0; 5],
+        values_mm: [0.0; 3],
+    });
+    let [k0, k1, k2, k3, k4] = t.knots_mm;
+    let [c0, c1, c2] = t.values_mm;
     [
         s.zero_mm[0],
         s.zero_mm[1],
@@ -180,7 +207,32 @@ fn calibration_values(s: &SensorParams) -> [f64; 15] {
         e.thermal_mm_per_c,
         e.temp_ref_c,
         e.drift_mm_per_s,
+        k0,
+        k1,
+        k2,
+        k3,
+        k4,
+        c0,
+        c1,
+        c2,
     ]
+}
+
+/// Refuses a table the board would refuse: active (a coefficient non-zero
+/// in `f32`) with knots not strictly ascending in `f32` (knots closer than
+/// `f32` resolves collapse).
+fn check_table(i: usize, c: &[f64; CAL_VALUES]) -> Result<()> {
+    let f = |k: usize| c[k] as f32;
+    let active = (COEFF0..CAL_VALUES).any(|k| f(k) != 0.0);
+    if active && !(KNOT0..COEFF0 - 1).all(|k| f(k + 1) > f(k)) {
+        bail!(
+            "sensor {} linearity table: the knots {:?} are not strictly ascending as the board \
+             holds them (REAL32); nothing was written",
+            i + 1,
+            &c[KNOT0..COEFF0]
+        );
+    }
+    Ok(())
 }
 
 /// Every value of the file, checked against the board's ranges.
@@ -191,7 +243,9 @@ pub fn plan(file: &ParamFile) -> Result<Vec<Value>> {
     let mut out = Vec::new();
     for (i, s) in file.sensors.iter().enumerate() {
         let index = 0x2101 + i as u16;
-        for (k, v) in calibration_values(s).into_iter().enumerate() {
+        let c = calibration_values(s);
+        check_table(i, &c)?;
+        for (k, v) in c.into_iter().enumerate() {
             let label = format!("sensor {} {}", i + 1, CAL_NAMES[k]);
             out.push(real(index, k as u8 + 1, label, v)?);
         }
@@ -280,26 +334,61 @@ fn verify(node: &mut Node, values: &[Value], bar: &Progress, when: &str) -> Resu
 }
 
 /// Writes every value (checking `cancel` before each); returns how many
-/// differed from what the board held.
+/// differed from what the board held. A sensor's active table whose knots
+/// change is switched off first ([`clear_table`]).
 fn write_all(
     node: &mut Node,
     values: &[Value],
     cancel: &AtomicBool,
     bar: &Progress,
 ) -> Result<usize> {
-    let mut changed = 0;
+    let before = values
+        .iter()
+        .map(|v| node.client.upload(node.id, v.index, v.sub))
+        .collect::<Result<Vec<_>, _>>()?;
+    let changed = values
+        .iter()
+        .zip(&before)
+        .filter(|(v, b)| v.bytes != **b)
+        .count();
     for (k, v) in values.iter().enumerate() {
         if cancel.load(Ordering::SeqCst) {
             bail!("interrupted (Ctrl-C) after {k} of {} writes", values.len());
         }
-        let before = node.client.upload(node.id, v.index, v.sub)?;
-        changed += usize::from(before != v.bytes);
+        if v.sub == CAL_SUB_KNOTS && (0x2101..=0x2104).contains(&v.index) {
+            clear_table(node, values, &before, v.index)?;
+        }
         node.client
             .download(node.id, v.index, v.sub, &v.bytes)
             .with_context(|| format!("writing {}", v.label))?;
         bar.inc();
     }
     Ok(changed)
+}
+
+/// Zeroes the coefficients of the table in `index` when the board holds
+/// an active one (`before`, as read) and the push changes its knots: the
+/// board refuses knots out of order under an active table, and the knots
+/// pass through intermediate orders while they are written one by one.
+fn clear_table(node: &mut Node, values: &[Value], before: &[Vec<u8>], index: u16) -> Result<()> {
+    let zero = 0f32.to_le_bytes();
+    let mut knots_change = false;
+    let mut active = false;
+    for (v, b) in values.iter().zip(before).filter(|(v, _)| v.index == index) {
+        if (CAL_SUB_KNOTS..CAL_SUB_COEFFS).contains(&v.sub) {
+            knots_change |= v.bytes != *b;
+        } else if v.sub >= CAL_SUB_COEFFS {
+            active |= <[u8; 4]>::try_from(b.as_slice()).is_ok_and(|x| f32::from_le_bytes(x) != 0.0);
+        }
+    }
+    if knots_change && active {
+        for sub in CAL_SUB_COEFFS..CAL_SUB_COEFFS + 3 {
+            node.client
+                .download(node.id, index, sub, &zero)
+                .with_context(|| format!("switching off the linearity table of {index:#06x}"))?;
+        }
+    }
+    Ok(())
 }
 
 /// Waits for a sample newer than now and checks the board finds its
@@ -315,7 +404,8 @@ fn check_valid(node: &mut Node) -> Result<()> {
     if st & perpend_can::status::CONFIG_INVALID != 0 {
         bail!(
             "the board finds the written calibration invalid (status bit 21: a combination \
-             its checks refuse, e.g. a transfer function outside its front end's range)"
+             its checks refuse, e.g. a transfer function outside its front end's range or a \
+             linearity table it cannot use)"
         );
     }
     Ok(())
@@ -443,6 +533,9 @@ fn model_name(sensors: &[SensorParams]) -> String {
     } else if any(|e| e.gain != 0.0) {
         v.push("gain");
     }
+    if any(|e| e.linearity_table.is_some()) {
+        v.push("linearity table");
+    }
     for (name, f) in [
         (
             "incidence",
@@ -463,8 +556,10 @@ fn model_name(sensors: &[SensorParams]) -> String {
     }
 }
 
-/// One sensor's parameters from its 15 calibration values and transfer.
-fn sensor_params(i: usize, c: &[f64; 15], t: Option<TransferParams>) -> SensorParams {
+/// One sensor's parameters from its 23 calibration values and transfer
+/// (a table only when a coefficient is non-zero: otherwise the board
+/// applies none and its knots mean nothing).
+fn sensor_params(i: usize, c: &[f64; CAL_VALUES], t: Option<TransferParams>) -> SensorParams {
     let mut dir = [c[3], c[4], c[5]];
     let len = dir.iter().map(|x| x * x).sum::<f64>().sqrt();
     if (len - 1.0).abs() > 1e-6 && len > 0.0 {
@@ -488,6 +583,16 @@ fn sensor_params(i: usize, c: &[f64; 15], t: Option<TransferParams>) -> SensorPa
             thermal_mm_per_c: c[12],
             temp_ref_c: c[13],
             drift_mm_per_s: c[14],
+            linearity_table: c[COEFF0..].iter().any(|x| *x != 0.0).then(|| TableParams {
+                knots_mm: [
+                    c[KNOT0],
+                    c[KNOT0 + 1],
+                    c[KNOT0 + 2],
+                    c[KNOT0 + 3],
+                    c[KNOT0 + 4],
+                ],
+                values_mm: [c[COEFF0], c[COEFF0 + 1], c[COEFF0 + 2]],
+            }),
         },
         correction: None,
         sigma: None,
@@ -507,10 +612,10 @@ pub fn pull(node: &mut Node, cancel: &AtomicBool) -> Result<ParamFile> {
     node.hello()?;
     let n = node.sensors()?;
     let id = node.id;
-    let bar = Progress::new(19 * n as u64, "pull");
+    let bar = Progress::new((CAL_VALUES + 4) as u64 * n as u64, "pull");
     let mut sensors = Vec::new();
     for i in 0..n {
-        let mut c = [0f64; 15];
+        let mut c = [0f64; CAL_VALUES];
         for (k, v) in c.iter_mut().enumerate() {
             if cancel.load(Ordering::SeqCst) {
                 bail!("interrupted (Ctrl-C): nothing was written");

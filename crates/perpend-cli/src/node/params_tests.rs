@@ -10,7 +10,7 @@ use std::time::Duration;
 use perpend_can::Frame;
 use perpend_core::geometry::Plane;
 use perpend_core::params::Params;
-use perpend_lab::paramfile::{ParamFile, TransferParams, TRANSFER_CURRENT};
+use perpend_lab::paramfile::{ParamFile, TableParams, TransferParams, TRANSFER_CURRENT};
 
 use super::{plan, pull, push, PushArgs};
 use crate::board::node::{BoardConfig, VirtualBoard};
@@ -132,7 +132,7 @@ fn push_stores_and_pull_reads_the_same_values() {
     let before = pull(&mut r.node, &r.cancel).unwrap();
     assert_eq!(before.model, "base");
     let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
-    assert_eq!(rep.values, 4 * 19);
+    assert_eq!(rep.values, 4 * 27);
     assert!(rep.changed >= 4 * 3, "{rep:?}");
     assert!(rep
         .to_string()
@@ -182,7 +182,7 @@ fn an_interrupted_push_stores_nothing_and_resets_to_the_stored_calibration() {
         "{e}"
     );
     assert!(
-        e.contains("interrupted (Ctrl-C) after 24 of 76 writes"),
+        e.contains("interrupted (Ctrl-C) after 20 of 108 writes"),
         "{e}"
     );
     assert_eq!(r.board.lock().unwrap().app().stores(), 0);
@@ -240,4 +240,68 @@ fn an_operational_board_is_refused_unless_preop() {
     let rep = push(&mut r.node, &a, &r.cancel).unwrap();
     assert!(rep.switched);
     assert!(rep.to_string().contains("nmt start"));
+}
+
+fn table(knots_mm: [f64; 5], values_mm: [f64; 3]) -> Option<TableParams> {
+    Some(TableParams {
+        knots_mm,
+        values_mm,
+    })
+}
+
+/// A linearity table goes to the board (sub 16..23) and comes back in
+/// pull, with "linearity table" among the model's effects; a second push
+/// with other knots under the active table (the board refuses knots out
+/// of order while a table is active) and a push without a table (which
+/// switches it off) both go through.
+#[test]
+fn linearity_tables_push_and_pull() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut f = ParamFile::read(&path).unwrap();
+    let t1 = table([-6.0, -3.0, 0.0, 2.0, 6.0], [1e-3, -2e-3, 1.5e-3]);
+    f.sensors[1].ext.linearity_table = t1;
+    f.write(&path).unwrap();
+    let mut r = rig(None);
+    push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert_eq!(back.model, "gain+linearity table");
+    let f32s = |t: Option<TableParams>| {
+        t.map(|t| (t.knots_mm.map(|x| x as f32), t.values_mm.map(|x| x as f32)))
+    };
+    assert_eq!(f32s(back.sensors[1].ext.linearity_table), f32s(t1));
+    assert!(back.sensors[0].ext.linearity_table.is_none());
+    // Other knots: the first knot moves past the old second one, which the
+    // board refuses one by one under the active table.
+    let t2 = table([-2.0, 1.0, 4.0, 9.0, 20.0], [-5e-4, 1e-4, 2e-4]);
+    f.sensors[1].ext.linearity_table = t2;
+    f.write(&path).unwrap();
+    let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    assert_eq!(rep.changed, 8);
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert_eq!(f32s(back.sensors[1].ext.linearity_table), f32s(t2));
+    // no table in the file: the board's is switched off
+    f.sensors[1].ext.linearity_table = None;
+    f.write(&path).unwrap();
+    push(&mut r.node, &args(path), &r.cancel).unwrap();
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert_eq!(back.model, "gain");
+    assert!(back.sensors.iter().all(|s| s.ext.linearity_table.is_none()));
+}
+
+/// A table whose knots are ascending in the file but coincide as REAL32
+/// is refused before any write.
+#[test]
+fn a_table_the_board_would_refuse_is_named_before_any_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut f = ParamFile::read(&params_file(dir.path(), 4)).unwrap();
+    f.sensors[2].ext.linearity_table = table([-6.0, -3.0, 0.0, 2.0, 2.0 + 1e-9], [1e-3, 0.0, 0.0]);
+    let e = format!("{:#}", plan(&f).unwrap_err());
+    assert!(
+        e.contains("sensor 3 linearity table") && e.contains("not strictly ascending"),
+        "{e}"
+    );
+    // the same knots without coefficients: no table, nothing to refuse
+    f.sensors[2].ext.linearity_table = table([-6.0, -3.0, 0.0, 2.0, 2.0 + 1e-9], [0.0; 3]);
+    assert_eq!(plan(&f).unwrap().len(), 4 * 27);
 }

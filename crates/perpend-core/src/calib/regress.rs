@@ -37,7 +37,7 @@
 //! geometry is first order in the coefficients).
 
 use super::Poses;
-use crate::ext::Extension;
+use crate::ext::{Extension, LinTable, TABLE_KNOTS};
 use crate::head::Sensor;
 use crate::model::distance;
 use crate::Real;
@@ -94,11 +94,18 @@ pub enum Term {
     Thermal,
     /// `drift · t`.
     Drift,
+    /// `v_0 · C_0(d − d_ref)`: the linearity table's ([`crate::ext::LinTable`])
+    /// value at its first interior knot times its cardinal function.
+    Table0,
+    /// `v_1 · C_1(d − d_ref)`.
+    Table1,
+    /// `v_2 · C_2(d − d_ref)`.
+    Table2,
 }
 
 impl Term {
     /// All terms, in the column order [`ExtTerms`] uses.
-    pub const ALL: [Term; 7] = [
+    pub const ALL: [Term; 10] = [
         Term::Gain,
         Term::Quadratic,
         Term::Cubic,
@@ -106,10 +113,16 @@ impl Term {
         Term::Crosstalk,
         Term::Thermal,
         Term::Drift,
+        Term::Table0,
+        Term::Table1,
+        Term::Table2,
     ];
 
+    /// The linearity table's terms.
+    pub const TABLE: [Term; 3] = [Term::Table0, Term::Table1, Term::Table2];
+
     /// Bit of this term in [`ExtTerms::mask`].
-    pub const fn bit(self) -> u8 {
+    pub const fn bit(self) -> u16 {
         match self {
             Term::Gain => 1,
             Term::Quadratic => 2,
@@ -118,6 +131,9 @@ impl Term {
             Term::Crosstalk => 16,
             Term::Thermal => 32,
             Term::Drift => 64,
+            Term::Table0 => 128,
+            Term::Table1 => 256,
+            Term::Table2 => 512,
         }
     }
 
@@ -131,6 +147,9 @@ impl Term {
             Term::Crosstalk => "crosstalk",
             Term::Thermal => "thermal",
             Term::Drift => "drift",
+            Term::Table0 => "table0",
+            Term::Table1 => "table1",
+            Term::Table2 => "table2",
         }
     }
 }
@@ -141,11 +160,14 @@ impl Term {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ExtTerms<T: Real> {
     /// Bit set of [`Term::bit`]s.
-    pub mask: u8,
+    pub mask: u16,
     /// Reference distance [mm] of gain and linearity (mid-range).
     pub d_ref: T,
     /// Reference temperature [°C] of the thermal term.
     pub temp_ref: T,
+    /// Knots [mm] of the linearity table about `d_ref` (used by the
+    /// `Table*` terms only; strictly ascending for those).
+    pub knots: [T; TABLE_KNOTS],
 }
 
 impl<T: Real> ExtTerms<T> {
@@ -155,6 +177,20 @@ impl<T: Real> ExtTerms<T> {
             mask: terms.iter().fold(0, |m, t| m | t.bit()),
             d_ref,
             temp_ref,
+            knots: [T::zero(); TABLE_KNOTS],
+        }
+    }
+
+    /// The same terms with the linearity table's knots `knots`.
+    pub fn with_knots(self, knots: [T; TABLE_KNOTS]) -> Self {
+        Self { knots, ..self }
+    }
+
+    /// The table with these knots and values `c`.
+    fn table(&self, c: [T; 3]) -> LinTable<T> {
+        LinTable {
+            knots: self.knots,
+            coeffs: c,
         }
     }
 
@@ -168,6 +204,7 @@ impl<T: Real> ExtTerms<T> {
         let mut e = Extension::identity();
         e.d_ref = self.d_ref;
         e.temp_ref = self.temp_ref;
+        let mut table = [T::zero(); 3];
         for (j, t) in self.terms().enumerate() {
             let c = coeffs.get(j).copied().unwrap_or_else(T::zero);
             match t {
@@ -178,7 +215,13 @@ impl<T: Real> ExtTerms<T> {
                 Term::Crosstalk => e.crosstalk = c,
                 Term::Thermal => e.thermal = c,
                 Term::Drift => e.drift = c,
+                Term::Table0 => table[0] = c,
+                Term::Table1 => table[1] = c,
+                Term::Table2 => table[2] = c,
             }
+        }
+        if table.iter().any(|c| *c != T::zero()) {
+            e.table = self.table(table);
         }
         e
     }
@@ -208,6 +251,7 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
             .or_else(|| poses.reading(k, sensor))
             .unwrap_or_else(T::zero);
         let x = d - self.d_ref;
+        let basis = self.table([T::zero(); 3]).basis(x);
         let n = poses.sensors().max(1);
         let ctx = poses.context(k);
         for (slot, t) in out.iter_mut().zip(self.terms()) {
@@ -228,6 +272,9 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
                     .map_or_else(T::zero, |p| p - d),
                 Term::Thermal => ctx.temp_c.map_or_else(T::zero, |t| t - self.temp_ref),
                 Term::Drift => ctx.t_s.unwrap_or_else(T::zero),
+                Term::Table0 => basis[0],
+                Term::Table1 => basis[1],
+                Term::Table2 => basis[2],
             };
         }
     }
@@ -259,12 +306,14 @@ mod tests {
             },
         };
         let poses = [pose];
-        let terms = ExtTerms::new(&Term::ALL, 32.0, 21.0);
-        assert_eq!(Regressors::<f64>::count(&terms), 7);
-        let c = [1e-3, 2e-4, -3e-5, 0.02, 4e-3, 1e-3, -2e-4];
+        let terms = ExtTerms::new(&Term::ALL, 32.0, 21.0).with_knots([-4.0, -1.5, 0.5, 2.0, 5.0]);
+        assert_eq!(Regressors::<f64>::count(&terms), 10);
+        let c = [
+            1e-3, 2e-4, -3e-5, 0.02, 4e-3, 1e-3, -2e-4, 3e-3, -1e-3, 2e-3,
+        ];
         let ext = terms.extension(&c);
         for i in [0usize, 1, 3] {
-            let mut x = [0.0; 7];
+            let mut x = [0.0; 10];
             terms.fill(poses.as_slice(), 0, i, &truth.sensors[i], &mut x);
             let lin: f64 = x.iter().zip(c.iter()).map(|(a, b)| a * b).sum();
             let prev = pose.readings[(i + 3) % 4];
@@ -276,7 +325,7 @@ mod tests {
             // ... so the pose's own reading does not enter its regressors.
             let mut moved = poses;
             moved[0].readings[i] = Some(pose.readings[i].unwrap() + 0.7);
-            let mut y = [0.0; 7];
+            let mut y = [0.0; 10];
             terms.fill(moved.as_slice(), 0, i, &truth.sensors[i], &mut y);
             assert_eq!(x, y);
         }

@@ -639,9 +639,7 @@ fn forward(
         };
         let models: Vec<Effect> = available_models(poses)
             .into_iter()
-            .filter(|e| {
-                !(with.contains(e) || (*e == Effect::Gain && with.contains(&Effect::Nonlinearity)))
-            })
+            .filter(|e| !(with.contains(e) || with.iter().any(|w| e.excluded_by(*w))))
             .collect();
         if models.len() < 2 {
             break;

@@ -550,7 +550,10 @@ fn residuals_under(
 /// far, flag, keep the poses flagged under all of them, refit without them
 /// until nothing changes (at most three rounds). A pose that only the
 /// paper's model cannot explain (the far end of a linearity error) is not
-/// a bad pose.
+/// a bad pose. The linearity table takes no part: its end knots sit at the
+/// run's extreme readings, so it can bend to follow a single far pose (a
+/// blunder at 30 poses) that every other model flags; the polynomial stands
+/// for the linearity error here.
 pub fn reject(
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
@@ -563,7 +566,7 @@ pub fn reject(
     while (found.len() + 1) * 10 <= poses.len() {
         let kept = without(poses, &found);
         let mut now: Option<Vec<Outlier>> = None;
-        for &e in models {
+        for &e in models.iter().filter(|e| **e != Effect::LinearityTable) {
             let Some(resid) = residuals_under(e, nominal, poses, &kept, lsq) else {
                 continue;
             };

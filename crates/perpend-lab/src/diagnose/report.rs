@@ -527,6 +527,23 @@ pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> Strin
                 at(span)
             )
         }
+        Effect::LinearityTable => {
+            let k = x.table.knots;
+            let at: Vec<String> = k
+                .iter()
+                .map(|s| format!("{:+.1}", 1000.0 * x.table.value(*s)))
+                .collect();
+            format!(
+                "gain {:+.3} % ± {:.3} %, table error [{}] µm at knots [{}] mm",
+                100.0 * x.gain,
+                100.0 * sd(0),
+                at.join(", "),
+                k.iter()
+                    .map(|s| format!("{s:+.2}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        }
         Effect::Incidence => format!(
             "incidence bias {:+.1} µm ± {:.1} µm at 30°",
             1000.0 * x.incidence * inc30,

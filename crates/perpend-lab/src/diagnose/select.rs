@@ -515,7 +515,9 @@ mod tests {
         let d = crate::diagnose::diagnose(&data.sensors, &data.poses, &Default::default()).unwrap();
         let named = d.effects();
         assert!(
-            named.contains(&Effect::Gain) || named.contains(&Effect::Nonlinearity),
+            named.contains(&Effect::Gain)
+                || named.contains(&Effect::Nonlinearity)
+                || named.contains(&Effect::LinearityTable),
             "{named:?}"
         );
         assert!(named.contains(&Effect::Drift), "{named:?}");

@@ -411,7 +411,12 @@ fn cause_scans(
 /// The combinations tried, each cause at its upper bound.
 fn combination_sets() -> Vec<(&'static str, Vec<Cause>)> {
     use crate::diagnose::candidates::Effect as E;
-    let sensor: Vec<Cause> = E::CATALOG.iter().map(|e| Cause::Sensor(*e)).collect();
+    // The table is another form of the linearity error, not another cause.
+    let sensor: Vec<Cause> = E::CATALOG
+        .iter()
+        .filter(|e| **e != E::LinearityTable)
+        .map(|e| Cause::Sensor(*e))
+        .collect();
     let mut all = sensor.clone();
     all.extend([Cause::Ripple, Cause::Tcs, Cause::Form, Cause::Robot]);
     vec![
