@@ -100,8 +100,9 @@ fn ecc_error_at_every_cut_position_never_stops_the_boot() {
     for before in 0..12 {
         sweep(before, 0, &mut s);
     }
+    // and with the board's device image after the record
     for before in 0..6 {
-        sweep(before, 560, &mut s);
+        sweep(before, perpend_can::device::IMAGE_LEN, &mut s);
     }
     // Every cut of a program step leaves an unreadable word that the boot
     // reads (the items are scanned), so most boots meet one.

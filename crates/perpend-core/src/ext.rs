@@ -288,8 +288,8 @@ impl<T: Real> Extension<T> {
     /// `d_prev` is the previous channel's reading, `cos_gamma` `|n·u|`.
     pub fn excess(&self, f: T, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
         let spline = self.table_spline();
-        self.excess_slope(f, d_prev, cos_gamma, ctx, spline.as_ref())
-            .0
+        let (g, _) = self.moving(f, d_prev.is_some(), spline.as_ref());
+        self.fixed(d_prev, cos_gamma, ctx) + g
     }
 
     /// The table's spline when it is active and valid.
@@ -302,16 +302,31 @@ impl<T: Real> Extension<T> {
         }
     }
 
-    /// The excess and its slope `∂δ/∂f` in one pass (the table's spline
-    /// prepared by the caller).
-    fn excess_slope(
-        &self,
-        f: T,
-        d_prev: Option<T>,
-        cos_gamma: T,
-        ctx: &Context<T>,
-        spline: Option<&Spline<T>>,
-    ) -> (T, T) {
+    /// The terms of the excess that do not depend on `f`: incidence,
+    /// thermal, drift and the previous channel's share of the carry-over.
+    #[inline]
+    fn fixed(&self, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
+        let mut c = T::zero();
+        if self.incidence != T::zero() && cos_gamma > T::zero() {
+            c += self.incidence * (T::one() / cos_gamma - T::one());
+        }
+        if let Some(p) = d_prev {
+            c += self.crosstalk * p;
+        }
+        if let Some(t) = ctx.temp_c {
+            c += self.thermal * (t - self.temp_ref);
+        }
+        if let Some(t) = ctx.t_s {
+            c += self.drift * t;
+        }
+        c
+    }
+
+    /// The terms that do depend on `f` (gain, polynomial, table, the
+    /// carry-over's `−crosstalk·f` when there is a previous channel) and
+    /// their slope `∂δ/∂f`, the table's spline prepared by the caller.
+    #[inline]
+    fn moving(&self, f: T, has_prev: bool, spline: Option<&Spline<T>>) -> (T, T) {
         let x = f - self.d_ref;
         let [q, c] = self.nonlinearity;
         let mut delta = x * (self.gain + x * (q + x * c));
@@ -321,18 +336,9 @@ impl<T: Real> Extension<T> {
             delta += v;
             slope += s;
         }
-        if self.incidence != T::zero() && cos_gamma > T::zero() {
-            delta += self.incidence * (T::one() / cos_gamma - T::one());
-        }
-        if let Some(p) = d_prev {
-            delta += self.crosstalk * (p - f);
+        if has_prev {
+            delta -= self.crosstalk * f;
             slope -= self.crosstalk;
-        }
-        if let Some(t) = ctx.temp_c {
-            delta += self.thermal * (t - self.temp_ref);
-        }
-        if let Some(t) = ctx.t_s {
-            delta += self.drift * t;
         }
         (delta, slope)
     }
@@ -350,30 +356,33 @@ impl<T: Real> Extension<T> {
 
     /// The true distance `f` that makes reading `d`: the solution of
     /// `f + δ(f) = d` (module docs): exactly `d − δ` when the excess does
-    /// not depend on `f`, else up to three Newton steps from `f = d − δ(d)`,
-    /// stopping after a step below 10⁻⁶ of the reading (quadratic
-    /// convergence: the next one would be far below an f32 reading's
-    /// resolution). The table's spline is solved once per call.
+    /// not depend on `f`, else Newton steps from `f = d` (at most four),
+    /// stopping after a step below 10⁻⁶ of the reading: quadratic
+    /// convergence makes the next one far below an f32 reading's
+    /// resolution, so two steps are the rule. The table's spline is solved
+    /// once per call and the terms that do not depend on `f` are summed
+    /// once.
     #[inline]
     pub fn correct(&self, d: T, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
+        let c0 = self.fixed(d_prev, cos_gamma, ctx);
         let spline = self.table_spline();
         let sp = spline.as_ref();
-        let mut f = d - self.excess_slope(d, d_prev, cos_gamma, ctx, sp).0;
-        if sp.is_some() || self.depends_on_distance() {
-            let tol = T::lit(1e-6) * (T::one() + d.abs());
-            for _ in 0..3 {
-                let (e, s) = self.excess_slope(f, d_prev, cos_gamma, ctx, sp);
-                let r = f + e - d;
-                let j = T::one() + s;
-                if !(j.abs() > T::lit(1e-3)) {
-                    break;
-                }
-                let step = r / j;
-                f -= step;
-                // converged: the next step would be of order step² / f
-                if step.abs() <= tol {
-                    break;
-                }
+        if sp.is_none() && !self.depends_on_distance() {
+            return d - c0;
+        }
+        let has_prev = d_prev.is_some();
+        let tol = T::lit(1e-6) * (T::one() + d.abs());
+        let mut f = d;
+        for _ in 0..4 {
+            let (g, s) = self.moving(f, has_prev, sp);
+            let j = T::one() + s;
+            if !(j.abs() > T::lit(1e-3)) {
+                break;
+            }
+            let step = (f + c0 + g - d) / j;
+            f -= step;
+            if step.abs() <= tol {
+                break;
             }
         }
         f
