@@ -43,6 +43,7 @@ pub enum Model {
     /// + per-sensor gain, quadratic and cubic linearity error.
     Nonlinearity,
     /// + per-sensor gain and a linearity table (natural spline, 5 knots).
+    #[value(name = "linearity_table")]
     LinearityTable,
     /// + bias with the beam's incidence angle on the surface.
     Incidence,
