@@ -251,7 +251,12 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
             .or_else(|| poses.reading(k, sensor))
             .unwrap_or_else(T::zero);
         let x = d - self.d_ref;
-        let basis = self.table([T::zero(); 3]).basis(x);
+        let table_bits = Term::TABLE.iter().fold(0, |m, t| m | t.bit());
+        let basis = if self.mask & table_bits != 0 {
+            self.table([T::zero(); 3]).basis(x)
+        } else {
+            [T::zero(); 3]
+        };
         let n = poses.sensors().max(1);
         let ctx = poses.context(k);
         for (slot, t) in out.iter_mut().zip(self.terms()) {
