@@ -207,24 +207,7 @@ fn calibrate_stores_a_linearity_table_that_measures_better() {
     cfg.poses = 150;
     let mut rng = rand::rngs::StdRng::seed_from_u64(21);
     let mut data = simulate(&head, &cfg, &[], &mut rng).unwrap();
-    let amp = [0.06, -0.05, 0.055, -0.06];
-    let range: Vec<(f64, f64)> = (0..4)
-        .map(|i| {
-            let v = data.poses.rows.iter().filter_map(|r| r.readings[i]);
-            v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| {
-                (a.min(d), b.max(d))
-            })
-        })
-        .collect();
-    for row in &mut data.poses.rows {
-        for (i, d) in row.readings.iter_mut().enumerate() {
-            if let Some(d) = d.as_mut() {
-                let (lo, hi) = range[i];
-                let u = 2.0 * (*d - lo) / (hi - lo) - 1.0;
-                *d += amp[i] * (std::f64::consts::PI * u).sin();
-            }
-        }
-    }
+    perpend_lab::sim::add_sine_linearity(&mut data.poses, &[0.06, -0.05, 0.055, -0.06]);
     let (train, test) = split(&data.poses, 100);
     let dir = tempfile::tempdir().unwrap();
     perpend_lab::exchange::write_dataset(dir.path(), &data.sensors, &train, &[]).unwrap();

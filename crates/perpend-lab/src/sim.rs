@@ -541,6 +541,34 @@ pub struct Dataset {
     pub truth: Vec<Sensor<f64>>,
 }
 
+/// Adds a linearity error of a shape no candidate of the diagnosis has to
+/// every reading of `poses`: one sine period over each sensor's range of
+/// readings in the run, `amp[i]·sin(π·u)` with `u` from −1 at its smallest
+/// reading to +1 at its largest (the S-curve a triangulation sensor's
+/// residual linearity often is). For tests of the linearity table.
+pub fn add_sine_linearity(poses: &mut crate::exchange::PoseTable, amp: &[f64]) {
+    let range = |i: usize| {
+        let v = poses
+            .rows
+            .iter()
+            .filter_map(|r| r.readings.get(i).copied().flatten());
+        v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| {
+            (a.min(d), b.max(d))
+        })
+    };
+    let ranges: Vec<(f64, f64)> = (0..amp.len()).map(range).collect();
+    for row in &mut poses.rows {
+        for ((d, a), (lo, hi)) in row.readings.iter_mut().zip(amp).zip(&ranges) {
+            if let Some(d) = d.as_mut() {
+                if hi > lo {
+                    let u = 2.0 * (*d - lo) / (hi - lo) - 1.0;
+                    *d += a * (std::f64::consts::PI * u).sin();
+                }
+            }
+        }
+    }
+}
+
 /// True distances of `head` on `plane` (`None` where the beam misses).
 pub fn true_distances(head: &[Sensor<f64>], plane: &Plane<f64>) -> Vec<Option<f64>> {
     head.iter()

@@ -740,26 +740,7 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
         let mut run = simulate(&head, &cfg, &[], &mut rng).unwrap();
         let clean = run.clone();
-        let amp = [0.06, -0.05, 0.055, -0.06];
-        let lo_hi: Vec<(f64, f64)> = (0..4)
-            .map(|i| {
-                let v = run.poses.rows.iter().filter_map(|r| r.readings[i]);
-                v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| {
-                    (a.min(d), b.max(d))
-                })
-            })
-            .collect();
-        let sine = |i: usize, d: f64| {
-            let (lo, hi) = lo_hi[i];
-            amp[i] * (std::f64::consts::PI * (2.0 * (d - lo) / (hi - lo) - 1.0)).sin()
-        };
-        for row in &mut run.poses.rows {
-            for (i, d) in row.readings.iter_mut().enumerate() {
-                if let Some(d) = d.as_mut() {
-                    *d += sine(i, *d);
-                }
-            }
-        }
+        crate::sim::add_sine_linearity(&mut run.poses, &[0.06, -0.05, 0.055, -0.06]);
         let d = crate::diagnose::diagnose(&run.sensors, &run.poses, &Default::default()).unwrap();
         assert_eq!(d.effects(), vec![Effect::LinearityTable]);
         let floor = crate::diagnose::diagnose(&clean.sensors, &clean.poses, &Default::default())
