@@ -16,9 +16,10 @@ Printed: each model's held-out RMS over gen.py's same-draw floor
 Answer (`--runs 4`, seeds 9000-9003, docs/diagnosis.md): at 60 poses the
 quintic beats the cubic in 3 of 8 runs and the spline in 8 of 8 (to
 1.05-1.37x the floor, against the cubic's 1.08-1.41x); at 30 poses the
-spline wins 1 of 4 and the quintic none (up to 10x). A spline linearity table is the way to
-close the gap at 60 poses and more; it needs a new stored-parameter
-record, not done yet.
+spline wins 1 of 4 and the quintic none (up to 10x). perpend now has
+such a table (`linearity_table`: natural spline, knots at the 1-99 %
+quantiles, values at the interior knots fitted, stored in record v2);
+docs/diagnosis.md gives what it did on the blind grid.
 """
 
 import argparse
