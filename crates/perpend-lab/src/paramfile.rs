@@ -373,7 +373,11 @@ impl ParamFile {
             if let Some(t) = &e.linearity_table {
                 finite(&t.knots_mm, "linearity_table.knots_mm")?;
                 finite(&t.values_mm, "linearity_table.values_mm")?;
-                if !t.knots_mm.windows(2).all(|w| w[1] > w[0]) {
+                let table = LinTable {
+                    knots: t.knots_mm,
+                    coeffs: t.values_mm,
+                };
+                if !table.knots_valid() {
                     bail!("sensor {id}: linearity_table.knots_mm must be strictly ascending");
                 }
             }

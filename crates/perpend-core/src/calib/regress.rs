@@ -121,6 +121,9 @@ impl Term {
     /// The linearity table's terms.
     pub const TABLE: [Term; 3] = [Term::Table0, Term::Table1, Term::Table2];
 
+    /// Their bits in [`ExtTerms::mask`].
+    pub const TABLE_BITS: u16 = Term::Table0.bit() | Term::Table1.bit() | Term::Table2.bit();
+
     /// Bit of this term in [`ExtTerms::mask`].
     pub const fn bit(self) -> u16 {
         match self {
@@ -251,8 +254,7 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
             .or_else(|| poses.reading(k, sensor))
             .unwrap_or_else(T::zero);
         let x = d - self.d_ref;
-        let table_bits = Term::TABLE.iter().fold(0, |m, t| m | t.bit());
-        let basis = if self.mask & table_bits != 0 {
+        let basis = if self.mask & Term::TABLE_BITS != 0 {
             self.table([T::zero(); 3]).basis(x)
         } else {
             [T::zero(); 3]

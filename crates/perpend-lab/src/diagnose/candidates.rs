@@ -219,19 +219,13 @@ impl Refs {
 const KNOT_QUANTILES: [f64; TABLE_KNOTS] = [0.01, 0.25, 0.5, 0.75, 0.99];
 
 /// The knots of a sensor's table: quantiles of its readings `v` (linear
-/// interpolation between order statistics) about `d_ref`.
+/// interpolation between order statistics) about `d_ref`; 0 without
+/// readings.
 fn table_knots(v: &[f64], d_ref: f64) -> [f64; TABLE_KNOTS] {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    KNOT_QUANTILES.map(|q| {
-        if s.is_empty() {
-            return 0.0;
-        }
-        let at = q * (s.len() - 1) as f64;
-        let (lo, frac) = (at.floor() as usize, at.fract());
-        let hi = (lo + 1).min(s.len() - 1);
-        s[lo] + frac * (s[hi] - s[lo]) - d_ref
-    })
+    if v.is_empty() {
+        return [0.0; TABLE_KNOTS];
+    }
+    KNOT_QUANTILES.map(|q| super::stats::quantile(v, q) - d_ref)
 }
 
 /// Whether the run has the inputs a candidate needs; `Err` says what is
