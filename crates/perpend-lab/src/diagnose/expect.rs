@@ -289,6 +289,8 @@ pub struct Expectation {
     /// Paired z of each candidate's held-out gain over the base model on
     /// effect-free data: what the candidate "gains" from noise alone.
     pub gain_z: Vec<(Effect, Spread)>,
+    /// Signed-rank z of the same per-pose gains on effect-free data.
+    pub rank_z: Vec<(Effect, Spread)>,
     /// Structure z of each model's held-out residuals per axis: what a
     /// model that captures the run leaves (cross-validation's own fold
     /// errors are smooth in the geometry, more so with more parameters).
@@ -317,6 +319,11 @@ impl Expectation {
     /// Null spread of candidate `e`'s paired gain z.
     pub fn gain_z_of(&self, e: Effect) -> Option<Spread> {
         self.gain_z.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
+    }
+
+    /// Null spread of candidate `e`'s signed-rank z.
+    pub fn rank_z_of(&self, e: Effect) -> Option<Spread> {
+        self.rank_z.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
     }
 }
 
@@ -384,18 +391,21 @@ pub fn expect(
             stats::mean(&v)
         })
         .collect();
-    let gain_z = plan
-        .models
-        .iter()
-        .filter(|e| **e != Effect::None)
-        .map(|&e| {
-            let v: Vec<f64> = analyses
-                .iter()
-                .filter_map(|a| Some(super::select::paired(a.cv_of(Effect::None)?, a.cv_of(e)?).1))
-                .collect();
-            (e, Spread::of(&v))
-        })
-        .collect();
+    let null_of = |stat: &dyn Fn(&CvResult, &CvResult) -> f64| -> Vec<(Effect, Spread)> {
+        plan.models
+            .iter()
+            .filter(|e| **e != Effect::None)
+            .map(|&e| {
+                let v: Vec<f64> = analyses
+                    .iter()
+                    .filter_map(|a| Some(stat(a.cv_of(Effect::None)?, a.cv_of(e)?)))
+                    .collect();
+                (e, Spread::of(&v))
+            })
+            .collect()
+    };
+    let gain_z = null_of(&|b, c| super::select::paired(b, c).1);
+    let rank_z = null_of(&super::select::paired_rank);
     let structure = plan
         .models
         .iter()
@@ -421,6 +431,7 @@ pub fn expect(
         r2,
         normal_err_deg: Spread::of(&nerr),
         gain_z,
+        rank_z,
         structure,
     }
 }

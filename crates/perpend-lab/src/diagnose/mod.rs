@@ -45,6 +45,7 @@ pub mod bench;
 pub mod candidates;
 pub mod cv;
 pub mod expect;
+pub mod moments;
 pub mod noise;
 pub mod plot;
 pub mod report;
@@ -747,9 +748,7 @@ fn settle(
 ) -> Result<(NoiseEstimate, NoiseModel, Expectation, Decision)> {
     let (fits, resid) = noise::full_residuals(nominal, poses, refs, plan.models, &s.lsq)
         .unwrap_or_else(|| (measured.base_fit.clone(), measured.insample.clone()));
-    let estimate = noise::estimate(
-        nominal, poses, refs, &s.lsq, &fits, &resid, declared, s.tracker,
-    );
+    let estimate = noise::estimate(nominal, poses, &fits, &resid, declared, s.tracker);
     let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
     let noise = NoiseModel {
         sigma: estimate.reading_mm.clone(),

@@ -10,21 +10,26 @@
 //! freedom for `n_k` readings) holds reading noise only, and its energy
 //! estimates the reading variance σ²; what the columns carry beyond `3σ²`
 //! is the plane error. The residuals are those of the full model, every
-//! candidate at once, fitted on all poses ([`full_residuals`]; its `p`
-//! parameters deflate them by `m/(m − p)`, corrected): an effect not yet
-//! named, or a mixture, is then not counted as noise (as Mallows' Cp takes
-//! σ² from the full model), so neither the nulls nor the floor are widened
-//! by it. Structure outside the catalogue (a ripple) still counts as noise.
-//! With four sensors a pose gives one degree of freedom: σ is pooled over
-//! sensors; per-sensor values come from the `s1_mm …` columns when present
-//! (`s_i/√n_samples`), and the larger of the two is used, so that slow
-//! noise the sample scatter does not see is not taken for an effect.
+//! candidate at once, fitted on all poses ([`full_residuals`]): an effect
+//! not yet named, or a mixture, is then not counted as noise (as Mallows'
+//! Cp takes σ² from the full model), so neither the nulls nor the floor
+//! are widened by it. Structure outside the catalogue (a ripple) still
+//! counts as noise. The fit removes part of both kinds of noise, and its
+//! terms that read another channel (the carry-over) move them between
+//! sensors; σ² and the tracker's scale are therefore solved from the two
+//! energies by the method of moments through that fit's own residual
+//! operator ([`super::moments`]), not by dividing by a degree-of-freedom
+//! count. With four sensors a pose gives one within-pose degree of
+//! freedom: σ is pooled over sensors; per-sensor values come from the
+//! `s1_mm …` columns when present (`s_i/√n_samples`), and the larger of
+//! the two is used, so that slow noise the sample scatter does not see is
+//! not taken for an effect.
 //!
-//! The tracker is re-scaled to the plane error found: its point noise ξ is
-//! multiplied by the ratio of the measured plane energy to that of a
-//! simulated run with the nominal tracker and no reading noise (the same
-//! decomposition on both); with `plane_rms_mm` / `plane_points` columns the
-//! tracker's own figures are used instead.
+//! The tracker is the nominal one (ξ, points, patch) with ξ re-scaled to
+//! the plane energy found; none when that energy is not resolved above
+//! what reading noise alone leaves in the plane columns. With
+//! `plane_rms_mm` / `plane_points` columns the tracker's own figures are
+//! used instead.
 //!
 //! **Bad poses.** A pose whose residuals are far beyond the run's scatter
 //! (a tracker blunder, spatter on the datum plane) is flagged when its sum
@@ -74,7 +79,7 @@ pub struct Split {
 }
 
 /// The three plane-error columns of the sensors `idx` of a pose.
-fn plane_columns(
+pub(super) fn plane_columns(
     sensors: &[Sensor<f64>],
     poses: &PoseTable,
     k: usize,
@@ -243,37 +248,6 @@ fn tracker_from_columns(poses: &PoseTable, nominal: &Tracker) -> Option<Tracker>
     })
 }
 
-/// The plane energy a tracker `t` leaves in a run like `poses` read by
-/// `truth` without reading noise (mean over a few seeded draws).
-fn tracker_energy(
-    truth: &[Sensor<f64>],
-    poses: &PoseTable,
-    t: &Tracker,
-    nominal: &[Sensor<f64>],
-    refs: &Refs,
-    lsq: &LsqConfig<f64>,
-) -> f64 {
-    use rand::SeedableRng;
-    let noise = super::expect::NoiseModel {
-        sigma: vec![0.0; truth.len()],
-        tracker: Some(*t),
-    };
-    let mut e = Vec::new();
-    for j in 0..4u64 {
-        let mut rng = rand::rngs::StdRng::seed_from_u64(0x7A11 + j);
-        let table = super::expect::null_table(truth, poses, &noise, &mut rng);
-        if let Some((fits, resid)) = base_residuals(nominal, &table, refs, lsq) {
-            let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
-            e.push(split(&geom, &table, &resid, 5 * geom.len()).plane_energy);
-        }
-    }
-    if e.is_empty() {
-        0.0
-    } else {
-        stats::mean(&e)
-    }
-}
-
 /// Residuals `[pose][sensor]` [mm], `None` where a reading is missing.
 pub type Residuals = Vec<Vec<Option<f64>>>;
 
@@ -381,65 +355,72 @@ pub fn residuals_of(fits: &[SensorFit], poses: &PoseTable) -> Residuals {
 }
 
 /// Estimates the run's noise from the in-sample residuals `resid` of the
-/// model fitted as `fits` (module docs; the parameters it fitted are
-/// counted from `fits`).
-#[allow(clippy::too_many_arguments)]
+/// model fitted as `fits` (module docs): the reading variance and the
+/// tracker's scale by the method of moments through the fit's own
+/// residual operator ([`super::moments`]).
 pub fn estimate(
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
-    refs: &Refs,
-    lsq: &LsqConfig<f64>,
     fits: &[SensorFit],
     resid: &[Vec<Option<f64>>],
     declared_mm: Option<Vec<f64>>,
     nominal_tracker: Option<Tracker>,
 ) -> NoiseEstimate {
     let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
-    let ns = nominal.len();
     let params = fits.iter().map(|f| 5 + f.coeffs.len()).sum();
     let s = split(&geom, poses, resid, params);
-    let (pooled, mut source) = if s.dof >= 5 {
-        (s.reading_var.sqrt(), Source::Residuals)
+    let columns = tracker_from_columns(poses, &nominal_tracker.unwrap_or(Tracker::paper()));
+    let (pooled, mut source, tracker, plane_mm) = if s.dof >= 5 {
+        let (var, tracker, plane) = by_moments(fits, poses, resid, columns, nominal_tracker)
+            .unwrap_or((s.reading_var, nominal_tracker, 0.0));
+        (var.sqrt(), Source::Residuals, tracker, plane)
     } else {
         let all: Vec<f64> = resid.iter().flatten().flatten().copied().collect();
-        (stats::rms(&all), Source::ResidualRms)
+        (stats::rms(&all), Source::ResidualRms, columns, 0.0)
     };
     let reading_mm = match sample_scatter(poses) {
         Some(sc) => {
             source = Source::SampleScatter;
             sc.iter().map(|&x| x.max(pooled)).collect()
         }
-        None => vec![pooled; ns],
-    };
-    let truth = geom;
-    let tracker = match (
-        tracker_from_columns(poses, &nominal_tracker.unwrap_or(Tracker::paper())),
-        nominal_tracker,
-    ) {
-        (Some(t), _) => Some(t),
-        (None, Some(t0)) if source != Source::ResidualRms => {
-            let e0 = tracker_energy(&truth, poses, &t0, nominal, refs, lsq);
-            // A plane error not resolved above the reading noise's own
-            // scatter (2 standard errors) is taken as none.
-            if s.plane_energy > 2.0 * s.plane_se && e0 > 0.0 {
-                let f = (s.plane_energy / e0).sqrt().min(50.0);
-                Some(Tracker {
-                    xi_mm: t0.xi_mm * f,
-                    ..t0
-                })
-            } else {
-                None
-            }
-        }
-        _ => None,
+        None => vec![pooled; nominal.len()],
     };
     NoiseEstimate {
         reading_mm,
         source,
         declared_mm,
         tracker,
-        plane_mm: (s.plane_energy.max(0.0) / 3.0).sqrt(),
+        plane_mm,
     }
+}
+
+/// Reading variance, tracker and RMS plane error at the spots from the
+/// moment equations: the tracker of the run's own columns when given (its
+/// scale fixed), else the nominal one re-scaled (none when the plane part
+/// is not resolved, ξ at most 50× the nominal). `None` when the fit's
+/// operator cannot be formed.
+fn by_moments(
+    fits: &[SensorFit],
+    poses: &PoseTable,
+    resid: &[Vec<Option<f64>>],
+    columns: Option<Tracker>,
+    nominal: Option<Tracker>,
+) -> Option<(f64, Option<Tracker>, f64)> {
+    let t = columns.or(nominal);
+    let m = super::moments::moments(fits, poses, resid, t.as_ref())?;
+    Some(match (columns, nominal) {
+        (Some(c), _) => (m.var_given(1.0), Some(c), m.spot.sqrt()),
+        (None, Some(t0)) => {
+            let (var, scale) = m.solve();
+            let f = scale.sqrt().min(50.0);
+            let tracker = (scale > 0.0).then_some(Tracker {
+                xi_mm: t0.xi_mm * f,
+                ..t0
+            });
+            (var, tracker, (scale * m.spot).sqrt())
+        }
+        (None, None) => (m.var_given(0.0), None, 0.0),
+    })
 }
 
 /// A pose left out because it disagrees with the run.
@@ -668,16 +649,7 @@ mod tests {
         let refs = Refs::of(poses);
         let lsq = LsqConfig::default();
         let (fits, resid) = base_residuals(nominal, poses, &refs, &lsq).unwrap();
-        estimate(
-            nominal,
-            poses,
-            &refs,
-            &lsq,
-            &fits,
-            &resid,
-            None,
-            Some(Tracker::paper()),
-        )
+        estimate(nominal, poses, &fits, &resid, None, Some(Tracker::paper()))
     }
 
     /// The reading noise is found whatever the tracker does, and the
@@ -753,7 +725,7 @@ mod tests {
             with_effects(&mut poses, 0.03, 0.05);
             let refs = Refs::of(&poses);
             let (fits, resid) = full_residuals(&nominal, &poses, &refs, &models, &lsq).unwrap();
-            let e = estimate(&nominal, &poses, &refs, &lsq, &fits, &resid, None, None);
+            let e = estimate(&nominal, &poses, &fits, &resid, None, None);
             full.push(e.reading_mm[0]);
             base.push(est(&nominal, &poses).reading_mm[0]);
         }
