@@ -24,6 +24,8 @@
 //!   `pipeline_sphere_insns`, `pipeline_sphere_steep_insns`,
 //!   `pipeline_table_insns` (plane pipeline with an active linearity table
 //!   on every sensor), `app_update_insns`, `app_sync_insns`,
+//!   `app_update_table_insns`, `app_sync_table_insns` (the same two with
+//!   an active linearity table on every sensor, written over CAN),
 //!   `ekf_update_insns`, `sqrtf_libm_insns`, `sqrtf_vsqrt_insns`, `reps`).
 //!
 //! Limits: QEMU counts instructions, not cycles (the M4 pipeline, flash
@@ -236,9 +238,9 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     let f = fs::File::open(&trace).map_err(|e| format!("{}: {e}", trace.display()))?;
     let s = count_sections(BufReader::new(f), range)?;
     let _ = fs::remove_file(&trace);
-    if s.len() < 17 {
+    if s.len() < 21 {
         return Err(format!(
-            "expected 17 sections in the trace, found {}",
+            "expected 21 sections in the trace, found {}",
             s.len()
         ));
     }
@@ -254,6 +256,8 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     r.insert("app_sync_insns", per(s[12]));
     r.insert("pipeline_sphere_steep_insns", per(s[14]));
     r.insert("pipeline_table_insns", per(s[16]));
+    r.insert("app_update_table_insns", per(s[18]));
+    r.insert("app_sync_table_insns", per(s[20]));
     r.insert("reps", BENCH_REPS);
     if json {
         println!(

@@ -10,10 +10,12 @@
 //! 2. the valid readings → spots (Chen eq. 17, with the sensors' extension
 //!    corrections, head temperature and run time as context) → micro-plane
 //!    (least squares or Chen eq. 18-19) → deviation and attitude, by
-//!    `perpend_core::normal::measure`, unchanged from the host; with a
+//!    `perpend_core::normal::measure_with`, unchanged from the host, with
+//!    the sensors' extensions prepared once where the parameters are set
+//!    ([`Pipeline::new`]; `perpend_core::ext`, "Prepared form"); with a
 //!    curved surface model (object 0x2310, [`Pipeline::set_shape`]) the
 //!    sphere or cylinder is fitted to the spots and the normal is the one
-//!    where the spindle axis meets it (`perpend_core::surface::measure`,
+//!    where the spindle axis meets it (`perpend_core::surface::measure_with`,
 //!    issue 14; the residual is then the RMS distance of the spots from
 //!    the fitted surface);
 //! 3. plausibility: three sensors → [`DEGRADED`]; four sensors with a plane
@@ -32,8 +34,8 @@
 //! passed the NE43, stuck and jump checks cannot be detected (bit 16 says
 //! the normal rests on three sensors).
 
-use perpend_core::ext::Context;
-use perpend_core::normal::measure;
+use perpend_core::ext::{Context, Prepared};
+use perpend_core::normal::{measure_with, prepare};
 use perpend_core::params::Params;
 use perpend_core::surface::{self, Shape};
 
@@ -96,6 +98,10 @@ impl Output {
 #[derive(Debug, Clone)]
 pub struct Pipeline {
     params: Params,
+    /// The sensors' extensions of `params` prepared for the inversion
+    /// (`perpend_core::normal::prepare`): built with `params` in
+    /// [`Pipeline::new`], the only place they are set.
+    prep: [Prepared<f32>; CHANNELS],
     calibrated: bool,
     config_ok: bool,
     chans: [Channel; CHANNELS],
@@ -117,6 +123,7 @@ impl Pipeline {
     pub fn new(params: Params, calibrated: bool) -> Self {
         Self {
             config_ok: params.validate().is_ok(),
+            prep: prepare(&params.head),
             params,
             calibrated,
             chans: [Channel::default(); CHANNELS],
@@ -257,14 +264,17 @@ impl Pipeline {
     /// (`None`: any error of the core).
     fn fit(&self, readings: &[Option<f32>; CHANNELS], ctx: &Context<f32>) -> Option<Fitted> {
         let p = &self.params;
+        debug_assert!(self.prep == prepare(&p.head), "stale prepared extensions");
         let (degraded, normal, dev, att, rms) = match &self.shape {
             Shape::Plane => {
-                let m = measure(&p.head, readings, ctx, p.acq.method).ok()?;
+                let m = measure_with(&p.head, &self.prep, readings, ctx, p.acq.method).ok()?;
                 let pl = m.plane;
                 (pl.degraded, pl.normal, m.deviation, m.attitude, pl.rms)
             }
             shape => {
-                let m = surface::measure(&p.head, readings, ctx, p.acq.method, shape).ok()?;
+                let m =
+                    surface::measure_with(&p.head, &self.prep, readings, ctx, p.acq.method, shape)
+                        .ok()?;
                 let f = m.fit;
                 (f.plane.degraded, f.normal, m.deviation, m.attitude, f.rms)
             }

@@ -30,7 +30,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 use crate::angles::{Attitude, Deviation};
-use crate::ext::Context;
+use crate::ext::{Context, Prepared};
 use crate::head::Head;
 use crate::{finite, Error, Real, Result};
 
@@ -111,13 +111,34 @@ pub fn spots<T: Real, const N: usize>(
     ctx: &Context<T>,
     cos_gamma: &[T; N],
 ) -> Result<([Option<Vector3<T>>; N], u32)> {
+    spots_with(head, &prepare(head), readings, ctx, cos_gamma)
+}
+
+/// Every sensor's extension prepared for the inversion
+/// ([`crate::ext::Extension::prepare`]): what the `_with` functions take,
+/// to be built again whenever a sensor's extension changes.
+pub fn prepare<T: Real, const N: usize>(head: &Head<T, N>) -> [Prepared<T>; N] {
+    core::array::from_fn(|i| head.sensors[i].ext.prepare())
+}
+
+/// [`spots`] with the extensions prepared once ([`prepare`] of `head`).
+///
+/// # Errors
+/// As [`spots`].
+pub fn spots_with<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    prep: &[Prepared<T>; N],
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    cos_gamma: &[T; N],
+) -> Result<([Option<Vector3<T>>; N], u32)> {
     let mask = check_readings(readings)?;
     let mut out = [None; N];
     for (i, r) in readings.iter().enumerate() {
         if let Some(d) = r {
             let prev = readings[(i + N - 1) % N];
             let s = &head.sensors[i];
-            let dc = s.ext.correct(*d, prev, cos_gamma[i], ctx);
+            let dc = s.ext.correct_with(&prep[i], *d, prev, cos_gamma[i], ctx);
             out[i] = Some(s.spot(dc));
         }
     }
@@ -314,8 +335,23 @@ pub fn plane_and_spots<T: Real, const N: usize>(
     ctx: &Context<T>,
     method: Method,
 ) -> Result<(PlaneFit<T>, Spots<T, N>)> {
+    plane_and_spots_with(head, &prepare(head), readings, ctx, method)
+}
+
+/// [`plane_and_spots`] with the extensions prepared once ([`prepare`] of
+/// `head`).
+///
+/// # Errors
+/// As [`plane_and_spots`].
+pub fn plane_and_spots_with<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    prep: &[Prepared<T>; N],
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    method: Method,
+) -> Result<(PlaneFit<T>, Spots<T, N>)> {
     let ones = [T::one(); N];
-    let (mut s, _) = spots(head, readings, ctx, &ones)?;
+    let (mut s, _) = spots_with(head, prep, readings, ctx, &ones)?;
     let mut current = fit(head, &s, method)?;
     if !head.sensors.iter().any(|s| s.ext.needs_incidence()) {
         return Ok((current, s));
@@ -323,7 +359,7 @@ pub fn plane_and_spots<T: Real, const N: usize>(
     let tol = degenerate_tol::<T>();
     for _ in 0..INCIDENCE_PASSES {
         let cg: [T; N] = core::array::from_fn(|i| current.normal.dot(&head.sensors[i].dir).abs());
-        (s, _) = spots(head, readings, ctx, &cg)?;
+        (s, _) = spots_with(head, prep, readings, ctx, &cg)?;
         let next = fit(head, &s, method)?;
         let moved = (next.normal - current.normal).norm_squared();
         current = next;
@@ -345,7 +381,22 @@ pub fn measure<T: Real, const N: usize>(
     ctx: &Context<T>,
     method: Method,
 ) -> Result<Measurement<T>> {
-    let plane = plane(head, readings, ctx, method)?;
+    measure_with(head, &prepare(head), readings, ctx, method)
+}
+
+/// [`measure`] with the extensions prepared once ([`prepare`] of `head`):
+/// the board's per-sample path.
+///
+/// # Errors
+/// As [`measure`].
+pub fn measure_with<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    prep: &[Prepared<T>; N],
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    method: Method,
+) -> Result<Measurement<T>> {
+    let (plane, _) = plane_and_spots_with(head, prep, readings, ctx, method)?;
     let deviation = Deviation::from_normal(&plane.normal)?;
     // Chen's pitch/yaw are Tian's t1/θ2 (proved in `angles`, tested there):
     // no second round of trigonometry on the board.

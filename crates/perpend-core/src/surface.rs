@@ -136,9 +136,10 @@ use nalgebra::{SMatrix, SVector, Vector3};
 
 use crate::angles::{Attitude, Deviation};
 use crate::ext::Context;
+use crate::ext::Prepared;
 use crate::geometry::{tangent_basis, unit};
 use crate::head::Head;
-use crate::normal::{degenerate_tol, plane_and_spots, Method, PlaneFit};
+use crate::normal::{degenerate_tol, plane_and_spots_with, prepare, Method, PlaneFit};
 use crate::{finite, Error, Real, Result};
 
 /// Gauss-Newton iterations before [`Error::NoConvergence`].
@@ -581,8 +582,24 @@ pub fn fit<T: Real, const N: usize>(
     method: Method,
     shape: &Shape<T>,
 ) -> Result<SurfaceFit<T>> {
+    fit_with(head, &prepare(head), readings, ctx, method, shape)
+}
+
+/// [`fit`] with the extensions prepared once
+/// ([`crate::normal::prepare`] of `head`).
+///
+/// # Errors
+/// As [`fit`].
+pub fn fit_with<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    prep: &[Prepared<T>; N],
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    method: Method,
+    shape: &Shape<T>,
+) -> Result<SurfaceFit<T>> {
     let curved = Curved::new(shape)?;
-    let (plane, spots) = plane_and_spots(head, readings, ctx, method)?;
+    let (plane, spots) = plane_and_spots_with(head, prep, readings, ctx, method)?;
     match curved {
         None => Ok(SurfaceFit {
             plane,
@@ -609,7 +626,23 @@ pub fn measure<T: Real, const N: usize>(
     method: Method,
     shape: &Shape<T>,
 ) -> Result<SurfaceMeasurement<T>> {
-    let fit = fit(head, readings, ctx, method, shape)?;
+    measure_with(head, &prepare(head), readings, ctx, method, shape)
+}
+
+/// [`measure`] with the extensions prepared once
+/// ([`crate::normal::prepare`] of `head`): the board's per-sample path.
+///
+/// # Errors
+/// As [`measure`].
+pub fn measure_with<T: Real, const N: usize>(
+    head: &Head<T, N>,
+    prep: &[Prepared<T>; N],
+    readings: &[Option<T>; N],
+    ctx: &Context<T>,
+    method: Method,
+    shape: &Shape<T>,
+) -> Result<SurfaceMeasurement<T>> {
+    let fit = fit_with(head, prep, readings, ctx, method, shape)?;
     let deviation = Deviation::from_normal(&fit.normal)?;
     Ok(SurfaceMeasurement {
         fit,
@@ -1058,7 +1091,8 @@ mod tests {
             CurvedSurface::through(Vector3::new(0.0, 0.0, 60.0), tilted(2.0, 0.0), &shape).unwrap();
         let r = readings(&head, &surf);
         let (plane, spots) =
-            plane_and_spots(&head, &r, &Context::default(), Method::LeastSquares).unwrap();
+            crate::normal::plane_and_spots(&head, &r, &Context::default(), Method::LeastSquares)
+                .unwrap();
         let pts: [Vector3<f64>; 4] = core::array::from_fn(|i| spots[i].unwrap() - plane.centroid);
         let pb = Problem {
             c: Curved::new(&shape).unwrap().unwrap(),

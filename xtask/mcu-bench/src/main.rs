@@ -5,9 +5,9 @@
 //! addresses come from the ELF symbol table) and divides by [`REPS`].
 //!
 //! Sections (marks 1→2, 3→4, 5→6, 6→7, 9→10, 11→12, 13→14, 15→16,
-//! 17→18; 7→8 is the loop baseline that the two square-root sections
-//! subtract; 8→9, 10→11, 12→13, 14→15 and 16→17 are set-up, not
-//! reported):
+//! 17→18, 19→20, 21→22; 7→8 is the loop baseline that the two
+//! square-root sections subtract; 8→9, 10→11, 12→13, 14→15, 16→17, 18→19
+//! and 20→21 are set-up, not reported):
 //!
 //! 1. the per-sample pipeline exactly as the board runs it: four ADC
 //!    results in (a different tilted plane each repetition), status,
@@ -29,7 +29,12 @@
 //!    its second Gauss-Newton step (surface.rs, stopping rule);
 //! 9. the pipeline of 1. with an active linearity table on every sensor
 //!    (stored-parameter record version 2, [`table_params`]): each reading
-//!    is corrected by three Newton steps through the spline (ext.rs).
+//!    is corrected by Newton steps through the spline (ext.rs);
+//! 10. the App update of 6. with an active linearity table on every sensor,
+//!     written over CAN (0x2101..0x2104 sub 7, 16..23, [`write_tables`]):
+//!     knots at ±1.5 mm about `d_ref` = the sensor's mean reading, values
+//!     of 21-46 µm, readings carrying the excess the table models;
+//! 11. the SYNC of 7. on that App.
 //!
 //! The program exits through semihosting (status 0 on success).
 
@@ -152,30 +157,41 @@ fn sphere_samples(params: &Params, steep: bool) -> [Sample; REPS] {
     samples
 }
 
-/// Sections 6 and 7: the App's update and SYNC (set-up between marks).
-fn bench_app() {
+/// Sections 6 and 7 (marks from 11; `table` false) and 10 and 11 (marks
+/// from 19; `table` true): the App's update and SYNC (set-up between
+/// marks). With `table`, [`write_tables`] gives every sensor an active
+/// linearity table over CAN first, and the readings carry the excess it
+/// models (so the corrected spots lie on the plane).
+fn bench_app(mark: u32, table: bool) {
     let mut app = App::new(NoStore);
-    let (samples, _) = plane_samples(app.pipeline().params());
     let mut sent = 0u32;
     let mut now = 1_000u64;
-    // Boot-up, then NMT start (all nodes): the TPDOs are sent on SYNC.
+    // Boot-up, the tables (pre-operational), then NMT start (all nodes):
+    // the TPDOs are sent on SYNC.
     app.poll(now, &mut |_| sent += 1);
+    if table {
+        write_tables(&mut app, &mut now);
+    }
     app.handle(&Frame::new(0, &[0x01, 0]), now, &mut |_| sent += 1);
+    let (mut samples, _) = plane_samples(app.pipeline().params());
+    if table {
+        add_excess(app.pipeline().params(), &mut samples);
+    }
     app.on_sample(&samples[0], now);
-    bench_mark(11);
+    bench_mark(mark);
     let mut ok = 0u32;
     for s in &samples {
         now += 1_000;
         let o = app.on_sample(black_box(s), now);
         ok += u32::from(o.valid());
     }
-    bench_mark(12);
+    bench_mark(mark + 1);
     if ok != REPS as u32 {
         fail();
     }
     let sync = Frame::new(0x80, &[]);
     let mut frames = 0u32;
-    bench_mark(13);
+    bench_mark(mark + 2);
     for _ in 0..REPS {
         now += 1_000;
         app.handle(black_box(&sync), now, &mut |f| {
@@ -183,11 +199,96 @@ fn bench_app() {
             frames += 1;
         });
     }
-    bench_mark(14);
+    bench_mark(mark + 3);
     if frames != 4 * REPS as u32 {
         fail();
     }
     black_box(sent);
+}
+
+/// Expedited SDO download of 4 bytes to the App's node (set-up); fails the
+/// bench on an abort.
+fn sdo_write(app: &mut App<NoStore>, now: &mut u64, index: u16, sub: u8, v: [u8; 4]) {
+    let node = u16::from(app.pipeline().params().can.node_id);
+    let mut p = [0x23, 0, 0, sub, v[0], v[1], v[2], v[3]];
+    p[1..3].copy_from_slice(&index.to_le_bytes());
+    *now += 100;
+    let mut acked = false;
+    app.handle(&Frame::new(0x600 + node, &p), *now, &mut |f| {
+        acked |= f.id == 0x580 + node && f.data[0] == 0x60;
+    });
+    if !acked {
+        fail()
+    }
+}
+
+/// Half-width of the table knots about `d_ref` in sections 10 and 11 \[mm\].
+const TABLE_HALF_SPAN: f32 = 1.5;
+
+/// Gives every sensor an active linearity table over CAN (0x2101..0x2104,
+/// as a calibration tool writes one; set-up): `d_ref` (sub 7) the mean
+/// reading of [`plane_samples`], knots at ±[`TABLE_HALF_SPAN`] and halfway
+/// about it (sub 16..20), values of 21-46 µm at the interior knots (sub
+/// 21..23). Fails unless every reading lies within the knots.
+fn write_tables(app: &mut App<NoStore>, now: &mut u64) {
+    let params = *app.pipeline().params();
+    let (samples, planes) = plane_samples(&params);
+    black_box(samples);
+    sdo_write(app, now, 0x2010, 0, 0x6C61_6375u32.to_le_bytes());
+    let h = TABLE_HALF_SPAN;
+    for i in 0..4 {
+        let s = &params.head.sensors[i];
+        let (mut lo, mut hi, mut sum) = (f32::MAX, f32::MIN, 0.0f32);
+        for p in &planes {
+            let Ok(Ok(d)) = p.as_ref().map(|p| distance(s, p, i)) else {
+                fail()
+            };
+            (lo, hi, sum) = (lo.min(d), hi.max(d), sum + d);
+        }
+        let d_ref = sum / REPS as f32;
+        if lo < d_ref - h || hi > d_ref + h {
+            fail()
+        }
+        let k = i as f32;
+        let knots = [-h, -0.5 * h, 0.0, 0.5 * h, h];
+        let values = [0.03 + 0.004 * k, -0.04 + 0.002 * k, 0.025 - 0.001 * k];
+        let index = 0x2101 + i as u16;
+        sdo_write(app, now, index, 7, d_ref.to_le_bytes());
+        for (j, v) in knots.iter().chain(values.iter()).enumerate() {
+            sdo_write(app, now, index, 16 + j as u8, v.to_le_bytes());
+        }
+        if !app.pipeline().params().head.sensors[i]
+            .ext
+            .table
+            .is_active()
+        {
+            fail()
+        }
+    }
+    if !app.pipeline().config_ok() {
+        fail()
+    }
+}
+
+/// Adds to each reading of `samples` the excess the sensors' extensions
+/// model (set-up): the counts then read `f + δ(f)` for the true distance
+/// `f` of the plane.
+fn add_excess(params: &Params, samples: &mut [Sample; REPS]) {
+    let (_, planes) = plane_samples(params);
+    let ctx = perpend_core::ext::Context::default();
+    for (s, p) in samples.iter_mut().zip(planes.iter()) {
+        let Ok(p) = p else { fail() };
+        for i in 0..4 {
+            let sensor = &params.head.sensors[i];
+            let Ok(f) = distance(sensor, p, i) else {
+                fail()
+            };
+            let d = f + sensor.ext.excess(f, None, 1.0, &ctx);
+            let tr = &params.transfer[i];
+            let sig = perpend_board::acq::signal_for_mm(d, tr);
+            s.counts[i] = perpend_board::acq::counts_for_signal(sig, tr, &params.acq);
+        }
+    }
 }
 
 fn fail() -> ! {
@@ -314,7 +415,7 @@ fn main() -> ! {
         fail();
     }
 
-    bench_app();
+    bench_app(11, false);
 
     black_box(pl_steep.process(&steep[0]));
     bench_mark(15);
@@ -334,6 +435,8 @@ fn main() -> ! {
     if ok != REPS as u32 {
         fail();
     }
+
+    bench_app(19, true);
     debug::exit(debug::EXIT_SUCCESS);
     loop {
         cortex_m::asm::wfi();
