@@ -625,6 +625,44 @@ mod tests {
         assert!(d.verdicts[1].z_threshold > z);
     }
 
+    /// The signed-rank path is held to its own effect-free spread: a
+    /// candidate that gains a little in most poses (the carry-over absorbing
+    /// datum-plane error) passes the fixed `z*` by rank, but not what it
+    /// ranks on the re-simulations; with a null rank spread about 0 the
+    /// same run is named by rank.
+    #[test]
+    fn a_rank_gain_no_larger_than_on_clean_data_is_not_an_effect() {
+        let floor = 0.01;
+        let base = cv(Effect::None, &losses(floor, 100, 1));
+        let most: Vec<f64> = base
+            .pose_loss
+            .iter()
+            .enumerate()
+            .map(|(i, l)| l * if i % 5 == 0 { 1.04 } else { 0.96 })
+            .collect();
+        let a = analysis(vec![(base, 0.0), (cv(Effect::Crosstalk, &most), 0.0)]);
+        let b = a.cv_of(Effect::None).unwrap();
+        let c = a.cv_of(Effect::Crosstalk).unwrap();
+        let (z, z_rank) = (paired(b, c).1, paired_rank(b, c));
+        let mut e = expectation(&[(Effect::None, floor), (Effect::Crosstalk, floor)]);
+        e.gain_z = vec![(Effect::Crosstalk, spread(z - 0.5, 1.0))];
+        e.rank_z = vec![(Effect::Crosstalk, spread(z_rank - 0.5, 1.0))];
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
+        assert!(
+            z < d.verdicts[1].z_threshold,
+            "mean z {z} passes on its own"
+        );
+        assert!(
+            z_rank > d.z_star,
+            "rank z {z_rank} below z*: nothing tested"
+        );
+        assert_eq!(d.effect, Effect::None);
+        assert!(d.verdicts[1].rank_threshold > z_rank);
+        e.rank_z = vec![(Effect::Crosstalk, spread(0.0, 1.0))];
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
+        assert_eq!(d.effect, Effect::Crosstalk);
+    }
+
     #[test]
     fn the_simpler_of_two_equal_models_is_named() {
         let floor = 0.01;
