@@ -58,6 +58,17 @@ REGIMES = [
     ("120 poses", {"poses": 120}),
 ]
 
+# Two factors at once (`--combined`): regimes off the grid, to check that
+# what holds one factor at a time still holds where they meet.
+COMBINED = [
+    ("tracker x4", {"tracker_factor": 4.0}),
+    ("tracker x3 + 30 poses", {"tracker_factor": 3.0, "poses": 30}),
+    ("tracker x3 + spread 2", {"tracker_factor": 3.0, "spread_deg": 2.0}),
+    ("sigma 0.03 + tracker x3", {"sigma_mm": 0.03, "tracker_factor": 3.0}),
+    ("declared x0.5 + tracker x3", {"declared": 0.5, "tracker_factor": 3.0}),
+    ("spread 2 + 30 poses", {"spread_deg": 2.0, "poses": 30}),
+]
+
 SINGLES = ["gain", "linearity_s", "linearity_cubic", "incidence_tan", "incidence_sec",
            "crosstalk", "thermal_lag", "drift_settle"]
 PAIRS = [("gain", "thermal_lag"), ("gain", "drift_settle"), ("crosstalk", "gain"),
@@ -194,9 +205,11 @@ def grade(r):
 TUNE_SEEDS = 1000
 
 
-def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None):
+def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None, combined=False):
     regimes = REGIMES[:1] + [r for r in REGIMES[1:] if not quick or r[0] in (
         "sigma 0.03", "declared x0.5", "declared missing", "tracker x3", "spread 2 deg", "30 poses")]
+    if combined:
+        regimes = REGIMES[:1] + COMBINED
     n_null = nulls if nulls is not None else (12 if quick else 20)
     n_eff = effects if effects is not None else (2 if quick else 5)
     jobs = []
@@ -210,7 +223,7 @@ def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None):
                 seed += 1
                 geo = ["ring45", "tian30"][(j + seed) % 2]
                 jobs.append((reg[0], truth, make_case(reg, truth, seed, 2.0, geo)))
-    if not quick:
+    if not quick and not combined:
         # detection limit: base regime, sizes in units of the visible noise
         for size in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0):
             for j in range(6):
@@ -413,6 +426,8 @@ def main():
     ap.add_argument("--only", help="comma-separated truths to run (e.g. none): a subset of the grid")
     ap.add_argument("--regime", help="comma-separated regimes to run (e.g. '120 poses'): a subset of the grid")
     ap.add_argument("--from-runs", help="summarise a --runs file instead of running the grid")
+    ap.add_argument("--combined", action="store_true",
+                    help="the base regime and regimes with two factors at once (COMBINED) instead of the grid")
     a = ap.parse_args()
     if a.from_runs:
         results = []
@@ -430,7 +445,7 @@ def main():
             with open(a.md, "w") as f:
                 f.write(markdown(cells) + "\n")
         return 0
-    jobs = plan(a.quick, a.seed_base, a.nulls, a.effects)
+    jobs = plan(a.quick, a.seed_base, a.nulls, a.effects, a.combined)
     if a.only:
         keep = set(a.only.split(","))
         jobs = [j for j in jobs if (j[1] if isinstance(j[1], str) else "+".join(j[1])) in keep]
