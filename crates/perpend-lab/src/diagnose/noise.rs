@@ -8,8 +8,9 @@
 //! reading noise is independent between sensors. So the part of a pose's
 //! residual vector orthogonal to those columns (`n_k − 3` degrees of
 //! freedom for `n_k` readings) holds reading noise only, and its energy
-//! estimates the reading variance σ²; what the columns carry beyond `3σ²`
-//! is the plane error. The residuals are those of the full model, every
+//! estimates the reading variance σ²; what the columns carry beyond what
+//! reading noise puts there (`3σ²` a pose before the fit) is the plane
+//! error. The residuals are those of the full model, every
 //! candidate at once, fitted on all poses ([`full_residuals`]): an effect
 //! not yet named, or a mixture, is then not counted as noise (as Mallows'
 //! Cp takes σ² from the full model), so neither the nulls nor the floor
@@ -97,10 +98,10 @@ pub(super) fn plane_columns(
         .collect()
 }
 
-/// Energy of `r` outside and inside the span of the columns `a`
-/// (Gram-Schmidt; columns that are numerically dependent are dropped).
-fn project(a: &[[f64; 3]], r: &[f64]) -> (f64, f64, usize) {
-    let n = r.len();
+/// Orthonormal basis of the span of the columns `a` (Gram-Schmidt;
+/// columns that are numerically dependent are dropped), each basis vector
+/// over the rows of `a`.
+pub(super) fn orthonormal(a: &[[f64; 3]]) -> Vec<Vec<f64>> {
     let mut basis: Vec<Vec<f64>> = Vec::new();
     for j in 0..3 {
         let mut v: Vec<f64> = a.iter().map(|row| row[j]).collect();
@@ -113,6 +114,13 @@ fn project(a: &[[f64; 3]], r: &[f64]) -> (f64, f64, usize) {
             basis.push(v.iter().map(|x| x / norm).collect());
         }
     }
+    basis
+}
+
+/// Energy of `r` outside and inside the span of the columns `a`, and the
+/// degrees of freedom outside.
+fn project(a: &[[f64; 3]], r: &[f64]) -> (f64, f64, usize) {
+    let basis = orthonormal(a);
     let inside: f64 = basis
         .iter()
         .map(|b| b.iter().zip(r).map(|(x, y)| x * y).sum::<f64>().powi(2))
@@ -121,7 +129,7 @@ fn project(a: &[[f64; 3]], r: &[f64]) -> (f64, f64, usize) {
     (
         (total - inside).max(0.0),
         inside,
-        n.saturating_sub(basis.len()),
+        r.len().saturating_sub(basis.len()),
     )
 }
 
@@ -372,7 +380,7 @@ pub fn estimate(
     let columns = tracker_from_columns(poses, &nominal_tracker.unwrap_or(Tracker::paper()));
     let (pooled, mut source, tracker, plane_mm) = if s.dof >= 5 {
         let (var, tracker, plane) = by_moments(fits, poses, resid, columns, nominal_tracker)
-            .unwrap_or((s.reading_var, nominal_tracker, 0.0));
+            .unwrap_or_else(|| by_split(&s, columns, nominal_tracker));
         (var.sqrt(), Source::Residuals, tracker, plane)
     } else {
         let all: Vec<f64> = resid.iter().flatten().flatten().copied().collect();
@@ -397,8 +405,8 @@ pub fn estimate(
 /// Reading variance, tracker and RMS plane error at the spots from the
 /// moment equations: the tracker of the run's own columns when given (its
 /// scale fixed), else the nominal one re-scaled (none when the plane part
-/// is not resolved, ξ at most 50× the nominal). `None` when the fit's
-/// operator cannot be formed.
+/// is not resolved, ξ at most [`MAX_XI_FACTOR`]× the nominal). `None` when
+/// the equations cannot be formed or have no within-pose part.
 fn by_moments(
     fits: &[SensorFit],
     poses: &PoseTable,
@@ -409,18 +417,40 @@ fn by_moments(
     let t = columns.or(nominal);
     let m = super::moments::moments(fits, poses, resid, t.as_ref())?;
     Some(match (columns, nominal) {
-        (Some(c), _) => (m.var_given(1.0), Some(c), m.spot.sqrt()),
+        (Some(c), _) => (m.var_given(1.0)?, Some(c), m.spot.sqrt()),
         (None, Some(t0)) => {
-            let (var, scale) = m.solve();
-            let f = scale.sqrt().min(50.0);
+            let (var, scale) = m.solve()?;
+            let f = scale.sqrt().min(MAX_XI_FACTOR);
             let tracker = (scale > 0.0).then_some(Tracker {
                 xi_mm: t0.xi_mm * f,
                 ..t0
             });
-            (var, tracker, (scale * m.spot).sqrt())
+            (var, tracker, f * m.spot.sqrt())
         }
-        (None, None) => (m.var_given(0.0), None, 0.0),
+        (None, None) => (m.var_given(0.0)?, None, 0.0),
     })
+}
+
+/// Largest re-scaling of the nominal tracker's ξ.
+const MAX_XI_FACTOR: f64 = 50.0;
+
+/// What the plain split gives when the moment equations cannot be formed
+/// (a prediction fails under a perturbation): the within-pose variance
+/// deflated by the parameter count, the run's own tracker columns, else
+/// the nominal tracker unscaled when the split resolves a plane error
+/// (none when it does not).
+fn by_split(
+    s: &Split,
+    columns: Option<Tracker>,
+    nominal: Option<Tracker>,
+) -> (f64, Option<Tracker>, f64) {
+    let resolved = s.plane_energy > 2.0 * s.plane_se;
+    let tracker = columns.or(nominal.filter(|_| resolved));
+    (
+        s.reading_var,
+        tracker,
+        (s.plane_energy.max(0.0) / 3.0).sqrt(),
+    )
 }
 
 /// A pose left out because it disagrees with the run.
@@ -653,11 +683,23 @@ mod tests {
     }
 
     /// The reading noise is found whatever the tracker does, and the
-    /// tracker's scale follows the plane error, on runs whose noise the
-    /// estimator was not told.
+    /// tracker's scale follows the plane error where it is resolved, on
+    /// runs whose noise the estimator was not told (100 poses, paper's
+    /// head). A plane error far below the reading noise (ξ 0.02 mm, 6.5 µm
+    /// at the spots, under σ 0.03 mm) is below two standard errors and
+    /// taken as none; where seeds resolve one, their ξ is within 20 % on
+    /// average and 40 % each.
     #[test]
     fn reading_and_plane_noise_are_told_apart() {
-        for (zeta, xi) in [(0.01, 0.02), (0.03, 0.02), (0.005, 0.06), (0.02, 0.0)] {
+        // (ζ, ξ, resolved in every seed)
+        let cases = [
+            (0.01, 0.02, true),
+            (0.005, 0.06, true),
+            (0.03, 0.04, false),
+            (0.03, 0.02, false),
+            (0.02, 0.0, false),
+        ];
+        for (zeta, xi, always) in cases {
             let mut got = Vec::new();
             let mut xis = Vec::new();
             for seed in 0..4 {
@@ -672,14 +714,20 @@ mod tests {
                 (m / zeta - 1.0).abs() < 0.2,
                 "ζ = {zeta}, ξ = {xi}: estimated {m:.4}"
             );
-            let mx = stats::mean(&xis);
-            if xi > 0.0 {
+            let seen: Vec<f64> = xis.iter().copied().filter(|&x| x > 0.0).collect();
+            for &x in &seen {
+                assert!(xi > 0.0, "ζ = {zeta}: no tracker error, ξ estimated {x:.4}");
+                assert!((x / xi - 1.0).abs() < 0.4, "ζ = {zeta}, ξ = {xi}: {xis:?}");
+            }
+            if !seen.is_empty() {
+                let mx = stats::mean(&seen);
+                assert!((mx / xi - 1.0).abs() < 0.2, "ζ = {zeta}, ξ = {xi}: {xis:?}");
+            }
+            if always {
                 assert!(
-                    (mx / xi - 1.0).abs() < 0.45,
-                    "ζ = {zeta}, ξ = {xi}: ξ estimated {mx:.4}"
+                    xis.iter().all(|&x| x > 0.0),
+                    "ζ = {zeta}, ξ = {xi}: {xis:?}"
                 );
-            } else {
-                assert!(mx < 0.5 * 0.02, "no tracker error, ξ estimated {mx:.4}");
             }
         }
     }

@@ -258,7 +258,8 @@ fn verdicts(
 /// The predictive threshold of a z statistic whose effect-free spread over
 /// the re-simulations is `null`: `z*` above its mean in units of its
 /// spread (at least 1), widened for the draws' own mean, and never below
-/// `z*`.
+/// `z*`; with no effect-free values at all (every draw failed to fit the
+/// candidate) it is `√2·z*`, on the safe side.
 fn threshold(z_star: f64, null: &Spread) -> f64 {
     let n = null.n.max(1) as f64;
     z_star.max(null.mean + z_star * null.sd.max(1.0) * (1.0 + 1.0 / n).sqrt())
@@ -541,6 +542,16 @@ mod tests {
         );
         assert!(named.contains(&Effect::Drift), "{named:?}");
         assert!(d.outliers.is_empty());
+        // Both nulls come from the re-simulations: one per candidate, every
+        // draw, and the rank z is its own statistic.
+        let (g, r) = (&d.expected.gain_z, &d.expected.rank_z);
+        assert_eq!(g.len(), r.len());
+        assert!(!r.is_empty());
+        for ((eg, sg), (er, sr)) in g.iter().zip(r) {
+            assert_eq!(eg, er);
+            assert_eq!(sr.n, d.expected.draws, "{er:?}");
+            assert_ne!((sg.mean, sg.sd), (sr.mean, sr.sd), "{er:?}");
+        }
         // The floor is simulated at the noise left by both: the extended
         // model comes back to it.
         assert!(
