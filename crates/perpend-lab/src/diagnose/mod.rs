@@ -281,8 +281,14 @@ pub struct NoiseJson {
     pub estimated_mm: Vec<f64>,
     /// How: `residuals`, `sample_scatter` or `residual_rms`.
     pub source: String,
-    /// RMS datum-plane error at the spots [mm].
+    /// RMS datum-plane error at the spots [mm] (0 when planes are taken
+    /// as exact).
     pub plane_mm: f64,
+    /// Whether that plane error is resolved above the reading noise (two
+    /// standard errors) or given by the file's columns; an unresolved
+    /// estimate is still simulated.
+    #[serde(default)]
+    pub plane_resolved: bool,
 }
 
 /// The `--json` output: exactly these keys.
@@ -442,6 +448,7 @@ impl Diagnosis {
                 }
                 .into(),
                 plane_mm: self.estimate.plane_mm,
+                plane_resolved: self.estimate.plane_resolved,
             },
             implausible: self
                 .implausible

@@ -41,8 +41,9 @@
 //! sensors; the tracker's shape (offset against tilt error) is the nominal
 //! model's, only its scale is estimated, and `U₂`, `T₂` carry the Monte
 //! Carlo error of [`DRAWS`] draws (a few % of the plane energy); a plane
-//! part below two standard errors of what reading noise alone gives it is
-//! none (σ² then from `W` alone); poses with fewer than four readings carry
+//! part within two standard errors of what reading noise alone gives it is
+//! flagged as not resolved (and kept), a negative one is none (σ² then
+//! from `W` alone); poses with fewer than four readings carry
 //! no within-pose part and are left out of both energies, and without any
 //! such pose there is nothing to solve. Each sensor's `R` is a dense
 //! `K × K` matrix and the reading part costs `O(K²)` per sensor (about
@@ -83,36 +84,53 @@ pub struct Moments {
     pub spot: f64,
 }
 
+/// What the moment equations give.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Solution {
+    /// Reading variance σ² [mm²].
+    pub var: f64,
+    /// Tracker variance scale `s` (ξ = ξ₀·√s), 0 for none.
+    pub scale: f64,
+    /// Whether `s` is beyond two standard errors of reading noise alone.
+    pub resolved: bool,
+}
+
 impl Moments {
-    /// `(σ², s)` solving both equations; `s` is 0 (and σ² from `W` alone)
-    /// when the plane part is not resolved: `s·T₂` below two standard
+    /// `σ²` and `s` solving both equations (`s` at least 0; with `σ²`
+    /// below 0 by chance, `σ²` = 0 and the inside energy all plane error),
+    /// and whether the plane part is resolved: `s·T₂` beyond two standard
     /// errors of what reading noise alone gives it. Its estimate is
     /// `I − (T₁/U₁)·W` (to first order), and with `I`, `W` scattering as
     /// χ² with `T₁`, `U₁` degrees of freedom that standard error is
-    /// `σ²·√(2·(T₁ + T₁²/U₁))`. `None` without within-pose equations
-    /// (`U₁ = 0`: fewer than four readings in every pose).
-    pub fn solve(&self) -> Option<(f64, f64)> {
+    /// `σ²·√(2·(T₁ + T₁²/U₁))`. An unresolved positive `s` is kept: it is
+    /// the estimate, and dropping it would make every null too narrow
+    /// where the tracker is real but near the reading noise. `None`
+    /// without within-pose equations (`U₁ = 0`: fewer than four readings
+    /// in every pose).
+    pub fn solve(&self) -> Option<Solution> {
         if !(self.u1 > 0.0) {
             return None;
         }
-        let alone = self.w / self.u1;
+        let alone = Solution {
+            var: self.w / self.u1,
+            scale: 0.0,
+            resolved: false,
+        };
         let det = self.u1 * self.t2 - self.u2 * self.t1;
         if !(det.abs() >= 1e-12 * (self.u1 * self.t2).abs()) || !(self.t2 > 0.0) {
-            return Some((alone, 0.0));
+            return Some(alone);
         }
         let s = (self.u1 * self.i - self.t1 * self.w) / det;
         if !(s > 0.0) {
-            return Some((alone, 0.0));
+            return Some(alone);
         }
-        // A reading variance below 0 by chance (plane error far above the
-        // reading noise): none, and the inside energy is all plane error.
         let var = ((self.w * self.t2 - self.u2 * self.i) / det).max(0.0);
-        let s = if var > 0.0 { s } else { self.i / self.t2 };
+        let scale = if var > 0.0 { s } else { self.i / self.t2 };
         let se = var * (2.0 * (self.t1 + self.t1 * self.t1 / self.u1)).sqrt();
-        Some(if s * self.t2 > 2.0 * se {
-            (var, s)
-        } else {
-            (alone, 0.0)
+        Some(Solution {
+            var,
+            scale,
+            resolved: scale * self.t2 > 2.0 * se,
         })
     }
 
@@ -501,26 +519,33 @@ mod tests {
             i: var * m0.t1 + s * m0.t2,
             ..m0
         };
-        let (var, s) = at(1e-4, 9.0).solve().unwrap();
-        assert_relative_eq!(var, 1e-4, max_relative = 1e-9);
-        assert_relative_eq!(s, 9.0, max_relative = 1e-9);
-        // 2·σ²·√(2·(T₁ + T₁²/U₁)) = 7.0e-3 against s·T₂ = 6e-5: not resolved
-        let (var, s) = at(1e-4, 0.01).solve().unwrap();
-        assert_eq!(s, 0.0);
-        assert_relative_eq!(
-            var,
-            (1e-4 * m0.u1 + 0.01 * m0.u2) / m0.u1,
-            max_relative = 1e-12
-        );
+        let x = at(1e-4, 9.0).solve().unwrap();
+        assert_relative_eq!(x.var, 1e-4, max_relative = 1e-9);
+        assert_relative_eq!(x.scale, 9.0, max_relative = 1e-9);
+        assert!(x.resolved);
+        // 2·σ²·√(2·(T₁ + T₁²/U₁)) = 7.0e-3 against s·T₂ = 6e-5: not
+        // resolved, but kept (it is the estimate)
+        let x = at(1e-4, 0.01).solve().unwrap();
+        assert!(!x.resolved);
+        assert_relative_eq!(x.scale, 0.01, max_relative = 1e-6);
+        // no plane part at all, the inside energy a little short: none
+        let x = Moments {
+            i: 0.9 * 1e-4 * m0.t1,
+            ..at(1e-4, 0.0)
+        }
+        .solve()
+        .unwrap();
+        assert_eq!((x.scale, x.resolved), (0.0, false));
+        assert_relative_eq!(x.var, 1e-4, max_relative = 1e-12);
         // no reading noise at all: the inside energy is the plane's
-        let (var, s) = at(0.0, 4.0).solve().unwrap();
-        assert_eq!(var, 0.0);
-        assert_relative_eq!(s, 4.0, max_relative = 1e-9);
+        let x = at(0.0, 4.0).solve().unwrap();
+        assert_eq!(x.var, 0.0);
+        assert_relative_eq!(x.scale, 4.0, max_relative = 1e-9);
         // resolved only beyond two standard errors of I − (T₁/U₁)·W
         let se = 1e-4 * (2.0 * (m0.t1 + m0.t1 * m0.t1 / m0.u1)).sqrt();
         let s_edge = 2.0 * se / m0.t2;
-        assert!(at(1e-4, 0.9 * s_edge).solve().unwrap().1 == 0.0);
-        assert!(at(1e-4, 1.1 * s_edge).solve().unwrap().1 > 0.0);
+        assert!(!at(1e-4, 0.9 * s_edge).solve().unwrap().resolved);
+        assert!(at(1e-4, 1.1 * s_edge).solve().unwrap().resolved);
         // no within-pose equations: nothing to solve
         assert_eq!(Moments { u1: 0.0, ..m0 }.solve(), None);
     }

@@ -27,8 +27,12 @@
 //! not taken for an effect.
 //!
 //! The tracker is the nominal one (ξ, points, patch) with ξ re-scaled to
-//! the plane energy found; none when that energy is not resolved above
-//! what reading noise alone leaves in the plane columns. With
+//! the plane energy found; none when the estimated scale is not positive.
+//! A scale within two standard errors of what reading noise alone gives is
+//! reported as not resolved but still simulated: dropping it would make
+//! the nulls too narrow wherever the tracker is real but near the reading
+//! noise (measured: the tool's floor fell to 0.96 of the same-draw floor
+//! in the base regime, and false positives rose). With
 //! `plane_rms_mm` / `plane_points` columns the tracker's own figures are
 //! used instead.
 //!
@@ -195,8 +199,13 @@ pub struct NoiseEstimate {
     pub declared_mm: Option<Vec<f64>>,
     /// The tracker model (ξ re-scaled to the run), `None` for exact planes.
     pub tracker: Option<Tracker>,
-    /// RMS plane error at the spots [mm] (0 when not resolved).
+    /// RMS plane error at the spots [mm] (0 without a tracker).
     pub plane_mm: f64,
+    /// Whether the plane error is resolved above the reading noise (two
+    /// standard errors), or given by the file's own columns; an unresolved
+    /// estimate is still simulated (the nulls would be too narrow without
+    /// it).
+    pub plane_resolved: bool,
 }
 
 fn sample_scatter(poses: &PoseTable) -> Option<Vec<f64>> {
@@ -378,13 +387,15 @@ pub fn estimate(
     let params = fits.iter().map(|f| 5 + f.coeffs.len()).sum();
     let s = split(&geom, poses, resid, params);
     let columns = tracker_from_columns(poses, &nominal_tracker.unwrap_or(Tracker::paper()));
-    let (pooled, mut source, tracker, plane_mm) = if s.dof >= 5 {
-        let (var, tracker, plane) = by_moments(fits, poses, resid, columns, nominal_tracker)
-            .unwrap_or_else(|| by_split(&s, columns, nominal_tracker));
-        (var.sqrt(), Source::Residuals, tracker, plane)
+    let (pooled, mut source, tracker, plane_mm, plane_resolved) = if s.dof >= 5 {
+        let (var, tracker, plane, resolved) =
+            by_moments(fits, poses, resid, columns, nominal_tracker)
+                .unwrap_or_else(|| by_split(&s, columns, nominal_tracker));
+        (var.sqrt(), Source::Residuals, tracker, plane, resolved)
     } else {
         let all: Vec<f64> = resid.iter().flatten().flatten().copied().collect();
-        (stats::rms(&all), Source::ResidualRms, columns, 0.0)
+        let given = columns.is_some();
+        (stats::rms(&all), Source::ResidualRms, columns, 0.0, given)
     };
     let reading_mm = match sample_scatter(poses) {
         Some(sc) => {
@@ -399,35 +410,37 @@ pub fn estimate(
         declared_mm,
         tracker,
         plane_mm,
+        plane_resolved,
     }
 }
 
-/// Reading variance, tracker and RMS plane error at the spots from the
-/// moment equations: the tracker of the run's own columns when given (its
-/// scale fixed), else the nominal one re-scaled (none when the plane part
-/// is not resolved, ξ at most [`MAX_XI_FACTOR`]× the nominal). `None` when
-/// the equations cannot be formed or have no within-pose part.
+/// Reading variance, tracker, RMS plane error at the spots and whether it
+/// is resolved, from the moment equations: the tracker of the run's own
+/// columns when given (its scale fixed), else the nominal one re-scaled
+/// (none when the estimated scale is not positive, ξ at most
+/// [`MAX_XI_FACTOR`]× the nominal). `None` when the equations cannot be
+/// formed or have no within-pose part.
 fn by_moments(
     fits: &[SensorFit],
     poses: &PoseTable,
     resid: &[Vec<Option<f64>>],
     columns: Option<Tracker>,
     nominal: Option<Tracker>,
-) -> Option<(f64, Option<Tracker>, f64)> {
+) -> Option<(f64, Option<Tracker>, f64, bool)> {
     let t = columns.or(nominal);
     let m = super::moments::moments(fits, poses, resid, t.as_ref())?;
     Some(match (columns, nominal) {
-        (Some(c), _) => (m.var_given(1.0)?, Some(c), m.spot.sqrt()),
+        (Some(c), _) => (m.var_given(1.0)?, Some(c), m.spot.sqrt(), true),
         (None, Some(t0)) => {
-            let (var, scale) = m.solve()?;
-            let f = scale.sqrt().min(MAX_XI_FACTOR);
-            let tracker = (scale > 0.0).then_some(Tracker {
+            let x = m.solve()?;
+            let f = x.scale.sqrt().min(MAX_XI_FACTOR);
+            let tracker = (x.scale > 0.0).then_some(Tracker {
                 xi_mm: t0.xi_mm * f,
                 ..t0
             });
-            (var, tracker, f * m.spot.sqrt())
+            (x.var, tracker, f * m.spot.sqrt(), x.resolved)
         }
-        (None, None) => (m.var_given(0.0)?, None, 0.0),
+        (None, None) => (m.var_given(0.0)?, None, 0.0, false),
     })
 }
 
@@ -443,14 +456,11 @@ fn by_split(
     s: &Split,
     columns: Option<Tracker>,
     nominal: Option<Tracker>,
-) -> (f64, Option<Tracker>, f64) {
+) -> (f64, Option<Tracker>, f64, bool) {
     let resolved = s.plane_energy > 2.0 * s.plane_se;
     let tracker = columns.or(nominal.filter(|_| resolved));
-    (
-        s.reading_var,
-        tracker,
-        (s.plane_energy.max(0.0) / 3.0).sqrt(),
-    )
+    let plane = (s.plane_energy.max(0.0) / 3.0).sqrt();
+    (s.reading_var, tracker, plane, resolved || columns.is_some())
 }
 
 /// A pose left out because it disagrees with the run.
@@ -685,48 +695,57 @@ mod tests {
     /// The reading noise is found whatever the tracker does, and the
     /// tracker's scale follows the plane error where it is resolved, on
     /// runs whose noise the estimator was not told (100 poses, paper's
-    /// head). A plane error far below the reading noise (ξ 0.02 mm, 6.5 µm
-    /// at the spots, under σ 0.03 mm) is below two standard errors and
-    /// taken as none; where seeds resolve one, their ξ is within 20 % on
-    /// average and 40 % each.
+    /// head): resolved seeds within 20 % on average and 40 % each. A plane
+    /// error far below the reading noise (ξ 0.02 mm, 6.5 µm at the spots,
+    /// under σ 0.03 mm) is never called resolved, nor is one that is not
+    /// there, whose kept estimate stays small against the reading noise.
     #[test]
     fn reading_and_plane_noise_are_told_apart() {
-        // (ζ, ξ, resolved in every seed)
+        // (ζ, ξ, resolved in every seed, resolved in none)
         let cases = [
-            (0.01, 0.02, true),
-            (0.005, 0.06, true),
-            (0.03, 0.04, false),
-            (0.03, 0.02, false),
-            (0.02, 0.0, false),
+            (0.01, 0.02, true, false),
+            (0.005, 0.06, true, false),
+            (0.03, 0.04, false, false),
+            (0.03, 0.02, false, true),
+            (0.02, 0.0, false, true),
         ];
-        for (zeta, xi, always) in cases {
-            let mut got = Vec::new();
-            let mut xis = Vec::new();
+        for (zeta, xi, always, never) in cases {
+            let (mut got, mut seen, mut kept) = (Vec::new(), Vec::new(), Vec::new());
             for seed in 0..4 {
                 let (nominal, poses) = run(zeta, (xi > 0.0).then_some(xi), 50 + seed);
                 let e = est(&nominal, &poses);
                 assert_eq!(e.source, Source::Residuals);
                 got.push(e.reading_mm[0]);
-                xis.push(e.tracker.map_or(0.0, |t| t.xi_mm));
+                let x = e.tracker.map_or(0.0, |t| t.xi_mm);
+                if e.plane_resolved {
+                    seen.push(x);
+                } else {
+                    kept.push(e.plane_mm);
+                }
             }
             let m = stats::mean(&got);
             assert!(
                 (m / zeta - 1.0).abs() < 0.2,
                 "ζ = {zeta}, ξ = {xi}: estimated {m:.4}"
             );
-            let seen: Vec<f64> = xis.iter().copied().filter(|&x| x > 0.0).collect();
             for &x in &seen {
-                assert!(xi > 0.0, "ζ = {zeta}: no tracker error, ξ estimated {x:.4}");
-                assert!((x / xi - 1.0).abs() < 0.4, "ζ = {zeta}, ξ = {xi}: {xis:?}");
+                assert!((x / xi - 1.0).abs() < 0.4, "ζ = {zeta}, ξ = {xi}: {seen:?}");
             }
             if !seen.is_empty() {
                 let mx = stats::mean(&seen);
-                assert!((mx / xi - 1.0).abs() < 0.2, "ζ = {zeta}, ξ = {xi}: {xis:?}");
-            }
-            if always {
                 assert!(
-                    xis.iter().all(|&x| x > 0.0),
-                    "ζ = {zeta}, ξ = {xi}: {xis:?}"
+                    (mx / xi - 1.0).abs() < 0.2,
+                    "ζ = {zeta}, ξ = {xi}: {seen:?}"
+                );
+            }
+            assert!(!always || kept.is_empty(), "ζ = {zeta}, ξ = {xi}: {kept:?}");
+            assert!(!never || seen.is_empty(), "ζ = {zeta}, ξ = {xi}: {seen:?}");
+            if xi == 0.0 {
+                // what is kept adds under 10 % to the variance of a reading
+                let mk = stats::mean(&kept);
+                assert!(
+                    mk < 0.3 * zeta,
+                    "no tracker error, plane error kept at {mk:.4}"
                 );
             }
         }

@@ -460,13 +460,18 @@ fn noise_lines(d: &Diagnosis, s: &Settings) -> Vec<String> {
     )];
     out.push(match &e.tracker {
         Some(t) => format!(
-            "  datum-plane error {:.1} µm RMS at the spots: tracker simulated as ξ = {:.1} µm on {} points over a {} mm patch",
+            "  datum-plane error {:.1} µm RMS at the spots{}: tracker simulated as ξ = {:.1} µm on {} points over a {} mm patch",
             1000.0 * e.plane_mm,
+            if e.plane_resolved {
+                ""
+            } else {
+                " (not resolved above the reading noise, within two standard errors; kept as the estimate)"
+            },
             1000.0 * t.xi_mm,
             t.points,
             t.patch_mm
         ),
-        None => "  no datum-plane error resolved above the reading noise: planes taken as exact".into(),
+        None => "  no datum-plane error found in the residuals: planes taken as exact".into(),
     });
     if !d.outliers.is_empty() {
         let p: Vec<String> = d
