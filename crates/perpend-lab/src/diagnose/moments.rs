@@ -150,34 +150,23 @@ struct Operator {
     r: DMatrix<f64>,
 }
 
-/// The prediction of `fit` in pose `k` with its geometry replaced.
-fn predict_with(
-    fit: &SensorFit,
-    sensor: Sensor<f64>,
-    poses: &PoseTable,
-    k: usize,
-    idx: usize,
-) -> Option<f64> {
-    let f = SensorFit {
-        sensor,
-        ..fit.clone()
-    };
-    predict(&f, poses, k, idx)
-}
-
 /// Jacobian columns of `fit`'s prediction in pose `k`: zero point (3),
 /// direction (2, in its tangent plane: a unit vector has two degrees of
-/// freedom), extension coefficients (their regressors).
+/// freedom), extension coefficients (their regressors). One working copy
+/// of the fit is perturbed and restored for every column.
 fn jacobian_row(fit: &SensorFit, poses: &PoseTable, k: usize, idx: usize) -> Option<Vec<f64>> {
     const H_ZERO: f64 = 1e-4;
     const H_DIR: f64 = 1e-6;
     let s = fit.sensor;
+    let mut w = fit.clone();
     let mut row = Vec::with_capacity(5 + fit.coeffs.len());
-    let diff = |a: Sensor<f64>, b: Sensor<f64>, h: f64| -> Option<f64> {
-        Some(
-            (predict_with(fit, a, poses, k, idx)? - predict_with(fit, b, poses, k, idx)?)
-                / (2.0 * h),
-        )
+    let mut diff = |a: Sensor<f64>, b: Sensor<f64>, h: f64| -> Option<f64> {
+        w.sensor = a;
+        let pa = predict(&w, poses, k, idx);
+        w.sensor = b;
+        let pb = predict(&w, poses, k, idx);
+        w.sensor = s;
+        Some((pa? - pb?) / (2.0 * h))
     };
     for axis in 0..3 {
         let (mut a, mut b) = (s, s);
@@ -193,10 +182,12 @@ fn jacobian_row(fit: &SensorFit, poses: &PoseTable, k: usize, idx: usize) -> Opt
         row.push(diff(a, b, H_DIR)?);
     }
     let base = predict(fit, poses, k, idx)?;
+    let mut w = fit.clone();
     for j in 0..fit.coeffs.len() {
-        let mut f = fit.clone();
-        f.coeffs[j] += 1.0;
-        row.push(predict(&f, poses, k, idx)? - base);
+        w.coeffs[j] += 1.0;
+        let p = predict(&w, poses, k, idx);
+        w.coeffs[j] = fit.coeffs[j];
+        row.push(p? - base);
     }
     Some(row)
 }
