@@ -34,6 +34,7 @@
 //! * [`head`] — the sensor head: zero points, beam directions, 5-DOF updates.
 //! * [`model`] — the beam/plane measurement model and its Jacobians.
 //! * [`ext`] — model extensions: corrections of the reading beyond the paper.
+//! * [`lag`] — first-order lag of the head temperature (sensor bodies).
 //! * [`normal`] — spots, micro-plane normal (two methods), three-sensor mode.
 //! * [`surface`] — the normal at the spindle-axis point of a sphere or
 //!   cylinder of known radius (the micro-plane's bias on curved skins).
@@ -49,6 +50,7 @@ pub mod error;
 pub mod ext;
 pub mod geometry;
 pub mod head;
+pub mod lag;
 pub mod model;
 pub mod normal;
 pub mod params;
