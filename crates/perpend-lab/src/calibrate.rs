@@ -93,6 +93,24 @@ impl EkfPreset {
     }
 }
 
+/// Reports the time constant of a thermal lag or a settling drift.
+fn lag_lines(model: Effect, lags: &crate::diagnose::lags::Lags, report: &mut String) {
+    if model == Effect::Thermal && lags.thermal_tau_s > 0.0 {
+        let _ = writeln!(
+            report,
+            "thermal lag: the sensor bodies follow the logged temperature with τ = {:.0} s",
+            lags.thermal_tau_s
+        );
+    }
+    if model == Effect::Drift && lags.drift_tau_s.is_finite() {
+        let _ = writeln!(
+            report,
+            "drift settles with τ = {:.0} s (coefficients: its initial rate)",
+            lags.drift_tau_s
+        );
+    }
+}
+
 /// The time of the run's last pose \[s\] (`t_s`; 0 without times).
 pub fn run_end_s(poses: &PoseTable) -> f64 {
     poses.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max)
@@ -369,6 +387,16 @@ pub fn run(a: &Args) -> Result<()> {
     );
     match a.method {
         Method::Lsq => {
+            // A thermal lag / a settling drift: the same time constant as
+            // the diagnosis would find (`diagnose::lags`).
+            let lags = match model {
+                Effect::Thermal | Effect::Drift => {
+                    crate::diagnose::lags::select(&nominal, &poses, &LsqConfig::default())
+                }
+                _ => crate::diagnose::lags::Lags::default(),
+            };
+            let poses = crate::diagnose::lags::apply(&poses, &lags);
+            lag_lines(model, &lags, &mut report);
             let refs = Refs::of(&poses);
             if model != Effect::None {
                 let _ = writeln!(

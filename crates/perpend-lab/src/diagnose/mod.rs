@@ -45,6 +45,7 @@ pub mod bench;
 pub mod candidates;
 pub mod cv;
 pub mod expect;
+pub mod lags;
 pub mod moments;
 pub mod noise;
 pub mod plot;
@@ -270,6 +271,11 @@ pub struct EffectJson {
     pub sigma: Vec<Vec<f64>>,
     /// Per sensor, in words and physical units.
     pub physical: Vec<String>,
+    /// The head's time constant of a time-like effect [s]: the thermal lag
+    /// of the sensor bodies, or the settling time of a drift
+    /// ([`lags`]); absent when none was fitted (no lag, linear drift).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_constant_s: Option<f64>,
 }
 
 /// The noise the diagnosis worked with, in the JSON output.
@@ -385,8 +391,10 @@ pub struct Diagnosis {
     pub folds: Folds,
     /// Nominal head.
     pub nominal: Vec<Sensor<f64>>,
-    /// The run, without the outlying poses.
+    /// The run, without the outlying poses, re-timed with [`Diagnosis::lags`].
     pub poses: PoseTable,
+    /// The time constants of the time-like candidates ([`lags`]).
+    pub lags: lags::Lags,
 }
 
 impl Diagnosis {
@@ -394,6 +402,15 @@ impl Diagnosis {
     /// `unexplained`).
     pub fn effects(&self) -> Vec<Effect> {
         named(self.effect, &self.also)
+    }
+
+    /// The fitted time constant of `e` [s] ([`EffectJson::time_constant_s`]).
+    pub fn time_constant(&self, e: Effect) -> Option<f64> {
+        match e {
+            Effect::Thermal => Some(self.lags.thermal_tau_s).filter(|t| *t > 0.0),
+            Effect::Drift => Some(self.lags.drift_tau_s).filter(|t| t.is_finite()),
+            _ => None,
+        }
     }
 
     /// The `--json` object.
@@ -425,6 +442,7 @@ impl Diagnosis {
                 coefficients: fits.iter().map(|f| f.coeffs.clone()).collect(),
                 sigma: fits.iter().map(|f| f.sigma.clone()).collect(),
                 physical: fits.iter().map(|f| report::physical(e, f, span)).collect(),
+                time_constant_s: self.time_constant(e),
             })
             .collect();
         DiagnoseJson {
@@ -788,7 +806,9 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         );
     }
     let outliers = noise::reject(&nominal, all_poses, &s.lsq, &available_models(all_poses));
-    let poses = &noise::without(all_poses, &outliers);
+    let kept = noise::without(all_poses, &outliers);
+    let lags = lags::select(&nominal, &kept, &s.lsq);
+    let poses = &lags::apply(&kept, &lags);
     let n = poses.rows.len();
     if n < 2 * s.folds.max(2) {
         bail!(
@@ -938,6 +958,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         folds,
         nominal,
         poses: poses.clone(),
+        lags,
     })
 }
 

@@ -316,6 +316,23 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             before.join(" + ")
         );
     }
+    for e in d.effects() {
+        match (e, d.time_constant(e)) {
+            (Effect::Thermal, Some(tau)) => {
+                let _ = writeln!(
+                    o,
+                    "  thermal acts on the sensor bodies' temperature, which lags the logged one by τ = {tau:.0} s (first-order; stored with the calibration, the board lags its temperature alike)"
+                );
+            }
+            (Effect::Drift, Some(tau)) => {
+                let _ = writeln!(
+                    o,
+                    "  the drift settles with τ = {tau:.0} s (A·(1 − e^(−t/τ)), coefficients are its initial rate; folded into the zero points at the run's end)"
+                );
+            }
+            _ => {}
+        }
+    }
     if !d.decision.ties.is_empty() {
         let t: Vec<&str> = d.decision.ties.iter().map(|e| e.name()).collect();
         let _ = writeln!(
