@@ -119,6 +119,7 @@ def test_write_protection_attacks_change_nothing(board):
             expect_abort(board, index, sub, struct.pack("<f", 0.0), LOCKED)
     for index in (0x2201, 0x2202, 0x2203, 0x2204):
         expect_abort(board, index, 1, b"\x01", LOCKED)
+    expect_abort(board, 0x2105, 0, struct.pack("<f", 60.0), LOCKED)
     # a wrong unlock value unlocks nothing
     for v in (1, 0x6C616374, SAVE, 0xFFFFFFFF):
         expect_abort(board, 0x2010, 0, struct.pack("<I", v), RANGE)
@@ -167,6 +168,11 @@ def test_write_protection_attacks_change_nothing(board):
         expect_abort(board, index, 4, struct.pack("<f", 1e6), TOO_HIGH)
     expect_abort(board, 0x2101, 4, struct.pack("<f", 1.5), TOO_HIGH)
     expect_abort(board, 0x2104, 14, struct.pack("<f", -60.0), TOO_LOW)
+    for bad in (F32_NAN, F32_SNAN, F32_INF, F32_NINF):
+        expect_abort(board, 0x2105, 0, bad, RANGE)
+    expect_abort(board, 0x2105, 0, struct.pack("<f", -1.0), TOO_LOW)
+    expect_abort(board, 0x2105, 0, struct.pack("<f", 86401.0), TOO_HIGH)
+    expect_abort(board, 0x2105, 0, b"\x00\x00", TOO_SHORT)
 
     # 4. segmented transfers: oversized, wrong toggle, interrupted
     def initiate(index, sub, size=None):

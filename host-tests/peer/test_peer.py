@@ -312,6 +312,33 @@ def test_linearity_table_through_the_eds_store_and_reset(board):
     assert sdo[0x2005].raw & (1 << 21) == 0
 
 
+def test_thermal_time_constant_through_the_eds_store_and_reset(board):
+    """0x2105, the head's thermal time constant [s], as the EDS describes
+    it (VAR, REAL32, rw, default 0): locked without the unlock, range
+    0..86400 (0x06090032 below, 0x06090031 above, 0x06090030 NaN), stored
+    with 0x1010 sub 3 and read back after reset node."""
+    sdo = board.node.sdo
+    od = board.node.object_dictionary
+    assert od[0x2105].name == "Thermal time constant s"
+    assert od[0x2105].data_type == canopen.objectdictionary.REAL32
+    assert od[0x2105].default == 0.0
+    assert sdo[0x2105].raw == 0.0
+    assert abort_code(lambda: sdo.download(0x2105, 0, struct.pack("<f", 600.0))) == 0x08000021
+    sdo[0x2010].raw = UNLOCK
+    for bad, code in ((-1.0, 0x06090032), (86400.5, 0x06090031), (float("nan"), RANGE)):
+        assert abort_code(lambda: sdo.download(0x2105, 0, struct.pack("<f", bad))) == code
+    sdo[0x2105].raw = 612.5
+    assert sdo[0x2105].raw == 612.5
+    sdo[0x1010][3].raw = SAVE
+    sdo[0x2010].raw = UNLOCK
+    sdo[0x2105].raw = 5.0  # unsaved: lost by the reset
+    reset_node(board)
+    assert sdo[0x2105].raw == 612.5
+    n0 = sdo[0x2007].raw
+    assert wait_until(lambda: sdo[0x2007].raw != n0)
+    assert sdo[0x2005].raw & (1 << 21) == 0
+
+
 def test_restore_defaults_applies_at_reset(board):
     sdo = board.node.sdo
     default_period = canopen.import_od(str(EDS), node_id=NODE_ID)[0x2300][1].default

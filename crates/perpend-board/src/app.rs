@@ -14,11 +14,14 @@
 //!   [`perpend_can::Defaults`] by [`defaults_for`]); a rejected or
 //!   unreadable one also raises EMCY 0x6300 (data set) until the next
 //!   successful store.
-//! * **sample** ([`App::on_sample`]): the pipeline's [`Output`] goes to
+//! * **sample** ([`App::on_sample`]): the die temperature goes through the
+//!   head's thermal lag ([`crate::thermal`], τ from 0x2105) to the
+//!   corrections and as it is to 0x200A; the pipeline's [`Output`] goes to
 //!   0x2001..0x2007 (the device sends the TPDOs on SYNC or event) and its
 //!   faults to EMCY (below).
 //! * **configuration**: the object dictionary is the source of truth for
-//!   everything it holds (0x2101..0x2104 calibration, 0x2201..0x2204
+//!   everything it holds (0x2101..0x2104 calibration, 0x2105 thermal time
+//!   constant, 0x2201..0x2204
 //!   transfer functions, 0x2300 acquisition, 0x2310 surface model, 0x2400
 //!   CAN); on every configuration change the pipeline's parameters and
 //!   surface model are rebuilt from it ([`params_from_device`],
@@ -186,6 +189,7 @@ pub fn params_from_device(dev: &Device, extra: &Params) -> Result<Params, Error>
         Method::LeastSquares
     };
     p.acq.max_rms_mm = a.residual_limit_mm;
+    p.thermal_tau_s = dev.thermal_tau_s();
     let c = dev.communication();
     p.can = CanConfig {
         // A non-configured node (LSS, 0xFF) keeps the record's last valid
@@ -274,6 +278,8 @@ pub struct App<S: ParamStore> {
     read_faults: u32,
     /// Die temperature of the last sample, published at the next poll.
     temp_c: Option<f32>,
+    /// The die temperature through the thermal time constant (0x2105).
+    lag: crate::thermal::ThermalLag,
     /// 0x2500 = bootloader was written in pre-operational.
     bootloader: bool,
     boot_bad: bool,
@@ -336,6 +342,7 @@ impl<S: ParamStore> App<S> {
             boot_bad,
             read_faults,
             temp_c: None,
+            lag: crate::thermal::ThermalLag::new(),
             bootloader: false,
             next_extra: extra,
             quiet: [0; CONDS],
@@ -538,14 +545,19 @@ impl<S: ParamStore> App<S> {
     /// corrections: drift is a nuisance of the calibration run, folded into
     /// the zero points at its end and never extrapolated (issue 11 item 8,
     /// `perpend_lab::paramfile::SensorParams::fold_drift`); a stored drift
-    /// coefficient is not applied.
+    /// coefficient is not applied. The corrections get the die temperature
+    /// through the head's thermal time constant (0x2105,
+    /// [`crate::thermal::ThermalLag`], stepped on `now_us`; τ = 0: the
+    /// reading as it is); 0x200A publishes the reading itself.
     pub fn on_sample(&mut self, sample: &Sample, now_us: u64) -> Output {
+        let tau = self.pipe.params().thermal_tau_s;
         let s = Sample {
             t_s: None,
+            temp_c: self.lag.update(sample.temp_c, now_us, tau),
             ..*sample
         };
         let o = self.pipe.process(&s);
-        self.temp_c = s.temp_c;
+        self.temp_c = sample.temp_c;
         self.dev.set_sample_time(now_us);
         self.dev.set_measurement(&measurement_of(&o));
         self.update_emcy(o.status);

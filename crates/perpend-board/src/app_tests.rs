@@ -906,10 +906,10 @@ fn stored_item(store: &mut SeqStore<HostFlash>) -> Vec<u8> {
 /// A board whose flash holds a version-1 record (firmware before the
 /// linearity table: record version 1 followed by a device image of layout
 /// 4) boots from it, record-only settings included, with inactive tables;
-/// the next store (0x1010) writes a version-2 record that decodes to the
-/// same values.
+/// the next store (0x1010) writes a record of the current version (3) that
+/// decodes to the same values.
 #[test]
-fn v1_record_boots_and_the_next_store_writes_v2() {
+fn v1_record_boots_and_the_next_store_writes_v3() {
     use perpend_core::params::{record_as_v1, RECORD_LEN, V1_RECORD_LEN};
     let mut b = Bench::new(HostFlash::new());
     b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
@@ -941,13 +941,13 @@ fn v1_record_boots_and_the_next_store_writes_v2() {
     assert!(!b.app.device().emcy_active(emcy::DATA_SET));
     assert!(b.app.pipeline().calibrated());
     assert_eq!(*b.app.pipeline().params(), p);
-    // store: version 2 of the same values (stamp + 1), then the image
+    // store: version 3 of the same values (stamp + 1), then the image
     b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
     assert_eq!(b.app.stores(), 1);
     let mut store = b.app.into_store();
     let raw = stored_item(&mut store);
     assert_eq!(raw.len(), RECORD_LEN + IMAGE_LEN);
-    assert_eq!(&raw[4..6], &2u16.to_le_bytes());
+    assert_eq!(&raw[4..6], &3u16.to_le_bytes());
     let want = Params { stamp: 6, ..p };
     assert_eq!(Params::decode_with_len(&raw), Ok((want, RECORD_LEN)));
     let b = Bench::new(store.into_flash());
@@ -1028,4 +1028,164 @@ fn table_change_over_can_takes_effect() {
     let o2 = b.sample(counts);
     assert!(normal_error_deg(&o2, &plane) > 0.1, "{o2:?}");
     assert_eq!(o2.normal, fresh(&b).normal);
+}
+
+/// The thermal time constant 0x2105 through the App (issue: sensor bodies
+/// lag the head thermometer). Sensor 1 reads long by `thermal·(y − 20)`
+/// where `y` is the head temperature after a 20 → 30 °C step passed
+/// through a lag of τ = 30 s (`lag::filter` in f64, 10 Hz); the App's
+/// output equals that of a pipeline given `y` itself (the corrected
+/// reading follows the lag), not that of one given the thermometer, and
+/// 0x200A still shows the thermometer.
+#[test]
+fn thermal_lag_over_can_follows_the_sensor_bodies() {
+    let tau = 30.0f32;
+    let k_th = 0.01f32; // mm/°C on sensor 1
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 13, k_th).unwrap();
+    b.write_f32(0x2105, 0, tau).unwrap();
+    let p = *b.app.pipeline().params();
+    assert_eq!(
+        (p.thermal_tau_s, p.head.sensors[0].ext.temp_ref),
+        (tau, 20.0)
+    );
+    let plane = test_plane();
+    let n = 1201; // 120 s at 10 Hz, the step at 5 s
+    let t: Vec<f64> = (0..n).map(|k| k as f64 * 0.1).collect();
+    let u: Vec<f64> = t
+        .iter()
+        .map(|&x| if x < 5.0 { 20.0 } else { 30.0 })
+        .collect();
+    let mut y = vec![0.0; n];
+    perpend_core::lag::filter(&t, &u, tau as f64, &mut y);
+    let mut lagged = Pipeline::new(p, b.app.pipeline().calibrated());
+    let mut raw = lagged.clone();
+    let (mut worst, mut apart) = (0.0f32, 0.0f32);
+    for k in 0..n {
+        let mut mm = mm_for_plane(&p, &plane);
+        mm[0] += k_th * (y[k] as f32 - 20.0);
+        let counts = counts_for_mm(&p, mm);
+        let s = |temp: f64| Sample {
+            counts,
+            temp_c: Some(temp as f32),
+            t_s: None,
+        };
+        let now_us = 1_000_000 + (t[k] * 1e6).round() as u64;
+        let o = b.app.on_sample(&s(u[k]), now_us);
+        let want = lagged.process(&s(y[k]));
+        let naive = raw.process(&s(u[k]));
+        assert!(o.valid() && want.valid() && naive.valid(), "{k}: {o:?}");
+        let d = |a: &Output, b: &Output| {
+            (a.theta1_deg - b.theta1_deg)
+                .abs()
+                .max((a.theta2_deg - b.theta2_deg).abs())
+        };
+        worst = worst.max(d(&o, &want));
+        apart = apart.max(d(&naive, &want));
+    }
+    // Between commits (every τ/100 = 0.3 s) the board holds the input
+    // linear from the last commit, so the 10 °C jump is a ramp over up to
+    // 0.3 s for it: at most 10·0.3/(2·30) = 0.05 °C (5e-4 mm) behind the
+    // 10 Hz filter until the next commit, ~1.5e-4° of tilt here (0.017 °C
+    // measured in the lag alone); the thermometer's reading (up to 10 °C
+    // ahead of the bodies, 0.1 mm) is off by hundredths of a degree.
+    assert!(worst < 4e-4, "{worst}");
+    assert!(apart > 0.01, "{apart}");
+    b.poll();
+    assert_eq!(b.app.device().read_f32(0x200A, 0), Some(30.0));
+}
+
+/// With τ = 0 (0x2105 default) the output is exactly that of the
+/// pipeline given the thermometer's reading (today's behaviour), whatever
+/// the temperature does; a τ written later applies without a reset and
+/// starts at rest at the next temperature.
+#[test]
+fn thermal_lag_zero_is_todays_output() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2101, 13, 0.01).unwrap();
+    let p = *b.app.pipeline().params();
+    assert_eq!(p.thermal_tau_s, 0.0);
+    let counts = counts_for_plane(&p, &test_plane());
+    let mut today = Pipeline::new(p, b.app.pipeline().calibrated());
+    for k in 0..200u64 {
+        let temp = match k % 7 {
+            3 => None,
+            5 => Some(f32::NAN),
+            _ => Some(20.0 + (k as f32 * 0.37) % 11.0),
+        };
+        let s = Sample {
+            counts,
+            temp_c: temp,
+            t_s: None,
+        };
+        assert_eq!(b.app.on_sample(&s, 1_000 * k), today.process(&s), "{k}");
+    }
+    b.write_f32(0x2105, 0, 600.0).unwrap();
+    let s = |temp: f32| Sample {
+        counts,
+        temp_c: Some(temp),
+        t_s: None,
+    };
+    let mut fresh = Pipeline::new(*b.app.pipeline().params(), true);
+    // at rest at 25 °C: the same as the pipeline given 25 °C
+    assert_eq!(b.app.on_sample(&s(25.0), 300_000), fresh.process(&s(25.0)));
+    // a second later at 35 °C: the lag has moved by about 10·1/600/2
+    let o = b.app.on_sample(&s(35.0), 1_300_000);
+    let y = perpend_core::lag::step(25.0f32, 25.0, 35.0, 1.0, 600.0);
+    assert!((y - 25.0 - 10.0 / 1200.0).abs() < 1e-4, "{y}");
+    assert_eq!(o, fresh.process(&s(y)));
+    // time going backwards restarts at rest at the new reading
+    let o = b.app.on_sample(&s(35.0), 900_000);
+    assert_eq!(o, fresh.process(&s(35.0)));
+}
+
+/// A board whose flash holds a version-2 record and a layout-5 image
+/// (firmware before 0x2105) boots with τ = 0; τ written over CAN is stored
+/// by 0x1010 sub 3 in the version-3 record and the image, and boots again.
+#[test]
+fn thermal_tau_is_stored_and_an_old_record_boots_without_lag() {
+    use perpend_core::params::{record_as_v2, RECORD_LEN, V2_RECORD_LEN};
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2102, 13, 2e-3).unwrap();
+    b.write_f32(0x2105, 0, 450.0).unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    b.app.device().persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = perpend_can::device::image_as_layout(&img, 5, &mut old);
+    let mut p = *b.app.pipeline().params();
+    assert_eq!(p.thermal_tau_s, 450.0);
+    p.stamp = 3;
+    let mut v3 = [0u8; RECORD_LEN];
+    p.encode(&mut v3).unwrap();
+    let mut item = record_as_v2(&v3).to_vec();
+    item.extend_from_slice(&old[..n]);
+    let mut f = b.app.into_store().into_flash();
+    f.power_on();
+    let mut store = host_store(f);
+    store.store(&item).unwrap();
+    let mut b = Bench::new(store.into_flash());
+    assert_eq!(b.app.boot(), Boot::Stored);
+    assert!(!b.app.device().emcy_active(emcy::DATA_SET));
+    let want = Params {
+        thermal_tau_s: 0.0,
+        ..p
+    };
+    assert_eq!(*b.app.pipeline().params(), want);
+    assert_eq!(b.app.device().thermal_tau_s(), 0.0);
+    assert_eq!(V2_RECORD_LEN + 4, RECORD_LEN);
+    // set over CAN: applied at once, stored with the application group
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2105, 0, 450.0).unwrap();
+    assert_eq!(b.app.pipeline().params().thermal_tau_s, 450.0);
+    b.write(0x1010, 3, &SAVE.to_le_bytes()).unwrap();
+    let mut store = b.app.into_store();
+    let raw = stored_item(&mut store);
+    let (rec, len) = Params::decode_with_len(&raw).unwrap();
+    assert_eq!((rec.thermal_tau_s, len), (450.0, RECORD_LEN));
+    let b = Bench::new(store.into_flash());
+    assert_eq!(b.app.pipeline().params().thermal_tau_s, 450.0);
+    assert_eq!(b.app.device().thermal_tau_s(), 450.0);
 }

@@ -20,6 +20,8 @@
 //!   layout check, worst loop time, stack high-water mark;
 //! * [`rxfilter`] — the FDCAN receive acceptance filters and a model of the
 //!   receive path (FIFOs, interrupt ring) around a flash store;
+//! * [`thermal`] — the head temperature through the thermal time constant
+//!   (0x2105) for the thermal extension;
 //! * [`scan`] — the ADC scan time and the shortest sample period an
 //!   oversampling ratio allows.
 //!
@@ -37,6 +39,7 @@ pub mod rxfilter;
 pub mod scan;
 pub mod status;
 pub mod storage;
+pub mod thermal;
 pub mod txq;
 
 #[cfg(test)]

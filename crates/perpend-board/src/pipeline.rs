@@ -53,7 +53,9 @@ pub const CHANNELS: usize = 4;
 pub struct Sample {
     /// Oversampled ADC result of each channel, in scan order.
     pub counts: [u16; CHANNELS],
-    /// Head temperature [°C] (thermal extension), if measured.
+    /// Head temperature [°C] as the thermal extension sees it, if
+    /// measured ([`crate::app::App::on_sample`] passes the die temperature
+    /// through the head's thermal lag, [`crate::thermal`]).
     pub temp_c: Option<f32>,
     /// Time since the start of the run [s] (drift extension), if known.
     pub t_s: Option<f32>,

@@ -436,6 +436,9 @@ pub struct Defaults {
     pub transfer: [TransferFunction; 4],
     /// 0x2300 acquisition.
     pub acquisition: Acquisition,
+    /// 0x2105 the head's thermal time constant \[s\] (0 = no lag;
+    /// `perpend_core::params::Params::thermal_tau_s`).
+    pub thermal_tau_s: f32,
     /// 0x2400 sub 2 bit rate [kbit/s] (sub 1 defaults to the node-id passed
     /// to [`crate::Device::new`]).
     pub bit_rate_kbps: u16,
@@ -529,6 +532,7 @@ impl Defaults {
             calibration: p.head.sensors.map(|s| SensorCalibration::from_sensor(&s)),
             transfer: p.transfer.map(|t| TransferFunction::from_transfer(&t)),
             acquisition: Acquisition::from_params(&p.acq),
+            thermal_tau_s: p.thermal_tau_s,
             bit_rate_kbps: kbps_of(p.can.bitrate),
         }
     }
@@ -761,7 +765,10 @@ mod tests {
         p.acq.os_shift = 2;
         p.acq.method = Method::Chen;
         p.can.bitrate = Bitrate::K250;
+        p.thermal_tau_s = 45.5;
         let d = Defaults::from_params(&p);
+        assert_eq!(d.thermal_tau_s, 45.5);
+        assert_eq!(Defaults::nominal().thermal_tau_s, 0.0);
         assert_eq!(d.acquisition.oversampling, 64);
         assert_eq!(d.acquisition.method, METHOD_CHEN);
         assert_eq!(d.bit_rate_kbps, 250);

@@ -143,6 +143,10 @@ pub const IMAGE_LEN_V3: usize = 8 + 4 * od::PERSISTENT_V3;
 /// 0x2101..0x2104 sub 16..23): still accepted by [`Device::load_image`].
 pub const IMAGE_LEN_V4: usize = 8 + 4 * od::PERSISTENT_V4;
 
+/// Length of an image of layout 5 (firmware before the thermal time
+/// constant 0x2105): still accepted by [`Device::load_image`].
+pub const IMAGE_LEN_V5: usize = 8 + 4 * od::PERSISTENT_V5;
+
 /// FNV-1a over (index, sub, type) of the entries persisted by image layout
 /// `layout` ([`od::Entry::since`]): changes when the persisted layout
 /// changes.
@@ -392,6 +396,7 @@ impl Core {
                     _ => a.residual_limit_mm.to_bits(),
                 }
             }
+            Init::ThermalTau => d.thermal_tau_s.to_bits(),
             Init::BitRate => d.bit_rate_kbps as u32,
             Init::Text(_) => 0,
         }
@@ -1483,6 +1488,11 @@ impl Device {
         }
     }
 
+    /// The head's thermal time constant 0x2105 \[s\] (0 = no lag).
+    pub fn thermal_tau_s(&self) -> f32 {
+        self.core.get_f32(0x2105, 0)
+    }
+
     /// Acquisition settings 0x2300.
     pub fn acquisition(&self) -> Acquisition {
         Acquisition {
@@ -1605,7 +1615,7 @@ impl Device {
         Ok(())
     }
 
-    /// Loads the calibration and configuration objects (0x2101..0x2104,
+    /// Loads the calibration and configuration objects (0x2101..0x2105,
     /// 0x2201..0x2204, 0x2300, 0x2400) from a stored parameter record, as
     /// current and power-on values (normally before the first poll). Every
     /// value is checked against its object's limits first; a node-id in
@@ -1625,6 +1635,7 @@ impl Device {
                 Init::Calibration(..)
                 | Init::Transfer(..)
                 | Init::Acquisition(_)
+                | Init::ThermalTau
                 | Init::BitRate => src.init_value(e, p.can.node_id),
                 Init::Node(0) => p.can.node_id as u32,
                 _ => continue,
@@ -1669,6 +1680,7 @@ impl Device {
             }
         }
         p.acq = self.acquisition().to_params(&base.acq);
+        p.thermal_tau_s = self.thermal_tau_s();
         let c = self.communication();
         p.can.node_id = c.node_id;
         if let Some(b) = bitrate_of(c.bit_rate_kbps) {
@@ -1710,6 +1722,7 @@ impl Device {
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
         let layout = match img.len() {
             IMAGE_LEN => od::LAYOUT,
+            IMAGE_LEN_V5 => 5,
             IMAGE_LEN_V4 => 4,
             IMAGE_LEN_V3 => 3,
             IMAGE_LEN_V2 => 2,

@@ -1213,10 +1213,145 @@ fn layout_4_image_loads() {
     let mut old = [0u8; IMAGE_LEN];
     let n = image_as_layout(&img, 4, &mut old);
     assert_eq!(n, IMAGE_LEN_V4);
-    assert_eq!(IMAGE_LEN - IMAGE_LEN_V4, 4 * 4 * 8);
+    assert_eq!(IMAGE_LEN_V5 - IMAGE_LEN_V4, 4 * 4 * 8);
     let mut d = Device::new(NODE, &Defaults::nominal());
     d.load_image(&old[..n]).unwrap();
     let c = d.calibration(3).unwrap();
     assert_eq!(c.d_ref, 42.0);
     assert_eq!((c.knots, c.coeffs), ([0.0; 5], [0.0; 3]));
+}
+
+/// 0x2105, the head's thermal time constant: a REAL32 calibration object
+/// (pre-operational and unlock), range 0..86400 s with the CiA 301 range
+/// aborts, read back by SDO, applied at once (configuration event) and
+/// carried by `params`.
+#[test]
+fn thermal_time_constant_write_read_and_range() {
+    let mut b = Bus::new();
+    assert_eq!(b.dev.thermal_tau_s(), 0.0);
+    assert_eq!(b.upload(0x2105, 0), Ok(0f32.to_le_bytes().to_vec()));
+    assert_eq!(b.upload(0x2105, 1), Err(0x0609_0011));
+    assert_eq!(b.write_f32(0x2105, 0, 600.0), Err(0x0800_0021));
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.dev.take_events();
+    let g = b.dev.config_generation();
+    b.write_f32(0x2105, 0, 612.5).unwrap();
+    assert!(b.dev.take_events().contains(Events::CONFIG_CHANGED));
+    assert_ne!(b.dev.config_generation(), g);
+    assert_eq!(b.dev.thermal_tau_s(), 612.5);
+    assert_eq!(b.upload(0x2105, 0), Ok(612.5f32.to_le_bytes().to_vec()));
+    assert_eq!(b.dev.read_f32(0x2105, 0), Some(612.5));
+    for (v, abort) in [
+        (-0.5f32, 0x0609_0032),
+        (86_401.0, 0x0609_0031),
+        (f32::NAN, 0x0609_0030),
+        (f32::INFINITY, 0x0609_0030),
+    ] {
+        assert_eq!(b.write_f32(0x2105, 0, v), Err(abort), "{v}");
+        assert_eq!(
+            b.dev.thermal_tau_s(),
+            612.5,
+            "refused write changes nothing"
+        );
+    }
+    assert_eq!(b.download(0x2105, 0, &[0, 0]), Err(0x0607_0013));
+    b.write_f32(0x2105, 0, 86_400.0).unwrap();
+    b.write_f32(0x2105, 0, 0.0).unwrap();
+    b.write_f32(0x2105, 0, 30.0).unwrap();
+    let base = perpend_core::params::Params::factory();
+    assert_eq!(b.dev.params(&base).thermal_tau_s, 30.0);
+    // τ alone does not make the head a calibrated one (status bit 17)
+    assert!(b.dev.calibration_is_default());
+    // in operational: refused like the other calibration objects
+    b.nmt(0x01, 0);
+    assert_eq!(b.write_f32(0x2105, 0, 40.0), Err(0x0800_0022));
+}
+
+/// τ is stored with the application group (0x1010 sub 3), survives a
+/// reset node through the image, is restored to the defaults' value by
+/// 0x1011, and comes in through `load_params` and `Defaults::from_params`.
+#[test]
+fn thermal_time_constant_is_stored_and_restored() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2105, 0, 900.0).unwrap();
+    assert_eq!(b.write_u32(0x1010, 2, od::SAVE_SIGNATURE), Err(0));
+    b.finish(true);
+    // a communication-group store does not store it
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(b.dev.thermal_tau_s(), 0.0);
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2105, 0, 900.0).unwrap();
+    assert_eq!(b.write_u32(0x1010, 3, od::SAVE_SIGNATURE), Err(0));
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    b.finish(true);
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2105, 0, 5.0).unwrap();
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(b.dev.thermal_tau_s(), 900.0);
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_image(&img).unwrap();
+    assert_eq!(d.thermal_tau_s(), 900.0);
+    // a forged image with τ out of range is refused whole
+    let pos = od::entries()
+        .filter(|(_, _, e)| e.persist)
+        .position(|(_, i, _)| i == 0x2105)
+        .unwrap();
+    let mut bad = img;
+    bad[8 + 4 * pos..12 + 4 * pos].copy_from_slice(&(-1.0f32).to_bits().to_le_bytes());
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    assert_eq!(
+        d.load_image(&bad),
+        Err(Error::Value {
+            index: 0x2105,
+            sub: 0
+        })
+    );
+    // restore: the defaults' τ at the next reset node
+    assert_eq!(b.write_u32(0x1011, 3, od::LOAD_SIGNATURE), Err(0));
+    b.finish(true);
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(b.dev.thermal_tau_s(), 0.0);
+    // from a stored record, and as a default
+    let p = perpend_core::params::Params {
+        thermal_tau_s: 120.0,
+        ..perpend_core::params::Params::factory()
+    };
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_params(&p).unwrap();
+    assert_eq!(d.thermal_tau_s(), 120.0);
+    assert_eq!(
+        d.params(&p),
+        d.params(&perpend_core::params::Params::factory())
+    );
+    let d = Device::new(NODE, &Defaults::from_params(&p));
+    assert_eq!(d.thermal_tau_s(), 120.0);
+}
+
+/// An image written before layout 6 (no 0x2105) loads; τ keeps its
+/// current value (the defaults': no lag).
+#[test]
+fn layout_5_image_loads_without_lag() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2103, 7, 41.0).unwrap();
+    b.write_f32(0x2105, 0, 300.0).unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = image_as_layout(&img, 5, &mut old);
+    assert_eq!(n, IMAGE_LEN_V5);
+    assert_eq!(IMAGE_LEN - IMAGE_LEN_V5, 4);
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_image(&old[..n]).unwrap();
+    assert_eq!(d.calibration(2).unwrap().d_ref, 41.0);
+    assert_eq!(d.thermal_tau_s(), 0.0);
+    // a layout-5 signature over a layout-6 length (and the reverse) is refused
+    let mut forged = img;
+    forged[0..4].copy_from_slice(&old[0..4]);
+    assert_eq!(d.load_image(&forged), Err(Error::ImageLayout));
 }

@@ -75,6 +75,7 @@ fn init_value(d: &Defaults, e: &od::Entry) -> InitText {
                 _ => f(a.residual_limit_mm),
             }
         }
+        Init::ThermalTau => f(d.thermal_tau_s),
         Init::BitRate => InitText::Int(d.bit_rate_kbps as u32, e.ty),
         Init::Text(t) => InitText::Str(match t {
             Text::DeviceName => d.device_name,

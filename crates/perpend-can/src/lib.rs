@@ -138,7 +138,7 @@
 //! * **Store/restore** 0x1010/0x1011 sub 1 (all), 2 (0x1000..0x1FFF), 3
 //!   (0x2000..) with "save" 0x65766173 / "load" 0x64616F6C (other values:
 //!   0x08000020); read as 1 (on command). Persisted: 0x1015, 0x1017,
-//!   0x1800..0x1803, 0x1A00..0x1A03, 0x2009, 0x2101..0x2104,
+//!   0x1800..0x1803, 0x1A00..0x1A03, 0x2009, 0x2101..0x2105,
 //!   0x2201..0x2204, 0x2300, 0x2310, 0x2400. "load" makes the group's defaults
 //!   effective at the next reset node; 0x2400 (node-id, bit rate) is never
 //!   restored.
@@ -157,6 +157,7 @@
 //! | 0x2008 | 1, 2 | CAN transmit queue: frames dropped (queue full), peak fill; UNSIGNED32, since power-on | ro, PDO |
 //! | 0x2010 | 0 | calibration unlock, UNSIGNED32: write "ucal" 0x6C616375 to unlock, 0 to lock; reads 1/0 | rw, pre-op |
 //! | 0x2101..4 | 1..23 | sensor calibration: zero x,y,z \[mm\], direction x,y,z, d_ref \[mm\], gain, nl2, nl3, incidence \[mm\], crosstalk, thermal [mm/°C], temp_ref [°C], drift [mm/s]; 16..20 linearity table knots \[mm\] about d_ref, 21..23 its coefficients [mm⁻¹] (an active table needs strictly ascending knots, else 0x06090030) | rw, pre-op + unlock |
+//! | 0x2105 | 0 | the head's thermal time constant τ \[s\], 0..86400 (0 = no lag; below 0: 0x06090032, above: 0x06090031, NaN: 0x06090030): the thermal extension of every sensor is applied to the head temperature passed through a first-order lag of τ (`perpend_core::lag`) | rw, pre-op + unlock |
 //! | 0x2201..4 | 1..4 | transfer function: kind U8 (0 = 4-20 mA shunt, 1 = 0-10 V divider), shunt \[Ω\] / divider ratio, mm at 4 mA / 0 V, mm at 20 mA / 10 V | rw, pre-op + unlock |
 //! | 0x2300 | 1..4 | period \[µs\] U32 100..100000, oversampling U16 1..256 power of 2, method U8 (0 Chen, 1 LS), residual limit \[mm\]; period and oversampling together: oversampling × [`Defaults::adc_scan_ns`] ≤ period, else 0x06090030 | rw, pre-op |
 //! | 0x2310 | 1..5 | surface model (issue 14): model U8 (0 plane, 1 sphere, 2 cylinder), signed radius \[mm\] REAL32 (10 ≤ \|R\| ≤ 100000, else 0x06090030 / 0x06090031 / 0x06090032), cylinder axis x, y, z REAL32 in −1..1 (not all zero with the cylinder selected: 0x06090030; set the axis before the model); applied per sample by the board | rw, pre-op |

@@ -132,6 +132,8 @@ pub enum Init {
     Transfer(u8, u8),
     /// Acquisition field 0..=3 (period, oversampling, method, limit).
     Acquisition(u8),
+    /// [`crate::Defaults::thermal_tau_s`] (0x2105).
+    ThermalTau,
     /// [`crate::Defaults::bit_rate_kbps`].
     BitRate,
     /// A string constant.
@@ -157,8 +159,9 @@ pub struct Entry {
     pub persist: bool,
     /// Image layout that first persisted it: 1, 2 (issue 16), 3 (issue 14,
     /// the surface model 0x2310), 4 (issue 16: heartbeat consumer, SYNC
-    /// counter, error behaviour, acquisition trigger, RPDO1, capture) or 5
-    /// (the linearity tables, 0x2101..0x2104 sub 16..23).
+    /// counter, error behaviour, acquisition trigger, RPDO1, capture), 5
+    /// (the linearity tables, 0x2101..0x2104 sub 16..23) or 6 (the head's
+    /// thermal time constant 0x2105).
     /// Images of an older layout lack it and still load (the entry keeps
     /// its current value).
     pub since: u8,
@@ -213,6 +216,10 @@ impl Entry {
     }
     const fn v5(mut self) -> Self {
         self.since = 5;
+        self
+    }
+    const fn v6(mut self) -> Self {
+        self.since = 6;
         self
     }
 }
@@ -301,6 +308,10 @@ const fn cal(sensor: u8, sub: u8, name: &'static str, lo: f32, hi: f32) -> Entry
         .limits(Limits::Real(lo, hi))
         .init(Init::Calibration(sensor, sub - 1))
 }
+
+/// Upper limit of 0x2105, the head's thermal time constant \[s\]
+/// (`perpend_core::params::THERMAL_TAU_MAX_S`).
+pub const THERMAL_TAU_MAX_S: f32 = perpend_core::params::THERMAL_TAU_MAX_S;
 
 /// Signature written to 0x1010 sub 1 to store parameters: ASCII "save"
 /// read as a little-endian UNSIGNED32 (CiA 301 §7.5.2.13).
@@ -864,6 +875,20 @@ pub const OBJECTS: &[Object] = &[
     rec(0x2102, "Sensor 2 calibration", sensor_cal!(1)),
     rec(0x2103, "Sensor 3 calibration", sensor_cal!(2)),
     rec(0x2104, "Sensor 4 calibration", sensor_cal!(3)),
+    // One value for the head, next to the four sensors' calibrations: the
+    // sensors sit in one body, so one lag (a 24th sub-index in each of
+    // 0x2101..0x2104 would be four copies that could disagree).
+    var(
+        0x2105,
+        "Thermal time constant s",
+        &[
+            Entry::new(0, "Thermal time constant s", Real32, Rw, Class::Calibration)
+                .persist()
+                .v6()
+                .limits(Limits::Real(0.0, THERMAL_TAU_MAX_S))
+                .init(Init::ThermalTau),
+        ],
+    ),
     rec(0x2201, "Sensor 1 transfer function", transfer!(0)),
     rec(0x2202, "Sensor 2 transfer function", transfer!(1)),
     rec(0x2203, "Sensor 3 transfer function", transfer!(2)),
@@ -1026,7 +1051,7 @@ const fn count_persist(layout: u8) -> usize {
 /// slots of a [`crate::Device`].
 pub const ENTRIES: usize = count_entries();
 /// The current image layout (see [`Entry::since`]).
-pub const LAYOUT: u8 = 5;
+pub const LAYOUT: u8 = 6;
 /// Number of entries stored by 0x1010.
 pub const PERSISTENT: usize = count_persist(LAYOUT);
 /// Number of entries an image of layout 1 (before issue 16) holds.
@@ -1040,6 +1065,9 @@ pub const PERSISTENT_V3: usize = count_persist(3);
 /// Number of entries an image of layout 4 (before the linearity tables of
 /// layout 5) holds.
 pub const PERSISTENT_V4: usize = count_persist(4);
+/// Number of entries an image of layout 5 (before the thermal time
+/// constant 0x2105 of layout 6) holds.
+pub const PERSISTENT_V5: usize = count_persist(5);
 
 /// Number of persisted entries of image layout `layout` (1..=[`LAYOUT`]).
 pub const fn persistent_of(layout: u8) -> usize {
@@ -1268,7 +1296,8 @@ mod tests {
                 PERSISTENT_V1 < PERSISTENT_V2
                     && PERSISTENT_V2 < PERSISTENT_V3
                     && PERSISTENT_V3 < PERSISTENT_V4
-                    && PERSISTENT_V4 < PERSISTENT
+                    && PERSISTENT_V4 < PERSISTENT_V5
+                    && PERSISTENT_V5 + 1 == PERSISTENT
             )
         };
     }
@@ -1280,6 +1309,9 @@ mod tests {
         assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
         assert!(find(0x2104, 23).is_ok());
         assert_eq!(find(0x2104, 24), Err(Lookup::NoSub));
+        assert!(find(0x2105, 0).is_ok());
+        assert_eq!(find(0x2105, 1), Err(Lookup::NoSub));
+        assert_eq!(find(0x2106, 0), Err(Lookup::NoObject));
     }
 
     #[test]

@@ -112,6 +112,7 @@ fn params_file(path: &Path, n: usize) -> ParamFile {
     }
     let mut f = ParamFile::truth(&truth[..n], &nominal);
     f.method = "lsq".into();
+    f.thermal_tau_s = 725.5;
     for s in &mut f.sensors {
         s.transfer = Some(TransferParams {
             kind: TRANSFER_CURRENT.into(),
@@ -148,7 +149,7 @@ fn push_reset_pull_round_trip() {
     let p = dir.path().join("params.json");
     let file = params_file(&p, 4);
     let out = ok(&b.node(&["push", p.to_str().unwrap()]));
-    assert!(out.contains("108 values written"), "{out}");
+    assert!(out.contains("109 values written"), "{out}");
     assert!(
         out.contains("read back identical after the boot-up"),
         "{out}"
@@ -156,6 +157,7 @@ fn push_reset_pull_round_trip() {
     let back = dir.path().join("back.json");
     ok(&b.node(&["pull", "--out", back.to_str().unwrap()]));
     let got = ParamFile::read(&back).unwrap();
+    assert_eq!(got.thermal_tau_s, 725.5);
     let f = |x: f64| x as f32 as f64;
     for (a, g) in file.sensors.iter().zip(&got.sensors) {
         assert_eq!(g.zero_mm, a.zero_mm.map(f));

@@ -7,14 +7,14 @@
 //! settings. It is stored in `f32` (the board computes in `f32`; the host
 //! casts its `f64` calibration with [`crate::head::Head::cast`]).
 //!
-//! ## Record layout (version 2, little endian)
+//! ## Record layout (version 3, little endian)
 //!
 //! ```text
 //! offset  size  field
 //!      0     4  magic "PPND"
-//!      4     2  version (u16) = 2
-//!      6     2  payload length (u16) = PAYLOAD_LEN = 481
-//!      8   481  payload: stamp u32; 4 × sensor (zero xyz, dir xyz, the nine
+//!      4     2  version (u16) = 3
+//!      6     2  payload length (u16) = PAYLOAD_LEN = 485
+//!      8   485  payload: stamp u32; 4 × sensor (zero xyz, dir xyz, the nine
 //!               scalar extension coefficients d_ref, gain, nonlinearity[0..2],
 //!               incidence, crosstalk, thermal, temp_ref, drift, then the
 //!               linearity table's knots[0..5] and coeffs[0..3]: 23 × f32);
@@ -23,34 +23,47 @@
 //!               (period_us u32, os_log2 u8, os_shift u8, vref_mv u16,
 //!               method u8 0 = least squares / 1 = Chen, stuck_samples u16,
 //!               stuck_counts u16, jump_mm f32, jump_hold u16,
-//!               max_rms_mm f32); CAN (node_id u8, bit-rate code u8)
-//!    489     4  CRC-32 (IEEE 802.3, reflected, as zlib) of bytes 0..489
+//!               max_rms_mm f32); CAN (node_id u8, bit-rate code u8);
+//!               thermal_tau_s f32 (payload offset 481, record offset 489)
+//!    493     4  CRC-32 (IEEE 802.3, reflected, as zlib) of bytes 0..493
 //! ```
 //!
-//! ## Version 1 (read only: migration)
+//! The head-level thermal time constant `thermal_tau_s` (the sensor bodies
+//! follow the head thermometer through a first-order lag,
+//! [`crate::lag`]) is appended at the end of the payload, so every offset
+//! of version 2 is unchanged in version 3.
 //!
-//! Version 1 is the same layout without the linearity table: 15 × f32 per
+//! ## Versions 2 and 1 (read only: migration)
+//!
+//! Version 2 is version 3 without `thermal_tau_s`: payload length
+//! [`V2_PAYLOAD_LEN`] = 481, record length [`V2_RECORD_LEN`] = 493, CRC
+//! over bytes 0..489. It decodes with `thermal_tau_s = 0` (no lag: the
+//! behaviour of the firmware that wrote it).
+//!
+//! Version 1 is version 2 without the linearity table: 15 × f32 per
 //! sensor (ending with `drift`), payload length [`V1_PAYLOAD_LEN`] = 353,
-//! record length [`V1_RECORD_LEN`] = 365, CRC over bytes 0..361. A board
-//! whose flash holds a version-1 record (firmware before the table) boots
-//! from it: [`Params::decode`] reads it with every structural check of its
-//! own length (magic, payload length, CRC) and gives each sensor
-//! [`LinTable::none`]; the next store writes version 2. [`Params::encode`]
-//! writes version 2 only.
+//! record length [`V1_RECORD_LEN`] = 365, CRC over bytes 0..361. It
+//! decodes with [`LinTable::none`] for each sensor and `thermal_tau_s = 0`.
+//!
+//! A board whose flash holds an older record (older firmware) boots from
+//! it: [`Params::decode`] reads it with every structural check of its own
+//! length (magic, payload length, CRC); the next store writes version 3.
+//! [`Params::encode`] writes version 3 only.
 //!
 //! [`Params::decode`] rejects, in this order: a short buffer, a wrong magic,
 //! an unknown version, a wrong payload length (for that version), a
 //! checksum mismatch, an unknown enum code, and then any value that
 //! [`Params::validate`] refuses (for the table: an active table whose
 //! knots are not strictly ascending within ±1000 mm or whose coefficients
-//! exceed 1 mm). A decoded record is therefore always usable as it is;
-//! the board falls back to [`Params::factory`] on any error.
+//! exceed 1 mm; for the time constant: not finite, or outside
+//! 0..=[`THERMAL_TAU_MAX_S`]). A decoded record is therefore always usable
+//! as it is; the board falls back to [`Params::factory`] on any error.
 //! [`Params::encode`] validates first, so an invalid record is never
 //! written.
 //!
 //! Versioning: a later layout gets a new version number; the decoder keeps
-//! reading every older version it knows (1 and 2) and the board writes the
-//! newest layout on the next store (0x1010).
+//! reading every older version it knows (1, 2 and 3) and the board writes
+//! the newest layout on the next store (0x1010).
 //!
 //! Limits: exactly four sensors (the product's head); the CRC detects every
 //! error burst up to 32 bits and any odd number of bit errors; it is not a
@@ -66,19 +79,25 @@ use crate::{Error, Result};
 /// Magic bytes at the start of a record.
 pub const MAGIC: [u8; 4] = *b"PPND";
 /// The layout version this code writes.
-pub const VERSION: u16 = 2;
-/// The previous layout version (no linearity table), still decoded.
+pub const VERSION: u16 = 3;
+/// The layout version before the thermal time constant, still decoded.
+pub const VERSION_2: u16 = 2;
+/// The layout version before the linearity table, still decoded.
 pub const VERSION_1: u16 = 1;
 /// Number of sensors in a record.
 pub const SENSORS: usize = 4;
 /// Header length: magic, version, payload length.
 pub const HEADER_LEN: usize = 8;
 /// Payload length of the current version ([`VERSION`]).
-pub const PAYLOAD_LEN: usize = 4 + SENSORS * SENSOR_LEN + SENSORS * TRANSFER_LEN + ACQ_LEN + 2;
+pub const PAYLOAD_LEN: usize = V2_PAYLOAD_LEN + TAU_LEN;
 /// Total length of an encoded record of the current version.
 pub const RECORD_LEN: usize = HEADER_LEN + PAYLOAD_LEN + 4;
+/// Payload length of a version-2 record (no thermal time constant).
+pub const V2_PAYLOAD_LEN: usize = 4 + SENSORS * SENSOR_LEN + SENSORS * TRANSFER_LEN + ACQ_LEN + 2;
+/// Total length of a version-2 record.
+pub const V2_RECORD_LEN: usize = HEADER_LEN + V2_PAYLOAD_LEN + 4;
 /// Payload length of a version-1 record (no linearity table).
-pub const V1_PAYLOAD_LEN: usize = PAYLOAD_LEN - SENSORS * TABLE_LEN;
+pub const V1_PAYLOAD_LEN: usize = V2_PAYLOAD_LEN - SENSORS * TABLE_LEN;
 /// Total length of a version-1 record.
 pub const V1_RECORD_LEN: usize = HEADER_LEN + V1_PAYLOAD_LEN + 4;
 
@@ -88,6 +107,11 @@ const SENSOR_LEN: usize = 15 * 4 + TABLE_LEN;
 const TABLE_LEN: usize = (TABLE_KNOTS + TABLE_COEFFS) * 4;
 const TRANSFER_LEN: usize = 1 + 5 * 4;
 const ACQ_LEN: usize = 4 + 1 + 1 + 2 + 1 + 2 + 2 + 4 + 2 + 4;
+/// The thermal time constant: one f32.
+const TAU_LEN: usize = 4;
+/// Largest thermal time constant \[s\] (one day): a head that needs more
+/// never reaches thermal equilibrium within a shift.
+pub const THERMAL_TAU_MAX_S: f32 = 86_400.0;
 /// Largest table knot magnitude [mm] (about `d_ref`).
 pub const TABLE_KNOT_MAX_MM: f32 = 1000.0;
 /// Largest table value (`LinTable::coeffs`) magnitude \[mm\].
@@ -301,6 +325,14 @@ pub struct Params {
     pub acq: Acquisition,
     /// CAN settings.
     pub can: CanConfig,
+    /// Thermal time constant of the head \[s\], 0..=[`THERMAL_TAU_MAX_S`]:
+    /// the sensor bodies' temperature follows the head thermometer through
+    /// a first-order lag of this time constant ([`crate::lag`]), and the
+    /// thermal extension `thermal·(T − T_ref)` of every sensor is applied
+    /// to the lagged temperature. One value for the head (the sensors sit
+    /// in one body); 0 = no lag, the thermometer's reading is used as it is
+    /// (the behaviour before record version 3).
+    pub thermal_tau_s: f32,
 }
 
 fn fin(x: f32, what: &'static str) -> Result<f32> {
@@ -464,12 +496,14 @@ impl Params {
             transfer: [Transfer::current(150.0, 20.0, 80.0); SENSORS],
             acq: Acquisition::factory(),
             can: CanConfig::factory(),
+            thermal_tau_s: 0.0,
         }
     }
 
     /// Checks every value: [`validate_sensor`] for each sensor,
     /// [`Transfer::validate`] for each channel, [`Acquisition::validate`],
-    /// [`CanConfig::validate`].
+    /// [`CanConfig::validate`], and the thermal time constant (finite,
+    /// 0..=[`THERMAL_TAU_MAX_S`]).
     ///
     /// # Errors
     /// The first [`Error::NonFinite`] / [`Error::OutOfRange`] found.
@@ -481,7 +515,12 @@ impl Params {
             t.validate()?;
         }
         self.acq.validate()?;
-        self.can.validate()
+        self.can.validate()?;
+        fin(self.thermal_tau_s, "thermal time constant")?;
+        if !(0.0..=THERMAL_TAU_MAX_S).contains(&self.thermal_tau_s) {
+            return Err(Error::OutOfRange("thermal time constant"));
+        }
+        Ok(())
     }
 
     /// Encodes into `out` (at least [`RECORD_LEN`] bytes); returns the number
@@ -550,13 +589,15 @@ impl Params {
         w.f32(a.max_rms_mm);
         w.u8(self.can.node_id);
         w.u8(self.can.bitrate.code());
+        w.f32(self.thermal_tau_s);
         let crc = crc32(w.buf.get(..RECORD_LEN - 4).unwrap_or(&[]));
         w.u32(crc);
         Ok(w.pos)
     }
 
-    /// Decodes and validates a record of version 2 or 1 (the layouts in the
-    /// module docs; a version-1 record gets inactive linearity tables).
+    /// Decodes and validates a record of version 3, 2 or 1 (the layouts in
+    /// the module docs; a version-2 or -1 record gets `thermal_tau_s = 0`,
+    /// a version-1 record inactive linearity tables).
     /// Trailing bytes after the record are ignored (flash items are padded).
     ///
     /// # Errors
@@ -570,7 +611,8 @@ impl Params {
     }
 
     /// As [`Params::decode`], and returns the length of the record in `buf`
-    /// ([`RECORD_LEN`], or [`V1_RECORD_LEN`] for a version-1 record): where
+    /// ([`RECORD_LEN`], [`V2_RECORD_LEN`] or [`V1_RECORD_LEN`] for a
+    /// version-3, -2 or -1 record): where
     /// the bytes stored after it start.
     ///
     /// # Errors
@@ -583,8 +625,10 @@ impl Params {
         if r.take::<4>()? != MAGIC {
             return Err(Error::Decode("bad magic"));
         }
-        let (payload_len, has_table) = match r.u16()? {
+        let version = r.u16()?;
+        let (payload_len, has_table) = match version {
             VERSION => (PAYLOAD_LEN, true),
+            VERSION_2 => (V2_PAYLOAD_LEN, true),
             VERSION_1 => (V1_PAYLOAD_LEN, false),
             _ => return Err(Error::Decode("unsupported version")),
         };
@@ -617,25 +661,48 @@ impl Params {
         let acq = r.acquisition()?;
         let node_id = r.u8()?;
         let bitrate = Bitrate::from_code(r.u8()?)?;
+        let thermal_tau_s = if version == VERSION { r.f32()? } else { 0.0 };
         let p = Params {
             stamp,
             head: Head4::new(sensors),
             transfer,
             acq,
             can: CanConfig { node_id, bitrate },
+            thermal_tau_s,
         };
         p.validate()?;
         Ok((p, record_len))
     }
 }
 
-/// Converts a current (version-2) record into the version-1 record of the
+/// Converts a current (version-3) record into the version-2 record of the
+/// same values, as the firmware before the thermal time constant wrote
+/// it: the trailing `thermal_tau_s` left out, header and CRC rewritten.
+/// For compatibility tests and fuzz seeds (the board never writes
+/// version 2). The input is not checked.
+pub fn record_as_v2(v3: &[u8; RECORD_LEN]) -> [u8; V2_RECORD_LEN] {
+    let mut v2 = [0u8; V2_RECORD_LEN];
+    let mut w = Writer {
+        buf: &mut v2,
+        pos: 0,
+    };
+    w.bytes(&MAGIC);
+    w.u16(VERSION_2);
+    w.u16(V2_PAYLOAD_LEN as u16);
+    w.bytes(&v3[HEADER_LEN..HEADER_LEN + V2_PAYLOAD_LEN]);
+    let crc = crc32(&w.buf[..V2_RECORD_LEN - 4]);
+    w.u32(crc);
+    v2
+}
+
+/// Converts a current (version-3) record into the version-1 record of the
 /// same values, as the firmware before the linearity table wrote it: each
-/// sensor's table bytes left out, header and CRC rewritten. For
-/// compatibility tests and fuzz seeds (the board never writes version 1).
-/// The input is not checked: a record that fails to decode converts into
-/// one that fails too, unless only its tables were bad.
-pub fn record_as_v1(v2: &[u8; RECORD_LEN]) -> [u8; V1_RECORD_LEN] {
+/// sensor's table bytes and the thermal time constant left out, header
+/// and CRC rewritten. For compatibility tests and fuzz seeds (the board
+/// never writes version 1). The input is not checked: a record that fails
+/// to decode converts into one that fails too, unless only its tables or
+/// its time constant were bad.
+pub fn record_as_v1(v3: &[u8; RECORD_LEN]) -> [u8; V1_RECORD_LEN] {
     const V1_SENSOR_LEN: usize = SENSOR_LEN - TABLE_LEN;
     let mut v1 = [0u8; V1_RECORD_LEN];
     let mut w = Writer {
@@ -646,11 +713,11 @@ pub fn record_as_v1(v2: &[u8; RECORD_LEN]) -> [u8; V1_RECORD_LEN] {
     w.u16(VERSION_1);
     w.u16(V1_PAYLOAD_LEN as u16);
     let sensors = HEADER_LEN + 4;
-    w.bytes(&v2[HEADER_LEN..sensors]);
-    for s in v2[sensors..sensors + SENSORS * SENSOR_LEN].chunks_exact(SENSOR_LEN) {
+    w.bytes(&v3[HEADER_LEN..sensors]);
+    for s in v3[sensors..sensors + SENSORS * SENSOR_LEN].chunks_exact(SENSOR_LEN) {
         w.bytes(&s[..V1_SENSOR_LEN]);
     }
-    w.bytes(&v2[sensors + SENSORS * SENSOR_LEN..RECORD_LEN - 4]);
+    w.bytes(&v3[sensors + SENSORS * SENSOR_LEN..HEADER_LEN + V2_PAYLOAD_LEN]);
     let crc = crc32(&w.buf[..V1_RECORD_LEN - 4]);
     w.u32(crc);
     v1
@@ -677,7 +744,7 @@ struct Writer<'a> {
 }
 
 impl Writer<'_> {
-    // The buffer is exactly RECORD_LEN (or V1_RECORD_LEN) long and the
+    // The buffer is exactly RECORD_LEN (or V2_/V1_RECORD_LEN) long and the
     // layout constants add up to it (checked by the tests), so `get_mut`
     // never fails; it is used instead of indexing to keep the encoder
     // panic-free.
@@ -738,7 +805,8 @@ impl Reader<'_> {
         Ok(a)
     }
 
-    /// One sensor; `has_table`: version 2 (else the table is inactive).
+    /// One sensor; `has_table`: version 2 or 3 (else the table is
+    /// inactive).
     fn sensor(&mut self, has_table: bool) -> Result<Sensor<f32>> {
         let zero = Vector3::from(self.f32s::<3>()?);
         let dir = Vector3::from(self.f32s::<3>()?);
@@ -824,8 +892,10 @@ mod tests {
 
     #[test]
     fn layout_constants_add_up() {
-        assert_eq!(PAYLOAD_LEN, 481);
-        assert_eq!(RECORD_LEN, 493);
+        assert_eq!(PAYLOAD_LEN, 485);
+        assert_eq!(RECORD_LEN, 497);
+        assert_eq!(V2_PAYLOAD_LEN, 481);
+        assert_eq!(V2_RECORD_LEN, 493);
         assert_eq!(SENSOR_LEN, 23 * 4);
         assert_eq!(V1_PAYLOAD_LEN, 353);
         assert_eq!(V1_RECORD_LEN, 365);
@@ -861,7 +931,7 @@ mod tests {
         let mut b = buf;
         b[0] = b'X';
         assert_eq!(Params::decode(&b), Err(Error::Decode("bad magic")));
-        for v in [0u8, 3, 9] {
+        for v in [0u8, 4, 9] {
             let mut b = buf;
             b[4] = v;
             assert_eq!(
@@ -869,10 +939,15 @@ mod tests {
                 Err(Error::Decode("unsupported version"))
             );
         }
-        // a version-1 header over a version-2 payload (and the reverse)
-        let mut b = buf;
-        b[4] = 1;
-        assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
+        // an older header over a version-3 payload (and the reverse)
+        for v in [1u8, 2] {
+            let mut b = buf;
+            b[4] = v;
+            assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
+        }
+        let mut b2 = record_as_v2(&buf);
+        b2[4] = 3;
+        assert_eq!(Params::decode(&b2), Err(Error::Decode("bad length")));
         let mut b1 = record_as_v1(&buf);
         b1[4] = 2;
         assert_eq!(Params::decode(&b1), Err(Error::Decode("bad length")));
@@ -884,6 +959,21 @@ mod tests {
         assert_eq!(Params::decode(&b), Err(Error::Decode("checksum mismatch")));
         let mut b = buf;
         b[RECORD_LEN - 1] ^= 0x80;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("checksum mismatch")));
+        // the same checks on a version-2 record, at its own length
+        let v2 = record_as_v2(&buf);
+        assert_eq!(
+            Params::decode(&v2[..V2_RECORD_LEN - 1]),
+            Err(Error::Decode("short record"))
+        );
+        let mut b = v2;
+        b[1] = b'Q';
+        assert_eq!(Params::decode(&b), Err(Error::Decode("bad magic")));
+        let mut b = v2;
+        b[6] ^= 0x04;
+        assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
+        let mut b = v2;
+        b[V2_RECORD_LEN - 5] ^= 0x01;
         assert_eq!(Params::decode(&b), Err(Error::Decode("checksum mismatch")));
         // the same checks on a version-1 record, at its own length
         let v1 = record_as_v1(&buf);
@@ -971,6 +1061,7 @@ mod tests {
                 node_id: 0x31,
                 bitrate: Bitrate::K500,
             },
+            thermal_tau_s: 0.0,
         }
     }
 
@@ -997,13 +1088,99 @@ mod tests {
         let mut padded = v1.clone();
         padded.extend_from_slice(&[0xA5; 40]);
         assert_eq!(Params::decode_with_len(&padded), Ok((p, V1_RECORD_LEN)));
-        // the next store writes version 2 of the same values
-        let mut v2 = [0u8; RECORD_LEN];
-        assert_eq!(p.encode(&mut v2), Ok(RECORD_LEN));
-        assert_eq!(&v2[4..6], &VERSION.to_le_bytes());
-        assert_eq!(Params::decode_with_len(&v2), Ok((p, RECORD_LEN)));
+        // the next store writes version 3 of the same values
+        let mut v3 = [0u8; RECORD_LEN];
+        assert_eq!(p.encode(&mut v3), Ok(RECORD_LEN));
+        assert_eq!(&v3[4..6], &VERSION.to_le_bytes());
+        assert_eq!(Params::decode_with_len(&v3), Ok((p, RECORD_LEN)));
         // the test's converter reproduces the old encoder byte for byte
-        assert_eq!(&record_as_v1(&v2)[..], &v1[..]);
+        assert_eq!(&record_as_v1(&v3)[..], &v1[..]);
+    }
+
+    /// A record written by the version-2 encoder (the code before the
+    /// thermal time constant, run once on [`golden_params`] with
+    /// [`active_table`] on sensor 3): 493 bytes.
+    const GOLDEN_V2_HEX: &str = "50504e440200e101785634120000c841000000000000c0bf00000000000000000000803f000034426f12833a17b75139000000800ad7a33c0ad7a33b000000800000b441acc527b70000000000000000000000000000000000000000000000000000000000000000000000000000c841000010409a99193f00000000cdcc4c3f000038426f12033b17b7513982a8fbb70ad7233c0ad7a33b6f1283ba0000b441acc527b700000000000000000000000000000000000000000000000000000000000000000000c8c1000000000000003e000000009a9919bfcdcc4c3f00003c42a69b443b17b7513982a87bb8000000000ad7a33b6f1203bb0000b441acc527b7000040c10000a0c00000000000009040000040416f12833a0ad723bb0ad7a33a000000000000c8c1000040bf295c8fbe000000008fc2753f000040426f12833b17b7513962bebcb80ad723bc0ad7a33ba69b44bb0000b441acc527b700000000000000000000000000000000000000000000000000000000000000000000001643000080400000a0410000a0410000a042010000003f0000000000002041000020410000b4420000007a43000080400000a041000000000000c842010000803e00000000000020410000a0420000a041e80300000400e40c01d00703000000403f1400cdcc4c3d31010f7bd97f";
+
+    /// The migration path from version 2: it decodes to the values it was
+    /// made from with `thermal_tau_s = 0` (no lag), says where it ends, and
+    /// the next store writes version 3 of the same values with the time
+    /// constant appended after the CAN settings.
+    #[test]
+    fn golden_v2_record_decodes_without_lag() {
+        let v2 = unhex(GOLDEN_V2_HEX);
+        assert_eq!(v2.len(), V2_RECORD_LEN);
+        assert_eq!(&v2[4..6], &[2, 0]);
+        let mut want = golden_params();
+        want.head.sensors[2].ext.table = active_table();
+        let (p, len) = Params::decode_with_len(&v2).unwrap();
+        assert_eq!((p, len), (want, V2_RECORD_LEN));
+        assert_eq!(p.thermal_tau_s, 0.0);
+        let mut padded = v2.clone();
+        padded.extend_from_slice(&[0x5A; 17]);
+        assert_eq!(Params::decode_with_len(&padded), Ok((p, V2_RECORD_LEN)));
+        let mut v3 = [0u8; RECORD_LEN];
+        assert_eq!(p.encode(&mut v3), Ok(RECORD_LEN));
+        assert_eq!(&v3[4..8], &[3, 0, 0xE5, 0x01]);
+        // the v2 payload is the v3 payload's prefix; τ follows it
+        assert_eq!(
+            &v3[8..HEADER_LEN + V2_PAYLOAD_LEN],
+            &v2[8..V2_RECORD_LEN - 4]
+        );
+        assert_eq!(&v3[RECORD_LEN - 8..RECORD_LEN - 4], &[0; 4]);
+        assert_eq!(&record_as_v2(&v3)[..], &v2[..]);
+    }
+
+    /// τ round-trips bit-exactly at the documented offset; a v2 or v1
+    /// record of the same values drops it (τ = 0).
+    #[test]
+    fn thermal_tau_round_trips_and_older_versions_drop_it() {
+        for tau in [0.0f32, 1e-3, 412.75, THERMAL_TAU_MAX_S] {
+            let p = Params {
+                thermal_tau_s: tau,
+                ..golden_params()
+            };
+            let mut buf = [0u8; RECORD_LEN];
+            p.encode(&mut buf).unwrap();
+            assert_eq!(&buf[HEADER_LEN + 481..HEADER_LEN + 485], &tau.to_le_bytes());
+            assert_eq!(Params::decode_with_len(&buf), Ok((p, RECORD_LEN)));
+            let old = golden_params();
+            assert_eq!(Params::decode(&record_as_v2(&buf)), Ok(old));
+            assert_eq!(Params::decode(&record_as_v1(&buf)), Ok(old));
+        }
+    }
+
+    /// An out-of-range or non-finite τ is refused by `validate`, by
+    /// `encode` (nothing written) and by `decode` behind a good CRC.
+    #[test]
+    fn thermal_tau_out_of_range_is_rejected() {
+        let range = Err(Error::OutOfRange("thermal time constant"));
+        let nonfinite = Err(Error::NonFinite("thermal time constant"));
+        let cases = [
+            (-1e-6f32, range),
+            (-0.0, Ok(())),
+            (86_400.01, range),
+            (1e9, range),
+            (f32::NAN, nonfinite),
+            (f32::INFINITY, nonfinite),
+        ];
+        let mut good = [0u8; RECORD_LEN];
+        Params::factory().encode(&mut good).unwrap();
+        for (tau, want) in cases {
+            let p = Params {
+                thermal_tau_s: tau,
+                ..Params::factory()
+            };
+            assert_eq!(p.validate(), want, "{tau}");
+            let mut buf = [0xA5u8; RECORD_LEN];
+            if want.is_err() {
+                assert_eq!(p.encode(&mut buf).map(|_| ()), want, "{tau}");
+                assert_eq!(buf, [0xA5u8; RECORD_LEN], "nothing written");
+            }
+            let mut b = good;
+            patch(&mut b, RECORD_LEN - 8, &tau.to_le_bytes());
+            assert_eq!(Params::decode(&b).map(|_| ()), want, "{tau}");
+        }
     }
 
     /// An active table round-trips bit-exactly; a v1 record of the same
@@ -1046,10 +1223,10 @@ mod tests {
         patch(&mut b, acq, &50u32.to_le_bytes());
         assert_eq!(Params::decode(&b), Err(Error::OutOfRange("period")));
         let mut b = buf;
-        patch(&mut b, RECORD_LEN - 6, &[0]);
+        patch(&mut b, RECORD_LEN - 10, &[0]);
         assert_eq!(Params::decode(&b), Err(Error::OutOfRange("node id")));
         let mut b = buf;
-        patch(&mut b, RECORD_LEN - 5, &[4]);
+        patch(&mut b, RECORD_LEN - 9, &[4]);
         assert_eq!(Params::decode(&b), Err(Error::OutOfRange("bit rate")));
         let mut b = buf;
         patch(&mut b, HEADER_LEN + 4, &f32::NAN.to_le_bytes());
@@ -1238,8 +1415,9 @@ mod tests {
                 1e-4f32..100.0,
             ),
             (1u8..=127, 0u8..4),
+            prop_oneof![Just(0.0f32), 0.0f32..=THERMAL_TAU_MAX_S],
         )
-            .prop_map(|(stamp, sensors, transfer, a, b, c)| Params {
+            .prop_map(|(stamp, sensors, transfer, a, b, c, tau)| Params {
                 stamp,
                 head: Head4::new(sensors),
                 transfer,
@@ -1263,6 +1441,7 @@ mod tests {
                     node_id: c.0,
                     bitrate: Bitrate::from_code(c.1).unwrap(),
                 },
+                thermal_tau_s: tau,
             })
     }
 
@@ -1287,10 +1466,31 @@ mod tests {
             let mut buf = [0u8; RECORD_LEN];
             p.encode(&mut buf).unwrap();
             let mut want = p;
+            want.thermal_tau_s = 0.0;
             for s in want.head.sensors.iter_mut() {
                 s.ext.table = LinTable::none();
             }
             prop_assert_eq!(Params::decode_with_len(&record_as_v1(&buf)), Ok((want, V1_RECORD_LEN)));
+        }
+
+        #[test]
+        fn v2_of_any_params_decodes_without_lag(p in arb_params()) {
+            let mut buf = [0u8; RECORD_LEN];
+            p.encode(&mut buf).unwrap();
+            let want = Params { thermal_tau_s: 0.0, ..p };
+            prop_assert_eq!(Params::decode_with_len(&record_as_v2(&buf)), Ok((want, V2_RECORD_LEN)));
+        }
+
+        #[test]
+        fn any_single_bit_flip_of_a_v2_record_is_rejected(
+            p in arb_params(),
+            bit in 0usize..V2_RECORD_LEN * 8,
+        ) {
+            let mut buf = [0u8; RECORD_LEN];
+            p.encode(&mut buf).unwrap();
+            let mut v2 = record_as_v2(&buf);
+            v2[bit / 8] ^= 1 << (bit % 8);
+            prop_assert!(Params::decode(&v2).is_err());
         }
 
         #[test]
@@ -1316,15 +1516,15 @@ mod tests {
         #[test]
         fn valid_header_random_body_never_panics(
             body in prop::collection::vec(any::<u8>(), PAYLOAD_LEN),
-            v1 in any::<bool>(),
+            which in 0u8..3,
         ) {
-            // A header that passes (either version), a random payload and a
+            // A header that passes (any version), a random payload and a
             // matching CRC: the value checks must reject or accept without
             // panicking.
-            let (version, payload) = if v1 {
-                (VERSION_1, V1_PAYLOAD_LEN)
-            } else {
-                (VERSION, PAYLOAD_LEN)
+            let (version, payload) = match which {
+                0 => (VERSION_1, V1_PAYLOAD_LEN),
+                1 => (VERSION_2, V2_PAYLOAD_LEN),
+                _ => (VERSION, PAYLOAD_LEN),
             };
             let len = HEADER_LEN + payload + 4;
             let mut buf = [0u8; RECORD_LEN];

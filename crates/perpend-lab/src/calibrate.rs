@@ -397,6 +397,9 @@ pub fn run(a: &Args) -> Result<()> {
             };
             let poses = crate::diagnose::lags::apply(&poses, &lags);
             lag_lines(model, &lags, &mut report);
+            if model == Effect::Thermal {
+                file.thermal_tau_s = lags.thermal_tau_s;
+            }
             let refs = Refs::of(&poses);
             if model != Effect::None {
                 let _ = writeln!(

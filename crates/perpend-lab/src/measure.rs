@@ -15,6 +15,15 @@
 //! reported with its file, line and reason, and the others are measured;
 //! a file of which no row can be measured is an error. The host computes
 //! in `f64`; the board's `f32` agrees to < 0.001° (tested).
+//!
+//! Thermal lag: when the params file has `thermal_tau_s` τ > 0, the
+//! temperature each row's correction sees is the head temperature passed
+//! through the first-order lag of τ ([`perpend_core::lag::filter`], from
+//! rest at the earliest row) over the rows' `t_s`, taken in time order
+//! (not file order; equal times keep file order), as the board lags its
+//! thermometer ([`lag_temperatures`]). Every row then needs `t_s` and
+//! `temp_c`; a file without either column, or a row without either value,
+//! is refused naming the file, the line and the column.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -267,8 +276,9 @@ pub fn measure_table(
 }
 
 /// The head: the calibration when given (its sensor count must match
-/// sensors.csv), else the nominal head; and its label.
-fn head(a: &Args) -> Result<(Vec<Sensor<f64>>, String)> {
+/// sensors.csv), else the nominal head; and its label. `tau_s` receives
+/// the file's thermal time constant (left as it is without --params).
+fn head(a: &Args, tau_s: &mut f64) -> Result<(Vec<Sensor<f64>>, String)> {
     let table = read_sensors(&a.sensors)?;
     let Some(p) = &a.params else {
         let nominal = table
@@ -277,6 +287,7 @@ fn head(a: &Args) -> Result<(Vec<Sensor<f64>>, String)> {
         return Ok((nominal, "nominal (sensors.csv, uncalibrated)".into()));
     };
     let f = ParamFile::read(p)?;
+    *tau_s = f.thermal_tau_s;
     if f.sensors.len() != table.len() {
         return Err(anyhow!(
             "{}: {} sensors, but {} has {}",
@@ -293,16 +304,69 @@ fn head(a: &Args) -> Result<(Vec<Sensor<f64>>, String)> {
     ))
 }
 
+/// `table` with each row's `temp_c` replaced by the head temperature
+/// passed through the first-order lag of time constant `tau_s` \[s\]
+/// ([`perpend_core::lag::filter`] over the rows sorted by `t_s`, from
+/// rest at the earliest; the rows keep their order). `tau_s ≤ 0` returns
+/// the table as it is. `file` labels errors.
+///
+/// # Errors
+/// With `tau_s > 0`, a row without `t_s` or `temp_c` (file, line, the
+/// missing column).
+pub fn lag_temperatures(table: &ReadingTable, tau_s: f64, file: &str) -> Result<ReadingTable> {
+    if !(tau_s > 0.0) {
+        return Ok(table.clone());
+    }
+    let mut tu = Vec::with_capacity(table.rows.len());
+    for r in &table.rows {
+        let missing = match (r.t_s, r.temp_c) {
+            (Some(t), Some(u)) => {
+                tu.push((t, u));
+                continue;
+            }
+            (None, _) => "t_s",
+            (Some(_), None) => "temp_c",
+        };
+        return Err(ExchangeError {
+            file: file.into(),
+            line: Some(r.line),
+            problem: format!(
+                "pose {} has no {missing}: with a thermal time constant (thermal_tau_s = \
+                 {tau_s} s in the params file) every row needs t_s and temp_c, the \
+                 temperature is lagged over time",
+                r.pose
+            ),
+        }
+        .into());
+    }
+    let mut order: Vec<usize> = (0..tu.len()).collect();
+    order.sort_by(|&i, &j| tu[i].0.total_cmp(&tu[j].0));
+    let t: Vec<f64> = order.iter().map(|&i| tu[i].0).collect();
+    let u: Vec<f64> = order.iter().map(|&i| tu[i].1).collect();
+    let mut y = vec![0.0; t.len()];
+    perpend_core::lag::filter(&t, &u, tau_s, &mut y);
+    let mut out = table.clone();
+    for (k, &i) in order.iter().enumerate() {
+        out.rows[i].temp_c = Some(y[k]);
+    }
+    Ok(out)
+}
+
 /// Runs `perpend measure`.
 ///
 /// # Errors
 /// Malformed files (with file and line), a head of an unsupported size, a
 /// file of which no row can be measured.
 pub fn run(a: &Args) -> Result<()> {
-    let (sensors, label) = head(a)?;
-    let table = read_readings(&a.poses, Some(sensors.len()))?;
-    let rows = measure_table(&sensors, &table, &a.surface.0, a.method.into())?;
+    let mut tau_s = 0.0;
+    let (sensors, mut label) = head(a, &mut tau_s)?;
+    let mut table = read_readings(&a.poses, Some(sensors.len()))?;
     let file = a.poses.display().to_string();
+    if tau_s > 0.0 {
+        table = lag_temperatures(&table, tau_s, &file)?;
+        label += &format!("; thermal lag τ = {tau_s} s");
+    }
+    let rows = measure_table(&sensors, &table, &a.surface.0, a.method.into())?;
     let measured = rows.iter().filter(|r| r.measured.is_some()).count();
     if measured == 0 {
         let first = rows
@@ -455,5 +519,141 @@ mod tests {
         assert_eq!(v["line"], 3);
         assert!(v.get("normal").is_none());
         assert!(measure_table(&head.sensors[..2], &table, &shape, Method::Chen).is_err());
+    }
+
+    /// τ > 0: the temperatures are lagged over `t_s` in time order, not
+    /// file order (rows listed out of time order get the same values as
+    /// sorted ones); τ = 0 leaves them; a missing t_s or temp_c is named.
+    #[test]
+    fn temperatures_are_lagged_in_time_order() {
+        let row = |pose: i64, t: Option<f64>, u: Option<f64>| ReadingRow {
+            line: pose as u64 + 2,
+            pose,
+            readings: vec![Some(66.0); 4],
+            t_s: t,
+            temp_c: u,
+        };
+        // a 20 → 30 °C step at t = 100 s, rows listed out of time order
+        let times = [300.0, 0.0, 200.0, 100.0, 50.0];
+        let temps = [30.0, 20.0, 30.0, 30.0, 20.0];
+        let table = ReadingTable {
+            n_sensors: 4,
+            rows: (0..5)
+                .map(|k| row(k as i64 + 1, Some(times[k]), Some(temps[k])))
+                .collect(),
+        };
+        let tau = 120.0;
+        let out = lag_temperatures(&table, tau, "p.csv").unwrap();
+        let sorted_t = [0.0, 50.0, 100.0, 200.0, 300.0];
+        let sorted_u = [20.0, 20.0, 30.0, 30.0, 30.0];
+        let mut y = [0.0; 5];
+        perpend_core::lag::filter(&sorted_t, &sorted_u, tau, &mut y);
+        for (r, &t) in out.rows.iter().zip(&times) {
+            let k = sorted_t.iter().position(|&x| x == t).unwrap();
+            assert_eq!(r.temp_c, Some(y[k]), "t = {t}");
+            assert_eq!(r.t_s, Some(t));
+        }
+        // the lag is visible: at 200 s the bodies are still below 30 °C
+        assert!(out.rows[2].temp_c.unwrap() < 29.0);
+        assert_eq!(out.rows[1].temp_c, Some(20.0));
+        assert_eq!(lag_temperatures(&table, 0.0, "p.csv").unwrap(), table);
+        let mut t2 = table.clone();
+        t2.rows[3].t_s = None;
+        let e = lag_temperatures(&t2, tau, "p.csv").unwrap_err().to_string();
+        assert!(e.contains("p.csv, line 6: pose 4 has no t_s"), "{e}");
+        let mut t3 = table;
+        t3.rows[0].temp_c = None;
+        let e = lag_temperatures(&t3, tau, "p.csv").unwrap_err().to_string();
+        assert!(
+            e.contains("line 3: pose 1 has no temp_c") && e.contains("thermal_tau_s"),
+            "{e}"
+        );
+    }
+
+    /// Through `run`: a params file with τ and a thermal coefficient,
+    /// readings whose sensor 1 is long by the lagged temperature: measured
+    /// flat with the lag, tilted without it; τ > 0 without a t_s column
+    /// is an error naming the column.
+    #[test]
+    fn run_applies_the_thermal_lag() {
+        let dir = tempfile::tempdir().unwrap();
+        let head = perpend_core::head::Head4::cone(45.0, 25f64.to_radians(), 0.0, 0.0).unwrap();
+        let sensors_csv = dir.path().join("sensors.csv");
+        let mut text = String::from("sensor,x_mm,y_mm,z_mm,m,n,q\n");
+        for (i, s) in head.sensors.iter().enumerate() {
+            text += &format!(
+                "{},{},{},{},{},{},{}\n",
+                i + 1,
+                s.zero.x,
+                s.zero.y,
+                s.zero.z,
+                s.dir.x,
+                s.dir.y,
+                s.dir.z
+            );
+        }
+        std::fs::write(&sensors_csv, text).unwrap();
+        let mut pf = ParamFile::truth(&head.sensors, &head.sensors);
+        pf.sensors[0].ext.thermal_mm_per_c = 0.01;
+        pf.sensors[0].ext.temp_ref_c = 20.0;
+        pf.thermal_tau_s = 60.0;
+        let params = dir.path().join("params.json");
+        pf.write(&params).unwrap();
+        // flat plane at 66 mm along the axis: every reading equal, sensor 1
+        // long by 0.01 mm/°C times the lagged temperature above 20 °C
+        let plane = perpend_core::geometry::Plane::from_abcd(0.0, 0.0, 1.0, -60.0).unwrap();
+        let d: Vec<f64> = (0..4)
+            .map(|i| perpend_core::model::distance(&head.sensors[i], &plane, i).unwrap())
+            .collect();
+        let t = [0.0, 30.0, 60.0, 90.0, 120.0];
+        let u = [20.0, 30.0, 30.0, 30.0, 30.0];
+        let mut y = [0.0; 5];
+        perpend_core::lag::filter(&t, &u, 60.0, &mut y);
+        // listed latest first: the lag follows t_s, not the file
+        let row = |k: usize, with_t: bool| {
+            let t_s = if with_t {
+                format!(",{}", t[k])
+            } else {
+                String::new()
+            };
+            let d1 = d[0] + 0.01 * (y[k] - 20.0);
+            format!("{},{d1},{},{},{}{t_s},{}\n", k + 1, d[1], d[2], d[3], u[k])
+        };
+        let mut csv = String::from("pose,d1_mm,d2_mm,d3_mm,d4_mm,t_s,temp_c\n");
+        let mut no_t = String::from("pose,d1_mm,d2_mm,d3_mm,d4_mm,temp_c\n");
+        for k in (0..5).rev() {
+            csv += &row(k, true);
+            no_t += &row(k, false);
+        }
+        let poses = dir.path().join("poses.csv");
+        std::fs::write(&poses, &csv).unwrap();
+        let a = Args {
+            sensors: sensors_csv,
+            params: Some(params.clone()),
+            poses: poses.clone(),
+            surface: SurfaceSpec(Shape::Plane),
+            method: PlaneMethod::Lsq,
+            json: false,
+        };
+        let mut tau = 0.0;
+        let (s, label) = super::head(&a, &mut tau).unwrap();
+        assert_eq!(tau, 60.0);
+        assert!(label.contains("params.json"));
+        let table = read_readings(&poses, Some(4)).unwrap();
+        let lagged = lag_temperatures(&table, tau, "poses.csv").unwrap();
+        let with = measure_table(&s, &lagged, &Shape::Plane, Method::LeastSquares).unwrap();
+        let without = measure_table(&s, &table, &Shape::Plane, Method::LeastSquares).unwrap();
+        let worst = |rows: &[RowOut]| {
+            rows.iter()
+                .map(|r| r.measured.as_ref().unwrap().theta_deg)
+                .fold(0.0, f64::max)
+        };
+        assert!(worst(&with) < 1e-6, "{}", worst(&with));
+        assert!(worst(&without) > 1e-3, "{}", worst(&without));
+        run(&a).unwrap();
+        // τ > 0 and no t_s column
+        std::fs::write(&poses, no_t).unwrap();
+        let e = format!("{:#}", run(&a).unwrap_err());
+        assert!(e.contains("has no t_s") && e.contains("poses.csv"), "{e}");
     }
 }

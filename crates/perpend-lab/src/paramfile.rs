@@ -28,6 +28,14 @@
 //! `0-10V` through a divider of ratio `scale`; the distances at 4 mA / 0 V
 //! and at 20 mA / 10 V).
 //!
+//! `thermal_tau_s` (top level, seconds): the head's thermal time
+//! constant: the thermal extension of every sensor is applied to the head
+//! temperature passed through a first-order lag of this time constant
+//! ([`perpend_core::lag`]; the board's object 0x2105,
+//! `perpend_core::params::Params::thermal_tau_s`). 0..=86400; absent means
+//! 0, no lag, and a file without lag is written without it, so files read
+//! and write as before.
+//!
 //! `linearity_table` (the natural-spline table of
 //! [`perpend_core::ext::LinTable`], knots about `d_ref_mm`) is present only
 //! when a table was fitted; files without it read as before.
@@ -49,6 +57,13 @@ use serde::{Deserialize, Serialize};
 pub const FORMAT: &str = "perpend-calibration";
 /// Current `version`.
 pub const VERSION: u32 = 1;
+/// Largest `thermal_tau_s` \[s\] (the board's limit,
+/// `perpend_core::params::THERMAL_TAU_MAX_S`).
+pub const THERMAL_TAU_MAX_S: f64 = perpend_core::params::THERMAL_TAU_MAX_S as f64;
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
 
 /// Extension coefficients of one sensor (see [`perpend_core::ext`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -292,6 +307,9 @@ pub struct ParamFile {
     /// Poses of the calibration run.
     #[serde(default)]
     pub poses: usize,
+    /// The head's thermal time constant \[s\] (0 = no lag; module docs).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub thermal_tau_s: f64,
     /// Sensors 1..N in order.
     pub sensors: Vec<SensorParams>,
 }
@@ -305,6 +323,7 @@ impl ParamFile {
             method: method.into(),
             model: model.into(),
             poses,
+            thermal_tau_s: 0.0,
             sensors: Vec::new(),
         }
     }
@@ -332,6 +351,13 @@ impl ParamFile {
             bail!(
                 "version {} is not supported (expected {VERSION})",
                 self.version
+            );
+        }
+        let tau = self.thermal_tau_s;
+        if !(tau.is_finite() && (0.0..=THERMAL_TAU_MAX_S).contains(&tau)) {
+            bail!(
+                "thermal_tau_s = {tau}: the thermal time constant must be a number of seconds \
+                 in 0..={THERMAL_TAU_MAX_S} (0 = no lag)"
             );
         }
         if self.sensors.is_empty() {
@@ -464,5 +490,57 @@ impl ParamFile {
             anyhow!("the file has {} sensors, the head needs {N}", v.len())
         })?;
         Ok(Head::new(arr))
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    fn file() -> ParamFile {
+        let head = perpend_core::head::Head4::cone(50.0, 0.5, 0.0, 0.0).unwrap();
+        ParamFile::truth(&head.sensors, &head.sensors)
+    }
+
+    /// A file without `thermal_tau_s` reads as τ = 0 and is written
+    /// without it (byte for byte as before); a τ round-trips.
+    #[test]
+    fn thermal_tau_is_optional_and_round_trips() {
+        let f = file();
+        let text = serde_json::to_string_pretty(&f).unwrap();
+        assert!(!text.contains("thermal_tau_s"));
+        let back = ParamFile::parse(&text, "p.json").unwrap();
+        assert_eq!((back.thermal_tau_s, &back), (0.0, &f));
+        let mut g = f.clone();
+        g.thermal_tau_s = 612.5;
+        let text = serde_json::to_string_pretty(&g).unwrap();
+        assert!(text.contains("\"thermal_tau_s\": 612.5"), "{text}");
+        assert_eq!(ParamFile::parse(&text, "p.json").unwrap(), g);
+    }
+
+    /// Out of range, negative or non-finite: refused with the file and the
+    /// field named.
+    #[test]
+    fn thermal_tau_out_of_range_is_refused_naming_file_and_field() {
+        for bad in ["-1", "86400.5", "1e300"] {
+            let text = serde_json::to_string(&file()).unwrap().replacen(
+                '{',
+                &format!("{{\"thermal_tau_s\": {bad}, "),
+                1,
+            );
+            let e = format!("{:#}", ParamFile::parse(&text, "cell/p.json").unwrap_err());
+            assert!(
+                e.contains("cell/p.json") && e.contains("thermal_tau_s"),
+                "{e}"
+            );
+            assert!(e.contains("0..=86400"), "{e}");
+        }
+        let mut f = file();
+        f.thermal_tau_s = f64::NAN;
+        let e = f.validate().unwrap_err().to_string();
+        assert!(e.contains("thermal_tau_s = NaN"), "{e}");
+        f.thermal_tau_s = THERMAL_TAU_MAX_S;
+        f.validate().unwrap();
     }
 }

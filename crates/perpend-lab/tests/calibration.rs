@@ -470,3 +470,58 @@ fn models_the_board_cannot_apply_are_refused() {
         assert!(e.contains(needs) && e.contains("board"), "{e}");
     }
 }
+
+/// A warm-up whose sensor bodies lag the head thermometer (closed form of
+/// an exponential warm-up through a first-order lag, τ = 400 s, not the
+/// code under test): `calibrate --model thermal` finds the lag within one
+/// step of its grid, stores it as `thermal_tau_s`, and the coefficients
+/// it fits with it are the true ones within 10 %.
+#[test]
+fn a_thermal_lag_is_found_and_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let head = paper_head().unwrap();
+    let cfg = SimConfig {
+        poses: 60,
+        dt_s: Some(30.0),
+        zeta_mm: 0.002,
+        ..SimConfig::paper()
+    };
+    let mut rng = StdRng::seed_from_u64(41);
+    let mut data = simulate(&head, &cfg, &[], &mut rng).unwrap();
+    let k = [0.02, -0.015, 0.01, -0.02];
+    let (t0, rise, tau_h, tau_l) = (21.0, 8.0, 900.0, 400.0);
+    for row in &mut data.poses.rows {
+        let t = row.t_s.unwrap();
+        row.temp_c = Some(t0 + rise * (1.0 - (-t / tau_h).exp()));
+        let body = t0
+            + rise
+                * (1.0
+                    - (tau_h * (-t / tau_h).exp() - tau_l * (-t / tau_l).exp()) / (tau_h - tau_l));
+        for (r, ki) in row.readings.iter_mut().zip(k) {
+            if let Some(x) = r {
+                *x += ki * (body - t0);
+            }
+        }
+    }
+    write_dataset(d, &data.sensors, &data.poses, &["thermal lag".into()]).unwrap();
+    let out = d.join("params.json");
+    let mut a = args(d, Method::Lsq, Some(&out));
+    a.model = Model::Thermal;
+    calibrate::run(&a).unwrap();
+    let pf = ParamFile::read(&out).unwrap();
+    let run = 59.0 * 30.0;
+    assert!(
+        (0.1 * run..=0.3 * run).contains(&pf.thermal_tau_s),
+        "τ = {} s",
+        pf.thermal_tau_s
+    );
+    for (s, ki) in pf.sensors.iter().zip(k) {
+        let c = s.ext.thermal_mm_per_c;
+        assert!(
+            (c - ki).abs() < 0.1 * ki.abs(),
+            "sensor {}: {c} vs {ki}",
+            s.sensor
+        );
+    }
+}

@@ -27,7 +27,9 @@
 //!   4 sensors): stored on the board and simulated.
 //! * `--params`: a calibration (`perpend calibrate --out`): stored on the
 //!   board and simulated as the true head (it overrides `--sensors` for
-//!   both). Without either flag the board runs the factory head.
+//!   both), its `thermal_tau_s` stored in 0x2105 (the simulated die
+//!   temperature is constant, so the lag only shows when 0x200A moves).
+//!   Without either flag the board runs the factory head.
 //! * `--truth`: the head that is really built (exchange format, 4
 //!   sensors): only simulated, never stored, so the board runs its stored
 //!   (nominal) head on the readings of this one, as a real board does
@@ -221,9 +223,11 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
         }
         None => None,
     };
+    let mut thermal_tau_s = 0.0;
     let calibration = match &a.params {
         Some(p) => {
             let f = perpend_lab::paramfile::ParamFile::read(p)?;
+            thermal_tau_s = f.thermal_tau_s;
             Some(head4(f.sensors()?, &p.display().to_string())?)
         }
         None => None,
@@ -255,6 +259,7 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
         node_id: a.node_id,
         head,
         calibration,
+        thermal_tau_s,
     };
     let serial = a
         .serial

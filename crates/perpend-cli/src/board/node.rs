@@ -54,6 +54,9 @@ pub struct BoardConfig {
     /// Calibrated head (stored calibration), if any; also the simulated
     /// truth.
     pub calibration: Option<Head4<f64>>,
+    /// The head's thermal time constant \[s\] stored with it (0x2105;
+    /// 0 = no lag).
+    pub thermal_tau_s: f64,
 }
 
 /// The stored record the board starts from, or `None` for a factory board.
@@ -62,7 +65,11 @@ pub struct BoardConfig {
 /// LSS "configure node-id 0xFF" + "store configuration" would leave it.
 fn seed_record(cfg: &BoardConfig) -> Result<Option<(Params, [u8; IMAGE_LEN])>> {
     let factory = Params::factory();
-    if cfg.node_id == factory.can.node_id && cfg.head.is_none() && cfg.calibration.is_none() {
+    if cfg.node_id == factory.can.node_id
+        && cfg.head.is_none()
+        && cfg.calibration.is_none()
+        && cfg.thermal_tau_s == 0.0
+    {
         return Ok(None);
     }
     let unconfigured = cfg.node_id == UNCONFIGURED;
@@ -75,6 +82,9 @@ fn seed_record(cfg: &BoardConfig) -> Result<Option<(Params, [u8; IMAGE_LEN])>> {
         p.validate()
             .map_err(|e| anyhow!("the head cannot be stored on the board: {e}"))?;
     }
+    p.thermal_tau_s = cfg.thermal_tau_s as f32;
+    p.validate()
+        .map_err(|e| anyhow!("the thermal time constant cannot be stored on the board: {e}"))?;
     p.stamp = 1;
     let mut dev = Device::new(p.can.node_id, &defaults_for(&p));
     dev.load_params(&p)
@@ -350,6 +360,7 @@ mod tests {
             node_id: NODE,
             head: None,
             calibration: None,
+            thermal_tau_s: 0.0,
         }
     }
 
@@ -446,6 +457,29 @@ mod tests {
             });
         }
         out
+    }
+
+    /// `--params` with `thermal_tau_s`: stored in the record and 0x2105,
+    /// applied by the booted board; out of range refused.
+    #[test]
+    fn seed_record_carries_the_thermal_time_constant() {
+        let with_tau = BoardConfig {
+            thermal_tau_s: 240.0,
+            ..cfg()
+        };
+        let (p, img) = seed_record(&with_tau).unwrap().unwrap();
+        assert_eq!(p.thermal_tau_s, 240.0);
+        let mut store = host_store(HostFlash::new());
+        save_with_tail(&mut store, &p, &img).unwrap();
+        let app = App::with_serial(store, 9);
+        assert_eq!(app.device().thermal_tau_s(), 240.0);
+        assert_eq!(app.pipeline().params().thermal_tau_s, 240.0);
+        let bad = BoardConfig {
+            thermal_tau_s: -3.0,
+            ..cfg()
+        };
+        let e = seed_record(&bad).unwrap_err().to_string();
+        assert!(e.contains("thermal time constant"), "{e}");
     }
 
     #[test]

@@ -408,6 +408,7 @@ mod tests {
                     node_id,
                     head: None,
                     calibration: None,
+                    thermal_tau_s: 0.0,
                 };
                 VirtualBoard::with_serial(&cfg, sim, 0x100 + k as u32).unwrap()
             })

@@ -136,6 +136,7 @@ mod tests {
             node_id: 0x20,
             head: None,
             calibration: None,
+            thermal_tau_s: 0.0,
         };
         let mut b = VirtualBoard::new(&cfg, sim).unwrap();
         assert_eq!(handle("plane 0,0,1,-28\n", &mut b), "ok\n");

@@ -10,8 +10,11 @@
 //!    pre-operational (the robot controller may be using its PDOs);
 //! 3. unlock (0x2010 ← "ucal"), write every value of 0x2101.. (23 per
 //!    sensor: sub 1..15, the linearity table's knots 16..20 and
-//!    values 21..23, zeros when the file has no table) and, when the
-//!    file has them, 0x2201.. (4 per sensor), then read each one back and
+//!    values 21..23, zeros when the file has no table), the head's thermal
+//!    time constant 0x2105 (`thermal_tau_s`; firmware without the object
+//!    is refused when the file has τ > 0 and left alone when τ = 0) and,
+//!    when the file has them, 0x2201.. (4 per sensor), then read each one
+//!    back and
 //!    compare bit for bit; check that the board finds the result valid
 //!    (status bit 21 clear). The board refuses knots that are not
 //!    ascending under an active table, so a table whose knots change is
@@ -27,7 +30,8 @@
 //!
 //! Pull reads the same objects into a params.json (`method` "board",
 //! `model` from the non-zero extension terms, `linearity_table` when a
-//! coefficient is non-zero) that push and
+//! coefficient is non-zero, `thermal_tau_s` from 0x2105, 0 on firmware
+//! without it) that push and
 //! `ParamFile::read` accept; a beam direction the board holds with a
 //! length off 1 by more than 1e-6 is normalised in the file (the board
 //! normalises it too) with a warning.
@@ -235,7 +239,12 @@ fn check_table(i: usize, c: &[f64; CAL_VALUES]) -> Result<()> {
     Ok(())
 }
 
-/// Every value of the file, checked against the board's ranges.
+/// The head's thermal time constant (`thermal_tau_s`).
+pub const TAU_INDEX: u16 = 0x2105;
+
+/// Every value of the file, checked against the board's ranges: per
+/// sensor its calibration and transfer function, then the head's thermal
+/// time constant ([`TAU_INDEX`]).
 ///
 /// # Errors
 /// A value the board would refuse, named.
@@ -265,7 +274,30 @@ pub fn plan(file: &ParamFile) -> Result<Vec<Value>> {
             }
         }
     }
+    let label = "thermal_tau_s (head thermal time constant)".to_string();
+    out.push(real(TAU_INDEX, 0, label, file.thermal_tau_s)?);
     Ok(out)
+}
+
+/// Drops the thermal time constant from `values` when the board's
+/// firmware has no 0x2105 and the file asks for no lag; refuses a lag it
+/// cannot hold.
+fn fit_to_board(node: &mut Node, file: &ParamFile, values: &mut Vec<Value>) -> Result<()> {
+    match node.client.upload(node.id, TAU_INDEX, 0) {
+        Err(e) if e.abort_code() == Some(0x0602_0000) => {
+            if file.thermal_tau_s != 0.0 {
+                bail!(
+                    "the file has thermal_tau_s = {} s, but {} has no thermal time constant \
+                     (0x2105: firmware before it); nothing was written",
+                    file.thermal_tau_s,
+                    node.name()
+                );
+            }
+            values.retain(|v| v.index != TAU_INDEX);
+            Ok(())
+        }
+        r => r.map(|_| ()).map_err(Into::into),
+    }
 }
 
 /// Makes sure the node is pre-operational; returns whether it was switched.
@@ -452,7 +484,8 @@ pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushRe
             node.name()
         );
     }
-    let values = plan(&file).with_context(|| a.file.display().to_string())?;
+    let mut values = plan(&file).with_context(|| a.file.display().to_string())?;
+    fit_to_board(node, &file, &mut values)?;
     let switched = ensure_preop(node, a.preop)?;
     unlock(node, a.preop)?;
     let bar = Progress::new(3 * values.len() as u64, "push");
@@ -645,6 +678,11 @@ pub fn pull(node: &mut Node, cancel: &AtomicBool) -> Result<ParamFile> {
     }
     let mut file = ParamFile::new("board", &model_name(&sensors), 0);
     file.sensors = sensors;
+    file.thermal_tau_s = match node.client.read_f32(id, TAU_INDEX, 0) {
+        Ok(tau) => tau as f64,
+        Err(e) if e.abort_code() == Some(0x0602_0000) => 0.0,
+        Err(e) => return Err(e.into()),
+    };
     file.validate()
         .with_context(|| format!("the calibration of {} as a params.json", node.name()))?;
     Ok(file)

@@ -67,6 +67,7 @@ fn rig(cancel_after: Option<usize>) -> Rig {
         node_id: NODE,
         head: None,
         calibration: None,
+        thermal_tau_s: 0.0,
     };
     let board = Arc::new(Mutex::new(VirtualBoard::new(&cfg, sim).unwrap()));
     let cancel = Arc::new(AtomicBool::new(false));
@@ -107,6 +108,7 @@ fn params_file(dir: &std::path::Path, sensors: usize) -> std::path::PathBuf {
     }
     let mut f = ParamFile::truth(&truth[..sensors], &nominal);
     f.method = "lsq".into();
+    f.thermal_tau_s = 412.75;
     for s in &mut f.sensors {
         s.transfer = Some(TransferParams {
             kind: TRANSFER_CURRENT.into(),
@@ -132,7 +134,7 @@ fn push_stores_and_pull_reads_the_same_values() {
     let before = pull(&mut r.node, &r.cancel).unwrap();
     assert_eq!(before.model, "base");
     let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
-    assert_eq!(rep.values, 4 * 27);
+    assert_eq!(rep.values, 4 * 27 + 1);
     assert!(rep.changed >= 4 * 3, "{rep:?}");
     assert!(rep
         .to_string()
@@ -148,6 +150,21 @@ fn push_stores_and_pull_reads_the_same_values() {
     let back = pull(&mut r.node, &r.cancel).unwrap();
     let file = ParamFile::read(&path).unwrap();
     assert_eq!(back.model, "gain");
+    assert_eq!(back.thermal_tau_s, file.thermal_tau_s as f32 as f64);
+    assert_eq!(
+        r.board.lock().unwrap().app().device().thermal_tau_s(),
+        412.75
+    );
+    assert_eq!(
+        r.board
+            .lock()
+            .unwrap()
+            .app()
+            .pipeline()
+            .params()
+            .thermal_tau_s,
+        412.75
+    );
     for (a, b) in file.sensors.iter().zip(&back.sensors) {
         let f = |x: f64| x as f32 as f64;
         assert_eq!(b.zero_mm, a.zero_mm.map(f));
@@ -182,7 +199,7 @@ fn an_interrupted_push_stores_nothing_and_resets_to_the_stored_calibration() {
         "{e}"
     );
     assert!(
-        e.contains("interrupted (Ctrl-C) after 20 of 108 writes"),
+        e.contains("interrupted (Ctrl-C) after 20 of 109 writes"),
         "{e}"
     );
     assert_eq!(r.board.lock().unwrap().app().stores(), 0);
@@ -303,5 +320,44 @@ fn a_table_the_board_would_refuse_is_named_before_any_write() {
     );
     // the same knots without coefficients: no table, nothing to refuse
     f.sensors[2].ext.linearity_table = table([-6.0, -3.0, 0.0, 2.0, 2.0 + 1e-9], [0.0; 3]);
-    assert_eq!(plan(&f).unwrap().len(), 4 * 27);
+    assert_eq!(plan(&f).unwrap().len(), 4 * 27 + 1);
+}
+
+/// The thermal time constant: out of the board's range it is named before
+/// any write; τ = 0 pushed over a lag switches the lag off, and pull
+/// reads 0 back (the file then has no `thermal_tau_s`).
+#[test]
+fn thermal_tau_push_and_pull() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut f = ParamFile::read(&path).unwrap();
+    assert_eq!(f.thermal_tau_s, 412.75);
+    f.thermal_tau_s = 90_000.0;
+    let e = format!("{:#}", plan(&f).unwrap_err());
+    assert!(
+        e.contains("thermal_tau_s (head thermal time constant) = 90000 is outside what the board accepts (0 to 86400)"),
+        "{e}"
+    );
+    let mut r = rig(None);
+    push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    assert_eq!(pull(&mut r.node, &r.cancel).unwrap().thermal_tau_s, 412.75);
+    f.thermal_tau_s = 0.0;
+    f.write(&path).unwrap();
+    let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    assert_eq!(rep.changed, 1);
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert_eq!(back.thermal_tau_s, 0.0);
+    assert!(!serde_json::to_string(&back)
+        .unwrap()
+        .contains("thermal_tau_s"));
+    assert_eq!(
+        r.board
+            .lock()
+            .unwrap()
+            .app()
+            .pipeline()
+            .params()
+            .thermal_tau_s,
+        0.0
+    );
 }

@@ -1000,6 +1000,10 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
         p.fold_drift(crate::calibrate::run_end_s(&d.poses));
         f.sensors.push(p);
     }
+    // The sensor bodies' lag, for the board to lag its temperature alike.
+    if d.effects().contains(&Effect::Thermal) {
+        f.thermal_tau_s = d.lags.thermal_tau_s;
+    }
     f.validate()?;
     Ok(f)
 }
