@@ -14,7 +14,7 @@
 //!      + incidence·(1/cos γ − 1)               γ: angle beam ↔ surface normal
 //!      + crosstalk·(d_prev − f)                S&H carry-over from the channel
 //!                                              converted just before
-//!      + thermal·(T − T_ref)                   head temperature [°C]
+//!      + thermal·(T − T_ref)                   sensor-body temperature [°C]
 //!      + drift·t                               time since start of run [s]
 //! ```
 //!
@@ -31,6 +31,13 @@
 //! run's end with drift 0 (`perpend_lab::paramfile::SensorParams::fold_drift`)
 //! and the board and `perpend measure` pass no time, so a drift is never
 //! extrapolated past the run.
+//!
+//! `T` is the temperature the caller passes in [`Context::temp_c`]: the
+//! head thermometer's, or, where the head has a thermal time constant,
+//! that reading through the first-order lag of the sensor bodies
+//! ([`crate::lag`]; the board's `perpend_board::thermal`, the host's
+//! `perpend_lab::diagnose::lags` and `perpend measure`). The lag is state
+//! over time, so it lives with the caller, not in these coefficients.
 //!
 //! `d_prev` is the reading of the previous channel in the ADC scan; for the
 //! first channel it is the last channel of the same scan (the scan repeats
