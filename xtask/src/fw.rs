@@ -26,6 +26,12 @@
 //!   on every sensor), `app_update_insns`, `app_sync_insns`,
 //!   `app_update_table_insns`, `app_sync_table_insns` (the same two with
 //!   an active linearity table on every sensor, written over CAN),
+//!   `app_update_lag_insns`, `app_sync_lag_insns`,
+//!   `app_update_lag_commit_insns` and the same three `_table_lag_`
+//!   (the head's thermal lag on: τ = 600 s and a thermal coefficient on
+//!   every sensor; `update` samples 1 ms apart, the short step, what 999
+//!   of 1000 samples do; `update_..._commit` 1 s apart, every sample a
+//!   committed `expm1f` step, the worst sample),
 //!   `ekf_update_insns`, `sqrtf_libm_insns`, `sqrtf_vsqrt_insns`, `reps`).
 //!
 //! Limits: QEMU counts instructions, not cycles (the M4 pipeline, flash
@@ -238,9 +244,9 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     let f = fs::File::open(&trace).map_err(|e| format!("{}: {e}", trace.display()))?;
     let s = count_sections(BufReader::new(f), range)?;
     let _ = fs::remove_file(&trace);
-    if s.len() < 21 {
+    if s.len() < 33 {
         return Err(format!(
-            "expected 21 sections in the trace, found {}",
+            "expected 33 sections in the trace, found {}",
             s.len()
         ));
     }
@@ -258,6 +264,12 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     r.insert("pipeline_table_insns", per(s[16]));
     r.insert("app_update_table_insns", per(s[18]));
     r.insert("app_sync_table_insns", per(s[20]));
+    r.insert("app_update_lag_insns", per(s[22]));
+    r.insert("app_sync_lag_insns", per(s[24]));
+    r.insert("app_update_lag_commit_insns", per(s[26]));
+    r.insert("app_update_table_lag_insns", per(s[28]));
+    r.insert("app_sync_table_lag_insns", per(s[30]));
+    r.insert("app_update_table_lag_commit_insns", per(s[32]));
     r.insert("reps", BENCH_REPS);
     if json {
         println!(

@@ -42,9 +42,13 @@
 //!   conversion failed), else none (the thermal term contributes nothing,
 //!   as without a thermometer). The next valid temperature is stepped to
 //!   from the committed state, the input taken as linear over the gap.
-//! * Time going backwards (before the last valid temperature) or a gap of
-//!   more than `10 τ` since it (the lag has forgotten its history to
-//!   `e^{-10} = 5e-5`) restarts at rest at the new temperature.
+//! * Time going backwards (before the last valid temperature) restarts at
+//!   rest at the new temperature. A gap of any length is one exact step
+//!   (the input linear over it), as `lag::filter` on the host steps it:
+//!   no restart after some number of τ, which would jump by up to a tenth
+//!   of the temperature change across the gap (at 10 τ the ramp term
+//!   `(u1 − u0)·φ` is still `(u1 − u0)/10`; only the initial state is
+//!   forgotten, to `e^{-10}`).
 //! * A τ changed over CAN applies from the next sample on: the committed
 //!   state is kept (no reset) and the next step uses the new τ.
 //!
@@ -58,8 +62,6 @@ pub const STEP_MAX_S: f32 = 1.0;
 /// Committed steps are at least τ divided by this apart (when shorter than
 /// [`STEP_MAX_S`]).
 pub const STEPS_PER_TAU: f32 = 100.0;
-/// A gap longer than this many τ restarts the lag at rest.
-pub const GAP_TAUS: f32 = 10.0;
 
 /// The lag's state (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -107,8 +109,7 @@ impl ThermalLag {
         let Some(u) = temp_c.filter(|t| t.is_finite()) else {
             return self.started.then_some(self.out);
         };
-        if !self.started || now_us < self.last_us || secs(now_us - self.last_us) > GAP_TAUS * tau_s
-        {
+        if !self.started || now_us < self.last_us {
             return Some(self.restart(u, now_us));
         }
         self.last_us = now_us;
@@ -214,6 +215,18 @@ mod tests {
         assert_eq!(commits, 600);
     }
 
+    /// A long τ over an 8-hour warm-up: within 1e-3 °C of the f64 filter
+    /// at τ = 1 day (1 Hz) and 2e-4 °C at τ = 20 000 s (10 Hz); with the
+    /// decay `a` rounded near 1 in `lag::step` 2.0e-3 and 5.8e-4 °C.
+    #[test]
+    fn long_tau_keeps_its_precision() {
+        let (worst, commits) = against_filter(1, 8 * 3600, 86_400.0);
+        assert!(worst < 1e-3, "{worst}");
+        assert_eq!(commits, 8 * 3600);
+        let (worst, _) = against_filter(10, 8 * 3600, 20_000.0);
+        assert!(worst < 2e-4, "{worst}");
+    }
+
     /// (d) A missing or non-finite temperature holds the state: nothing
     /// before the first valid one; after it the last lagged value, and the
     /// next valid temperature is stepped to across the gap.
@@ -243,10 +256,12 @@ mod tests {
         assert_eq!(l.update(Some(26.0), 30_005_000, tau), Some(26.0));
     }
 
-    /// (d) Time going backwards, or a gap beyond 10 τ, restarts at rest;
-    /// a gap just within 10 τ does not.
+    /// (d) Time going backwards restarts at rest; a gap of any length is
+    /// one exact step from the committed state, as `lag::filter` steps it
+    /// (a gap beyond 10 τ used to restart at rest: 0.9 °C off the filter
+    /// for 20 → 30 °C across 11 τ).
     #[test]
-    fn backwards_time_and_long_gaps_restart() {
+    fn backwards_time_restarts_and_long_gaps_step() {
         let tau = 50.0;
         let mut l = ThermalLag::new();
         l.update(Some(20.0), 1_000_000_000, tau);
@@ -257,8 +272,17 @@ mod tests {
         let y = l.update(Some(35.0), 1_508_000_000, tau).unwrap();
         let want = lag::step(31.0f64, 31.0, 35.0, 499.0, tau as f64);
         assert!((y as f64 - want).abs() < 1e-4 && y < 34.7, "{y} {want}");
-        // beyond 10 τ: at rest at the new reading
-        assert_eq!(l.update(Some(22.0), 2_009_000_000, tau), Some(22.0));
+        // beyond 10 τ (550 s): the same exact step, as the host's filter
+        let y2 = l.update(Some(22.0), 2_058_000_000, tau).unwrap();
+        let want2 = lag::step(want, 35.0, 22.0, 550.0, tau as f64);
+        assert!((y2 as f64 - want2).abs() < 1e-4, "{y2} {want2}");
+        assert!(y2 > 23.0, "not restarted at rest: {y2}");
+        let mut fresh = ThermalLag::new();
+        fresh.update(Some(20.0), 0, tau);
+        let y = fresh.update(Some(30.0), 550_000_000, tau).unwrap();
+        let mut want = [0.0; 2];
+        lag::filter(&[0.0, 550.0], &[20.0, 30.0], tau as f64, &mut want);
+        assert!((y as f64 - want[1]).abs() < 1e-4, "{y} {want:?}");
         // a gap beyond 2^32 µs goes through the u64 conversion
         assert_eq!(secs(5_000_000_000), 5_000.0);
         for us in [
@@ -269,9 +293,9 @@ mod tests {
             let want = us as f64 * 1e-6;
             assert!((secs(us) as f64 - want).abs() <= want * 2e-7, "{us}");
         }
-        let y = l.update(Some(23.0), 7_009_000_000, 86_400.0).unwrap();
-        let want = lag::step(22.0f64, 22.0, 23.0, 5_000.0, 86_400.0);
-        assert!((y as f64 - want).abs() < 1e-5, "{y} {want}");
+        let y3 = l.update(Some(23.0), 7_058_000_000, 86_400.0).unwrap();
+        let want3 = lag::step(want2, 22.0, 23.0, 5_000.0, 86_400.0);
+        assert!((y3 as f64 - want3).abs() < 1e-4, "{y3} {want3}");
     }
 
     /// A τ changed between samples applies at once from the committed

@@ -362,7 +362,9 @@ pub fn run(a: &Args) -> Result<()> {
     let (sensors, mut label) = head(a, &mut tau_s)?;
     let mut table = read_readings(&a.poses, Some(sensors.len()))?;
     let file = a.poses.display().to_string();
-    if tau_s > 0.0 {
+    // The lag only matters through a thermal coefficient: without one a
+    // τ asks nothing of the file (no t_s / temp_c needed).
+    if tau_s > 0.0 && sensors.iter().any(|s| s.ext.thermal != 0.0) {
         table = lag_temperatures(&table, tau_s, &file)?;
         label += &format!("; thermal lag τ = {tau_s} s");
     }
@@ -570,6 +572,58 @@ mod tests {
         );
     }
 
+    /// A 45 mm cone head at 25° and its sensors.csv in `dir`.
+    fn cone_head_csv(dir: &std::path::Path) -> (perpend_core::head::Head4<f64>, PathBuf) {
+        let head = perpend_core::head::Head4::cone(45.0, 25f64.to_radians(), 0.0, 0.0).unwrap();
+        let path = dir.join("sensors.csv");
+        let mut text = String::from("sensor,x_mm,y_mm,z_mm,m,n,q\n");
+        for (i, s) in head.sensors.iter().enumerate() {
+            let (z, d) = (s.zero, s.dir);
+            text += &format!(
+                "{},{},{},{},{},{},{}\n",
+                i + 1,
+                z.x,
+                z.y,
+                z.z,
+                d.x,
+                d.y,
+                d.z
+            );
+        }
+        std::fs::write(&path, text).unwrap();
+        (head, path)
+    }
+
+    /// τ > 0 in a params file without any thermal coefficient: the lag
+    /// cannot change a reading, so a poses file without `t_s` / `temp_c`
+    /// is measured (it used to be refused for the missing column).
+    #[test]
+    fn a_lag_without_thermal_coefficients_needs_no_times() {
+        let dir = tempfile::tempdir().unwrap();
+        let (head, sensors) = cone_head_csv(dir.path());
+        let mut pf = ParamFile::truth(&head.sensors, &head.sensors);
+        pf.thermal_tau_s = 60.0;
+        let params = dir.path().join("params.json");
+        pf.write(&params).unwrap();
+        let plane = perpend_core::geometry::Plane::from_abcd(0.0, 0.0, 1.0, -60.0).unwrap();
+        let mut csv = String::from("pose,d1_mm,d2_mm,d3_mm,d4_mm\n1");
+        for i in 0..4 {
+            let d = perpend_core::model::distance(&head.sensors[i], &plane, i).unwrap();
+            csv += &format!(",{d}");
+        }
+        let poses = dir.path().join("poses.csv");
+        std::fs::write(&poses, csv + "\n").unwrap();
+        let a = Args {
+            sensors,
+            params: Some(params),
+            poses,
+            surface: SurfaceSpec(Shape::Plane),
+            method: PlaneMethod::Lsq,
+            json: true,
+        };
+        run(&a).unwrap();
+    }
+
     /// Through `run`: a params file with τ and a thermal coefficient,
     /// readings whose sensor 1 is long by the lagged temperature: measured
     /// flat with the lag, tilted without it; τ > 0 without a t_s column
@@ -577,22 +631,7 @@ mod tests {
     #[test]
     fn run_applies_the_thermal_lag() {
         let dir = tempfile::tempdir().unwrap();
-        let head = perpend_core::head::Head4::cone(45.0, 25f64.to_radians(), 0.0, 0.0).unwrap();
-        let sensors_csv = dir.path().join("sensors.csv");
-        let mut text = String::from("sensor,x_mm,y_mm,z_mm,m,n,q\n");
-        for (i, s) in head.sensors.iter().enumerate() {
-            text += &format!(
-                "{},{},{},{},{},{},{}\n",
-                i + 1,
-                s.zero.x,
-                s.zero.y,
-                s.zero.z,
-                s.dir.x,
-                s.dir.y,
-                s.dir.z
-            );
-        }
-        std::fs::write(&sensors_csv, text).unwrap();
+        let (head, sensors_csv) = cone_head_csv(dir.path());
         let mut pf = ParamFile::truth(&head.sensors, &head.sensors);
         pf.sensors[0].ext.thermal_mm_per_c = 0.01;
         pf.sensors[0].ext.temp_ref_c = 20.0;

@@ -65,6 +65,18 @@ fn is_zero(x: &f64) -> bool {
     *x == 0.0
 }
 
+/// Refuses a `thermal_tau_s` the board would not hold: not finite, or
+/// outside 0..=[`THERMAL_TAU_MAX_S`].
+fn check_tau(tau: f64) -> Result<()> {
+    if !(tau.is_finite() && (0.0..=THERMAL_TAU_MAX_S).contains(&tau)) {
+        bail!(
+            "thermal_tau_s = {tau}: the thermal time constant must be a number of seconds \
+             in 0..={THERMAL_TAU_MAX_S} (0 = no lag)"
+        );
+    }
+    Ok(())
+}
+
 /// Extension coefficients of one sensor (see [`perpend_core::ext`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -353,13 +365,7 @@ impl ParamFile {
                 self.version
             );
         }
-        let tau = self.thermal_tau_s;
-        if !(tau.is_finite() && (0.0..=THERMAL_TAU_MAX_S).contains(&tau)) {
-            bail!(
-                "thermal_tau_s = {tau}: the thermal time constant must be a number of seconds \
-                 in 0..={THERMAL_TAU_MAX_S} (0 = no lag)"
-            );
-        }
+        check_tau(self.thermal_tau_s)?;
         if self.sensors.is_empty() {
             bail!("no sensors");
         }

@@ -5,9 +5,10 @@
 //! addresses come from the ELF symbol table) and divides by [`REPS`].
 //!
 //! Sections (marks 1→2, 3→4, 5→6, 6→7, 9→10, 11→12, 13→14, 15→16,
-//! 17→18, 19→20, 21→22; 7→8 is the loop baseline that the two
-//! square-root sections subtract; 8→9, 10→11, 12→13, 14→15, 16→17, 18→19
-//! and 20→21 are set-up, not reported):
+//! 17→18, 19→20, 21→22, 23→24, 25→26, 27→28, 29→30, 31→32, 33→34; 7→8
+//! is the loop baseline that the two square-root sections subtract; 8→9,
+//! 10→11, 12→13, 14→15, 16→17, 18→19, 20→21 and each even → odd mark
+//! from 22 on are set-up, not reported):
 //!
 //! 1. the per-sample pipeline exactly as the board runs it: four ADC
 //!    results in (a different tilted plane each repetition), status,
@@ -34,7 +35,14 @@
 //!     written over CAN (0x2101..0x2104 sub 7, 16..23, [`write_tables`]):
 //!     knots at ±1.5 mm about `d_ref` = the sensor's mean reading, values
 //!     of 21-46 µm, readings carrying the excess the table models;
-//! 11. the SYNC of 7. on that App.
+//! 11. the SYNC of 7. on that App;
+//! 12. the App update of 6. with the head's thermal lag on (τ = 600 s in
+//!     0x2105, a thermal coefficient on every sensor, [`bench_app_lag`]),
+//!     samples 1 ms apart: the short step from the last commit;
+//! 13. the SYNC of 7. on that App;
+//! 14. the same App update, samples 1 s apart: every one a committed
+//!     step (`expm1f`), the worst sample;
+//! 15. to 17. the sections 12 to 14 with the linearity tables of 10.
 //!
 //! The program exits through semihosting (status 0 on success).
 
@@ -204,6 +212,101 @@ fn bench_app(mark: u32, table: bool) {
         fail();
     }
     black_box(sent);
+}
+
+/// The head's thermal time constant of sections 12-17 \[s\] (0x2105).
+const LAG_TAU_S: f32 = 600.0;
+/// The thermal coefficient of every sensor in sections 12-17 \[mm/°C\]
+/// (0x2101..0x2104 sub 13).
+const LAG_THERMAL: f32 = 0.002;
+
+/// Sections 12-14 (marks from 23; `table` false) and 15-17 (marks from
+/// 29; `table` true): the App's update and SYNC of 6/7 (10/11 with
+/// `table`) with the thermal lag on: τ = [`LAG_TAU_S`] and a thermal
+/// coefficient on every sensor, written over CAN, a die temperature
+/// warming by 1 mK per sample. 12/15: 1 ms apart, the short step from the
+/// last commit (`lag::step_short`, what 999 of 1000 samples at 1 kHz do);
+/// 13/16: the SYNC; 14/17: 1 s apart, every sample a committed step
+/// (`lag::step` with `expm1f`, the worst sample, once a second).
+fn bench_app_lag(mark: u32, table: bool) {
+    let mut app = App::new(NoStore);
+    let mut sent = 0u32;
+    let mut now = 1_000u64;
+    app.poll(now, &mut |_| sent += 1);
+    if table {
+        write_tables(&mut app, &mut now);
+    }
+    write_lag(&mut app, &mut now);
+    app.handle(&Frame::new(0, &[0x01, 0]), now, &mut |_| sent += 1);
+    let (mut samples, _) = plane_samples(app.pipeline().params());
+    if table {
+        add_excess(app.pipeline().params(), &mut samples);
+    }
+    for (k, s) in samples.iter_mut().enumerate() {
+        s.temp_c = Some(25.0 + 0.001 * k as f32);
+    }
+    // at rest at the first temperature, then one committed step: the
+    // 1 ms samples that follow are all within the commit interval
+    app.on_sample(&samples[0], now);
+    now += 1_000_000;
+    app.on_sample(&samples[0], now);
+    bench_mark(mark);
+    let ok = lag_samples(&mut app, &samples, &mut now, 1_000);
+    bench_mark(mark + 1);
+    let frames = syncs(&mut app, &mut now, mark + 2);
+    bench_mark(mark + 4);
+    // back in reverse order: no jump from the last plane to the first
+    samples.reverse();
+    let ok2 = lag_samples(&mut app, &samples, &mut now, 1_000_000);
+    bench_mark(mark + 5);
+    if ok != REPS as u32 || ok2 != REPS as u32 || frames != 4 * REPS as u32 {
+        fail();
+    }
+    black_box(sent);
+}
+
+/// Unlocks and writes τ = [`LAG_TAU_S`] (0x2105) and the thermal
+/// coefficient [`LAG_THERMAL`] of every sensor (set-up); fails unless the
+/// pipeline holds them.
+fn write_lag(app: &mut App<NoStore>, now: &mut u64) {
+    sdo_write(app, now, 0x2010, 0, 0x6C61_6375u32.to_le_bytes());
+    sdo_write(app, now, 0x2105, 0, LAG_TAU_S.to_le_bytes());
+    for i in 0..4u16 {
+        sdo_write(app, now, 0x2101 + i, 13, LAG_THERMAL.to_le_bytes());
+    }
+    let p = app.pipeline().params();
+    let coeffs = p.head.sensors.iter().all(|s| s.ext.thermal == LAG_THERMAL);
+    if p.thermal_tau_s != LAG_TAU_S || !coeffs || !app.pipeline().config_ok() {
+        fail()
+    }
+}
+
+/// `samples` through the App, `step_us` apart (measured); returns how
+/// many outputs were valid.
+fn lag_samples(app: &mut App<NoStore>, samples: &[Sample], now: &mut u64, step_us: u64) -> u32 {
+    let mut ok = 0u32;
+    for s in samples {
+        *now += step_us;
+        ok += u32::from(app.on_sample(black_box(s), *now).valid());
+    }
+    ok
+}
+
+/// [`REPS`] SYNCs between marks `mark` and `mark + 1`; returns the frames
+/// sent.
+fn syncs(app: &mut App<NoStore>, now: &mut u64, mark: u32) -> u32 {
+    let sync = Frame::new(0x80, &[]);
+    let mut frames = 0u32;
+    bench_mark(mark);
+    for _ in 0..REPS {
+        *now += 1_000;
+        app.handle(black_box(&sync), *now, &mut |f| {
+            black_box(f);
+            frames += 1;
+        });
+    }
+    bench_mark(mark + 1);
+    frames
 }
 
 /// Expedited SDO download of 4 bytes to the App's node (set-up); fails the
@@ -437,6 +540,8 @@ fn main() -> ! {
     }
 
     bench_app(19, true);
+    bench_app_lag(23, false);
+    bench_app_lag(29, true);
     debug::exit(debug::EXIT_SUCCESS);
     loop {
         cortex_m::asm::wfi();
