@@ -122,6 +122,17 @@ fn params_file(dir: &std::path::Path, sensors: usize) -> std::path::PathBuf {
     p
 }
 
+/// The thermal time constant the virtual board's pipeline applies.
+fn pipeline_tau(r: &Rig) -> f32 {
+    r.board
+        .lock()
+        .unwrap()
+        .app()
+        .pipeline()
+        .params()
+        .thermal_tau_s
+}
+
 fn args(file: std::path::PathBuf) -> PushArgs {
     PushArgs { file, preop: false }
 }
@@ -155,16 +166,7 @@ fn push_stores_and_pull_reads_the_same_values() {
         r.board.lock().unwrap().app().device().thermal_tau_s(),
         412.75
     );
-    assert_eq!(
-        r.board
-            .lock()
-            .unwrap()
-            .app()
-            .pipeline()
-            .params()
-            .thermal_tau_s,
-        412.75
-    );
+    assert_eq!(pipeline_tau(&r), 412.75);
     for (a, b) in file.sensors.iter().zip(&back.sensors) {
         let f = |x: f64| x as f32 as f64;
         assert_eq!(b.zero_mm, a.zero_mm.map(f));
@@ -350,14 +352,5 @@ fn thermal_tau_push_and_pull() {
     assert!(!serde_json::to_string(&back)
         .unwrap()
         .contains("thermal_tau_s"));
-    assert_eq!(
-        r.board
-            .lock()
-            .unwrap()
-            .app()
-            .pipeline()
-            .params()
-            .thermal_tau_s,
-        0.0
-    );
+    assert_eq!(pipeline_tau(&r), 0.0);
 }

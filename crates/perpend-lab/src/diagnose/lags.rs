@@ -295,6 +295,18 @@ mod tests {
         (head.nominal, run)
     }
 
+    /// Adds `f(t, sensor, reading)` to every reading of `run`.
+    fn add(run: &mut PoseTable, f: impl Fn(f64, usize, f64) -> f64) {
+        for row in &mut run.rows {
+            let t = row.t_s.unwrap();
+            for (i, r) in row.readings.iter_mut().enumerate() {
+                if let Some(d) = r {
+                    *d += f(t, i, *d);
+                }
+            }
+        }
+    }
+
     const K: [f64; 4] = [0.02, -0.015, 0.01, -0.02];
     const CURVE: [f64; 4] = [0.03, -0.02, 0.02, 0.03];
 
@@ -331,13 +343,7 @@ mod tests {
                 v.iter().sum::<f64>() / v.len() as f64
             })
             .collect();
-        for row in &mut run.rows {
-            for (i, (r, c)) in row.readings.iter_mut().zip(CURVE).enumerate() {
-                if let Some(d) = r {
-                    *d += c * (*d - mid[i]).powi(2);
-                }
-            }
-        }
+        add(&mut run, |_, i, d| CURVE[i] * (d - mid[i]).powi(2));
         let lags = select(&nominal, &run, &LsqConfig::default());
         let frac = lags.thermal_tau_s / (59.0 * 30.0);
         assert!((0.1..=0.3).contains(&frac), "τ = {} s", lags.thermal_tau_s);
@@ -349,14 +355,7 @@ mod tests {
     fn a_settling_drift_is_timed() {
         let (nominal, mut run) = warm_run(0.0, [0.0; 4], 11);
         let a = [0.03, -0.02, 0.025, -0.03];
-        for row in &mut run.rows {
-            let t = row.t_s.unwrap();
-            for (r, ai) in row.readings.iter_mut().zip(a) {
-                if let Some(d) = r {
-                    *d += ai * (1.0 - (-t / 500.0).exp());
-                }
-            }
-        }
+        add(&mut run, |t, i, _| a[i] * (1.0 - (-t / 500.0).exp()));
         let lags = select(&nominal, &run, &LsqConfig::default());
         let frac = lags.drift_tau_s / (59.0 * 30.0);
         assert!((0.2..=0.5).contains(&frac), "τ = {} s", lags.drift_tau_s);
