@@ -613,7 +613,10 @@ impl<S: ParamStore> App<S> {
     }
 
     fn update_emcy(&mut self, status: u32) {
-        for (k, (code, reg, data)) in conditions(status, self.boot_bad).into_iter().enumerate() {
+        // by reference: iterating the array by value copied all of it
+        // (100 B, about 100 instructions per sample)
+        let conds = conditions(status, self.boot_bad);
+        for (k, &(code, reg, data)) in conds.iter().enumerate() {
             match data {
                 Some(data) => {
                     self.quiet[k] = 0;

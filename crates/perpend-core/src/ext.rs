@@ -71,7 +71,9 @@
 //! between the knots and beyond each end knot, each `a + t·(b + t·(c +
 //! t·e))` about its start; the spline's second derivatives solved and the
 //! polynomial re-expanded about each start once), whether the excess
-//! depends on `f`, whether a term fixed in `f` has a coefficient, and a
+//! depends on `f`, which terms fixed in `f` have a coefficient (none, the
+//! thermal term alone, evaluated as `thermal·(T − T_ref)` only, or others:
+//! all of them; the same sum bit for bit for finite inputs), and a
 //! Lipschitz constant `L = max |6e|` of `δ''` (the spline is C², its `δ''`
 //! linear on each piece). Evaluating `δ`, `δ'`, `δ''` is then a bisection
 //! among the five knots and a Horner scheme, no division. It is derived
@@ -359,11 +361,26 @@ fn early_rel<T: Real>() -> T {
 pub struct Prepared<T: Real> {
     moving: Spline<T>,
     iterate: bool,
-    /// Whether a term that does not depend on `f` has a coefficient.
-    fixed: bool,
+    /// Which terms that do not depend on `f` have a coefficient.
+    fixed: Fixed,
     /// `L/2` and `L/6`, `L` a Lipschitz constant of `δ''`.
     lip2: T,
     lip6: T,
+}
+
+/// The terms fixed in `f` that have a coefficient ([`Prepared`]): what the
+/// inversion evaluates of them once per reading.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Fixed {
+    /// None: they contribute nothing.
+    None,
+    /// Only the thermal term: `thermal·(T − T_ref)` when a temperature is
+    /// known (the other terms' zero coefficients add exact zeros for
+    /// finite inputs, so the result is that of all terms, bit for bit).
+    Thermal,
+    /// Incidence, carry-over or drift (and perhaps the thermal term): all
+    /// of [`Extension::fixed`].
+    All,
 }
 
 impl<T: Real> Prepared<T> {
@@ -485,10 +502,16 @@ impl<T: Real> Extension<T> {
         Prepared {
             moving,
             iterate: table.is_some() || self.depends_on_distance(),
-            fixed: self.incidence != T::zero()
+            fixed: if self.incidence != T::zero()
                 || self.crosstalk != T::zero()
-                || self.thermal != T::zero()
-                || self.drift != T::zero(),
+                || self.drift != T::zero()
+            {
+                Fixed::All
+            } else if self.thermal != T::zero() {
+                Fixed::Thermal
+            } else {
+                Fixed::None
+            },
             lip2: T::lit(0.5) * moving.lipschitz2(),
             lip6: moving.lipschitz2() / T::lit(6.0),
         }
@@ -576,10 +599,13 @@ impl<T: Real> Extension<T> {
         ctx: &Context<T>,
         early: T,
     ) -> (T, usize) {
-        let c0 = if prep.fixed {
-            self.fixed(d_prev, cos_gamma, ctx)
-        } else {
-            T::zero()
+        let c0 = match prep.fixed {
+            Fixed::None => T::zero(),
+            Fixed::Thermal => match ctx.temp_c {
+                Some(t) => self.thermal * (t - self.temp_ref),
+                None => T::zero(),
+            },
+            Fixed::All => self.fixed(d_prev, cos_gamma, ctx),
         };
         if !prep.iterate {
             return (d - c0, 0);
@@ -697,6 +723,68 @@ mod tests {
         };
         let d = 40.0 + flat.excess(40.0, None, 0.9, &ctx);
         assert_eq!(flat.correct(d, None, 0.9, &ctx), 40.0);
+    }
+
+    /// The thermal term alone (`Fixed::Thermal`: `thermal·(T − T_ref)`
+    /// only) corrects exactly as the sum of all fixed terms
+    /// (`Fixed::All`), bit for bit in `f32` and `f64`, with and without a
+    /// table, a previous channel, a temperature and a time; a zero thermal
+    /// coefficient is `Fixed::None`, another fixed term `Fixed::All`.
+    #[test]
+    fn thermal_alone_is_the_sum_of_all_fixed_terms() {
+        fn check<T: Real + core::fmt::Debug>(e: &Extension<T>) {
+            let prep = e.prepare();
+            assert_eq!(prep.fixed, Fixed::Thermal);
+            let all = Prepared {
+                fixed: Fixed::All,
+                ..prep
+            };
+            for k in 0..40 {
+                let d = T::lit(43.0 + 0.17 * k as f64);
+                let prev = (k % 2 == 0).then(|| T::lit(41.0 + 0.3 * k as f64));
+                for (temp, t) in [(Some(31.7), Some(600.0)), (Some(12.5), None), (None, None)] {
+                    let ctx = Context {
+                        temp_c: temp.map(T::lit),
+                        t_s: t.map(T::lit),
+                    };
+                    let want = e.correct_with(&all, d, prev, T::one(), &ctx);
+                    let got = e.correct_with(&prep, d, prev, T::one(), &ctx);
+                    assert_eq!(got.to_f64().to_bits(), want.to_f64().to_bits(), "{d:?}");
+                }
+            }
+        }
+        let e = Extension {
+            d_ref: 46.5,
+            table: LinTable {
+                knots: [-1.5, -0.75, 0.0, 0.75, 1.5],
+                coeffs: [0.03, -0.04, 0.025],
+            },
+            thermal: 2e-3,
+            temp_ref: 22.0,
+            ..Extension::identity()
+        };
+        check(&e);
+        check(&e.cast::<f32>());
+        let flat = Extension {
+            table: LinTable::none(),
+            ..e
+        };
+        check(&flat);
+        check(&flat.cast::<f32>());
+        assert_eq!(Extension::<f64>::identity().prepare().fixed, Fixed::None);
+        for other in [
+            Extension { drift: 1e-6, ..e },
+            Extension {
+                crosstalk: 0.01,
+                ..e
+            },
+            Extension {
+                incidence: 0.02,
+                ..e
+            },
+        ] {
+            assert_eq!(other.prepare().fixed, Fixed::All);
+        }
     }
 
     #[test]

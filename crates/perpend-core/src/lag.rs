@@ -48,22 +48,36 @@ pub fn step<T: Real>(y0: T, u0: T, u1: T, dt: T, tau: T) -> T {
     if !(tau > T::zero()) || !tau.is_finite_real() || !dt.is_finite_real() {
         return u1;
     }
+    match coefficients(dt, tau) {
+        Some((one_minus_a, phi)) => increment(y0, u0, u1, one_minus_a, phi),
+        None => y0,
+    }
+}
+
+/// `(1 − a, φ)` of a step of `dt` [s] at time constant `tau` [s] (positive
+/// and finite): `1 − a = −expm1(−dt/τ)`, `φ = (1 − a)·τ/dt`; `None` for
+/// `dt ≤ 0` or `dt/τ` rounding to 0 (the step leaves `y0`). With
+/// [`increment`] they are [`step`], bit for bit: a caller stepping many
+/// times over the same `dt` computes them once.
+pub fn coefficients<T: Real>(dt: T, tau: T) -> Option<(T, T)> {
     if !(dt > T::zero()) {
-        return y0;
+        return None;
     }
     let x = dt / tau;
     if !(x > T::zero()) {
-        return y0;
+        return None;
     }
     let b = -(-x).exp_m1();
-    increment(y0, u0, u1, b, b / x)
+    Some((b, b / x))
 }
 
 /// `y0` moved by the step of [`step`] written as an increment,
 /// `y0 + (u0 − y0)·(1 − a) + (u1 − u0)·(1 − φ)` (module docs,
-/// "Precision"), from `one_minus_a` = `1 − a` and `phi` = `φ`: in `f32`
-/// the only rounding at the temperature's magnitude is the final sum.
-fn increment<T: Real>(y0: T, u0: T, u1: T, one_minus_a: T, phi: T) -> T {
+/// "Precision"), from `one_minus_a` = `1 − a` and `phi` = `φ`
+/// ([`coefficients`]): in `f32` the only rounding at the temperature's
+/// magnitude is the final sum.
+#[inline]
+pub fn increment<T: Real>(y0: T, u0: T, u1: T, one_minus_a: T, phi: T) -> T {
     let du = u1 - u0;
     y0 + ((u0 - y0) * one_minus_a + (du - du * phi))
 }
@@ -75,9 +89,11 @@ pub const SHORT_X_MAX: f64 = 1.0 / 16.0;
 /// `x = dt/τ ≤` [`SHORT_X_MAX`] `φ = (1 − e^{−x})/x` is its Taylor series
 /// `1 − x/2 + x²/6 − x³/24 + x⁴/120` (truncation below `x⁵/720 < 1.4e-9`
 /// of the temperature span, far under an `f32` ulp) and `1 − a = x·φ`; a longer interval is
-/// [`step`]. Same guards as [`step`]. For the board, which evaluates the
-/// lag at every sample between its (exact) steps: a division and a few
-/// multiply-adds instead of `expm1f`.
+/// [`step`]. Same guards as [`step`]: a division and a few multiply-adds
+/// instead of `expm1f`. (The board, which evaluates the lag at every
+/// sample between its exact steps, uses the series' second order only,
+/// with `1/τ` and the period's coefficients computed once per τ:
+/// `perpend_board::thermal`.)
 pub fn step_short<T: Real>(y0: T, u0: T, u1: T, dt: T, tau: T) -> T {
     if !(tau > T::zero()) || !tau.is_finite_real() || !dt.is_finite_real() {
         return u1;
