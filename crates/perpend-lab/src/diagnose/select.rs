@@ -288,9 +288,15 @@ fn choose<'a>(
             }
             _ => false,
         };
+    // Two alternatives of the same physics (the polynomial and the table
+    // of a linearity error) are not a simpler and a richer model: the one
+    // that predicts better is named (the table also extrapolates linearly,
+    // where the cubic keeps bending).
+    let alternatives =
+        |v: &Verdict| v.effect.excluded_by(best.effect) && best.effect.excluded_by(v.effect);
     let simpler = winners
         .iter()
-        .filter(|v| v.n_params < best.n_params && within_se(v, best))
+        .filter(|v| v.n_params < best.n_params && !alternatives(v) && within_se(v, best))
         .min_by(|a, b| a.rms.total_cmp(&b.rms))
         .copied();
     let chosen = simpler.unwrap_or(best);
@@ -701,5 +707,38 @@ mod tests {
         let d = decide(&a, &e, 4, &Rule::default(), &[]);
         assert_eq!(d.effect, Effect::Gain);
         assert_eq!(d.verdicts[2].n_params, 32);
+    }
+
+    /// The polynomial and the table are alternatives, not a simpler and a
+    /// richer model: the table, marginally better within one standard
+    /// error, is named; with the roles swapped the polynomial is.
+    #[test]
+    fn of_two_linearity_alternatives_the_better_is_named() {
+        let floor = 0.01;
+        let poly = cv(Effect::Nonlinearity, &losses(floor, 100, 2));
+        let table: Vec<f64> = poly
+            .pose_loss
+            .iter()
+            .enumerate()
+            .map(|(i, l)| l * (0.999 + 0.05 * (i as f64 * 1.7).sin()))
+            .collect();
+        let run = |p: Vec<f64>, t: Vec<f64>| {
+            let a = analysis(vec![
+                (cv(Effect::None, &losses(0.02, 100, 1)), 9.0),
+                (cv(Effect::Nonlinearity, &p), 0.0),
+                (cv(Effect::LinearityTable, &t), 0.0),
+            ]);
+            let e = expectation(&[
+                (Effect::None, floor),
+                (Effect::Nonlinearity, floor),
+                (Effect::LinearityTable, floor),
+            ]);
+            decide(&a, &e, 4, &Rule::default(), &[]).effect
+        };
+        assert_eq!(
+            run(poly.pose_loss.clone(), table.clone()),
+            Effect::LinearityTable
+        );
+        assert_eq!(run(table, poly.pose_loss), Effect::Nonlinearity);
     }
 }
