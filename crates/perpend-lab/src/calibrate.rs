@@ -93,6 +93,31 @@ impl EkfPreset {
     }
 }
 
+/// `poses` (the run without the outliers of `all`) re-timed for `model`:
+/// a thermal lag or a settling drift with the time constant the diagnosis
+/// would choose ([`crate::diagnose::lags`]), the lag filtering every pose's
+/// temperature, the outliers' included. The lag goes to `file`, the choice
+/// to `report`.
+fn retime(
+    model: Effect,
+    nominal: &[perpend_core::head::Sensor<f64>],
+    (all, outliers): (&PoseTable, &[crate::diagnose::noise::Outlier]),
+    poses: &PoseTable,
+    report: &mut String,
+    file: &mut ParamFile,
+) -> PoseTable {
+    use crate::diagnose::{lags, noise};
+    if !matches!(model, Effect::Thermal | Effect::Drift) {
+        return poses.clone();
+    }
+    let chosen = lags::select(nominal, poses, &[model], &LsqConfig::default());
+    lag_lines(model, &chosen, report);
+    if model == Effect::Thermal {
+        file.thermal_tau_s = chosen.thermal_tau_s;
+    }
+    noise::without(&lags::apply(all, &chosen), outliers)
+}
+
 /// Reports the time constant of a thermal lag or a settling drift.
 fn lag_lines(model: Effect, lags: &crate::diagnose::lags::Lags, report: &mut String) {
     if model == Effect::Thermal && lags.thermal_tau_s > 0.0 {
@@ -105,7 +130,7 @@ fn lag_lines(model: Effect, lags: &crate::diagnose::lags::Lags, report: &mut Str
     if model == Effect::Drift && lags.drift_tau_s.is_finite() {
         let _ = writeln!(
             report,
-            "drift settles with τ = {:.0} s (coefficients: its initial rate)",
+            "drift settles with τ = {:.0} s (coefficients: its initial rate; what it still has to come after the run is neither folded nor applied)",
             lags.drift_tau_s
         );
     }
@@ -161,10 +186,10 @@ fn fold_drift(p: &mut SensorParams, t_end_s: f64, report: &mut String) {
     let c = p.fold_drift(t_end_s);
     let _ = writeln!(
         report,
-        "  drift {:+.2} µm/min over the {:.0} s run: the zero point is referred to the run's end \
-         ({:+.4} mm along the beam); the board applies no drift (it is never extrapolated)",
+        "  drift {:+.2} µm/min (initial rate): the zero point is referred to the run's end \
+         ({:+.4} mm along the beam, the drift accumulated over the run); the board applies no \
+         drift (it is never extrapolated)",
         rate * 6e4,
-        t_end_s,
         -c
     );
 }
@@ -387,19 +412,14 @@ pub fn run(a: &Args) -> Result<()> {
     );
     match a.method {
         Method::Lsq => {
-            // A thermal lag / a settling drift: the same time constant as
-            // the diagnosis would find (`diagnose::lags`).
-            let lags = match model {
-                Effect::Thermal | Effect::Drift => {
-                    crate::diagnose::lags::select(&nominal, &poses, &LsqConfig::default())
-                }
-                _ => crate::diagnose::lags::Lags::default(),
-            };
-            let poses = crate::diagnose::lags::apply(&poses, &lags);
-            lag_lines(model, &lags, &mut report);
-            if model == Effect::Thermal {
-                file.thermal_tau_s = lags.thermal_tau_s;
-            }
+            let poses = retime(
+                model,
+                &nominal,
+                (&all_poses, &outliers),
+                &poses,
+                &mut report,
+                &mut file,
+            );
             let refs = Refs::of(&poses);
             if model != Effect::None {
                 let _ = writeln!(

@@ -525,3 +525,73 @@ fn a_thermal_lag_is_found_and_stored() {
         );
     }
 }
+
+/// A drift that settles (`A(1 − e^{−(t − t0)/τ})`, τ = 500 s, times from
+/// t0 = 1000 s): `calibrate --model drift` times it and folds what it
+/// accumulated by the run's end into the zero points, so readings taken
+/// at the run's end measure the normal as well as a drift-free head does.
+#[test]
+fn a_settling_drift_is_folded_at_the_end_of_the_run() {
+    use perpend_core::ext::Context;
+    use perpend_core::head::Head;
+    use perpend_core::normal::{measure, Method as PlaneMethod};
+
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let head = paper_head().unwrap();
+    let cfg = SimConfig {
+        poses: 60,
+        dt_s: Some(30.0),
+        zeta_mm: 0.002,
+        ..SimConfig::paper()
+    };
+    let mut rng = StdRng::seed_from_u64(77);
+    let mut data = simulate(&head, &cfg, &[], &mut rng).unwrap();
+    let amp = [0.1, -0.08, 0.06, -0.1];
+    let settle = |i: usize, t: f64| amp[i] * (1.0 - (-(t - 1000.0) / 500.0).exp());
+    for row in &mut data.poses.rows {
+        let t = row.t_s.unwrap() + 1000.0;
+        row.t_s = Some(t);
+        for (i, x) in row.readings.iter_mut().enumerate() {
+            if let Some(x) = x {
+                *x += settle(i, t);
+            }
+        }
+    }
+    let t_end = data
+        .poses
+        .rows
+        .iter()
+        .filter_map(|r| r.t_s)
+        .fold(0.0, f64::max);
+    write_dataset(d, &data.sensors, &data.poses, &["settling drift".into()]).unwrap();
+    let out = d.join("params.json");
+    let mut a = args(d, Method::Lsq, Some(&out));
+    a.model = Model::Drift;
+    calibrate::run(&a).unwrap();
+    let folded: Head<f64, 4> = ParamFile::read(&out).unwrap().to_head::<4>().unwrap();
+    let (mut err, mut err_unfolded) = (0.0f64, 0.0f64);
+    for k in 0..20 {
+        let (tx, ty) = (17.0 + (k % 5) as f64, -1.0 - (k / 5) as f64);
+        let plane = plane_from_tilts(tx.to_radians(), ty.to_radians(), 36.0);
+        let r: [Option<f64>; 4] = core::array::from_fn(|i| {
+            perpend_core::model::distance(&head.truth[i], &plane, i)
+                .ok()
+                .map(|x| x + settle(i, t_end))
+        });
+        let ctx = Context::default();
+        let m = measure(&folded, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
+        err = err.max(angle_deg(&m.plane.normal, &plane.n));
+        let mut start = folded;
+        for (i, s) in start.sensors.iter_mut().enumerate() {
+            s.zero += s.dir * settle(i, t_end);
+        }
+        let m0 = measure(&start, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
+        err_unfolded = err_unfolded.max(angle_deg(&m0.plane.normal, &plane.n));
+    }
+    assert!(err < 0.02, "folded: {err}°");
+    assert!(
+        err_unfolded > 2.0 * err,
+        "unfolded {err_unfolded}° vs folded {err}°"
+    );
+}

@@ -146,8 +146,8 @@ impl Effect {
             | Effect::Unexplained => "reading − mean reading [mm]",
             Effect::Incidence => "1/cos γ − 1 (γ: beam to surface normal)",
             Effect::Crosstalk => "previous channel's reading − reading [mm]",
-            Effect::Thermal => "head temperature − mean [°C]",
-            Effect::Drift => "time since start [s]",
+            Effect::Thermal => "temperature (lagged where a lag was fitted) − mean [°C]",
+            Effect::Drift => "time since start (settling where fitted) [s]",
         }
     }
 }

@@ -787,6 +787,20 @@ fn settle(
     Ok((estimate, noise, expected, decision))
 }
 
+/// The run without `outliers`, re-timed with the time constants chosen on
+/// it ([`lags`]; the lag filters every pose's temperature, the outliers'
+/// included).
+fn retimed(
+    nominal: &[Sensor<f64>],
+    all: &PoseTable,
+    outliers: &[Outlier],
+    lsq: &LsqConfig<f64>,
+) -> (PoseTable, lags::Lags) {
+    let kept = noise::without(all, outliers);
+    let lags = lags::select(nominal, &kept, &[Effect::Thermal, Effect::Drift], lsq);
+    (noise::without(&lags::apply(all, &lags), outliers), lags)
+}
+
 /// Runs the diagnosis on a run read from the exchange format, in one pass:
 /// load → bad poses → noise → nominal fit → candidates → held-out scores →
 /// decision.
@@ -806,9 +820,8 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         );
     }
     let outliers = noise::reject(&nominal, all_poses, &s.lsq, &available_models(all_poses));
-    let kept = noise::without(all_poses, &outliers);
-    let lags = lags::select(&nominal, &kept, &s.lsq);
-    let poses = &lags::apply(&kept, &lags);
+    let (poses, lags) = retimed(&nominal, all_poses, &outliers, &s.lsq);
+    let poses = &poses;
     let n = poses.rows.len();
     if n < 2 * s.folds.max(2) {
         bail!(

@@ -321,7 +321,7 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             (Effect::Thermal, Some(tau)) => {
                 let _ = writeln!(
                     o,
-                    "  thermal acts on the sensor bodies' temperature, which lags the logged one by τ = {tau:.0} s (first-order; stored with the calibration, the board lags its temperature alike)"
+                    "  thermal acts on the sensor bodies' temperature, which lags the logged one by τ = {tau:.0} s (first-order; `--out` stores it, and the board lags its temperature alike)"
                 );
             }
             (Effect::Drift, Some(tau)) => {
