@@ -387,9 +387,8 @@ fn expected_accuracy_matches_the_actual_calibration_error() {
 /// 0.18 mm off along every beam.
 #[test]
 fn drift_is_folded_into_the_zero_points_at_the_end_of_the_run() {
-    use perpend_core::ext::{Context, Extension};
+    use perpend_core::ext::Extension;
     use perpend_core::head::Head;
-    use perpend_core::normal::{measure, Method as PlaneMethod};
     use perpend_lab::sim::ExtensionEffect;
 
     let dir = tempfile::tempdir().unwrap();
@@ -428,26 +427,7 @@ fn drift_is_folded_into_the_zero_points_at_the_end_of_the_run() {
 
     // After the run: the true readings carry the excess of the run's end.
     let excess = rate * t_end;
-    let ctx = Context::default();
-    let (mut err_folded, mut err_start) = (0.0f64, 0.0f64);
-    for k in 0..20 {
-        let (tx, ty) = (17.0 + (k % 5) as f64, -1.0 - (k / 5) as f64);
-        let plane = plane_from_tilts(tx.to_radians(), ty.to_radians(), 36.0);
-        let r: [Option<f64>; 4] = core::array::from_fn(|i| {
-            perpend_core::model::distance(&head.truth[i], &plane, i)
-                .ok()
-                .map(|x| x + excess)
-        });
-        let m = measure(&folded, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
-        err_folded = err_folded.max(angle_deg(&m.plane.normal, &plane.n));
-        // the same head with the start-of-run zero points (drift undone)
-        let mut start = folded;
-        for s in start.sensors.iter_mut() {
-            s.zero += s.dir * excess;
-        }
-        let m0 = measure(&start, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
-        err_start = err_start.max(angle_deg(&m0.plane.normal, &plane.n));
-    }
+    let (err_folded, err_start) = fold_errors(&head.truth, &folded, &|_| excess);
     assert!(err_folded < 0.02, "folded: {err_folded}°");
     assert!(
         err_start > 3.0 * err_folded,
@@ -471,6 +451,53 @@ fn models_the_board_cannot_apply_are_refused() {
     }
 }
 
+/// Worst normal error [deg] over 20 planes whose true readings carry the
+/// excess `excess(sensor)` of the run's end: of the head `folded` (drift
+/// folded into its zero points) and of the same head with that excess
+/// undone (the start-of-run zero points).
+fn fold_errors(
+    truth: &[perpend_core::head::Sensor<f64>],
+    folded: &perpend_core::head::Head<f64, 4>,
+    excess: &dyn Fn(usize) -> f64,
+) -> (f64, f64) {
+    use perpend_core::ext::Context;
+    use perpend_core::normal::{measure, Method as PlaneMethod};
+    let ctx = Context::default();
+    let mut start = *folded;
+    for (i, s) in start.sensors.iter_mut().enumerate() {
+        s.zero += s.dir * excess(i);
+    }
+    let (mut err_folded, mut err_start) = (0.0f64, 0.0f64);
+    for k in 0..20 {
+        let (tx, ty) = (17.0 + (k % 5) as f64, -1.0 - (k / 5) as f64);
+        let plane = plane_from_tilts(tx.to_radians(), ty.to_radians(), 36.0);
+        let r: [Option<f64>; 4] = core::array::from_fn(|i| {
+            perpend_core::model::distance(&truth[i], &plane, i)
+                .ok()
+                .map(|x| x + excess(i))
+        });
+        let m = measure(folded, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
+        err_folded = err_folded.max(angle_deg(&m.plane.normal, &plane.n));
+        let m0 = measure(&start, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
+        err_start = err_start.max(angle_deg(&m0.plane.normal, &plane.n));
+    }
+    (err_folded, err_start)
+}
+
+/// The paper's head on 60 poses 30 s apart (reading noise 2 µm), effect free.
+fn timed_run(seed: u64) -> (perpend_lab::sim::SimHead, perpend_lab::sim::Dataset) {
+    let head = paper_head().unwrap();
+    let cfg = SimConfig {
+        poses: 60,
+        dt_s: Some(30.0),
+        zeta_mm: 0.002,
+        ..SimConfig::paper()
+    };
+    let mut rng = StdRng::seed_from_u64(seed);
+    let data = simulate(&head, &cfg, &[], &mut rng).unwrap();
+    (head, data)
+}
+
 /// A warm-up whose sensor bodies lag the head thermometer (closed form of
 /// an exponential warm-up through a first-order lag, τ = 400 s, not the
 /// code under test): `calibrate --model thermal` finds the lag within one
@@ -480,15 +507,7 @@ fn models_the_board_cannot_apply_are_refused() {
 fn a_thermal_lag_is_found_and_stored() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let head = paper_head().unwrap();
-    let cfg = SimConfig {
-        poses: 60,
-        dt_s: Some(30.0),
-        zeta_mm: 0.002,
-        ..SimConfig::paper()
-    };
-    let mut rng = StdRng::seed_from_u64(41);
-    let mut data = simulate(&head, &cfg, &[], &mut rng).unwrap();
+    let (_, mut data) = timed_run(41);
     let k = [0.02, -0.015, 0.01, -0.02];
     let (t0, rise, tau_h, tau_l) = (21.0, 8.0, 900.0, 400.0);
     for row in &mut data.poses.rows {
@@ -532,21 +551,11 @@ fn a_thermal_lag_is_found_and_stored() {
 /// at the run's end measure the normal as well as a drift-free head does.
 #[test]
 fn a_settling_drift_is_folded_at_the_end_of_the_run() {
-    use perpend_core::ext::Context;
     use perpend_core::head::Head;
-    use perpend_core::normal::{measure, Method as PlaneMethod};
 
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let head = paper_head().unwrap();
-    let cfg = SimConfig {
-        poses: 60,
-        dt_s: Some(30.0),
-        zeta_mm: 0.002,
-        ..SimConfig::paper()
-    };
-    let mut rng = StdRng::seed_from_u64(77);
-    let mut data = simulate(&head, &cfg, &[], &mut rng).unwrap();
+    let (head, mut data) = timed_run(77);
     let amp = [0.1, -0.08, 0.06, -0.1];
     let settle = |i: usize, t: f64| amp[i] * (1.0 - (-(t - 1000.0) / 500.0).exp());
     for row in &mut data.poses.rows {
@@ -570,25 +579,7 @@ fn a_settling_drift_is_folded_at_the_end_of_the_run() {
     a.model = Model::Drift;
     calibrate::run(&a).unwrap();
     let folded: Head<f64, 4> = ParamFile::read(&out).unwrap().to_head::<4>().unwrap();
-    let (mut err, mut err_unfolded) = (0.0f64, 0.0f64);
-    for k in 0..20 {
-        let (tx, ty) = (17.0 + (k % 5) as f64, -1.0 - (k / 5) as f64);
-        let plane = plane_from_tilts(tx.to_radians(), ty.to_radians(), 36.0);
-        let r: [Option<f64>; 4] = core::array::from_fn(|i| {
-            perpend_core::model::distance(&head.truth[i], &plane, i)
-                .ok()
-                .map(|x| x + settle(i, t_end))
-        });
-        let ctx = Context::default();
-        let m = measure(&folded, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
-        err = err.max(angle_deg(&m.plane.normal, &plane.n));
-        let mut start = folded;
-        for (i, s) in start.sensors.iter_mut().enumerate() {
-            s.zero += s.dir * settle(i, t_end);
-        }
-        let m0 = measure(&start, &r, &ctx, PlaneMethod::LeastSquares).unwrap();
-        err_unfolded = err_unfolded.max(angle_deg(&m0.plane.normal, &plane.n));
-    }
+    let (err, err_unfolded) = fold_errors(&head.truth, &folded, &|i| settle(i, t_end));
     assert!(err < 0.02, "folded: {err}°");
     assert!(
         err_unfolded > 2.0 * err,

@@ -189,7 +189,7 @@ fn best(
     poses: &PoseTable,
     effect: Effect,
     grid: &[f64],
-    retime: impl Fn(f64) -> Lags,
+    retime: &dyn Fn(f64) -> Lags,
     cfg: &LsqConfig<f64>,
 ) -> f64 {
     // With as many of the other kinds beside it as the run identifies.
@@ -231,37 +231,22 @@ pub fn select(
         return Lags::default();
     };
     let run = t[order[order.len() - 1]] - t[order[0]];
-    let mut lags = Lags::default();
     let wanted = |e: Effect| effects.contains(&e) && super::candidates::available(e, poses).is_ok();
-    if wanted(Effect::Thermal) {
-        let x = best(
-            nominal,
-            poses,
-            Effect::Thermal,
-            &THERMAL_GRID,
-            |x| Lags {
-                thermal_tau_s: x * run,
-                ..Lags::default()
-            },
-            cfg,
-        );
-        lags.thermal_tau_s = x * run;
+    let thermal = |x: f64| Lags {
+        thermal_tau_s: x * run,
+        ..Lags::default()
+    };
+    let drift = |x: f64| Lags {
+        drift_tau_s: x * run,
+        ..Lags::default()
+    };
+    let pick = |e: Effect, grid: &[f64], retime: &dyn Fn(f64) -> Lags| {
+        wanted(e).then(|| best(nominal, poses, e, grid, retime, cfg) * run)
+    };
+    Lags {
+        thermal_tau_s: pick(Effect::Thermal, &THERMAL_GRID, &thermal).unwrap_or(0.0),
+        drift_tau_s: pick(Effect::Drift, &DRIFT_GRID, &drift).unwrap_or(f64::INFINITY),
     }
-    if wanted(Effect::Drift) {
-        let x = best(
-            nominal,
-            poses,
-            Effect::Drift,
-            &DRIFT_GRID,
-            |x| Lags {
-                drift_tau_s: x * run,
-                ..Lags::default()
-            },
-            cfg,
-        );
-        lags.drift_tau_s = x * run;
-    }
-    lags
 }
 
 #[cfg(test)]
