@@ -82,35 +82,6 @@ pub fn increment<T: Real>(y0: T, u0: T, u1: T, one_minus_a: T, phi: T) -> T {
     y0 + ((u0 - y0) * one_minus_a + (du - du * phi))
 }
 
-/// Largest `dt/τ` for which [`step_short`] uses its series.
-pub const SHORT_X_MAX: f64 = 1.0 / 16.0;
-
-/// As [`step`], without the exponential for a short interval: for
-/// `x = dt/τ ≤` [`SHORT_X_MAX`] `φ = (1 − e^{−x})/x` is its Taylor series
-/// `1 − x/2 + x²/6 − x³/24 + x⁴/120` (truncation below `x⁵/720 < 1.4e-9`
-/// of the temperature span, far under an `f32` ulp) and `1 − a = x·φ`; a longer interval is
-/// [`step`]. Same guards as [`step`]: a division and a few multiply-adds
-/// instead of `expm1f`. (The board, which evaluates the lag at every
-/// sample between its exact steps, uses the series' second order only,
-/// with `1/τ` and the period's coefficients computed once per τ:
-/// `perpend_board::thermal`.)
-pub fn step_short<T: Real>(y0: T, u0: T, u1: T, dt: T, tau: T) -> T {
-    if !(tau > T::zero()) || !tau.is_finite_real() || !dt.is_finite_real() {
-        return u1;
-    }
-    if !(dt > T::zero()) {
-        return y0;
-    }
-    let x = dt / tau;
-    if !(x <= T::lit(SHORT_X_MAX)) {
-        return step(y0, u0, u1, dt, tau);
-    }
-    let c = |v: f64| T::lit(v);
-    let phi =
-        T::one() - x * (c(0.5) - x * (c(1.0 / 6.0) - x * (c(1.0 / 24.0) - x * c(1.0 / 120.0))));
-    increment(y0, u0, u1, x * phi, phi)
-}
-
 /// The lagged input at each of the times `t` (ascending, [s]) of the
 /// samples `u`, starting at rest (`y = u[0]`): [`step`] between
 /// consecutive samples. `out` receives one value per sample; extra
@@ -162,34 +133,11 @@ mod tests {
         }
     }
 
-    /// The series of `step_short` agrees with the exponential up to
-    /// `x = 1/16` (f64: within the series truncation, 1e-8 °C on a span of
-    /// 8 °C; f32: a few ulps of a temperature of 30 °C), and beyond it is
-    /// `step` itself.
-    #[test]
-    fn short_step_agrees_with_the_exact_one() {
-        let tau = 300.0_f64;
-        for k in 0..=200 {
-            let dt = tau * SHORT_X_MAX * k as f64 / 200.0;
-            let (y0, u0, u1) = (21.5, 27.0, 29.5);
-            let want = step(y0, u0, u1, dt, tau);
-            assert_relative_eq!(step_short(y0, u0, u1, dt, tau), want, epsilon = 1e-8);
-            let got = step_short(y0 as f32, u0 as f32, u1 as f32, dt as f32, tau as f32);
-            assert!((got as f64 - want).abs() <= 8e-6, "{dt}: {got} vs {want}");
-        }
-        let long = step(20.0_f64, 30.0, 31.0, 40.0, tau);
-        assert_eq!(step_short(20.0_f64, 30.0, 31.0, 40.0, tau), long);
-        assert_eq!(step_short(0.3_f64, 1.0, 2.0, 5.0, 0.0), 2.0);
-        assert_eq!(step_short(0.3_f64, 1.0, 2.0, 0.0, 5.0), 0.3);
-        assert_eq!(step_short(0.3_f64, 1.0, 2.0, f64::NAN, 5.0), 2.0);
-    }
-
     /// `dt/τ` that rounds to 0 (an `f32` `dt` of 1e-45 s) leaves `y0`
     /// instead of `0/0` = NaN.
     #[test]
     fn a_step_too_short_to_count_leaves_the_state() {
         assert_eq!(step(21.0f32, 22.0, 23.0, 1e-45, 10.0), 21.0);
-        assert_eq!(step_short(21.0f32, 22.0, 23.0, 1e-45, 10.0), 21.0);
         assert_eq!(step(21.0f64, 22.0, 23.0, 1e-320, 1e6), 21.0);
     }
 

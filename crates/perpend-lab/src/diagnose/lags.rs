@@ -204,12 +204,12 @@ fn best(
                 .map(|(e, _)| e)
                 .collect::<Vec<_>>()
         })
-        .find(|b| rss_with(nominal, &start, effect, b, cfg).is_some())
-        .unwrap_or_default();
-    let score = |x: f64| rss_with(nominal, &apply(poses, &retime(x)), effect, &beside, cfg);
-    let Some((r0, _)) = score(grid[0]) else {
+        .find_map(|b| rss_with(nominal, &start, effect, &b, cfg).map(|(r0, _)| (b, r0)));
+    // Not even the candidate alone fits: the default.
+    let Some((beside, r0)) = beside else {
         return grid[0];
     };
+    let score = |x: f64| rss_with(nominal, &apply(poses, &retime(x)), effect, &beside, cfg);
     grid[1..]
         .iter()
         .filter_map(|&x| score(x).map(|s| (x, s)))
