@@ -373,15 +373,17 @@ def refit_residuals(e, u, planes, target):
     return [t - beam_distance(e2, u2, pl) for t, pl in zip(target, planes)]
 
 
-def oracle_heldout(head, planes, target, skip, rng, k=5):
+def oracle_heldout(head, planes, target, skip, rng):
     """The floor on these very draws, held out as the diagnosis holds out:
     readings with the true effects removed (`target`), every sensor's zero
     point and direction fitted on k-1 folds of the poses (those in `skip`,
     the blunders, left out) and each held-out reading predicted. What a
     calibration that knew the effects exactly would achieve on this run.
-    Returns the held-out residual of every pose and sensor (None for
-    `skip`)."""
+    k follows the diagnosis's documented convention: 5 folds, and on runs of
+    fewer than 50 poses 10 (at most half the poses, at least 5). Returns the held-out residual of every pose and
+    sensor (None for `skip`)."""
     keep = [j for j in range(len(planes)) if j not in skip]
+    k = max(5, min(10, len(keep) // 2)) if len(keep) < 50 else 5
     order = keep[:]
     rng.shuffle(order)
     fold = {j: n % k for n, j in enumerate(order)}

@@ -138,8 +138,9 @@ def run_one(args):
 
 def same_draw_floor(r):
     """The noise floor on the same draws, held out: RMS of gen.py's
-    `oracle_heldout_mm` (zero points and directions fitted by 5-fold
-    cross-validation to the readings with the true effects removed) over
+    `oracle_heldout_mm` (zero points and directions fitted by k-fold
+    cross-validation, k as the diagnosis chooses it, to the readings with
+    the true effects removed) over
     the poses the diagnosis kept."""
     res = r["truth"].get("oracle_heldout_mm")
     if not res:

@@ -95,7 +95,8 @@ fn hidden_effects_are_named_from_the_files_alone() {
             continue;
         }
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 10, "{keys:?}");
+        assert_eq!(keys.len(), 11, "{keys:?}");
+        assert!(d.folds >= 5, "seed {seed}: {} folds", d.folds);
         assert!(
             d.outlier_poses.is_empty(),
             "seed {seed}: {:?}",

@@ -117,7 +117,8 @@ pub fn run_one(sc: &Scenario, settings: &Settings, tag: &str) -> Result<Record> 
         .sensors
         .sensors()
         .map_err(|e| anyhow!("nominal head: {e}"))?;
-    let folds = Folds::new(g.clean.poses.rows.len(), settings.folds, settings.seed);
+    let n = g.clean.poses.rows.len();
+    let folds = Folds::new(n, super::folds_for(n, settings.folds), settings.seed);
     let floor = cross_validate(
         Effect::None,
         &nominal,
