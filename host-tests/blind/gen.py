@@ -20,6 +20,19 @@ from the diagnosis candidates' exact regressors:
 | ripple            | A * sin(2 pi d / lambda), out of every catalogue            |
 | blunder           | the tracker's plane of 2 poses is off by 0.4 mm              |
 
+Off the catalogue (`score.py --offcat`: forms neither this table's
+singles nor the diagnosis's candidates have):
+
+| effect / case key | what                                                        |
+|-------------------|-------------------------------------------------------------|
+| linearity_knee    | A_i * max(0, x - x_i): the slope changes at x_i in [-0.5, 0.5] |
+| thermal_lag2      | thermal_lag through two first-order stages (second order)   |
+| crosstalk_sq      | c * (d_prev - d) * abs(d_prev - d): carry-over that grows with the step |
+| noise: t3         | reading noise Student-t with 3 degrees of freedom (same sd) |
+| noise: hetero     | reading noise sd from 0.5x to 1.5x sigma across the range   |
+| spatter: n        | n single readings (one sensor of a pose) off by 0.3 mm      |
+| missing: n        | n readings left empty                                       |
+
 Temperatures are monotonic (a warm-up, no swing), so thermal and drift are
 time-like and may only be told apart when the lag bends the relation.
 
@@ -209,11 +222,33 @@ def effect_error(kind, par, i, ctx):
         return par["c"] * (ctx["d"][prev] - d)
     if kind == "thermal_lag":
         return par["k"][i] * (ctx["t_sensor"] - ctx["T0"])
+    if kind == "thermal_lag2":
+        return par["k"][i] * (ctx["t_sensor2"] - ctx["T0"])
+    if kind == "linearity_knee":
+        x = (d - ctx["mid"][i]) / ctx["half"][i]
+        return par["A"][i] * max(0.0, x - par["xk"][i])
+    if kind == "crosstalk_sq":
+        order = par["order"]
+        step = ctx["d"][order[order.index(i) - 1]] - d
+        return par["c"] * step * abs(step)
     if kind == "drift_settle":
         return par["A"][i] * (1.0 - math.exp(-ctx["t"] / par["tau"]))
     if kind == "ripple":
         return par["A"] * math.sin(2 * math.pi * d / par["lam"] + par["ph"][i])
     raise ValueError(kind)
+
+
+def reading_noise(case, rng, sd, d, lo, hi):
+    """One reading's noise: Gaussian of sd `sd`, or the case's `noise`
+    variant (Student-t with 3 degrees of freedom scaled to the same sd; or
+    Gaussian whose sd grows from 0.5 sd to 1.5 sd across the range lo..hi)."""
+    kind = case.get("noise")
+    if kind == "t3":
+        chi2 = sum(rng.gauss(0, 1) ** 2 for _ in range(3))
+        return sd * rng.gauss(0, 1) / math.sqrt(max(1e-12, chi2 / 3)) / math.sqrt(3)
+    if kind == "hetero":
+        return rng.gauss(0, sd * (0.5 + (d - lo) / max(1e-9, hi - lo)))
+    return rng.gauss(0, sd)
 
 
 def draw_effect(kind, rng, size_mm, span_mm):
@@ -227,14 +262,16 @@ def draw_effect(kind, rng, size_mm, span_mm):
         return {"g": [a / span_mm for a in per_sensor()]}
     if kind in ("linearity_s", "linearity_cubic"):
         return {"A": per_sensor()}
+    if kind == "linearity_knee":
+        return {"A": per_sensor(), "xk": [rng.uniform(-0.5, 0.5) for _ in range(4)]}
     if kind in ("incidence_tan", "incidence_sec"):
         return {"k": None, "size": size_mm}  # scaled once the angles are known
-    if kind == "crosstalk":
+    if kind in ("crosstalk", "crosstalk_sq"):
         order = list(range(4))
         if rng.random() < 0.5:
             rng.shuffle(order)
         return {"c": None, "size": size_mm, "order": order}
-    if kind == "thermal_lag":
+    if kind in ("thermal_lag", "thermal_lag2"):
         return {"k": None, "size": size_mm, "signs": per_sensor()}
     if kind == "drift_settle":
         return {"A": per_sensor(), "tau": rng.uniform(600.0, 2400.0)}
@@ -274,7 +311,10 @@ def physical_cap(kind, par, span, gammas, temps):
         return cap(abs(par["k"]) * (max(v) - min(v)), PHYSICAL["incidence"])
     if kind == "crosstalk":
         return cap(par["c"], PHYSICAL["crosstalk"])
-    if kind == "thermal_lag":
+    if kind == "crosstalk_sq":
+        # the carry-over's share at the largest step
+        return cap(par["c"] * par["step_max"], PHYSICAL["crosstalk"])
+    if kind in ("thermal_lag", "thermal_lag2"):
         return cap(max(abs(k) for k in par["k"]), PHYSICAL["thermal"])
     if kind == "drift_settle":
         return cap(max(abs(a) for a in par["A"]), PHYSICAL["drift"])
@@ -380,8 +420,9 @@ def oracle_heldout(head, planes, target, skip, rng):
     the blunders, left out) and each held-out reading predicted. What a
     calibration that knew the effects exactly would achieve on this run.
     k follows the diagnosis's documented convention: 5 folds, and on runs of
-    fewer than 50 poses 10 (at most half the poses, at least 5). Returns the held-out residual of every pose and
-    sensor (None for `skip`)."""
+    fewer than 50 poses 10 (at most half the poses, at least 5). Returns
+    the held-out residual of every pose and sensor (None for `skip` and
+    for missing readings)."""
     keep = [j for j in range(len(planes)) if j not in skip]
     k = max(5, min(10, len(keep) // 2)) if len(keep) < 50 else 5
     order = keep[:]
@@ -392,10 +433,12 @@ def oracle_heldout(head, planes, target, skip, rng):
         train = [j for j in keep if fold[j] != f]
         test = [j for j in keep if fold[j] == f]
         for i, (e, u) in enumerate(head):
-            e2, u2 = refit(e, u, [planes[j] for j in train], [target[j][i] for j in train],
+            tr = [j for j in train if target[j][i] is not None]
+            e2, u2 = refit(e, u, [planes[j] for j in tr], [target[j][i] for j in tr],
                            damped=True)
             for j in test:
-                out[j][i] = target[j][i] - beam_distance(e2, u2, planes[j])
+                if target[j][i] is not None:
+                    out[j][i] = target[j][i] - beam_distance(e2, u2, planes[j])
     return out
 
 
@@ -412,6 +455,25 @@ def visible_rms(head, planes, true_d, errs):
 
 
 # --------------------------------------------------------------- a run
+
+
+def damage(case, rows, clean, blunders):
+    """The case's `spatter` (single readings off by 0.3 mm, on poses
+    without a blunder) and `missing` readings (emptied), drawn from their
+    own stream so that the rest of the run is the same draw without them.
+    Returns the spattered poses (0-based)."""
+    extra = random.Random(case["seed"] + 13)
+    spatter = set()
+    for _ in range(case.get("spatter", 0)):
+        k = extra.choice([j for j in range(len(rows)) if j not in blunders | spatter])
+        i = extra.randrange(4)
+        rows[k]["reads"][i] += 0.3 * extra.choice([-1, 1])
+        spatter.add(k)
+    for _ in range(case.get("missing", 0)):
+        k, i = extra.randrange(len(rows)), extra.randrange(4)
+        rows[k]["reads"][i] = None
+        clean[k][i] = None
+    return spatter
 
 
 def generate(case):
@@ -443,17 +505,20 @@ def generate(case):
     dT = rng.uniform(4.0, 9.0)
     tau_h = rng.uniform(0.4, 0.9) * t_end
     tau_lag = rng.uniform(0.15, 0.35) * t_end
-    head_T, sensor_T = [], []
-    ts = T0
+    head_T, sensor_T, sensor_T2 = [], [], []
+    ts = ts2 = T0
     prev_t = 0.0
     for t in times:
         th = T0 + dT * (1.0 - math.exp(-t / tau_h))
         # first-order lag of the sensor body behind the head (exact step)
         a = math.exp(-(t - prev_t) / tau_lag)
         ts = a * ts + (1 - a) * th
+        # a second stage of the same time constant behind the first
+        ts2 = a * ts2 + (1 - a) * ts
         prev_t = t
         head_T.append(th)
         sensor_T.append(ts)
+        sensor_T2.append(ts2)
 
     true_d = [[beam_distance(e, u, p) for (e, u) in truth] for p in planes]
     gam = [[math.acos(min(1.0, abs(dot(p[0], u)))) for (_, u) in truth] for p in planes]
@@ -465,7 +530,8 @@ def generate(case):
 
     def context(k):
         return {"d": true_d[k], "d_lo": d_lo, "mid": mid, "half": half, "gamma": gam[k],
-                "t": times[k], "t_sensor": sensor_T[k], "T0": sensor_T[0]}
+                "t": times[k], "t_sensor": sensor_T[k], "t_sensor2": sensor_T2[k],
+                "T0": sensor_T[0]}
 
     effects, visible = [], []
     for kind, size in case["effects"]:
@@ -478,8 +544,13 @@ def generate(case):
             # the size is the carry-over's typical error: c * |d_prev - d|
             diffs = [abs(r[par["order"][j - 1]] - r[par["order"][j]]) for r in true_d for j in range(4)]
             par["c"] = min(0.3, size / max(1e-9, sum(diffs) / len(diffs)))
-        if kind == "thermal_lag":
-            rise = max(1e-9, sensor_T[-1] - sensor_T[0])
+        if kind == "crosstalk_sq":
+            diffs = [abs(r[par["order"][j - 1]] - r[par["order"][j]]) for r in true_d for j in range(4)]
+            par["step_max"] = max(diffs)
+            par["c"] = size / max(1e-12, sum(x * x for x in diffs) / len(diffs))
+        if kind in ("thermal_lag", "thermal_lag2"):
+            lagged = sensor_T if kind == "thermal_lag" else sensor_T2
+            rise = max(1e-9, lagged[-1] - lagged[0])
             par["k"] = [s / rise for s in par["signs"]]
         effects.append((kind, par))
 
@@ -519,7 +590,8 @@ def generate(case):
                 reads.append(true_d[k][i] + err + m)
                 sds.append(sd)
             else:
-                reads.append(true_d[k][i] + err + rng.gauss(0, sig_i[i]))
+                reads.append(true_d[k][i] + err + reading_noise(case, rng, sig_i[i], true_d[k][i],
+                                                                d_lo[i], d_hi[i]))
         centre = [0.0, 0.0, -p[1] / p[0][2]]
         meas = tracker_fit(p, rng, xi, 20, 150.0, centre)
         if k in blunders:
@@ -529,12 +601,14 @@ def generate(case):
                       for i in range(4)])
         rows.append({"pose": k + 1, "plane": meas, "reads": reads, "sds": sds,
                      "t": times[k], "T": head_T[k] + rng.gauss(0, 0.05)})
-    oracle = oracle_heldout(truth, [r["plane"] for r in rows], clean, blunders,
+    spatter = damage(case, rows, clean, blunders)
+    oracle = oracle_heldout(truth, [r["plane"] for r in rows], clean, blunders | spatter,
                             random.Random(case["seed"] + 11))
     return nominal, rows, {"effects": [[k, s] for k, s in case["effects"]],
                            "visible_rms_mm": visible,
                            "crosstalk_order": [p.get("order") for _, p in effects if "order" in p],
                            "blunder_poses": sorted(b + 1 for b in blunders),
+                           "spatter_poses": sorted(k + 1 for k in spatter),
                            "oracle_heldout_mm": oracle,
                            "sigma_mm": sig_i, "tracker_xi_mm": xi,
                            "temp_rise_c": dT, "run_s": t_end}
@@ -568,7 +642,7 @@ def write(case, out):
             r = rows[j]
             n, d = r["plane"]
             vals = [str(r["pose"])] + ["%.9f" % x for x in n] + ["%.6f" % d]
-            vals += ["%.6f" % x for x in r["reads"]]
+            vals += ["" if x is None else "%.6f" % x for x in r["reads"]]
             vals += ["%.1f" % r["t"], "%.3f" % r["T"]]
             if case.get("n_samples"):
                 vals += ["%.6f" % x for x in r["sds"]] + [str(case["n_samples"])]

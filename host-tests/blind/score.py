@@ -69,6 +69,18 @@ COMBINED = [
     ("spread 2 + 30 poses", {"spread_deg": 2.0, "poses": 30}),
 ]
 
+# Off the catalogue (`--offcat`): noise that is not Gaussian or not the same
+# across the range, readings missing, single readings spattered, and three
+# effect shapes neither gen.py's singles nor the diagnosis's candidates have
+# (gen.py's docstring), with the usual singles beside them.
+OFFCAT = [
+    ("base", {}),
+    ("noise t3", {"noise": "t3"}),
+    ("noise hetero", {"noise": "hetero"}),
+    ("missing readings", {"missing": 6}),
+]
+OFFCAT_SINGLES = ["linearity_knee", "thermal_lag2", "crosstalk_sq"]
+
 SINGLES = ["gain", "linearity_s", "linearity_cubic", "incidence_tan", "incidence_sec",
            "crosstalk", "thermal_lag", "drift_settle"]
 PAIRS = [("gain", "thermal_lag"), ("gain", "drift_settle"), ("crosstalk", "gain"),
@@ -86,6 +98,10 @@ ACCEPT = {
     # monotonic temperature: time-like effects, thermal and drift both fit
     "thermal_lag": {"thermal", "drift"},
     "drift_settle": {"drift", "thermal"},
+    # off the catalogue: the physics each shape belongs to
+    "linearity_knee": {"nonlinearity", "linearity_table"},
+    "thermal_lag2": {"thermal", "drift"},
+    "crosstalk_sq": {"crosstalk"},
 }
 
 
@@ -112,6 +128,8 @@ def make_case(regime, truth, seed, size_sigma, geometry):
         pass
     elif truth == "blunders":
         case["blunders"] = 2
+    elif truth == "spatter":
+        case["spatter"] = 2
     elif truth == "ripple":
         case["effects"] = [["ripple", s]]
     elif isinstance(truth, tuple):
@@ -166,9 +184,9 @@ def grade(r):
     kinds = [k for k, _ in case["effects"]]
     if not kinds:
         g["ok"] = effect == "none"
-        if case["blunders"]:
+        if case["blunders"] or case.get("spatter"):
             found = {o["pose"] for o in out.get("outlier_poses", [])}
-            want = set(r["truth"]["blunder_poses"])
+            want = set(r["truth"]["blunder_poses"]) | set(r["truth"].get("spatter_poses", []))
             g["blunders_found"] = want <= found
             g["extra_outliers"] = len(found - want)
         else:
@@ -206,11 +224,14 @@ def grade(r):
 TUNE_SEEDS = 1000
 
 
-def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None, combined=False):
+def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None, combined=False, offcat=False):
     regimes = REGIMES[:1] + [r for r in REGIMES[1:] if not quick or r[0] in (
         "sigma 0.03", "declared x0.5", "declared missing", "tracker x3", "spread 2 deg", "30 poses")]
     if combined:
         regimes = REGIMES[:1] + COMBINED
+    if offcat:
+        return plan_offcat(seed_base, nulls if nulls is not None else 20,
+                           effects if effects is not None else 3)
     n_null = nulls if nulls is not None else (12 if quick else 20)
     n_eff = effects if effects is not None else (2 if quick else 5)
     jobs = []
@@ -239,7 +260,7 @@ def summarise(results):
     cells = {}
     for reg, truth, r in results:
         g = grade(r)
-        cls = ("none" if truth == "none" else "blunders" if truth == "blunders"
+        cls = ("none" if truth == "none" else "blunders" if truth in ("blunders", "spatter")
                else "ripple" if truth == "ripple" else "pair" if isinstance(truth, tuple) else "single")
         if cls in ("single", "pair") and g.get("visible", 1.0) < VISIBLE_MIN:
             # physically capped below reach: reported, not graded
@@ -408,6 +429,23 @@ def svg(cells, path):
         f.write("\n".join(out) + "\n")
 
 
+def plan_offcat(seed_base, n_null, n_eff):
+    """The off-catalogue block (OFFCAT): per regime, effect-free runs, then
+    every single (the catalogue's and OFFCAT_SINGLES) and spatter."""
+    jobs = []
+    seed = seed_base
+    for reg in OFFCAT:
+        for j in range(n_null):
+            seed += 1
+            jobs.append((reg[0], "none", make_case(reg, "none", seed, 0, ["ring45", "tian30"][j % 2])))
+        for j in range(n_eff):
+            for truth in SINGLES + OFFCAT_SINGLES + ["spatter"]:
+                seed += 1
+                geo = ["ring45", "tian30"][(j + seed) % 2]
+                jobs.append((reg[0], truth, make_case(reg, truth, seed, 2.0, geo)))
+    return jobs
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--perpend", required=True)
@@ -429,6 +467,9 @@ def main():
     ap.add_argument("--from-runs", help="summarise a --runs file instead of running the grid")
     ap.add_argument("--combined", action="store_true",
                     help="the base regime and regimes with two factors at once (COMBINED) instead of the grid")
+    ap.add_argument("--offcat", action="store_true",
+                    help="the off-catalogue block (OFFCAT: other noise, missing readings, spatter, "
+                         "effect shapes outside both catalogues) instead of the grid")
     a = ap.parse_args()
     if a.from_runs:
         results = []
@@ -446,7 +487,7 @@ def main():
             with open(a.md, "w") as f:
                 f.write(markdown(cells) + "\n")
         return 0
-    jobs = plan(a.quick, a.seed_base, a.nulls, a.effects, a.combined)
+    jobs = plan(a.quick, a.seed_base, a.nulls, a.effects, a.combined, a.offcat)
     if a.only:
         keep = set(a.only.split(","))
         jobs = [j for j in jobs if (j[1] if isinstance(j[1], str) else "+".join(j[1])) in keep]
