@@ -234,17 +234,7 @@ def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None, combined=False, 
                            effects if effects is not None else 3)
     n_null = nulls if nulls is not None else (12 if quick else 20)
     n_eff = effects if effects is not None else (2 if quick else 5)
-    jobs = []
-    seed = seed_base
-    for reg in regimes:
-        for j in range(n_null):
-            seed += 1
-            jobs.append((reg[0], "none", make_case(reg, "none", seed, 0, ["ring45", "tian30"][j % 2])))
-        for j in range(n_eff):
-            for truth in SINGLES + PAIRS + ["blunders", "ripple"]:
-                seed += 1
-                geo = ["ring45", "tian30"][(j + seed) % 2]
-                jobs.append((reg[0], truth, make_case(reg, truth, seed, 2.0, geo)))
+    jobs, seed = regime_jobs(regimes, SINGLES + PAIRS + ["blunders", "ripple"], n_null, n_eff, seed_base)
     if not quick and not combined:
         # detection limit: base regime, sizes in units of the visible noise
         for size in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0):
@@ -429,21 +419,26 @@ def svg(cells, path):
         f.write("\n".join(out) + "\n")
 
 
-def plan_offcat(seed_base, n_null, n_eff):
-    """The off-catalogue block (OFFCAT): per regime, effect-free runs, then
-    every single (the catalogue's and OFFCAT_SINGLES) and spatter."""
+def regime_jobs(regimes, truths, n_null, n_eff, seed):
+    """Per regime: `n_null` effect-free runs, then `n_eff` rounds of every
+    truth; seeds counted up from `seed`. Returns the jobs and the last seed."""
     jobs = []
-    seed = seed_base
-    for reg in OFFCAT:
+    for reg in regimes:
         for j in range(n_null):
             seed += 1
             jobs.append((reg[0], "none", make_case(reg, "none", seed, 0, ["ring45", "tian30"][j % 2])))
         for j in range(n_eff):
-            for truth in SINGLES + OFFCAT_SINGLES + ["spatter"]:
+            for truth in truths:
                 seed += 1
                 geo = ["ring45", "tian30"][(j + seed) % 2]
                 jobs.append((reg[0], truth, make_case(reg, truth, seed, 2.0, geo)))
-    return jobs
+    return jobs, seed
+
+
+def plan_offcat(seed_base, n_null, n_eff):
+    """The off-catalogue block (OFFCAT): per regime, effect-free runs, then
+    every single (the catalogue's and OFFCAT_SINGLES) and spatter."""
+    return regime_jobs(OFFCAT, SINGLES + OFFCAT_SINGLES + ["spatter"], n_null, n_eff, seed_base)[0]
 
 
 def main():
