@@ -540,12 +540,12 @@ def generate(case):
             f = (lambda x: math.tan(x)) if kind == "incidence_tan" else (lambda x: 1 / math.cos(x) - 1)
             vals = [f(x) for r in gam for x in r]
             par["k"] = size / max(1e-9, max(vals) - min(vals)) * rng.choice([-1, 1])
+        if kind in ("crosstalk", "crosstalk_sq"):
+            diffs = [abs(r[par["order"][j - 1]] - r[par["order"][j]]) for r in true_d for j in range(4)]
         if kind == "crosstalk":
             # the size is the carry-over's typical error: c * |d_prev - d|
-            diffs = [abs(r[par["order"][j - 1]] - r[par["order"][j]]) for r in true_d for j in range(4)]
             par["c"] = min(0.3, size / max(1e-9, sum(diffs) / len(diffs)))
         if kind == "crosstalk_sq":
-            diffs = [abs(r[par["order"][j - 1]] - r[par["order"][j]]) for r in true_d for j in range(4)]
             par["step_max"] = max(diffs)
             par["c"] = size / max(1e-12, sum(x * x for x in diffs) / len(diffs))
         if kind in ("thermal_lag", "thermal_lag2"):

@@ -225,13 +225,13 @@ TUNE_SEEDS = 1000
 
 
 def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None, combined=False, offcat=False):
+    if offcat:
+        return plan_offcat(seed_base, nulls if nulls is not None else 20,
+                           effects if effects is not None else 3)
     regimes = REGIMES[:1] + [r for r in REGIMES[1:] if not quick or r[0] in (
         "sigma 0.03", "declared x0.5", "declared missing", "tracker x3", "spread 2 deg", "30 poses")]
     if combined:
         regimes = REGIMES[:1] + COMBINED
-    if offcat:
-        return plan_offcat(seed_base, nulls if nulls is not None else 20,
-                           effects if effects is not None else 3)
     n_null = nulls if nulls is not None else (12 if quick else 20)
     n_eff = effects if effects is not None else (2 if quick else 5)
     jobs, seed = regime_jobs(regimes, SINGLES + PAIRS + ["blunders", "ripple"], n_null, n_eff, seed_base)

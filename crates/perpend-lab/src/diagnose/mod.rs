@@ -1130,16 +1130,19 @@ mod tests {
     fn small_runs_take_more_folds() {
         let head = paper_head().unwrap();
         let table = crate::exchange::SensorTable::from_sensors(&head.nominal, head.sigma_mm);
+        let run_of = |n: usize| {
+            let mut cfg = SimConfig::paper();
+            cfg.poses = n;
+            let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+            simulate(&head, &cfg, &[], &mut rng).unwrap().poses
+        };
         for (n, requested, k) in [
             (30, None, 10),
             (60, None, 5),
             (30, Some(5), 5),
             (12, None, 6),
         ] {
-            let mut cfg = SimConfig::paper();
-            cfg.poses = n;
-            let mut rng = rand::rngs::StdRng::seed_from_u64(5);
-            let poses = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
+            let poses = run_of(n);
             let s = Settings {
                 folds: requested,
                 draws: 3,
@@ -1149,11 +1152,7 @@ mod tests {
             assert_eq!((d.folds.k, d.folds.of_pose.len()), (k, n), "{n} poses");
         }
         // Too few poses for the folds asked for: a clear error.
-        let mut cfg = SimConfig::paper();
-        cfg.poses = 8;
-        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
-        let poses = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
-        let err = diagnose(&table, &poses, &Settings::default()).unwrap_err();
+        let err = diagnose(&table, &run_of(8), &Settings::default()).unwrap_err();
         assert!(err.to_string().contains("5-fold"), "{err}");
     }
 }

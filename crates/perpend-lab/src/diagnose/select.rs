@@ -381,7 +381,6 @@ pub fn decide(
     let (winner, ties) = choose(&verdicts, measured, &mut reasons);
     let winner = winner.cloned();
     let base_struct = structured(Effect::None, measured, exp, rule.alpha);
-    let floor_ms = base_exp.mean * base_exp.mean;
     let mut explained_fraction = None;
     let effect = match &winner {
         Some(w) => {
@@ -451,7 +450,6 @@ pub fn decide(
             Effect::None
         }
     };
-    let _ = floor_ms;
     Decision {
         effect,
         winner: winner.map(|w| w.effect),
