@@ -37,7 +37,7 @@
 //! geometry is first order in the coefficients).
 
 use super::Poses;
-use crate::ext::{Extension, LinTable, TABLE_KNOTS};
+use crate::ext::{Extension, LinTable, TABLE_COEFFS, TABLE_KNOTS};
 use crate::head::Sensor;
 use crate::model::distance;
 use crate::Real;
@@ -171,6 +171,22 @@ pub struct ExtTerms<T: Real> {
     /// Knots [mm] of the linearity table about `d_ref` (used by the
     /// `Table*` terms only; strictly ascending for those).
     pub knots: [T; TABLE_KNOTS],
+    /// The affine part `(a_j, b_j)` taken off each table column:
+    /// `C_j(x) − a_j − b_j·x` (e.g. `C_j`'s least-squares line over the
+    /// run's readings; zeros by default). The slope `b_j` is taken off only
+    /// when the gain term is fitted beside the table (it is then the gain's
+    /// job), as the diagnosis always fits a table.
+    ///
+    /// Why: the cardinal functions are pinned to 0 at the end knots, so on
+    /// a run whose readings crowd the middle of their range, `Σ_j C_j` is
+    /// nearly a constant there and trades with the zero point along the
+    /// beam, and a tilted combination with the gain (column-scaled
+    /// condition above 10⁵: "the readings do not determine the zero point /
+    /// the gain"). Offset and slope are in the model anyway (zero point and
+    /// gain), so the centred columns span the same predictions, well
+    /// conditioned; [`ExtTerms::stored`] gives offset and slope back to
+    /// the zero point and the gain for the board.
+    pub table_affine: [(T, T); TABLE_COEFFS],
 }
 
 impl<T: Real> ExtTerms<T> {
@@ -181,12 +197,89 @@ impl<T: Real> ExtTerms<T> {
             d_ref,
             temp_ref,
             knots: [T::zero(); TABLE_KNOTS],
+            table_affine: [(T::zero(), T::zero()); TABLE_COEFFS],
         }
     }
 
     /// The same terms with the linearity table's knots `knots`.
     pub fn with_knots(self, knots: [T; TABLE_KNOTS]) -> Self {
         Self { knots, ..self }
+    }
+
+    /// The same terms with the affine part `(a_j, b_j)` taken off the
+    /// table's columns ([`ExtTerms::table_affine`]).
+    pub fn with_table_affine(self, table_affine: [(T, T); TABLE_COEFFS]) -> Self {
+        Self {
+            table_affine,
+            ..self
+        }
+    }
+
+    /// The slope taken off table column `j` (0 unless the gain is fitted).
+    fn table_slope(&self, j: usize) -> T {
+        if self.mask & Term::Gain.bit() != 0 {
+            self.table_affine[j].1
+        } else {
+            T::zero()
+        }
+    }
+
+    /// Offset `s = Σ_j v_j·a_j` and slope `Σ_j v_j·b_j` that centred table
+    /// columns take off the fitted table (`coeffs` in column order).
+    pub fn table_offset_slope(&self, coeffs: &[T]) -> (T, T) {
+        self.terms()
+            .zip(coeffs.iter())
+            .filter_map(|(t, c)| Term::TABLE.iter().position(|x| *x == t).map(|j| (j, *c)))
+            .fold((T::zero(), T::zero()), |(s, b), (j, c)| {
+                (s + c * self.table_affine[j].0, b + c * self.table_slope(j))
+            })
+    }
+
+    /// The sensor as the board stores it, from a fit of these terms (the
+    /// geometry `geom`, the coefficients `coeffs` in column order), and
+    /// the terms that predict the same readings for it; `coeffs` is updated
+    /// to those terms (the gain's column).
+    ///
+    /// A fit with centred table columns ([`ExtTerms::table_affine`])
+    /// predicts `f + g·x + Σ_j v_j·(C_j(x) − a_j − b_j·x) + …`, `x = f −
+    /// d_ref`. The board's table has neither offset nor slope, so the gain
+    /// becomes `g − Σ_j v_j·b_j` and `s = Σ_j v_j·a_j` moves into the zero
+    /// point: `E' = E + k·u` gives `f' = f − k` (Chen eq. 1-3: the distance
+    /// is measured from `E` along `u`), and `d_ref' = d_ref − k` keeps every
+    /// distance term at the same `x`. A carry-over `c·(d_prev − f)` gains
+    /// `c·k` by the shift, hence `k = s/(1 − c)`. Exact: the returned
+    /// terms, filled with the returned sensor, predict what these terms and
+    /// `geom` predict.
+    pub fn stored(&self, geom: &Sensor<T>, coeffs: &mut [T]) -> (Sensor<T>, Self) {
+        let (s, slope) = self.table_offset_slope(coeffs);
+        let k = self.zero_shift(s, self.extension(coeffs).crosstalk);
+        if let Some(x) = self
+            .terms()
+            .position(|t| t == Term::Gain)
+            .and_then(|g| coeffs.get_mut(g))
+        {
+            *x -= slope;
+        }
+        let terms = Self {
+            d_ref: self.d_ref - k,
+            table_affine: [(T::zero(), T::zero()); TABLE_COEFFS],
+            ..*self
+        };
+        let mut sensor = *geom;
+        sensor.zero += sensor.dir * k;
+        sensor.ext = terms.extension(coeffs);
+        (sensor, terms)
+    }
+
+    /// `k = s/(1 − c)`: the zero point's shift along the beam that carries
+    /// a table offset `s` beside a carry-over `c` ([`ExtTerms::stored`]).
+    pub fn zero_shift(&self, s: T, c: T) -> T {
+        // A carry-over of 1 is no sensor (plausibility bounds it below 0.5).
+        if (T::one() - c).abs() > T::lit(1e-9) {
+            s / (T::one() - c)
+        } else {
+            s
+        }
     }
 
     /// The table with these knots and values `c`.
@@ -279,9 +372,9 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
                     .map_or_else(T::zero, |p| p - d),
                 Term::Thermal => ctx.temp_c.map_or_else(T::zero, |t| t - self.temp_ref),
                 Term::Drift => ctx.t_s.unwrap_or_else(T::zero),
-                Term::Table0 => basis[0],
-                Term::Table1 => basis[1],
-                Term::Table2 => basis[2],
+                Term::Table0 => basis[0] - self.table_affine[0].0 - self.table_slope(0) * x,
+                Term::Table1 => basis[1] - self.table_affine[1].0 - self.table_slope(1) * x,
+                Term::Table2 => basis[2] - self.table_affine[2].0 - self.table_slope(2) * x,
             };
         }
     }
@@ -345,5 +438,63 @@ mod tests {
             (e.gain, e.thermal, e.d_ref, e.temp_ref),
             (0.5, 0.25, 30.0, 20.0)
         );
+    }
+
+    /// A fit with centred table columns, stored for the board, predicts
+    /// every reading it predicted (offset into the zero point, slope into
+    /// the gain, beside a carry-over), through the board's own
+    /// [`Extension::excess`] and through the returned terms.
+    #[test]
+    fn stored_table_predicts_what_the_centred_fit_did() {
+        let (_, truth) = paper_heads();
+        let terms = ExtTerms::new(
+            &[
+                Term::Gain,
+                Term::Crosstalk,
+                Term::Table0,
+                Term::Table1,
+                Term::Table2,
+            ],
+            31.0,
+            20.0,
+        )
+        .with_knots([-4.0, -1.5, 0.5, 2.0, 5.0])
+        .with_table_affine([(0.31, -0.02), (0.45, 0.01), (0.22, 0.05)]);
+        let fitted = [2e-3, 0.04, 0.03, -0.02, 0.025];
+        for i in [0usize, 1, 3] {
+            let geom = truth.sensors[i];
+            let mut coeffs = fitted;
+            let (stored, back) = terms.stored(&geom, &mut coeffs);
+            assert!(back
+                .table_affine
+                .iter()
+                .all(|(a, b)| *a == 0.0 && *b == 0.0));
+            for (tilt, off) in [(0.0, 28.0), (6.0, 30.5), (-9.0, 33.0), (12.0, 35.5)] {
+                let p = plane(tilt, tilt / 2.0, off);
+                let pose = CalPose {
+                    plane: p,
+                    readings: [Some(30.0), Some(31.0), Some(32.0), Some(33.0)],
+                    ctx: Context::default(),
+                };
+                let poses = [pose];
+                let predict = |t: &ExtTerms<f64>, s: &Sensor<f64>, c: &[f64]| {
+                    let mut x = [0.0; 5];
+                    t.fill(poses.as_slice(), 0, i, s, &mut x);
+                    distance(s, &p, i).unwrap() + x.iter().zip(c).map(|(a, b)| a * b).sum::<f64>()
+                };
+                let want = predict(&terms, &geom, &fitted);
+                assert_relative_eq!(predict(&back, &stored, &coeffs), want, epsilon = 1e-9);
+                let f = distance(&stored, &p, i).unwrap();
+                let prev = pose.readings[(i + 3) % 4];
+                let cg = p.n.dot(&stored.dir).abs();
+                let board = f + stored.ext.excess(f, prev, cg, &pose.ctx);
+                assert_relative_eq!(board, want, epsilon = 1e-9);
+            }
+            assert_relative_eq!(stored.dir, geom.dir);
+            assert!(
+                (stored.zero - geom.zero).norm() > 1e-3,
+                "the offset moved the zero point"
+            );
+        }
     }
 }

@@ -247,13 +247,13 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
     );
     let _ = writeln!(
         o,
-        "  {:<14} {:>6}  {:>13}  {:>17}  {:>7}  {:>7}  beats base",
-        "model", "params", "held-out RMS", "simulated floor", "gain z", "rank z"
+        "  {:<15} {:>6}  {:>13}  {:>17}  {:>11}  {:>11}  beats base",
+        "model", "params", "held-out RMS", "simulated floor", "gain z/thr", "rank z/thr"
     );
     for v in &d.decision.verdicts {
         let _ = writeln!(
             o,
-            "  {:<14} {:>6}  {:>10.4} mm  {:>8.4} ± {:<6.4}  {:>7}  {:>7}  {}",
+            "  {:<15} {:>6}  {:>10.4} mm  {:>8.4} ± {:<6.4}  {:>11}  {:>11}  {}",
             if v.effect == Effect::None {
                 "none (paper)"
             } else {
@@ -266,12 +266,12 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             if v.effect == Effect::None {
                 "–".to_string()
             } else {
-                format!("{:.1}", v.z)
+                format!("{:.1} / {:.1}", v.z, v.z_threshold)
             },
             if v.effect == Effect::None {
                 "–".to_string()
             } else {
-                format!("{:.1}", v.z_rank)
+                format!("{:.1} / {:.1}", v.z_rank, v.rank_threshold)
             },
             if v.effect == Effect::None {
                 ""
