@@ -945,6 +945,17 @@ mod tests {
         assert!(!Effect::Drift.excluded_by(Effect::LinearityTable));
     }
 
+    /// The paper's head and a simulated run of `poses` poses from `seed`.
+    fn paper_run(poses: usize, seed: u64) -> (crate::sim::SimHead, crate::sim::Dataset) {
+        use rand::SeedableRng;
+        let head = crate::sim::paper_head().unwrap();
+        let mut cfg = crate::sim::SimConfig::paper();
+        cfg.poses = poses;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let run = crate::sim::simulate(&head, &cfg, &[], &mut rng).unwrap();
+        (head, run)
+    }
+
     /// A linearity error of a shape no candidate has (one sine period over
     /// each sensor's range, as a triangulation sensor's residual
     /// linearity often is), added to a simulated run: the table is named,
@@ -952,13 +963,7 @@ mod tests {
     /// error, and the cubic is refused as implausible.
     #[test]
     fn an_s_shaped_linearity_error_is_followed_by_the_table() {
-        use crate::sim::{paper_head, simulate, SimConfig};
-        use rand::SeedableRng;
-        let head = paper_head().unwrap();
-        let mut cfg = SimConfig::paper();
-        cfg.poses = 120;
-        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
-        let mut run = simulate(&head, &cfg, &[], &mut rng).unwrap();
+        let (_, mut run) = paper_run(120, 11);
         let clean = run.clone();
         crate::sim::add_sine_linearity(&mut run.poses, &[0.06, -0.05, 0.055, -0.06]);
         let d = crate::diagnose::diagnose(&run.sensors, &run.poses, &Default::default()).unwrap();
@@ -991,13 +996,8 @@ mod tests {
     /// full-period sine the held-out choice of knots takes even knots.
     #[test]
     fn table_columns_are_centred_and_even_knots_follow_a_sine() {
-        use crate::sim::{paper_head, simulate, SimConfig};
-        use rand::SeedableRng;
-        let head = paper_head().unwrap();
-        let mut cfg = SimConfig::paper();
-        cfg.poses = 150;
-        let mut rng = rand::rngs::StdRng::seed_from_u64(23);
-        let mut run = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
+        let (head, sim) = paper_run(150, 23);
+        let mut run = sim.poses;
         // Readings crowding the middle of their range (as a pose set spread
         // by tilts more than by standoff gives): every pose whose mean
         // reading is in the middle half, one in four of the others.
