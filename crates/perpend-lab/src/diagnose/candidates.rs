@@ -239,12 +239,19 @@ impl Refs {
         let mut best = vec![f64::INFINITY; nominal.len()];
         for rule in KnotRule::ALL {
             let trial = self.with_rule(poses, rule);
-            for (i, s) in nominal.iter().enumerate() {
+            for (i, (s, b)) in nominal.iter().zip(best.iter_mut()).enumerate() {
                 let sse = heldout_sse(s, i, poses, trial.terms(effect, i), &folds, cfg);
-                if sse < best[i] {
-                    best[i] = sse;
-                    out.knots[i] = trial.knots[i];
-                    out.table_affine[i] = trial.table_affine[i];
+                // A sensor the references do not cover keeps its defaults.
+                let (Some(ko), Some(ao), Some(k), Some(a)) = (
+                    out.knots.get_mut(i),
+                    out.table_affine.get_mut(i),
+                    trial.knots.get(i),
+                    trial.table_affine.get(i),
+                ) else {
+                    continue;
+                };
+                if sse < *b {
+                    (*b, *ko, *ao) = (sse, *k, *a);
                 }
             }
         }
