@@ -488,7 +488,7 @@ pub fn run(a: &Args) -> Result<()> {
         bail!("--magnitudes must be positive numbers");
     }
     let settings = Settings {
-        draws: a.draws.max(3),
+        draws: Some(a.draws.max(3)),
         ..Settings::default()
     };
     let sc = scenarios(a);
