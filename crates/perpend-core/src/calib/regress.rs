@@ -224,12 +224,18 @@ impl<T: Real> ExtTerms<T> {
         }
     }
 
+    /// The column of term `t` among these terms (`None` when not selected).
+    pub fn column(&self, t: Term) -> Option<usize> {
+        self.terms().position(|x| x == t)
+    }
+
     /// Offset `s = Σ_j v_j·a_j` and slope `Σ_j v_j·b_j` that centred table
     /// columns take off the fitted table (`coeffs` in column order).
     pub fn table_offset_slope(&self, coeffs: &[T]) -> (T, T) {
-        self.terms()
-            .zip(coeffs.iter())
-            .filter_map(|(t, c)| Term::TABLE.iter().position(|x| *x == t).map(|j| (j, *c)))
+        Term::TABLE
+            .iter()
+            .enumerate()
+            .filter_map(|(j, t)| Some((j, *coeffs.get(self.column(*t)?)?)))
             .fold((T::zero(), T::zero()), |(s, b), (j, c)| {
                 (s + c * self.table_affine[j].0, b + c * self.table_slope(j))
             })
@@ -252,12 +258,12 @@ impl<T: Real> ExtTerms<T> {
     /// `geom` predict.
     pub fn stored(&self, geom: &Sensor<T>, coeffs: &mut [T]) -> (Sensor<T>, Self) {
         let (s, slope) = self.table_offset_slope(coeffs);
-        let k = self.zero_shift(s, self.extension(coeffs).crosstalk);
-        if let Some(x) = self
-            .terms()
-            .position(|t| t == Term::Gain)
-            .and_then(|g| coeffs.get_mut(g))
-        {
+        let c = self
+            .column(Term::Crosstalk)
+            .and_then(|j| coeffs.get(j).copied())
+            .unwrap_or_else(T::zero);
+        let k = Self::zero_shift(s, c);
+        if let Some(x) = self.column(Term::Gain).and_then(|g| coeffs.get_mut(g)) {
             *x -= slope;
         }
         let terms = Self {
@@ -273,7 +279,7 @@ impl<T: Real> ExtTerms<T> {
 
     /// `k = s/(1 − c)`: the zero point's shift along the beam that carries
     /// a table offset `s` beside a carry-over `c` ([`ExtTerms::stored`]).
-    pub fn zero_shift(&self, s: T, c: T) -> T {
+    pub fn zero_shift(s: T, c: T) -> T {
         // A carry-over of 1 is no sensor (plausibility bounds it below 0.5).
         if (T::one() - c).abs() > T::lit(1e-9) {
             s / (T::one() - c)

@@ -27,8 +27,10 @@
 //! spaced (an even resolution: a full-period S-curve over the range is
 //! followed within a few % where quartile knots crowding the middle leave
 //! 5-15 % of it). Per sensor and model, the rule with the lower held-out
-//! error on the table analysed wins ([`Refs::with_table_knots`]). The table's columns are fitted centred
-//! (their least-squares line over the readings taken off,
+//! error on the table analysed wins ([`Refs::with_table_knots`]; one
+//! cross-validation per rule beside the candidate's own). The table's
+//! columns are fitted centred (their least-squares line over the readings
+//! taken off,
 //! [`perpend_core::calib::ExtTerms::table_affine`]): uncentred, the sum of
 //! the cardinal functions is nearly a constant where the readings crowd
 //! the middle and trades with the zero point and the gain (condition above
@@ -184,20 +186,19 @@ pub struct Refs {
 impl Refs {
     /// The references of `poses`.
     pub fn of(poses: &PoseTable) -> Self {
-        let readings = |i: usize| sensor_readings(poses, i);
-        let d_ref: Vec<f64> = (0..poses.n_sensors)
-            .map(|i| super::stats::mean(&readings(i)))
+        let readings: Vec<Vec<f64>> = (0..poses.n_sensors)
+            .map(|i| sensor_readings(poses, i))
             .collect();
-        let knots: Vec<[f64; TABLE_KNOTS]> = d_ref
-            .iter()
-            .enumerate()
-            .map(|(i, d)| table_knots(&readings(i), *d, KnotRule::Quantiles))
-            .collect();
-        let table_affine = knots
+        let d_ref: Vec<f64> = readings.iter().map(|v| super::stats::mean(v)).collect();
+        let knots: Vec<[f64; TABLE_KNOTS]> = readings
             .iter()
             .zip(&d_ref)
-            .enumerate()
-            .map(|(i, (k, d))| table_affine(&readings(i), *d, k))
+            .map(|(v, d)| table_knots(v, *d, KnotRule::Quantiles))
+            .collect();
+        let table_affine = readings
+            .iter()
+            .zip(d_ref.iter().zip(&knots))
+            .map(|(v, (d, k))| table_affine(v, *d, k))
             .collect();
         let temps: Vec<f64> = poses.rows.iter().filter_map(|r| r.temp_c).collect();
         Self {
@@ -623,16 +624,12 @@ fn stored_sigma<const P: usize>(
     const DOF: usize = perpend_core::head::DOF;
     let mut sigma = f.sigma.as_slice()[DOF..].to_vec();
     let zero: [f64; 3] = f.sigma_zero().into();
-    let cols: Vec<Term> = Term::ALL
-        .into_iter()
-        .filter(|t| terms.mask & t.bit() != 0)
-        .collect();
     let affine = terms.table_affine;
     if affine.iter().all(|(a, b)| *a == 0.0 && *b == 0.0) {
         return (zero, sigma);
     }
     let coeffs = f.coefficients();
-    let col = |t: Term| cols.iter().position(|c| *c == t).map(|j| DOF + j);
+    let col = |t: Term| terms.column(t).map(|j| DOF + j);
     let std = |w: &[(usize, f64)]| -> f64 {
         let v: f64 = w
             .iter()
@@ -655,7 +652,7 @@ fn stored_sigma<const P: usize>(
     let (s, _) = terms.table_offset_slope(coeffs);
     let xt = col(Term::Crosstalk);
     let c = xt.map_or(0.0, |i| f.params[i]);
-    let dk_ds = terms.zero_shift(1.0, c);
+    let dk_ds = ExtTerms::zero_shift(1.0, c);
     let dk_dc = s * dk_ds * dk_ds;
     let zero = core::array::from_fn(|a| {
         let u = f.sensor.dir[a];
