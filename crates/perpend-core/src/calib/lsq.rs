@@ -8,8 +8,13 @@
 //! `P = 5 + E` parameters. The solver minimises
 //!
 //! ```text
-//! S(θ) = Σ_k (d_k − f(E, u; plane_k) − Σ_j c_j x_kj)²
+//! S(θ) = Σ_k (d_k − f(E, u; plane_k) − Σ_j c_j x_kj)² + Σ_j w_j c_j²
 //! ```
+//!
+//! (`w_j = 0` unless the regressors ask for a ridge, [`Regressors::ridge`]:
+//! then `w_j = ρ_j·(JᵀJ)_jj` of the nominal start, fixed during the fit,
+//! so `ρ = 1` halves an orthogonal column's coefficient; a Gaussian prior
+//! `c_j ~ N(0, s²/w_j)`, whose mean and covariance the fit then returns)
 //!
 //! over the poses `k` where the sensor has a reading (missing readings are
 //! skipped), accumulating the `P×P` normal equations `JᵀJ δ = Jᵀr` pose by
@@ -31,7 +36,8 @@
 //! its zero point. The reported covariance is mapped back to `[ΔE, α, β]`.
 //!
 //! After convergence it returns the parameters, their covariance
-//! `s²·(JᵀJ)⁻¹` with `s² = S/(m − P)` (the residual variance, so the 1σ
+//! `s²·(JᵀJ + W)⁻¹` with `s² = S_data/(m − P)` (`W = diag w`, `S_data` the
+//! first sum) (the residual variance, so the 1σ
 //! reflect the data's actual noise, tracker error included), the residual
 //! RMS `sqrt(S/m)` and the identifiability verdict of [`super::ident`]. A
 //! pose set that cannot identify the parameters is refused with
@@ -157,8 +163,46 @@ struct Normal<T: Real, const P: usize> {
     a: SMatrix<T, P, P>,
     g: SVector<T, P>,
     ssr: T,
+    /// The ridge's share of the cost, `Σ_j w_j c_j²`.
+    pen: T,
     m: usize,
     skipped: usize,
+}
+
+impl<T: Real, const P: usize> Normal<T, P> {
+    /// The cost the solver minimises: squared residuals plus the ridge.
+    fn cost(&self) -> T {
+        self.ssr + self.pen
+    }
+
+    /// Adds the ridge `Σ_j w_j c_j²` (module docs) at `params`.
+    fn with_ridge(mut self, w: &SVector<T, P>, params: &SVector<T, P>) -> Self {
+        for j in DOF..P {
+            self.a[(j, j)] += w[j];
+            self.g[j] -= w[j] * params[j];
+            self.pen += w[j] * params[j] * params[j];
+        }
+        self
+    }
+}
+
+/// The weights `w_j = ρ_j·a_jj` of the columns' ridges (module docs) on
+/// the normal matrix `a` of the start.
+fn ridge_weights<T: Real, R: Regressors<T>, const P: usize>(
+    regs: &R,
+    a: &SMatrix<T, P, P>,
+) -> SVector<T, P> {
+    SVector::<T, P>::from_fn(|j, _| {
+        if j < DOF {
+            return T::zero();
+        }
+        let r = regs.ridge(j - DOF);
+        if r.is_finite_real() && r > T::zero() {
+            r * a[(j, j)]
+        } else {
+            T::zero()
+        }
+    })
 }
 
 fn accumulate<T, PS, R, const P: usize>(
@@ -178,6 +222,7 @@ where
         a: SMatrix::<T, P, P>::zeros(),
         g: SVector::<T, P>::zeros(),
         ssr: T::zero(),
+        pen: T::zero(),
         m: 0,
         skipped: 0,
     };
@@ -310,6 +355,7 @@ where
     let mut params = SVector::<T, P>::zeros();
     let mut ne = accumulate(&geom, &params, pivot, idx, poses, regs).map_err(|e| fail(e, diag))?;
     diag.readings = ne.m;
+    let w = ridge_weights(regs, &ne.a);
     let (kappa, weakest) = scaled_condition(&ne.a);
     diag.condition = kappa;
     diag.weakest = weakest;
@@ -318,6 +364,8 @@ where
     if diag.status == Status::NotIdentifiable {
         return Err(fail(Error::NotIdentifiable(idx), diag));
     }
+    // At the start the coefficients are 0: the ridge adds to `a` only.
+    ne = ne.with_ridge(&w, &params);
 
     // Levenberg-Marquardt with Nielsen's damping update (gain ratio ρ of
     // actual to predicted decrease). Converged when an accepted step is
@@ -325,6 +373,7 @@ where
     // variance (the step is < 1e-4 σ of the parameters), or the decrease is
     // at the rounding level.
     let tiny = T::lit(ne.m as f64) * (T::default_epsilon() * T::lit(1e3)).powi(2);
+    // (`a` holds the ridge: the damping scales with it, as it should.)
     let dof_s2 = T::lit(ne.m.saturating_sub(P).max(1) as f64);
     let mut lambda = cfg.lambda0;
     let mut nu = T::lit(2.0);
@@ -353,18 +402,20 @@ where
             }
             accumulate(&g, &p, pivot, idx, poses, regs)
                 .ok()
-                .map(|t| (g, p, t))
+                .map(|t| (g, p, t.with_ridge(&w, &p)))
         });
         match trial {
-            Some((g, p, t)) if t.m == ne.m && t.ssr.is_finite_real() && t.ssr <= ne.ssr => {
-                let decrease = ne.ssr - t.ssr;
+            Some((g, p, t))
+                if t.m == ne.m && t.cost().is_finite_real() && t.cost() <= ne.cost() =>
+            {
+                let decrease = ne.cost() - t.cost();
                 let rho = if predicted > T::zero() {
                     decrease / predicted
                 } else {
                     T::one()
                 };
-                let small_step = step.dot(&a_step) <= T::lit(1e-8) * ne.ssr / dof_s2;
-                let small_decrease = decrease <= T::lit(1e-14) * ne.ssr + tiny;
+                let small_step = step.dot(&a_step) <= T::lit(1e-8) * ne.cost() / dof_s2;
+                let small_decrease = decrease <= T::lit(1e-14) * ne.cost() + tiny;
                 geom = g;
                 params = p;
                 ne = t;
@@ -392,7 +443,9 @@ where
         return Err(fail(Error::NoConvergence, diag));
     }
 
-    let (kappa, weakest) = scaled_condition(&ne.a);
+    // What the readings determine: the condition of the data's own normal
+    // matrix (the ridge would hide a pose set that lacks something).
+    let (kappa, weakest) = scaled_condition(&(ne.a - SMatrix::from_diagonal(&w)));
     diag.condition = kappa;
     diag.weakest = weakest;
     diag.weakest_name = name(weakest);
@@ -809,6 +862,112 @@ mod tests {
             &LsqConfig::default(),
         );
         assert_eq!(bad.unwrap_err().error, Error::OutOfRange("parameter count"));
+    }
+
+    /// The ridge of [`Regressors::ridge`]: 0 is plain least squares; a
+    /// larger one shrinks the table and the gain beside it (and their 1σ),
+    /// costs residual, and the fit is a stationary point of the penalised
+    /// cost of the module docs, `Σ_k r_k x_kj = w_j c_j` with `w_j` from
+    /// the nominal start (to the solver's tolerance: its Jacobian holds the
+    /// regressors constant, so it stops by damping a few 10⁻⁴ of the noise
+    /// short of the exact optimum).
+    #[test]
+    fn ridge_shrinks_the_table_to_the_penalised_optimum() {
+        let (nominal, truth) = paper_heads();
+        let mut poses = run(&truth, PAPER, 80, 0.01, 23);
+        let d: Vec<f64> = poses.iter().filter_map(|p| p.readings[0]).collect();
+        let (lo, hi) = d
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(*x), b.max(*x)));
+        let mid = 0.5 * (lo + hi);
+        for p in poses.iter_mut() {
+            let r = p.readings[0].unwrap();
+            // a full-period S-curve of 30 µm over the range
+            let x = (r - mid) / (0.5 * (hi - lo));
+            p.readings[0] = Some(r + 0.03 * (core::f64::consts::PI * x).sin());
+        }
+        let step = (hi - lo) / 4.0;
+        let knots = core::array::from_fn(|j| lo - mid + step * j as f64);
+        let terms = |rho: f64| {
+            ExtTerms::new(
+                &[Term::Gain, Term::Table0, Term::Table1, Term::Table2],
+                mid,
+                20.0,
+            )
+            .with_knots(knots)
+            .with_ridge(rho)
+        };
+        let cfg = LsqConfig::default();
+        let fit = |rho: f64| -> LsqFit<f64, 9> {
+            fit_sensor(&nominal.sensors[0], 0, poses.as_slice(), &terms(rho), &cfg).unwrap()
+        };
+        let plain: LsqFit<f64, 9> = fit_sensor(
+            &nominal.sensors[0],
+            0,
+            poses.as_slice(),
+            &ExtTerms::new(
+                &[Term::Gain, Term::Table0, Term::Table1, Term::Table2],
+                mid,
+                20.0,
+            )
+            .with_knots(knots),
+            &cfg,
+        )
+        .unwrap();
+        assert_eq!(fit(0.0).params, plain.params);
+        assert_eq!(fit(-1.0).params, plain.params);
+        let norm = |f: &LsqFit<f64, 9>| f.coefficients().iter().map(|c| c * c).sum::<f64>();
+        let fits = [0.0, 0.1, 1.0].map(fit);
+        for w in fits.windows(2) {
+            assert!(
+                norm(&w[1]) < norm(&w[0]),
+                "{} !< {}",
+                norm(&w[1]),
+                norm(&w[0])
+            );
+            assert!(w[1].rms > w[0].rms);
+            for j in DOF..9 {
+                assert!(w[1].sigma[j] < w[0].sigma[j]);
+            }
+        }
+        // Stationarity of the penalised cost in the coefficients.
+        let rho = 0.3;
+        let f = fit(rho);
+        let t = terms(rho);
+        let (mut a0, mut grad) = ([0.0; 4], [0.0; 4]);
+        for (k, p) in poses.iter().enumerate() {
+            let mut x0 = [0.0; 4];
+            let mut x = [0.0; 4];
+            t.fill(poses.as_slice(), k, 0, &nominal.sensors[0], &mut x0);
+            t.fill(poses.as_slice(), k, 0, &f.sensor, &mut x);
+            let pred = crate::model::distance(&f.sensor, &p.plane, 0).unwrap()
+                + x.iter()
+                    .zip(f.coefficients())
+                    .map(|(x, c)| x * c)
+                    .sum::<f64>();
+            let r = p.readings[0].unwrap() - pred;
+            for j in 0..4 {
+                a0[j] += x0[j] * x0[j];
+                grad[j] += r * x[j];
+            }
+        }
+        for j in 0..4 {
+            let w = rho * a0[j];
+            let c = f.coefficients()[j];
+            // within 1 % of what noise alone puts in `Σ r x` (the solver
+            // stops at a statistically negligible step)
+            let noise = a0[j].sqrt() * f.rms;
+            assert!(
+                (grad[j] - w * c).abs() < 0.01 * noise,
+                "{j}: {} vs {}",
+                grad[j],
+                w * c
+            );
+            assert!(
+                (w * c).abs() > 0.05 * noise,
+                "{j}: the ridge must matter here"
+            );
+        }
     }
 
     #[test]

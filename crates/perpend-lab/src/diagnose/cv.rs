@@ -103,7 +103,7 @@ pub fn cross_validate(
     let mut heads = Vec::with_capacity(folds.k);
     // Table knots and crosstalk sources are picked once on the whole table
     // (the null re-simulations pick theirs the same way).
-    let refs = &refs.with_table_knots(nominal, poses, effect, cfg);
+    let refs = &refs.with_table_choice(nominal, poses, effect, cfg);
     let src = super::candidates::sources(nominal, poses, refs, effect, cfg);
     for f in 0..folds.k {
         let train = folds.train(f);

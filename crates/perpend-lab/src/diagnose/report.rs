@@ -555,8 +555,15 @@ pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> Strin
                 .iter()
                 .map(|s| format!("{:+.1}", 1000.0 * x.table.value(*s)))
                 .collect();
+            // A table fitted with a ridge is shrunk toward a line (its 1σ
+            // are those of the penalised fit).
+            let ridge = if f.terms.ridge > 0.0 {
+                format!(", ridge {}", f.terms.ridge)
+            } else {
+                String::new()
+            };
             format!(
-                "gain {:+.3} % ± {:.3} %, table error [{}] µm at knots [{}] mm",
+                "gain {:+.3} % ± {:.3} %, table error [{}] µm at knots [{}] mm{ridge}",
                 100.0 * x.gain,
                 100.0 * sd(0),
                 at.join(", "),
