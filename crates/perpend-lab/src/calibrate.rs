@@ -420,7 +420,9 @@ pub fn run(a: &Args) -> Result<()> {
                 &mut report,
                 &mut file,
             );
-            let refs = Refs::of(&poses);
+            // The table's knots and ridge as the diagnosis chooses them.
+            let refs =
+                Refs::of(&poses).with_table_choice(&nominal, &poses, model, &LsqConfig::default());
             if model != Effect::None {
                 let _ = writeln!(
                     report,
@@ -452,6 +454,13 @@ pub fn run(a: &Args) -> Result<()> {
                                 report,
                                 "  {:<12} {c:>+14.6e}  1σ {sd:.2e}",
                                 perpend_core::calib::Regressors::<f64>::name(&fit.terms, j)
+                            );
+                        }
+                        if fit.terms.ridge > 0.0 {
+                            let _ = writeln!(
+                                report,
+                                "  table ridge {} (chosen by held-out error: table and gain shrunk toward the paper's model; their 1σ are the penalised fit's)",
+                                fit.terms.ridge
                             );
                         }
                         let _ = writeln!(report, "  {}", fit.diagnostic);
@@ -563,9 +572,9 @@ fn expected_accuracy(
     model: Effect,
 ) {
     const DRAWS: usize = 100;
-    // The references (mean reading, mean temperature) stay the run's, as
-    // the stored calibration's do.
-    let refs = Refs::of(poses);
+    // The references (mean reading, mean temperature, the table's knots and
+    // ridge) stay the run's, as the stored calibration's do.
+    let refs = Refs::of(poses).with_table_choice(nominal, poses, model, &LsqConfig::default());
     let refit = |sub: &candidates::Subset<'_>| -> Option<Vec<Sensor<f64>>> {
         nominal
             .iter()
