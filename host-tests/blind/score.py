@@ -481,6 +481,8 @@ def main():
         if a.md:
             with open(a.md, "w") as f:
                 f.write(markdown(cells) + "\n")
+        if a.svg:
+            svg(cells, a.svg)
         return 0
     jobs = plan(a.quick, a.seed_base, a.nulls, a.effects, a.combined, a.offcat)
     if a.only:

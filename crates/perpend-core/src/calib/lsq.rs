@@ -37,9 +37,8 @@
 //!
 //! After convergence it returns the parameters, their covariance
 //! `s²·(JᵀJ + W)⁻¹` with `s² = S_data/(m − P)` (`W = diag w`, `S_data` the
-//! first sum) (the residual variance, so the 1σ
-//! reflect the data's actual noise, tracker error included), the residual
-//! RMS `sqrt(S/m)` and the identifiability verdict of [`super::ident`]. A
+//! first sum: the residual variance, so the 1σ reflect the data's actual
+//! noise, tracker error included), the residual RMS `sqrt(S_data/m)` and the identifiability verdict of [`super::ident`]. A
 //! pose set that cannot identify the parameters is refused with
 //! [`Error::NotIdentifiable`] and a [`Diagnostic`] that says what it lacks.
 //!
