@@ -479,7 +479,7 @@ pub fn run(a: &Args) -> Result<()> {
                 }
             }
             if failures.is_empty() {
-                expected_accuracy(&mut report, &geometry, &nominal, &poses, model);
+                expected_accuracy(&mut report, &geometry, &nominal, (&poses, &refs), model);
             }
         }
         Method::Ekf => {
@@ -563,18 +563,17 @@ pub fn run(a: &Args) -> Result<()> {
 
 /// Appends the expected angular accuracy of the calibrated head over the
 /// run's poses ([`crate::accuracy`]) to the report: pose resamples refitted
-/// with the same model as the calibration.
+/// with the same model and references `refs` as the calibration (mean
+/// reading, mean temperature, the table's knots and ridge: the run's, as
+/// the stored calibration's are).
 fn expected_accuracy(
     report: &mut String,
     fitted: &[Sensor<f64>],
     nominal: &[Sensor<f64>],
-    poses: &PoseTable,
+    (poses, refs): (&PoseTable, &Refs),
     model: Effect,
 ) {
     const DRAWS: usize = 100;
-    // The references (mean reading, mean temperature, the table's knots and
-    // ridge) stay the run's, as the stored calibration's do.
-    let refs = Refs::of(poses).with_table_choice(nominal, poses, model, &LsqConfig::default());
     let refit = |sub: &candidates::Subset<'_>| -> Option<Vec<Sensor<f64>>> {
         nominal
             .iter()

@@ -371,8 +371,9 @@ where
     // statistically negligible: δᵀ(JᵀJ)δ below 1e-8 of the residual
     // variance (the step is < 1e-4 σ of the parameters), or the decrease is
     // at the rounding level.
+    // (`a` holds the ridge, so the damping and the step's size scale with
+    // it.)
     let tiny = T::lit(ne.m as f64) * (T::default_epsilon() * T::lit(1e3)).powi(2);
-    // (`a` holds the ridge: the damping scales with it, as it should.)
     let dof_s2 = T::lit(ne.m.saturating_sub(P).max(1) as f64);
     let mut lambda = cfg.lambda0;
     let mut nu = T::lit(2.0);

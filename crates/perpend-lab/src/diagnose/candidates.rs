@@ -322,10 +322,9 @@ impl Refs {
     }
 }
 
-/// The relative ridges of the table tried ([`ExtTerms::ridge`]; 0 first:
-/// plain least squares). `ρ = 0.1` took the table's held-out overhead on
-/// effect-free ±15° runs from 1.3-1.5× to 1.02-1.07×; on a full-period
-/// sine over the range `0.3` already costs more in bias than it saves.
+/// The relative ridges of the table tried ([`ExtTerms::ridge`], which says
+/// why; 0 first: plain least squares). On a full-period sine over the
+/// range `0.3` can already cost more in bias than it saves.
 pub const TABLE_RIDGES: [f64; 4] = [0.0, 0.03, 0.1, 0.3];
 
 /// Quantiles of the linearity table's knots (module docs).
