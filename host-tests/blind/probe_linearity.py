@@ -3,7 +3,7 @@
 period over the run's span) linearity error better than perpend's cubic?
 
 For runs of gen.py with `linearity_s`, every sensor is fitted, by the same
-5-fold cross-validation by pose as the diagnosis, with zero point +
+10-fold cross-validation by pose as the diagnosis, with zero point +
 direction (5 parameters) plus: nothing (the paper's model), a cubic
 (perpend's `nonlinearity`), a quintic, or a natural cubic spline with 5
 knots at quantiles of the run's readings (4 coefficients; linear beyond
@@ -78,7 +78,7 @@ def fit_poly(e, u, planes, target, basis, nb, dref):
 MODELS = ["paper", "cubic", "quintic", "spline5"]
 
 
-def probe(case, k=5):
+def probe(case, k=10):
     nominal, rows, truth = gen.generate(case)
     planes = [r["plane"] for r in rows]
     reads = [r["reads"] for r in rows]

@@ -19,7 +19,7 @@ false positives <= 5 % per regime, singles named >= 90 %, pairs both named
 >= 80 %, blunders found >= 95 %, extended held-out RMS <= 1.15x the
 same-draw floor where effects are named. The same-draw floor is gen.py's
 `oracle_heldout_mm`: what a calibration that knew the effects exactly
-achieves on these very readings, held out by 5-fold cross-validation as
+achieves on these very readings, held out by k-fold cross-validation as
 the diagnosis holds out (the guide's "noise floor": perfect calibration on
 the same draws). The diagnosis's own `expected_rms_mm` (its estimate of
 that floor, from its noise estimate) is shown beside it. Only the standard library is used.
