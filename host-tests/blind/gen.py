@@ -419,12 +419,12 @@ def oracle_heldout(head, planes, target, skip, rng):
     point and direction fitted on k-1 folds of the poses (those in `skip`,
     the blunders, left out) and each held-out reading predicted. What a
     calibration that knew the effects exactly would achieve on this run.
-    k follows the diagnosis's documented convention: 10 folds (at most half
-    the poses, at least 5). Returns
+    k follows the diagnosis's documented convention: 10 folds below 100
+    poses (at most half the poses, at least 5), 5 from 100 on. Returns
     the held-out residual of every pose and sensor (None for `skip` and
     for missing readings)."""
     keep = [j for j in range(len(planes)) if j not in skip]
-    k = max(5, min(10, len(keep) // 2))
+    k = max(5, min(10, len(keep) // 2)) if len(keep) < 100 else 5
     order = keep[:]
     rng.shuffle(order)
     fold = {j: n % k for n, j in enumerate(order)}
