@@ -340,30 +340,24 @@ fn fmt_sensor_table(
     }
 }
 
-/// Runs `perpend calibrate`.
-///
-/// # Errors
-/// Malformed input, unidentifiable pose sets, estimator failures, I/O.
-pub fn run(a: &Args) -> Result<()> {
-    let table = read_sensors(&a.sensors)?;
-    let all_poses = read_poses(&a.poses, Some(table.len()))?;
-    let nominal = table
-        .sensors()
-        .map_err(|e| anyhow::anyhow!("{}: {e}", a.sensors.display()))?;
-    let mut report = String::new();
-    // The same rejection as `perpend diagnose`: poses that disagree with
-    // the paper's model and every candidate are reported and left out.
-    let outliers = if a.keep_outliers {
-        Vec::new()
-    } else {
-        crate::diagnose::noise::reject(
-            &nominal,
-            &all_poses,
-            &LsqConfig::default(),
-            &crate::diagnose::available_models(&all_poses),
-        )
-    };
-    let poses = crate::diagnose::noise::without(&all_poses, &outliers);
+/// The same rejection as `perpend diagnose`: poses that disagree with the
+/// paper's model and every candidate are left out (none with
+/// `--keep-outliers`) and named in `report`.
+fn reject_outliers(
+    a: &Args,
+    nominal: &[Sensor<f64>],
+    all_poses: &PoseTable,
+    report: &mut String,
+) -> Vec<crate::diagnose::noise::Outlier> {
+    if a.keep_outliers {
+        return Vec::new();
+    }
+    let outliers = crate::diagnose::noise::reject(
+        nominal,
+        all_poses,
+        &LsqConfig::default(),
+        &crate::diagnose::available_models(all_poses),
+    );
     if !outliers.is_empty() {
         let p: Vec<String> = outliers
             .iter()
@@ -377,7 +371,202 @@ pub fn run(a: &Args) -> Result<()> {
             p.join(", ")
         );
     }
-    let mut failures: Vec<String> = Vec::new();
+    outliers
+}
+
+/// What one calibration produced: the report, the parameter file, and the
+/// sensors that failed (nothing is written then).
+struct Outcome {
+    report: String,
+    file: ParamFile,
+    failures: Vec<String>,
+}
+
+/// Least squares with `model` on every sensor (the run re-timed for a
+/// thermal lag or a settling drift), then the expected accuracy.
+fn calibrate_lsq(
+    model: Effect,
+    nominal: &[Sensor<f64>],
+    all: (&PoseTable, &[crate::diagnose::noise::Outlier]),
+    poses: &PoseTable,
+    o: &mut Outcome,
+) {
+    let poses = retime(model, nominal, all, poses, &mut o.report, &mut o.file);
+    // The table's knots and ridge as the diagnosis chooses them.
+    let refs = Refs::of(&poses).with_table_choice(nominal, &poses, model, &LsqConfig::default());
+    if model != Effect::None {
+        let _ = writeln!(
+            o.report,
+            "model: zero point + beam direction + {} ({})",
+            model.name(),
+            model.regressor_label()
+        );
+    }
+    let mut geometry = Vec::new();
+    for (i, s) in nominal.iter().enumerate() {
+        let _ = writeln!(o.report);
+        match candidates::fit(s, i, &poses, refs.terms(model, i), &LsqConfig::default()) {
+            Ok(fit) => {
+                lsq_sensor_lines(&mut o.report, i, s, &fit);
+                let mut p = candidates::params_of(i, &fit, s);
+                if model == Effect::Drift {
+                    fold_drift(&mut p, run_end_s(&poses), &mut o.report);
+                }
+                o.file.sensors.push(p);
+                geometry.push(fit.sensor);
+            }
+            Err(e) => {
+                let _ = writeln!(o.report, "sensor {}: FAILED", i + 1);
+                let _ = writeln!(o.report, "  {e}");
+                o.failures.push(format!("sensor {}: {e}", i + 1));
+            }
+        }
+    }
+    if o.failures.is_empty() {
+        expected_accuracy(&mut o.report, &geometry, nominal, (&poses, &refs), model);
+    }
+}
+
+/// The report of one sensor's least-squares fit: geometry against the
+/// nominal, the extension's coefficients, the ridge, the identifiability.
+fn lsq_sensor_lines(
+    report: &mut String,
+    i: usize,
+    nominal: &Sensor<f64>,
+    fit: &candidates::SensorFit,
+) {
+    let _ = writeln!(
+        report,
+        "sensor {}: {} readings, residual RMS {:.4} mm",
+        i + 1,
+        fit.used,
+        fit.rms
+    );
+    fmt_sensor_table(
+        report,
+        nominal,
+        &fit.sensor,
+        (fit.sigma_zero, fit.sigma_dir),
+    );
+    for (j, (c, sd)) in fit.coeffs.iter().zip(&fit.sigma).enumerate() {
+        let _ = writeln!(
+            report,
+            "  {:<12} {c:>+14.6e}  1σ {sd:.2e}",
+            perpend_core::calib::Regressors::<f64>::name(&fit.terms, j)
+        );
+    }
+    if fit.terms.ridge > 0.0 {
+        let _ = writeln!(
+            report,
+            "  table ridge {} (chosen by held-out error: table and gain shrunk toward the paper's model; their 1σ are the penalised fit's)",
+            fit.terms.ridge
+        );
+    }
+    let _ = writeln!(report, "  {}", fit.diagnostic);
+}
+
+/// The paper's EKF on every sensor; a sensor the pose set cannot identify
+/// fails before the filter's figures are believed.
+///
+/// # Errors
+/// Settings the filter cannot run with.
+fn calibrate_ekf(
+    a: &Args,
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    o: &mut Outcome,
+) -> Result<()> {
+    let cfg = ekf_config(a);
+    cfg.validate()
+        .map_err(|e| anyhow::anyhow!("EKF settings: {e}"))?;
+    let _ = writeln!(
+        o.report,
+        "EKF: Q = {:e}·I, R = {:e}, P0 = I, X0 = 0, δ = {:e}, {:?} innovation, {:?} covariance update",
+        cfg.q[0], cfg.r, cfg.delta, cfg.innovation, cfg.covariance
+    );
+    for (i, r) in run_ekf(nominal, poses, cfg).iter().enumerate() {
+        let _ = writeln!(o.report);
+        let diag = assess(&nominal[i], i, poses, &Default::default()).ok();
+        if let Some(d) = diag.filter(|d| d.status == Status::NotIdentifiable) {
+            let _ = writeln!(o.report, "sensor {}: FAILED", i + 1);
+            let _ = writeln!(o.report, "  {d}");
+            o.failures.push(d.to_string());
+            continue;
+        }
+        match r {
+            Ok(fit) => {
+                ekf_sensor_lines(&mut o.report, i, &nominal[i], fit, poses, diag.as_ref());
+                o.file
+                    .sensors
+                    .push(ekf_params(i, fit, &nominal[i], poses, diag.as_ref()));
+            }
+            Err(e) => {
+                let _ = writeln!(o.report, "sensor {}: FAILED: {e}", i + 1);
+                o.failures.push(format!("sensor {}: {e}", i + 1));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The report of one sensor's EKF fit: readings used until the stop,
+/// geometry against the nominal with the filter's own `P`, and what that
+/// `P` is not.
+fn ekf_sensor_lines(
+    report: &mut String,
+    i: usize,
+    nominal: &Sensor<f64>,
+    fit: &EkfFit<f64>,
+    poses: &PoseTable,
+    diag: Option<&Diagnostic<f64>>,
+) {
+    let rms = residual_rms(&fit.sensor, i, poses).unwrap_or(f64::NAN);
+    let _ = writeln!(
+        report,
+        "sensor {}: {} of {} readings used until the stop ({}), residual RMS {:.4} mm",
+        i + 1,
+        fit.used,
+        fit.available,
+        if fit.converged {
+            "stopping rule met"
+        } else {
+            "stopping rule not met: all readings used"
+        },
+        rms
+    );
+    let sd = |j: usize| fit.covariance[(j, j)].max(0.0).sqrt();
+    fmt_sensor_table(
+        report,
+        nominal,
+        &fit.sensor,
+        ([sd(0), sd(1), sd(2)], [sd(3), sd(4), sd(5)]),
+    );
+    let _ = writeln!(
+        report,
+        "  (1σ column: the filter's internal covariance P, m, n, q before normalisation;\n   \
+         not a confidence: the paper's filter stops early and its P does not cover the\n   \
+         estimate's actual error; `--method lsq` gives 1σ and an expected accuracy to plan with)"
+    );
+    if let Some(d) = diag {
+        let _ = writeln!(report, "  {d}");
+    }
+}
+
+/// Runs `perpend calibrate`: bad poses → the run's model checked against
+/// what the board applies → least squares or the EKF per sensor → report
+/// → parameter file (only when every sensor calibrated).
+///
+/// # Errors
+/// Malformed input, unidentifiable pose sets, estimator failures, I/O.
+pub fn run(a: &Args) -> Result<()> {
+    let table = read_sensors(&a.sensors)?;
+    let all_poses = read_poses(&a.poses, Some(table.len()))?;
+    let nominal = table
+        .sensors()
+        .map_err(|e| anyhow::anyhow!("{}: {e}", a.sensors.display()))?;
+    let mut report = String::new();
+    let outliers = reject_outliers(a, &nominal, &all_poses, &mut report);
+    let poses = crate::diagnose::noise::without(&all_poses, &outliers);
     let method = match a.method {
         Method::Lsq => "lsq",
         Method::Ekf => "ekf",
@@ -390,15 +579,11 @@ pub fn run(a: &Args) -> Result<()> {
     }
     let model = a.model.effect();
     board_can_apply(model, &poses)?;
-    let mut file = ParamFile::new(
-        method,
-        if model == Effect::None {
-            "base"
-        } else {
-            model.name()
-        },
-        poses.len(),
-    );
+    let name = if model == Effect::None {
+        "base"
+    } else {
+        model.name()
+    };
     let _ = writeln!(
         report,
         "calibration of {} sensors from {} poses ({}), method {}",
@@ -410,152 +595,27 @@ pub fn run(a: &Args) -> Result<()> {
             Method::Ekf => "EKF (Chen eq. 10-16, 6 states per sensor)",
         }
     );
+    let mut o = Outcome {
+        report,
+        file: ParamFile::new(method, name, poses.len()),
+        failures: Vec::new(),
+    };
     match a.method {
-        Method::Lsq => {
-            let poses = retime(
-                model,
-                &nominal,
-                (&all_poses, &outliers),
-                &poses,
-                &mut report,
-                &mut file,
-            );
-            // The table's knots and ridge as the diagnosis chooses them.
-            let refs =
-                Refs::of(&poses).with_table_choice(&nominal, &poses, model, &LsqConfig::default());
-            if model != Effect::None {
-                let _ = writeln!(
-                    report,
-                    "model: zero point + beam direction + {} ({})",
-                    model.name(),
-                    model.regressor_label()
-                );
-            }
-            let mut geometry = Vec::new();
-            for (i, s) in nominal.iter().enumerate() {
-                let _ = writeln!(report);
-                match candidates::fit(s, i, &poses, refs.terms(model, i), &LsqConfig::default()) {
-                    Ok(fit) => {
-                        let _ = writeln!(
-                            report,
-                            "sensor {}: {} readings, residual RMS {:.4} mm",
-                            i + 1,
-                            fit.used,
-                            fit.rms
-                        );
-                        fmt_sensor_table(
-                            &mut report,
-                            s,
-                            &fit.sensor,
-                            (fit.sigma_zero, fit.sigma_dir),
-                        );
-                        for (j, (c, sd)) in fit.coeffs.iter().zip(&fit.sigma).enumerate() {
-                            let _ = writeln!(
-                                report,
-                                "  {:<12} {c:>+14.6e}  1σ {sd:.2e}",
-                                perpend_core::calib::Regressors::<f64>::name(&fit.terms, j)
-                            );
-                        }
-                        if fit.terms.ridge > 0.0 {
-                            let _ = writeln!(
-                                report,
-                                "  table ridge {} (chosen by held-out error: table and gain shrunk toward the paper's model; their 1σ are the penalised fit's)",
-                                fit.terms.ridge
-                            );
-                        }
-                        let _ = writeln!(report, "  {}", fit.diagnostic);
-                        let mut p = candidates::params_of(i, &fit, s);
-                        if model == Effect::Drift {
-                            fold_drift(&mut p, run_end_s(&poses), &mut report);
-                        }
-                        file.sensors.push(p);
-                        geometry.push(fit.sensor);
-                    }
-                    Err(e) => {
-                        let _ = writeln!(report, "sensor {}: FAILED", i + 1);
-                        let _ = writeln!(report, "  {e}");
-                        failures.push(format!("sensor {}: {e}", i + 1));
-                    }
-                }
-            }
-            if failures.is_empty() {
-                expected_accuracy(&mut report, &geometry, &nominal, (&poses, &refs), model);
-            }
-        }
-        Method::Ekf => {
-            let cfg = ekf_config(a);
-            cfg.validate()
-                .map_err(|e| anyhow::anyhow!("EKF settings: {e}"))?;
-            let _ = writeln!(
-                report,
-                "EKF: Q = {:e}·I, R = {:e}, P0 = I, X0 = 0, δ = {:e}, {:?} innovation, {:?} covariance update",
-                cfg.q[0], cfg.r, cfg.delta, cfg.innovation, cfg.covariance
-            );
-            let fits = run_ekf(&nominal, &poses, cfg);
-            for (i, r) in fits.iter().enumerate() {
-                let _ = writeln!(report);
-                let diag = assess(&nominal[i], i, &poses, &Default::default()).ok();
-                if let Some(d) = diag.filter(|d| d.status == Status::NotIdentifiable) {
-                    let _ = writeln!(report, "sensor {}: FAILED", i + 1);
-                    let _ = writeln!(report, "  {d}");
-                    failures.push(d.to_string());
-                    continue;
-                }
-                match r {
-                    Ok(fit) => {
-                        let rms = residual_rms(&fit.sensor, i, &poses).unwrap_or(f64::NAN);
-                        let _ = writeln!(
-                            report,
-                            "sensor {}: {} of {} readings used until the stop ({}), residual RMS {:.4} mm",
-                            i + 1,
-                            fit.used,
-                            fit.available,
-                            if fit.converged {
-                                "stopping rule met"
-                            } else {
-                                "stopping rule not met: all readings used"
-                            },
-                            rms
-                        );
-                        let sd = |j: usize| fit.covariance[(j, j)].max(0.0).sqrt();
-                        fmt_sensor_table(
-                            &mut report,
-                            &nominal[i],
-                            &fit.sensor,
-                            ([sd(0), sd(1), sd(2)], [sd(3), sd(4), sd(5)]),
-                        );
-                        let _ = writeln!(
-                            report,
-                            "  (1σ column: the filter's internal covariance P, m, n, q before normalisation;\n   \
-                             not a confidence: the paper's filter stops early and its P does not cover the\n   \
-                             estimate's actual error; `--method lsq` gives 1σ and an expected accuracy to plan with)"
-                        );
-                        if let Some(d) = &diag {
-                            let _ = writeln!(report, "  {d}");
-                        }
-                        file.sensors
-                            .push(ekf_params(i, fit, &nominal[i], &poses, diag.as_ref()));
-                    }
-                    Err(e) => {
-                        let _ = writeln!(report, "sensor {}: FAILED: {e}", i + 1);
-                        failures.push(format!("sensor {}: {e}", i + 1));
-                    }
-                }
-            }
-        }
+        Method::Lsq => calibrate_lsq(model, &nominal, (&all_poses, &outliers), &poses, &mut o),
+        Method::Ekf => calibrate_ekf(a, &nominal, &poses, &mut o)?,
     }
-    print!("{report}");
-    if !failures.is_empty() {
+    print!("{}", o.report);
+    if !o.failures.is_empty() {
         bail!(
             "calibration failed for {} of {} sensors; no parameters written:\n  {}",
-            failures.len(),
+            o.failures.len(),
             nominal.len(),
-            failures.join("\n  ")
+            o.failures.join("\n  ")
         );
     }
     if let Some(out) = &a.out {
-        file.validate()?;
-        file.write(out)?;
+        o.file.validate()?;
+        o.file.write(out)?;
         println!("\nwrote {}", out.display());
     }
     Ok(())

@@ -180,9 +180,22 @@ fn pct(a: f64, b: f64) -> String {
     }
 }
 
-/// The readable report.
+/// The readable report: the run and its noise, what the simulation gets
+/// wrong, the candidates, the verdict, the fitted coefficients, the gain
+/// on held-out poses.
 pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String {
     let mut o = String::new();
+    run_section(&mut o, d, sensors, poses, s);
+    checks_section(&mut o, d);
+    candidates_section(&mut o, d, s);
+    verdict_section(&mut o, d);
+    coefficients_section(&mut o, d, sensors, poses);
+    gain_section(&mut o, d);
+    o
+}
+
+/// The run, its noise and how the expectation was simulated.
+fn run_section(o: &mut String, d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) {
     let n_read = d.measured.insample.iter().flatten().flatten().count();
     let _ = writeln!(
         o,
@@ -217,7 +230,10 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
         "expectation: {} Monte-Carlo draws of this head (the paper's model fitted to this run, as truth) on these planes; {}-fold cross-validation by pose (seed {})",
         d.expected.draws, d.folds.k, s.seed
     );
+}
 
+/// The statistics the simulation gets wrong, and what they say.
+fn checks_section(o: &mut String, d: &Diagnosis) {
     let _ = writeln!(o, "\nWhat the simulation gets wrong");
     let _ = writeln!(
         o,
@@ -239,7 +255,10 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
     for st in statements(d) {
         let _ = writeln!(o, "  * {st}");
     }
+}
 
+/// Every model's held-out figures against its effect-free threshold.
+fn candidates_section(o: &mut String, d: &Diagnosis, s: &Settings) {
     let _ = writeln!(
         o,
         "\nCandidates (held-out, {} folds; z* = {:.2}: family level α = {}, Bonferroni over mean and rank tests)",
@@ -285,7 +304,10 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
     for (e, why) in &d.skipped {
         let _ = writeln!(o, "  skipped: {} ({why})", e.name());
     }
+}
 
+/// The verdict, its reasons, the forward selection's steps, warnings.
+fn verdict_section(o: &mut String, d: &Diagnosis) {
     let names: Vec<&str> = d.effects().iter().map(|e| e.name()).collect();
     let _ = writeln!(
         o,
@@ -363,7 +385,10 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             );
         }
     }
+}
 
+/// The named model's coefficients, fitted on all poses.
+fn coefficients_section(o: &mut String, d: &Diagnosis, sensors: &Path, poses: &Path) {
     if let Some((e, fits)) = &d.refit {
         let _ = writeln!(
             o,
@@ -394,7 +419,10 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
             );
         }
     }
+}
 
+/// Base against extended model on held-out poses.
+fn gain_section(o: &mut String, d: &Diagnosis) {
     let _ = writeln!(o, "\nGain on held-out poses (base → extended)");
     let b: Vec<f64> = d.base_normals.iter().flatten().copied().collect();
     let x: Vec<f64> = d.ext_normals.iter().flatten().copied().collect();
@@ -436,7 +464,6 @@ pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String
     if d.ext_model == Effect::None {
         let _ = writeln!(o, "  nothing named: the extended model is the base model");
     }
-    o
 }
 
 /// The noise lines of the report: estimated against declared, the
