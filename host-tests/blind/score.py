@@ -337,6 +337,26 @@ def check(cells):
     return fails
 
 
+def json_grid(cells):
+    """The cells as JSON: regime -> class -> counts, with each class's rate
+    (`ok`/`n`: for `none` one minus the false-positive rate, for `single`
+    the named rate, for `pair` the both-named rate) and, for blunders, the
+    rate found."""
+    grid = {}
+    for reg, c in cells.items():
+        g = grid.setdefault(reg, {})
+        for cls, k in c.items():
+            x = dict(k)
+            if k.get("n"):
+                x["rate"] = k["ok"] / k["n"]
+                if cls == "none":
+                    x["false_positive_rate"] = 1 - x["rate"]
+                if cls == "blunders":
+                    x["found_rate"] = k["found"] / k["n"]
+            g[cls] = x
+    return grid
+
+
 def markdown(cells):
     lines = ["| regime | false positives (none) | singles named | pairs both named | blunders found (verdict none) | ripple unexplained | max ext. RMS / same-draw floor | max ext. RMS / diagnosis's floor | diagnosis's floor / same-draw floor: median (range) | small singles / pairs named (not graded) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -503,15 +523,21 @@ def main():
                                     "seed": r["case"]["seed"], "hidden": r.get("truth"),
                                     "answer": r.get("out")}) + "\n")
     md = markdown(cells)
-    print(md)
+    # with --json -, the JSON alone goes to standard output, the rest to standard error
+    out = sys.stderr if a.json == "-" else sys.stdout
+    print(md, file=out)
     for reg, c in cells.items():
         for cls, k in c.items():
             for w in k.get("wrong", [])[:6]:
                 print("  %s / %s: %s" % (reg, cls, w), file=sys.stderr)
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump({r: {c: {x: y for x, y in k.items()} for c, k in v.items()}
-                       for r, v in cells.items()}, f, indent=1)
+        grid = json_grid(cells)
+        if a.json == "-":
+            json.dump(grid, sys.stdout, indent=1)
+            print()
+        else:
+            with open(a.json, "w") as f:
+                json.dump(grid, f, indent=1)
     if a.md:
         with open(a.md, "w") as f:
             f.write(md + "\n")
@@ -521,13 +547,13 @@ def main():
     errors = [r for _, _, r in results if "error" in r]
     if a.quick:
         fails, summary = pooled_check(cells)
-        print("blind: %d runs (%s), %d goals missed" % (n, summary, len(fails)))
+        print("blind: %d runs (%s), %d goals missed" % (n, summary, len(fails)), file=out)
     else:
         fails = check(cells)
-        print("blind: %d runs, %d per-regime goals missed" % (n, len(fails)))
+        print("blind: %d runs, %d per-regime goals missed" % (n, len(fails)), file=out)
     fails += ["%d runs ended in an error, e.g. %s" % (len(errors), errors[0]["error"][:300])] if errors else []
     for f in fails:
-        print("  missed: " + f)
+        print("  missed: " + f, file=out)
     if a.check and fails:
         sys.exit(1)
 

@@ -63,9 +63,16 @@ pub enum Bench {
     Speed(SpeedArgs),
     /// Sensitivity of identifiability and accuracy to the pose spread.
     Ident(IdentArgs),
-    /// Diagnosis over many seeds and magnitudes: confusion matrix, false
-    /// positives on clean data, detection rate against effect size.
-    Diagnose(crate::diagnose::bench::Args),
+    /// The diagnosis on runs from the independent generator
+    /// (`host-tests/blind`, no shared code), scored against their hidden
+    /// truth over the grid of regimes: false positives, singles and pairs
+    /// named, blunders found, extended RMS over the same-draw floor.
+    Diagnose(crate::diagnose::blind::Args),
+    /// Self-consistency of the diagnosis on perpend's own simulator
+    /// (effects injected through the candidates' own terms): confusion
+    /// matrix and detection rate against effect size; not the benchmark of
+    /// record (`bench diagnose` is).
+    DiagnoseSelf(crate::diagnose::bench::Args),
     /// Planned (D-optimal) against random calibration poses, 8-100 poses.
     Plan(crate::plan::BenchArgs),
     /// Curved skins (issue 14): micro-plane against the sphere/cylinder
@@ -687,7 +694,8 @@ pub fn run(a: &Args) -> Result<()> {
         Bench::Accuracy(x) => run_accuracy(x),
         Bench::Speed(x) => run_speed(x),
         Bench::Ident(x) => run_ident(x),
-        Bench::Diagnose(x) => crate::diagnose::bench::run(x),
+        Bench::Diagnose(x) => crate::diagnose::blind::run(x),
+        Bench::DiagnoseSelf(x) => crate::diagnose::bench::run(x),
         Bench::Plan(x) => crate::plan::run_bench(x),
         Bench::Curvature(x) => crate::curvature::run(x),
     }

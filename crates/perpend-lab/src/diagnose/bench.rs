@@ -1,4 +1,5 @@
-//! `perpend bench diagnose`: how well the diagnosis names hidden effects.
+//! `perpend bench diagnose-self`: how well the diagnosis names effects
+//! injected by perpend's own simulator (a self-consistency check).
 //!
 //! For every hidden effect of [`Hidden::ALL`] (clean data, the six
 //! catalogue effects and the out-of-catalogue ripple), every magnitude and
@@ -21,8 +22,9 @@
 //! itself (and its speed), not that it recognises effects it was not built
 //! around. The figures of the README and `docs/diagnosis.md` come from the
 //! independent generator `host-tests/blind/gen.py` (Python standard
-//! library, no shared code, other functional forms):
-//! `host-tests/blind/run.sh --full --seed-base 500000 --nulls 100`.
+//! library, no shared code, other functional forms), which `perpend bench
+//! diagnose` runs ([`super::blind`]):
+//! `perpend bench diagnose --full --seed-base 500000 --nulls 100`.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -37,7 +39,7 @@ use super::scenario::{generate, write, Hidden, Scenario};
 use super::{diagnose, stats, Settings};
 use crate::exchange::{read_poses, read_sensors};
 
-/// Arguments of `perpend bench diagnose`.
+/// Arguments of `perpend bench diagnose-self`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
     /// Seeds per (effect, magnitude).
@@ -190,7 +192,7 @@ pub fn scenarios(a: &Args) -> Vec<Scenario> {
 pub fn run_all(sc: &[Scenario], settings: &Settings, jobs: usize) -> Result<Vec<Record>> {
     let next = AtomicUsize::new(0);
     let out: Mutex<Vec<(usize, Result<Record>)>> = Mutex::new(Vec::with_capacity(sc.len()));
-    let bar = crate::progress::Progress::new(sc.len() as u64, "bench diagnose: runs");
+    let bar = crate::progress::Progress::new(sc.len() as u64, "bench diagnose-self: runs");
     std::thread::scope(|scope| {
         for _ in 0..jobs.max(1) {
             scope.spawn(|| loop {
@@ -476,7 +478,7 @@ fn print_confusion(title: &str, c: &BTreeMap<String, BTreeMap<String, usize>>) {
     }
 }
 
-/// Runs `perpend bench diagnose`.
+/// Runs `perpend bench diagnose-self`.
 ///
 /// # Errors
 /// Invalid arguments, simulation or diagnosis failures.
@@ -518,7 +520,7 @@ pub fn run(a: &Args) -> Result<()> {
         a.magnitudes
     );
     println!("effect size: raise = base held-out RMS / floor − 1 (floor: base held-out RMS of the clean twin)");
-    println!("(perpend's own simulator: a self-consistency check; the benchmark of record is the independent generator, host-tests/blind/run.sh --full)");
+    println!("(perpend's own simulator: a self-consistency check; the benchmark of record is the independent generator, perpend bench diagnose --full)");
     print_confusion("confusion, all runs", &s.confusion);
     print_confusion(
         "confusion, runs with raise ≥ 50%",

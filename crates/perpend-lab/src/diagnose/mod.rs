@@ -42,6 +42,7 @@
 //! Everything is seeded: the same files and options give the same report.
 
 pub mod bench;
+pub mod blind;
 pub mod candidates;
 pub mod cv;
 pub mod expect;

@@ -1,5 +1,6 @@
-//! Simulated runs with a hidden effect, for the hidden-effect tests and
-//! `perpend bench diagnose`.
+//! Simulated runs with a hidden effect, for the self-consistency tests
+//! and `perpend bench diagnose-self` (effects injected through perpend's
+//! own terms; the independent generator is `host-tests/blind/gen.py`).
 //!
 //! A [`Scenario`] fixes everything about a run: the seed, the hidden
 //! effect (none, one of the catalogue, or the out-of-catalogue
