@@ -302,8 +302,131 @@ fn pivot_retract<T: Real, const P: usize>(
     Ok(s)
 }
 
+/// Sets the condition number and the weakest parameter of `diag` from the
+/// normal matrix `a` and judges the pose set ([`Diagnostic::judge`]);
+/// `false` when it cannot identify the parameters.
+fn judge_condition<T: Real, R: Regressors<T>, const P: usize>(
+    diag: &mut Diagnostic<T>,
+    a: &SMatrix<T, P, P>,
+    regs: &R,
+) -> bool {
+    let (kappa, weakest) = scaled_condition(a);
+    diag.condition = kappa;
+    diag.weakest = weakest;
+    diag.weakest_name = if weakest < DOF {
+        geometric_name(weakest)
+    } else {
+        regs.name(weakest - DOF)
+    };
+    diag.judge();
+    diag.status != Status::NotIdentifiable
+}
+
+/// What stays fixed while [`fit_sensor`] iterates: sensor `idx`'s readings,
+/// its extension columns, the pivot along the beam and the ridge weights.
+struct Problem<'a, T: Real, PS: ?Sized, R, const P: usize> {
+    idx: usize,
+    poses: &'a PS,
+    regs: &'a R,
+    pivot: T,
+    w: SVector<T, P>,
+}
+
+/// Where the iteration stands: the geometry, the extension coefficients
+/// and the normal equations there (ridge included).
+struct Iterate<T: Real, const P: usize> {
+    geom: Sensor<T>,
+    params: SVector<T, P>,
+    ne: Normal<T, P>,
+}
+
+impl<T, PS, R, const P: usize> Problem<'_, T, PS, R, P>
+where
+    T: Real,
+    PS: Poses<T> + ?Sized,
+    R: Regressors<T>,
+{
+    /// The point a pivot-form `step` leads to from `at`, or `None` where
+    /// the model cannot be evaluated there.
+    fn trial(&self, at: &Iterate<T, P>, step: &SVector<T, P>) -> Option<Iterate<T, P>> {
+        let geom = pivot_retract(&at.geom, step, self.pivot).ok()?;
+        let mut params = at.params;
+        for j in DOF..P {
+            params[j] += step[j];
+        }
+        let ne = accumulate(&geom, &params, self.pivot, self.idx, self.poses, self.regs).ok()?;
+        Some(Iterate {
+            geom,
+            ne: ne.with_ridge(&self.w, &params),
+            params,
+        })
+    }
+
+    /// Levenberg-Marquardt with Nielsen's damping update (gain ratio ρ of
+    /// actual to predicted decrease) from `at`. Converged when an accepted
+    /// step is statistically negligible: δᵀ(JᵀJ)δ below 1e-8 of the
+    /// residual variance (the step is < 1e-4 σ of the parameters), or the
+    /// decrease is at the rounding level. (`a` holds the ridge, so the
+    /// damping and the step's size scale with it.) Returns the solution
+    /// and the damped solves it took, `None` when the budget ran out.
+    fn solve(&self, mut at: Iterate<T, P>, cfg: &LsqConfig<T>) -> Option<(Iterate<T, P>, usize)> {
+        let tiny = T::lit(at.ne.m as f64) * (T::default_epsilon() * T::lit(1e3)).powi(2);
+        let dof_s2 = T::lit(at.ne.m.saturating_sub(P).max(1) as f64);
+        let mut lambda = cfg.lambda0;
+        let mut nu = T::lit(2.0);
+        for iterations in 1..=cfg.max_iter {
+            let mut damped = at.ne.a;
+            for j in 0..P {
+                damped[(j, j)] += lambda * at.ne.a[(j, j)];
+            }
+            let Some(l) = cholesky(&damped) else {
+                lambda *= nu;
+                nu *= T::lit(2.0);
+                continue;
+            };
+            let step = cholesky_solve(&l, &at.ne.g);
+            let a_step = at.ne.a * step;
+            let predicted = T::lit(2.0) * step.dot(&at.ne.g) - step.dot(&a_step);
+            match self.trial(&at, &step) {
+                Some(t)
+                    if t.ne.m == at.ne.m
+                        && t.ne.cost().is_finite_real()
+                        && t.ne.cost() <= at.ne.cost() =>
+                {
+                    let decrease = at.ne.cost() - t.ne.cost();
+                    let rho = if predicted > T::zero() {
+                        decrease / predicted
+                    } else {
+                        T::one()
+                    };
+                    let small_step = step.dot(&a_step) <= T::lit(1e-8) * at.ne.cost() / dof_s2;
+                    let small_decrease = decrease <= T::lit(1e-14) * at.ne.cost() + tiny;
+                    at = t;
+                    let f = T::one() - (T::lit(2.0) * rho - T::one()).powi(3);
+                    lambda = (lambda * f.max(T::lit(1.0 / 3.0))).max(T::lit(1e-15));
+                    nu = T::lit(2.0);
+                    if small_step || small_decrease {
+                        return Some((at, iterations));
+                    }
+                }
+                _ => {
+                    lambda *= nu;
+                    nu *= T::lit(2.0);
+                    if lambda > T::lit(1e15) {
+                        // No step decreases S any more: at the minimum to
+                        // rounding.
+                        return Some((at, iterations));
+                    }
+                }
+            }
+        }
+        None
+    }
+}
+
 /// Fits sensor `idx` (0-based) starting from `nominal`, with the extra
-/// columns of `regs` (`P` must be `5 + regs.count()`).
+/// columns of `regs` (`P` must be `5 + regs.count()`): the pose set judged
+/// at the start, [`Problem::solve`], then [`finish`].
 ///
 /// # Errors
 /// [`LsqError`] with [`Error::NotIdentifiable`] when the pose set cannot
@@ -342,119 +465,66 @@ where
     if P != DOF + regs.count() {
         return Err(fail(Error::OutOfRange("parameter count"), diag));
     }
-    let name = |j: usize| {
-        if j < DOF {
-            geometric_name(j)
-        } else {
-            regs.name(j - DOF)
-        }
-    };
     let pivot = mean_reading(poses, idx);
-    let mut geom = *nominal;
-    let mut params = SVector::<T, P>::zeros();
-    let mut ne = accumulate(&geom, &params, pivot, idx, poses, regs).map_err(|e| fail(e, diag))?;
+    let params = SVector::<T, P>::zeros();
+    let ne = accumulate(nominal, &params, pivot, idx, poses, regs).map_err(|e| fail(e, diag))?;
     diag.readings = ne.m;
-    let w = ridge_weights(regs, &ne.a);
-    let (kappa, weakest) = scaled_condition(&ne.a);
-    diag.condition = kappa;
-    diag.weakest = weakest;
-    diag.weakest_name = name(weakest);
-    diag.judge();
-    if diag.status == Status::NotIdentifiable {
+    if !judge_condition(&mut diag, &ne.a, regs) {
         return Err(fail(Error::NotIdentifiable(idx), diag));
     }
+    let problem = Problem {
+        idx,
+        poses,
+        regs,
+        pivot,
+        w: ridge_weights(regs, &ne.a),
+    };
     // At the start the coefficients are 0: the ridge adds to `a` only.
-    ne = ne.with_ridge(&w, &params);
-
-    // Levenberg-Marquardt with Nielsen's damping update (gain ratio ρ of
-    // actual to predicted decrease). Converged when an accepted step is
-    // statistically negligible: δᵀ(JᵀJ)δ below 1e-8 of the residual
-    // variance (the step is < 1e-4 σ of the parameters), or the decrease is
-    // at the rounding level.
-    // (`a` holds the ridge, so the damping and the step's size scale with
-    // it.)
-    let tiny = T::lit(ne.m as f64) * (T::default_epsilon() * T::lit(1e3)).powi(2);
-    let dof_s2 = T::lit(ne.m.saturating_sub(P).max(1) as f64);
-    let mut lambda = cfg.lambda0;
-    let mut nu = T::lit(2.0);
-    let mut iterations = 0usize;
-    let mut converged = false;
-    while iterations < cfg.max_iter {
-        iterations += 1;
-        let mut damped = ne.a;
-        for j in 0..P {
-            damped[(j, j)] += lambda * ne.a[(j, j)];
-        }
-        let step = match cholesky(&damped) {
-            Some(l) => cholesky_solve(&l, &ne.g),
-            None => {
-                lambda *= nu;
-                nu *= T::lit(2.0);
-                continue;
-            }
-        };
-        let a_step = ne.a * step;
-        let predicted = T::lit(2.0) * step.dot(&ne.g) - step.dot(&a_step);
-        let trial = pivot_retract(&geom, &step, pivot).ok().and_then(|g| {
-            let mut p = params;
-            for j in DOF..P {
-                p[j] += step[j];
-            }
-            accumulate(&g, &p, pivot, idx, poses, regs)
-                .ok()
-                .map(|t| (g, p, t.with_ridge(&w, &p)))
-        });
-        match trial {
-            Some((g, p, t))
-                if t.m == ne.m && t.cost().is_finite_real() && t.cost() <= ne.cost() =>
-            {
-                let decrease = ne.cost() - t.cost();
-                let rho = if predicted > T::zero() {
-                    decrease / predicted
-                } else {
-                    T::one()
-                };
-                let small_step = step.dot(&a_step) <= T::lit(1e-8) * ne.cost() / dof_s2;
-                let small_decrease = decrease <= T::lit(1e-14) * ne.cost() + tiny;
-                geom = g;
-                params = p;
-                ne = t;
-                let f = T::one() - (T::lit(2.0) * rho - T::one()).powi(3);
-                lambda = (lambda * f.max(T::lit(1.0 / 3.0))).max(T::lit(1e-15));
-                nu = T::lit(2.0);
-                if small_step || small_decrease {
-                    converged = true;
-                    break;
-                }
-            }
-            _ => {
-                lambda *= nu;
-                nu *= T::lit(2.0);
-                if lambda > T::lit(1e15) {
-                    // No step decreases S any more: at the minimum to
-                    // rounding.
-                    converged = true;
-                    break;
-                }
-            }
-        }
-    }
-    if !converged {
+    let start = Iterate {
+        geom: *nominal,
+        ne: ne.with_ridge(&problem.w, &params),
+        params,
+    };
+    let Some((at, iterations)) = problem.solve(start, cfg) else {
         return Err(fail(Error::NoConvergence, diag));
-    }
+    };
+    finish(at, iterations, nominal, &problem, diag)
+}
 
-    // What the readings determine: the condition of the data's own normal
-    // matrix (the ridge would hide a pose set that lacks something).
-    let (kappa, weakest) = scaled_condition(&(ne.a - SMatrix::from_diagonal(&w)));
-    diag.condition = kappa;
-    diag.weakest = weakest;
-    diag.weakest_name = name(weakest);
-    diag.judge();
-    if diag.status == Status::NotIdentifiable {
-        return Err(fail(Error::NotIdentifiable(idx), diag));
-    }
-    let Some(l) = cholesky(&ne.a) else {
-        return Err(fail(Error::NotIdentifiable(idx), diag));
+/// The fit at the solution `at`: the pose set judged again on the data's
+/// own normal matrix (the ridge would hide a pose set that lacks
+/// something), the covariance mapped from the pivot form to `[ΔE, α, β]`,
+/// the residual RMS.
+///
+/// # Errors
+/// [`Error::NotIdentifiable`] with the diagnostic of the data's own
+/// normal matrix, [`Error::NonFinite`] for a non-finite fit.
+fn finish<T, PS, R, const P: usize>(
+    at: Iterate<T, P>,
+    iterations: usize,
+    nominal: &Sensor<T>,
+    problem: &Problem<'_, T, PS, R, P>,
+    mut diag: Diagnostic<T>,
+) -> Result<LsqFit<T, P>, LsqError<T>>
+where
+    T: Real,
+    PS: Poses<T> + ?Sized,
+    R: Regressors<T>,
+{
+    let Iterate {
+        geom,
+        mut params,
+        ne,
+    } = at;
+    let data_a = ne.a - SMatrix::from_diagonal(&problem.w);
+    let identifiable = judge_condition(&mut diag, &data_a, problem.regs);
+    let fail = |error: Error| LsqError {
+        error,
+        diagnostic: diag,
+    };
+    let l = match cholesky(&ne.a) {
+        Some(l) if identifiable => l,
+        _ => return Err(fail(Error::NotIdentifiable(problem.idx))),
     };
     let dof = ne.m.saturating_sub(P);
     let s2 = if dof > 0 {
@@ -468,8 +538,8 @@ where
     let (e1, e2) = geom.basis();
     let mut t = SMatrix::<T, P, P>::identity();
     for i in 0..3 {
-        t[(i, 3)] = -pivot * e1[i];
-        t[(i, 4)] = -pivot * e2[i];
+        t[(i, 3)] = -problem.pivot * e1[i];
+        t[(i, 4)] = -problem.pivot * e2[i];
     }
     let cov = t * cov_pivot * t.transpose();
     let cov = (cov + cov.transpose()) * T::lit(0.5);
@@ -489,7 +559,7 @@ where
         .chain(core::iter::once(&rms))
         .all(|x| x.is_finite_real());
     if !all_finite {
-        return Err(fail(Error::NonFinite("fitted parameters"), diag));
+        return Err(fail(Error::NonFinite("fitted parameters")));
     }
     Ok(LsqFit {
         sensor: geom,
