@@ -147,7 +147,60 @@ pub struct Plan<'a> {
     pub method: Method,
 }
 
-/// Runs the analysis on `poses`.
+/// In-sample residuals of the paper's model, `[pose][sensor]` (`None`
+/// where there is no reading or no prediction).
+fn insample_residuals(poses: &PoseTable, base_fit: &[SensorFit]) -> Vec<Vec<Option<f64>>> {
+    (0..poses.len())
+        .map(|k| {
+            (0..base_fit.len())
+                .map(|i| {
+                    let d = poses.reading(k, i)?;
+                    super::candidates::predict(&base_fit[i], poses, k, i).map(|p| d - p)
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The share of the paper's model's in-sample residual variance that the
+/// regressors of candidate `e` explain, pooled over the sensors.
+fn explained_share(
+    e: Effect,
+    plan: &Plan<'_>,
+    poses: &PoseTable,
+    insample: &[Vec<Option<f64>>],
+    base_fit: &[SensorFit],
+) -> f64 {
+    let (mut ex, mut tot) = (0.0, 0.0);
+    for (i, fit) in base_fit.iter().enumerate() {
+        let terms = plan.refs.terms(e, i);
+        let m = terms.count();
+        let mut ys = Vec::new();
+        let mut xs = vec![Vec::new(); m];
+        for (k, row) in insample.iter().enumerate() {
+            let Some(r) = row[i] else { continue };
+            let mut x = [0.0; 8];
+            terms.fill(poses, k, i, &fit.sensor, &mut x[..m]);
+            ys.push(r);
+            for j in 0..m {
+                xs[j].push(x[j]);
+            }
+        }
+        let (a, b) = stats::explained(&ys, &xs);
+        ex += a;
+        tot += b;
+    }
+    if tot > 0.0 {
+        ex / tot
+    } else {
+        0.0
+    }
+}
+
+/// Runs the analysis on `poses`: the paper's model fitted on all poses, its
+/// in-sample residuals' whiteness and the share each candidate's regressors
+/// explain, every model cross-validated, the held-out normal errors of the
+/// paper's model (with `normals`) and the residuals' structure.
 ///
 /// # Errors
 /// When the base model cannot be fitted on all poses.
@@ -162,16 +215,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         })
         .collect::<Result<_, _>>()?;
     let ns = plan.nominal.len();
-    let insample: Vec<Vec<Option<f64>>> = (0..poses.len())
-        .map(|k| {
-            (0..ns)
-                .map(|i| {
-                    let d = poses.reading(k, i)?;
-                    super::candidates::predict(&base_fit[i], poses, k, i).map(|p| d - p)
-                })
-                .collect()
-        })
-        .collect();
+    let insample = insample_residuals(poses, &base_fit);
     let per_sensor: Vec<Vec<Option<f64>>> = (0..ns)
         .map(|i| insample.iter().map(|r| r[i]).collect())
         .collect();
@@ -181,28 +225,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         .models
         .iter()
         .filter(|e| **e != Effect::None)
-        .map(|&e| {
-            let (mut ex, mut tot) = (0.0, 0.0);
-            for i in 0..ns {
-                let terms = plan.refs.terms(e, i);
-                let m = terms.count();
-                let mut ys = Vec::new();
-                let mut xs = vec![Vec::new(); m];
-                for (k, row) in insample.iter().enumerate() {
-                    let Some(r) = row[i] else { continue };
-                    let mut x = [0.0; 8];
-                    terms.fill(poses, k, i, &base_fit[i].sensor, &mut x[..m]);
-                    ys.push(r);
-                    for j in 0..m {
-                        xs[j].push(x[j]);
-                    }
-                }
-                let (a, b) = stats::explained(&ys, &xs);
-                ex += a;
-                tot += b;
-            }
-            (e, if tot > 0.0 { ex / tot } else { 0.0 })
-        })
+        .map(|&e| (e, explained_share(e, plan, poses, &insample, &base_fit)))
         .collect();
     let cv: Vec<(Effect, Result<CvResult, String>)> = plan
         .models
@@ -350,7 +373,12 @@ pub fn expect(
             analyses.push(a);
         }
     }
-    let ns = plan.nominal.len();
+    summarise(&analyses, plan)
+}
+
+/// Each model's held-out RMS, and the base model's per sensor, over the
+/// draws.
+fn rms_spreads(analyses: &[Analysis], plan: &Plan<'_>) -> (Vec<(Effect, Spread)>, Vec<Spread>) {
     let rms = plan
         .models
         .iter()
@@ -363,7 +391,7 @@ pub fn expect(
             (e, Spread::of(&v))
         })
         .collect();
-    let rms_sensor = (0..ns)
+    let rms_sensor = (0..plan.nominal.len())
         .map(|i| {
             let v: Vec<f64> = analyses
                 .iter()
@@ -373,6 +401,31 @@ pub fn expect(
             Spread::of(&v)
         })
         .collect();
+    (rms, rms_sensor)
+}
+
+/// Each model's structure z per axis over the draws.
+fn structure_spreads(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Vec<Spread>)> {
+    plan.models
+        .iter()
+        .map(|&e| {
+            let per_axis = (0..super::noise::AXES.len())
+                .map(|x| {
+                    let v: Vec<f64> = analyses
+                        .iter()
+                        .filter_map(|a| a.structure_of(e)?.get(x).copied().flatten())
+                        .collect();
+                    Spread::of(&v)
+                })
+                .collect();
+            (e, per_axis)
+        })
+        .collect()
+}
+
+/// The spreads of every statistic over the draws' analyses.
+fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
+    let (rms, rms_sensor) = rms_spreads(analyses, plan);
     let r2 = plan
         .models
         .iter()
@@ -404,24 +457,6 @@ pub fn expect(
             })
             .collect()
     };
-    let gain_z = null_of(&|b, c| super::select::paired(b, c).1);
-    let rank_z = null_of(&super::select::paired_rank);
-    let structure = plan
-        .models
-        .iter()
-        .map(|&e| {
-            let per_axis = (0..super::noise::AXES.len())
-                .map(|x| {
-                    let v: Vec<f64> = analyses
-                        .iter()
-                        .filter_map(|a| a.structure_of(e)?.get(x).copied().flatten())
-                        .collect();
-                    Spread::of(&v)
-                })
-                .collect();
-            (e, per_axis)
-        })
-        .collect();
     Expectation {
         draws: analyses.len(),
         rms,
@@ -430,9 +465,9 @@ pub fn expect(
         runs_z: Spread::of(&runs),
         r2,
         normal_err_deg: Spread::of(&nerr),
-        gain_z,
-        rank_z,
-        structure,
+        gain_z: null_of(&|b, c| super::select::paired(b, c).1),
+        rank_z: null_of(&super::select::paired_rank),
+        structure: structure_spreads(analyses, plan),
     }
 }
 

@@ -650,96 +650,118 @@ pub struct Step {
 
 /// Forward selection after `first` was named (module docs): adds the
 /// candidate that the calibrated decision names on top of the effects
-/// selected so far, refits, repeats; stops when nothing more is named or
-/// after [`MAX_EFFECTS`] effects.
+/// selected so far ([`next_step`]), refits, repeats; stops when nothing
+/// more is named or after [`MAX_EFFECTS`] effects.
+///
+/// # Errors
+/// A winner without a verdict (an internal inconsistency).
 fn forward(
     first: Effect,
-    nominal: &[Sensor<f64>],
-    poses: &PoseTable,
-    refs: &Refs,
-    folds: &Folds,
+    l: &Loaded,
     declared: Option<Vec<f64>>,
     s: &Settings,
 ) -> Result<Vec<Step>> {
     let mut with = vec![first];
     let mut steps = Vec::new();
-    // A model the solver cannot fit on this run (more terms than the pose
-    // set identifies) ends the selection: what was named so far stands.
-    'add: while with.len() < MAX_EFFECTS {
-        let r = Refs {
-            extra: with.clone(),
-            ..refs.clone()
-        };
-        let models: Vec<Effect> = available_models(poses)
-            .into_iter()
-            .filter(|e| !(with.contains(e) || with.iter().any(|w| e.excluded_by(*w))))
-            .collect();
-        if models.len() < 2 {
-            break;
-        }
-        let plan = Plan {
-            nominal,
-            refs: &r,
-            folds,
-            models: &models,
-            lsq: &s.lsq,
-            method: s.method,
-        };
-        let Ok(measured) = analyse(poses, &plan, false) else {
+    while with.len() < MAX_EFFECTS {
+        let Some(step) = next_step(&with, l, &declared, s)? else {
             break;
         };
-        let fitted: Vec<Effect> = measured
-            .cv
-            .iter()
-            .filter(|(_, x)| x.is_ok())
-            .map(|(e, _)| *e)
-            .collect();
-        let plan = Plan {
-            models: &fitted,
-            ..plan
-        };
-        let bad: Vec<Effect> = implausible_fits(nominal, poses, &r, &fitted, &s.lsq)
-            .into_iter()
-            .map(|(e, _)| e)
-            .collect();
-        // As for the first effect: the noise from the full model.
-        let Ok((_, _, _, d)) = settle(
-            nominal,
-            poses,
-            &r,
-            &plan,
-            &measured,
-            declared.clone(),
-            s,
-            &bad,
-        ) else {
-            break 'add;
-        };
-        let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
-            break;
-        };
-        if d.effect != e {
-            break;
-        }
-        let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
-            break;
-        };
-        with.push(e);
-        steps.push(Step {
-            effect: e,
-            with: with.clone(),
-            verdict: d
-                .verdicts
-                .iter()
-                .find(|v| v.effect == e)
-                .cloned()
-                .ok_or_else(|| anyhow!("no verdict"))?,
-            before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
-            cv: cv.clone(),
-            fits,
-        });
+        with.push(step.effect);
+        steps.push(step);
     }
     Ok(steps)
+}
+
+/// One round of [`forward`]: the candidates not yet selected (nor excluded
+/// by one that is) decided on top of `with`, as the first effect was
+/// (noise from the full model, effect-free re-simulations). `None` when
+/// nothing more is named, or when a model the solver cannot fit on this
+/// run (more terms than the pose set identifies) ends the selection: what
+/// was named so far stands.
+///
+/// # Errors
+/// A winner without a verdict (an internal inconsistency).
+fn next_step(
+    with: &[Effect],
+    l: &Loaded,
+    declared: &Option<Vec<f64>>,
+    s: &Settings,
+) -> Result<Option<Step>> {
+    let (nominal, poses) = (&l.nominal, &l.poses);
+    let r = Refs {
+        extra: with.to_vec(),
+        ..l.refs.clone()
+    };
+    let models: Vec<Effect> = available_models(poses)
+        .into_iter()
+        .filter(|e| !(with.contains(e) || with.iter().any(|w| e.excluded_by(*w))))
+        .collect();
+    if models.len() < 2 {
+        return Ok(None);
+    }
+    let plan = Plan {
+        nominal,
+        refs: &r,
+        folds: &l.folds,
+        models: &models,
+        lsq: &s.lsq,
+        method: s.method,
+    };
+    let Ok(measured) = analyse(poses, &plan, false) else {
+        return Ok(None);
+    };
+    let fitted: Vec<Effect> = measured
+        .cv
+        .iter()
+        .filter(|(_, x)| x.is_ok())
+        .map(|(e, _)| *e)
+        .collect();
+    let plan = Plan {
+        models: &fitted,
+        ..plan
+    };
+    let bad: Vec<Effect> = implausible_fits(nominal, poses, &r, &fitted, &s.lsq)
+        .into_iter()
+        .map(|(e, _)| e)
+        .collect();
+    let settled = settle(
+        nominal,
+        poses,
+        &r,
+        &plan,
+        &measured,
+        declared.clone(),
+        s,
+        &bad,
+    );
+    let Ok((_, _, _, d)) = settled else {
+        return Ok(None);
+    };
+    let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
+        return Ok(None);
+    };
+    if d.effect != e {
+        return Ok(None);
+    }
+    let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
+        return Ok(None);
+    };
+    let mut with = with.to_vec();
+    with.push(e);
+    Ok(Some(Step {
+        effect: e,
+        with,
+        verdict: d
+            .verdicts
+            .iter()
+            .find(|v| v.effect == e)
+            .cloned()
+            .ok_or_else(|| anyhow!("no verdict"))?,
+        before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
+        cv: cv.clone(),
+        fits,
+    }))
 }
 
 /// The fit `f` (of several effects) reduced to the coefficients and 1σ of
@@ -995,7 +1017,7 @@ fn name_effects(
     };
     let also = match first {
         Effect::None | Effect::Unexplained => Vec::new(),
-        e => forward(e, &l.nominal, &l.poses, &l.refs, &l.folds, declared, s)?,
+        e => forward(e, l, declared, s)?,
     };
     if let (Effect::Unexplained, Some(st)) = (effect, also.last()) {
         decision.reasons.push(format!(

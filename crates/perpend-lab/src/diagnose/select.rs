@@ -360,8 +360,111 @@ fn axis_list(flags: &[(usize, f64, f64)]) -> String {
         .join(", ")
 }
 
-/// Decides (module docs). `implausible` are candidates whose fit on all
-/// poses left the physical bounds.
+/// What the base model's held-out RMS says against its effect-free
+/// re-simulations: its RMS, its excess z, and the one-sided threshold t*.
+struct BaseExcess {
+    rms: f64,
+    z: f64,
+    t_star: f64,
+}
+
+/// The verdict when candidate `w` beats the base model: `w` is named when
+/// its held-out residuals carry no structure (and it removes most of the
+/// base model's excess, or comes back to its own floor), or when it removes
+/// at least [`MOSTLY`] of the excess; otherwise `unexplained`. Returns the
+/// effect and the fraction of the excess it explains.
+fn judge_winner(
+    w: &Verdict,
+    measured: &Analysis,
+    exp: &Expectation,
+    alpha: f64,
+    base: &BaseExcess,
+    reasons: &mut Vec<String>,
+) -> (Effect, Option<f64>) {
+    let (base_rms, t_star) = (base.rms, base.t_star);
+    let ex0 = base_rms * base_rms - w.expected.mean * w.expected.mean;
+    let explained_fraction =
+        (ex0 > 0.0).then(|| ((base_rms * base_rms - w.rms * w.rms) / ex0).clamp(0.0, 1.0));
+    reasons.push(format!(
+        "{} beats the base model: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from the effect-free re-simulations), signed-rank z = {:.1} (threshold {:.2})",
+        w.effect.name(), base_rms, w.rms, w.z, w.z_threshold, w.z_rank, w.rank_threshold
+    ));
+    let left = structured(w.effect, measured, exp, alpha);
+    let w_n = measured.cv_of(w.effect).map_or(0, |c| c.n);
+    let w_z = excess_z(w.rms, &w.expected, w_n);
+    let part = explained_fraction.filter(|f| *f < MOSTLY && w_z > t_star);
+    let effect = if let (true, Some(f)) = (left.is_empty(), part) {
+        reasons.push(format!(
+            "but it removes only {:.0} % of the base model's excess over the floor, and its held-out RMS stays above what it gives on effect-free re-simulations ({:.4} against {:.4} mm, z = {w_z:.1} > {t_star:.2}): something the axes of the structure test do not order is left, it explains only part of it",
+            100.0 * f,
+            w.rms,
+            w.expected.mean
+        ));
+        Effect::Unexplained
+    } else if left.is_empty() {
+        reasons.push(format!(
+            "with it the held-out residuals carry no structure along {}",
+            axes_seen(measured, w.effect)
+        ));
+        w.effect
+    } else if explained_fraction.is_some_and(|f| f >= MOSTLY) {
+        reasons.push(format!(
+            "its held-out residuals still follow {}, but it removes {:.0} % of the base model's excess over the floor: the effect is named, its shape differs from the candidate's (or a second, smaller effect is present)",
+            axis_list(&left),
+            100.0 * explained_fraction.unwrap_or(0.0)
+        ));
+        w.effect
+    } else {
+        reasons.push(format!(
+            "but its held-out residuals still follow {}: it explains only part of what the model misses",
+            axis_list(&left)
+        ));
+        Effect::Unexplained
+    };
+    (effect, explained_fraction)
+}
+
+/// The verdict when no candidate beats the base model: `unexplained` when
+/// its residuals are structured, or above its effect-free floor with no
+/// structure an axis orders; `none` otherwise.
+fn judge_no_winner(
+    measured: &Analysis,
+    exp: &Expectation,
+    alpha: f64,
+    base: &BaseExcess,
+    z_star: f64,
+    reasons: &mut Vec<String>,
+) -> Effect {
+    let base_struct = structured(Effect::None, measured, exp, alpha);
+    let (base_rms, t_star, base_excess_z) = (base.rms, base.t_star, base.z);
+    if base_struct.is_empty() && base_excess_z > t_star {
+        let base_exp = exp.rms_of(Effect::None).unwrap_or_default();
+        reasons.push(format!(
+            "no candidate beats the base model (z* = {z_star:.2}), and its residuals follow none of {}, but its held-out RMS is above what the paper's model gives on effect-free re-simulations at the noise estimated from this run ({base_rms:.4} against {:.4} mm, z = {base_excess_z:.1} > {t_star:.2}): a pattern the noise model does not produce and no axis orders",
+            axes_seen(measured, Effect::None),
+            base_exp.mean
+        ));
+        Effect::Unexplained
+    } else if !base_struct.is_empty() {
+        reasons.push(format!(
+            "the base model's held-out residuals follow {} and no candidate removes it (thresholds z* = {:.2} and each candidate's null)",
+            axis_list(&base_struct),
+            z_star
+        ));
+        Effect::Unexplained
+    } else {
+        reasons.push(format!(
+            "no candidate beats the base model beyond what it gains on effect-free re-simulations (z* = {z_star:.2}), and the residuals carry no structure along {}",
+            axes_seen(measured, Effect::None)
+        ));
+        Effect::None
+    }
+}
+
+/// Decides (module docs): the verdicts of every candidate against its
+/// effect-free null, the winner ([`choose`]), and what is left with it
+/// ([`judge_winner`], [`judge_no_winner`]). `implausible` are candidates
+/// whose fit on all poses left the physical bounds.
 pub fn decide(
     measured: &Analysis,
     exp: &Expectation,
@@ -373,90 +476,31 @@ pub fn decide(
     let draws = exp.draws.max(2);
     let t_star = stats::t_quantile(1.0 - rule.alpha, (draws - 1) as f64);
     let base_exp = exp.rms_of(Effect::None).unwrap_or_default();
-    let base = measured.cv_of(Effect::None);
-    let (base_rms, base_n) = base.map_or((0.0, 0), |b| (b.rms, b.n));
-    let base_excess_z = excess_z(base_rms, &base_exp, base_n);
-    let above = base_excess_z > t_star;
+    let (base_rms, base_n) = measured
+        .cv_of(Effect::None)
+        .map_or((0.0, 0), |b| (b.rms, b.n));
+    let base = BaseExcess {
+        rms: base_rms,
+        z: excess_z(base_rms, &base_exp, base_n),
+        t_star,
+    };
     let (verdicts, z_star) = verdicts(measured, exp, n_sensors, rule, implausible);
     let (winner, ties) = choose(&verdicts, measured, &mut reasons);
     let winner = winner.cloned();
-    let base_struct = structured(Effect::None, measured, exp, rule.alpha);
-    let mut explained_fraction = None;
-    let effect = match &winner {
-        Some(w) => {
-            let ex0 = base_rms * base_rms - w.expected.mean * w.expected.mean;
-            if ex0 > 0.0 {
-                explained_fraction =
-                    Some(((base_rms * base_rms - w.rms * w.rms) / ex0).clamp(0.0, 1.0));
-            }
-            reasons.push(format!(
-                "{} beats the base model: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from the effect-free re-simulations), signed-rank z = {:.1} (threshold {:.2})",
-                w.effect.name(), base_rms, w.rms, w.z, w.z_threshold, w.z_rank, w.rank_threshold
-            ));
-            let left = structured(w.effect, measured, exp, rule.alpha);
-            let w_n = measured.cv_of(w.effect).map_or(0, |c| c.n);
-            let w_z = excess_z(w.rms, &w.expected, w_n);
-            let part = explained_fraction.filter(|f| *f < MOSTLY && w_z > t_star);
-            if let (true, Some(f)) = (left.is_empty(), part) {
-                reasons.push(format!(
-                    "but it removes only {:.0} % of the base model's excess over the floor, and its held-out RMS stays above what it gives on effect-free re-simulations ({:.4} against {:.4} mm, z = {w_z:.1} > {t_star:.2}): something the axes of the structure test do not order is left, it explains only part of it",
-                    100.0 * f,
-                    w.rms,
-                    w.expected.mean
-                ));
-                Effect::Unexplained
-            } else if left.is_empty() {
-                reasons.push(format!(
-                    "with it the held-out residuals carry no structure along {}",
-                    axes_seen(measured, w.effect)
-                ));
-                w.effect
-            } else if explained_fraction.is_some_and(|f| f >= MOSTLY) {
-                reasons.push(format!(
-                    "its held-out residuals still follow {}, but it removes {:.0} % of the base model's excess over the floor: the effect is named, its shape differs from the candidate's (or a second, smaller effect is present)",
-                    axis_list(&left),
-                    100.0 * explained_fraction.unwrap_or(0.0)
-                ));
-                w.effect
-            } else {
-                reasons.push(format!(
-                    "but its held-out residuals still follow {}: it explains only part of what the model misses",
-                    axis_list(&left)
-                ));
-                Effect::Unexplained
-            }
-        }
-        None if base_struct.is_empty() && above => {
-            reasons.push(format!(
-                "no candidate beats the base model (z* = {z_star:.2}), and its residuals follow none of {}, but its held-out RMS is above what the paper's model gives on effect-free re-simulations at the noise estimated from this run ({base_rms:.4} against {:.4} mm, z = {base_excess_z:.1} > {t_star:.2}): a pattern the noise model does not produce and no axis orders",
-                axes_seen(measured, Effect::None),
-                base_exp.mean
-            ));
-            Effect::Unexplained
-        }
-        None if !base_struct.is_empty() => {
-            reasons.push(format!(
-                "the base model's held-out residuals follow {} and no candidate removes it (thresholds z* = {:.2} and each candidate's null)",
-                axis_list(&base_struct),
-                z_star
-            ));
-            Effect::Unexplained
-        }
-        None => {
-            reasons.push(format!(
-                "no candidate beats the base model beyond what it gains on effect-free re-simulations (z* = {z_star:.2}), and the residuals carry no structure along {}",
-                axes_seen(measured, Effect::None)
-            ));
-            Effect::None
-        }
+    let (effect, explained_fraction) = match &winner {
+        Some(w) => judge_winner(w, measured, exp, rule.alpha, &base, &mut reasons),
+        None => (
+            judge_no_winner(measured, exp, rule.alpha, &base, z_star, &mut reasons),
+            None,
+        ),
     };
     Decision {
         effect,
         winner: winner.map(|w| w.effect),
         ties,
         verdicts,
-        base_excess_z,
-        above,
+        base_excess_z: base.z,
+        above: base.z > t_star,
         z_star,
         t_star,
         alpha: rule.alpha,
