@@ -428,6 +428,56 @@ struct SensorRecord {
     sigma_mm: Option<f64>,
 }
 
+/// One row of `sensors.csv` checked: sensor number from 1, finite zero
+/// point and direction, a direction of non-zero length, `sigma_mm`
+/// non-negative (empty or NaN: not declared).
+///
+/// # Errors
+/// [`ExchangeError`] naming the file, the line and the column.
+fn sensor_row(file: &str, line: u64, r: &SensorRecord) -> Result<SensorRow, ExchangeError> {
+    if r.sensor < 1 {
+        return Err(err(
+            file,
+            Some(line),
+            format!("column sensor: sensor numbers start at 1, got {}", r.sensor),
+        ));
+    }
+    let zero = [
+        check_finite(file, line, "x_mm", r.x_mm)?,
+        check_finite(file, line, "y_mm", r.y_mm)?,
+        check_finite(file, line, "z_mm", r.z_mm)?,
+    ];
+    let dir = [
+        check_finite(file, line, "m", r.m)?,
+        check_finite(file, line, "n", r.n)?,
+        check_finite(file, line, "q", r.q)?,
+    ];
+    if Vector3::from(dir).norm() < 1e-9 {
+        return Err(err(
+            file,
+            Some(line),
+            "beam direction (m, n, q) has zero length",
+        ));
+    }
+    let sigma_mm = match r.sigma_mm {
+        Some(s) if s.is_nan() => None,
+        Some(s) if !(s.is_finite() && s >= 0.0) => {
+            return Err(err(
+                file,
+                Some(line),
+                format!("column sigma_mm: must be a non-negative number, got {s}"),
+            ))
+        }
+        s => s,
+    };
+    Ok(SensorRow {
+        sensor: r.sensor as usize,
+        zero_mm: zero,
+        dir,
+        sigma_mm,
+    })
+}
+
 /// Reads `sensors.csv` from `reader`; `file` names it in errors.
 ///
 /// # Errors
@@ -454,41 +504,7 @@ pub fn parse_sensors<R: Read>(reader: R, file: &str) -> Result<SensorTable, Exch
         let r: SensorRecord = rec
             .deserialize(Some(&header))
             .map_err(|e| de_error(file, &text, line, &header, &rec, &e))?;
-        if r.sensor < 1 {
-            return Err(err(
-                file,
-                Some(line),
-                format!("column sensor: sensor numbers start at 1, got {}", r.sensor),
-            ));
-        }
-        let zero = [
-            check_finite(file, line, "x_mm", r.x_mm)?,
-            check_finite(file, line, "y_mm", r.y_mm)?,
-            check_finite(file, line, "z_mm", r.z_mm)?,
-        ];
-        let dir = [
-            check_finite(file, line, "m", r.m)?,
-            check_finite(file, line, "n", r.n)?,
-            check_finite(file, line, "q", r.q)?,
-        ];
-        if Vector3::from(dir).norm() < 1e-9 {
-            return Err(err(
-                file,
-                Some(line),
-                "beam direction (m, n, q) has zero length",
-            ));
-        }
-        let sigma_mm = match r.sigma_mm {
-            Some(s) if s.is_nan() => None,
-            Some(s) if !(s.is_finite() && s >= 0.0) => {
-                return Err(err(
-                    file,
-                    Some(line),
-                    format!("column sigma_mm: must be a non-negative number, got {s}"),
-                ))
-            }
-            s => s,
-        };
+        let row = sensor_row(file, line, &r)?;
         if let Some((_, l)) = rows.iter().find(|(x, _)| x.sensor as i64 == r.sensor) {
             return Err(err(
                 file,
@@ -496,15 +512,7 @@ pub fn parse_sensors<R: Read>(reader: R, file: &str) -> Result<SensorTable, Exch
                 format!("sensor {} appears twice (also on line {l})", r.sensor),
             ));
         }
-        rows.push((
-            SensorRow {
-                sensor: r.sensor as usize,
-                zero_mm: zero,
-                dir,
-                sigma_mm,
-            },
-            line,
-        ));
+        rows.push((row, line));
     }
     if rows.is_empty() {
         return Err(err(file, None, "no sensor rows"));

@@ -248,6 +248,81 @@ pub struct SensorParams {
 }
 
 impl SensorParams {
+    /// Checks one sensor's entry: finite geometry and extension, a unit
+    /// direction, ascending table knots, non-negative 1σ and residual, a
+    /// known transfer kind.
+    ///
+    /// # Errors
+    /// A message naming the sensor and the field.
+    fn validate(&self) -> Result<()> {
+        let (s, id) = (self, self.sensor);
+        let finite = |v: &[f64], what: &str| -> Result<()> {
+            if v.iter().all(|x| x.is_finite()) {
+                Ok(())
+            } else {
+                bail!("sensor {id}: {what} must be finite numbers")
+            }
+        };
+        finite(&s.zero_mm, "zero_mm")?;
+        finite(&s.dir, "dir")?;
+        let e = &s.ext;
+        finite(
+            &[
+                e.d_ref_mm,
+                e.gain,
+                e.nonlinearity[0],
+                e.nonlinearity[1],
+                e.incidence_mm,
+                e.crosstalk,
+                e.thermal_mm_per_c,
+                e.temp_ref_c,
+                e.drift_mm_per_s,
+            ],
+            "ext",
+        )?;
+        if let Some(t) = &e.linearity_table {
+            finite(&t.knots_mm, "linearity_table.knots_mm")?;
+            finite(&t.values_mm, "linearity_table.values_mm")?;
+            let table = LinTable {
+                knots: t.knots_mm,
+                coeffs: t.values_mm,
+            };
+            if !table.knots_valid() {
+                bail!("sensor {id}: linearity_table.knots_mm must be strictly ascending");
+            }
+        }
+        let len = Vector3::from(s.dir).norm();
+        if (len - 1.0).abs() > 1e-6 {
+            bail!("sensor {id}: dir has length {len}, expected a unit vector");
+        }
+        if let Some(sig) = &s.sigma {
+            if !sig
+                .zero_mm
+                .iter()
+                .chain(sig.dir.iter())
+                .all(|x| x.is_finite() && *x >= 0.0)
+            {
+                bail!("sensor {id}: sigma must be non-negative finite numbers");
+            }
+        }
+        if let Some(t) = &s.transfer {
+            if t.kind != TRANSFER_CURRENT && t.kind != TRANSFER_VOLTAGE {
+                bail!(
+                    "sensor {id}: transfer kind '{}' is neither '{TRANSFER_CURRENT}' nor \
+                 '{TRANSFER_VOLTAGE}'",
+                    t.kind
+                );
+            }
+            finite(&[t.scale, t.mm_at_low, t.mm_at_high], "transfer")?;
+        }
+        if let Some(r) = s.residual_rms_mm {
+            if !(r.is_finite() && r >= 0.0) {
+                bail!("sensor {id}: residual_rms_mm must be a non-negative number");
+            }
+        }
+        Ok(())
+    }
+
     /// Drift is a nuisance of the calibration run (issue 11 item 8): it
     /// is estimated so that it does not bias the zero point and beam, but
     /// never extrapolated; the board has no clock shared with the run, and
@@ -378,70 +453,7 @@ impl ParamFile {
                     i + 1
                 );
             }
-            let finite = |v: &[f64], what: &str| -> Result<()> {
-                if v.iter().all(|x| x.is_finite()) {
-                    Ok(())
-                } else {
-                    bail!("sensor {id}: {what} must be finite numbers")
-                }
-            };
-            finite(&s.zero_mm, "zero_mm")?;
-            finite(&s.dir, "dir")?;
-            let e = &s.ext;
-            finite(
-                &[
-                    e.d_ref_mm,
-                    e.gain,
-                    e.nonlinearity[0],
-                    e.nonlinearity[1],
-                    e.incidence_mm,
-                    e.crosstalk,
-                    e.thermal_mm_per_c,
-                    e.temp_ref_c,
-                    e.drift_mm_per_s,
-                ],
-                "ext",
-            )?;
-            if let Some(t) = &e.linearity_table {
-                finite(&t.knots_mm, "linearity_table.knots_mm")?;
-                finite(&t.values_mm, "linearity_table.values_mm")?;
-                let table = LinTable {
-                    knots: t.knots_mm,
-                    coeffs: t.values_mm,
-                };
-                if !table.knots_valid() {
-                    bail!("sensor {id}: linearity_table.knots_mm must be strictly ascending");
-                }
-            }
-            let len = Vector3::from(s.dir).norm();
-            if (len - 1.0).abs() > 1e-6 {
-                bail!("sensor {id}: dir has length {len}, expected a unit vector");
-            }
-            if let Some(sig) = &s.sigma {
-                if !sig
-                    .zero_mm
-                    .iter()
-                    .chain(sig.dir.iter())
-                    .all(|x| x.is_finite() && *x >= 0.0)
-                {
-                    bail!("sensor {id}: sigma must be non-negative finite numbers");
-                }
-            }
-            if let Some(t) = &s.transfer {
-                if t.kind != TRANSFER_CURRENT && t.kind != TRANSFER_VOLTAGE {
-                    bail!(
-                        "sensor {id}: transfer kind '{}' is neither '{TRANSFER_CURRENT}' nor \
-                         '{TRANSFER_VOLTAGE}'",
-                        t.kind
-                    );
-                }
-                finite(&[t.scale, t.mm_at_low, t.mm_at_high], "transfer")?;
-            }
-            if let Some(r) = s.residual_rms_mm {
-                if !(r.is_finite() && r >= 0.0) {
-                    bail!("sensor {id}: residual_rms_mm must be a non-negative number");
-                }
-            }
+            s.validate()?;
         }
         Ok(())
     }
