@@ -292,10 +292,57 @@ pub struct Summary {
 
 const EDGES: [f64; 8] = [0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 4.0, f64::INFINITY];
 
-/// Summarises the records.
-pub fn summarise(recs: &[Record], a: &Args) -> Summary {
-    let mut confusion: BTreeMap<String, BTreeMap<String, usize>> = BTreeMap::new();
-    let mut conf50: BTreeMap<String, BTreeMap<String, usize>> = BTreeMap::new();
+impl Criterion {
+    /// A rate that must reach `target`.
+    fn at_least(value: f64, target: f64, n: usize) -> Self {
+        Self {
+            value,
+            target,
+            n,
+            pass: value >= target,
+        }
+    }
+
+    /// A ratio that must stay at or below `target`.
+    fn at_most(value: f64, target: f64, n: usize) -> Self {
+        Self {
+            value,
+            target,
+            n,
+            pass: value <= target,
+        }
+    }
+}
+
+/// Whether the run was named as its hidden effect should be.
+fn correct(r: &Record) -> bool {
+    Hidden::ALL
+        .iter()
+        .find(|h| h.name() == r.hidden)
+        .is_some_and(|h| h.correct_verdict() == r.named)
+}
+
+/// The share of the runs selected by `f` for which `ok` holds, and their
+/// number.
+fn rate(
+    recs: &[Record],
+    f: &dyn Fn(&Record) -> bool,
+    ok: &dyn Fn(&Record) -> bool,
+) -> (f64, usize) {
+    let sel: Vec<&Record> = recs.iter().filter(|r| f(r)).collect();
+    (
+        sel.iter().filter(|r| ok(r)).count() as f64 / sel.len().max(1) as f64,
+        sel.len(),
+    )
+}
+
+/// hidden → named → count, over all runs and over the runs whose raise is
+/// ≥ 50 % (clean runs included as they are).
+type Confusion = BTreeMap<String, BTreeMap<String, usize>>;
+
+fn confusions(recs: &[Record]) -> (Confusion, Confusion) {
+    let mut confusion = Confusion::new();
+    let mut conf50 = Confusion::new();
     for r in recs {
         *confusion
             .entry(r.hidden.clone())
@@ -310,144 +357,116 @@ pub fn summarise(recs: &[Record], a: &Args) -> Summary {
                 .or_default() += 1;
         }
     }
-    let correct = |r: &Record| {
-        Hidden::ALL
-            .iter()
-            .find(|h| h.name() == r.hidden)
-            .is_some_and(|h| h.correct_verdict() == r.named)
-    };
-    let clean: Vec<&Record> = recs.iter().filter(|r| r.hidden == "none").collect();
-    let fp = clean.iter().filter(|r| r.named != "none").count() as f64 / clean.len().max(1) as f64;
-    let mut detection = BTreeMap::new();
-    let mut ext_over_floor = BTreeMap::new();
-    for h in Hidden::ALL.iter().filter(|h| **h != Hidden::None) {
-        let mine: Vec<&Record> = recs.iter().filter(|r| r.hidden == h.name()).collect();
-        let bins = EDGES
-            .windows(2)
-            .map(|w| {
-                let inb: Vec<&&Record> = mine
-                    .iter()
-                    .filter(|r| r.raise >= w[0] && r.raise < w[1])
-                    .collect();
-                Bin {
-                    raise_lo: w[0],
-                    raise_hi: w[1],
-                    n: inb.len(),
-                    correct_rate: inb.iter().filter(|r| correct(r)).count() as f64
-                        / inb.len().max(1) as f64,
-                }
-            })
-            .collect();
-        detection.insert(h.name().to_string(), bins);
-        if h.in_catalog() {
-            let v: Vec<f64> = mine
+    (confusion, conf50)
+}
+
+/// The detection rate of hidden effect `h` per raise bin.
+fn detection_bins(recs: &[Record], h: Hidden) -> Vec<Bin> {
+    EDGES
+        .windows(2)
+        .map(|w| {
+            let inb: Vec<&Record> = recs
                 .iter()
-                .filter(|r| r.raise >= 0.5 && correct(r))
-                .map(|r| r.ext_mm / r.floor_mm)
+                .filter(|r| r.hidden == h.name() && r.raise >= w[0] && r.raise < w[1])
                 .collect();
-            ext_over_floor.insert(
-                h.name().to_string(),
-                ExtRatio {
-                    n: v.len(),
-                    mean: stats::mean(&v),
-                    p95: stats::quantile(&v, 0.95),
-                    max: stats::quantile(&v, 1.0),
-                },
-            );
-        }
+            Bin {
+                raise_lo: w[0],
+                raise_hi: w[1],
+                n: inb.len(),
+                correct_rate: inb.iter().filter(|r| correct(r)).count() as f64
+                    / inb.len().max(1) as f64,
+            }
+        })
+        .collect()
+}
+
+/// The extended model's held-out RMS over the floor for catalogue effect
+/// `h`, on its runs named correctly with a raise ≥ 50 %.
+fn ext_ratio(recs: &[Record], h: Hidden) -> ExtRatio {
+    let v: Vec<f64> = recs
+        .iter()
+        .filter(|r| r.hidden == h.name() && r.raise >= 0.5 && correct(r))
+        .map(|r| r.ext_mm / r.floor_mm)
+        .collect();
+    ExtRatio {
+        n: v.len(),
+        mean: stats::mean(&v),
+        p95: stats::quantile(&v, 0.95),
+        max: stats::quantile(&v, 1.0),
     }
-    let rate = |f: &dyn Fn(&Record) -> bool, ok: &dyn Fn(&Record) -> bool| {
-        let sel: Vec<&Record> = recs.iter().filter(|r| f(r)).collect();
-        (
-            sel.iter().filter(|r| ok(r)).count() as f64 / sel.len().max(1) as f64,
-            sel.len(),
-        )
-    };
+}
+
+/// The acceptance criteria over the records.
+fn criteria(
+    recs: &[Record],
+    fp: (f64, usize),
+    ext: &BTreeMap<String, ExtRatio>,
+) -> BTreeMap<String, Criterion> {
     let is_cat = |r: &Record| {
         Hidden::ALL
             .iter()
             .any(|h| h.in_catalog() && h.name() == r.hidden)
     };
-    let mut criteria = BTreeMap::new();
-    let (v, n) = rate(&|r| is_cat(r) && r.raise >= 0.5, &correct);
-    criteria.insert(
+    let mut c = BTreeMap::new();
+    let (v, n) = rate(recs, &|r| is_cat(r) && r.raise >= 0.5, &correct);
+    c.insert(
         "catalog_named_correctly_raise_ge_50pct".to_string(),
-        Criterion {
-            value: v,
-            target: 0.95,
-            n,
-            pass: v >= 0.95,
-        },
+        Criterion::at_least(v, 0.95, n),
     );
     for h in Hidden::ALL.iter().filter(|h| h.in_catalog()) {
-        let (v, n) = rate(&|r| r.hidden == h.name() && r.raise >= 0.5, &correct);
-        criteria.insert(
+        let (v, n) = rate(recs, &|r| r.hidden == h.name() && r.raise >= 0.5, &correct);
+        c.insert(
             format!("{}_named_correctly_raise_ge_50pct", h.name()),
-            Criterion {
-                value: v,
-                target: 0.95,
-                n,
-                pass: v >= 0.95,
-            },
+            Criterion::at_least(v, 0.95, n),
         );
     }
-    criteria.insert(
+    c.insert(
         "clean_called_none".to_string(),
-        Criterion {
-            value: 1.0 - fp,
-            target: 0.95,
-            n: clean.len(),
-            pass: 1.0 - fp >= 0.95,
-        },
+        Criterion::at_least(1.0 - fp.0, 0.95, fp.1),
     );
-    let (v, n) = rate(&|r| r.hidden == "ripple" && r.raise >= 0.5, &correct);
-    criteria.insert(
+    let (v, n) = rate(recs, &|r| r.hidden == "ripple" && r.raise >= 0.5, &correct);
+    c.insert(
         "ripple_called_unexplained_raise_ge_50pct".to_string(),
-        Criterion {
-            value: v,
-            target: 0.90,
-            n,
-            pass: v >= 0.90,
-        },
+        Criterion::at_least(v, 0.90, n),
     );
-    let worst = ext_over_floor
-        .values()
-        .map(|e| e.mean)
-        .fold(0.0f64, f64::max);
-    criteria.insert(
+    let n_ext = ext.values().map(|e| e.n).sum();
+    let worst = ext.values().map(|e| e.mean).fold(0.0f64, f64::max);
+    c.insert(
         "ext_rms_over_floor_worst_effect_mean".to_string(),
-        Criterion {
-            value: worst,
-            target: 1.15,
-            n: ext_over_floor.values().map(|e| e.n).sum(),
-            pass: worst <= 1.15,
-        },
+        Criterion::at_most(worst, 1.15, n_ext),
     );
-    let worst_max = ext_over_floor
-        .values()
-        .map(|e| e.max)
-        .fold(0.0f64, f64::max);
-    criteria.insert(
+    let worst_max = ext.values().map(|e| e.max).fold(0.0f64, f64::max);
+    c.insert(
         "ext_rms_over_floor_worst_run".to_string(),
-        Criterion {
-            value: worst_max,
-            target: 1.15,
-            n: ext_over_floor.values().map(|e| e.n).sum(),
-            pass: worst_max <= 1.15,
-        },
+        Criterion::at_most(worst_max, 1.15, n_ext),
     );
-    let ripple_all = rate(&|r| r.hidden == "ripple", &correct).0;
+    c
+}
+
+/// Summarises the records.
+pub fn summarise(recs: &[Record], a: &Args) -> Summary {
+    let (confusion, conf50) = confusions(recs);
+    let clean: Vec<&Record> = recs.iter().filter(|r| r.hidden == "none").collect();
+    let fp = clean.iter().filter(|r| r.named != "none").count() as f64 / clean.len().max(1) as f64;
+    let effects = || Hidden::ALL.into_iter().filter(|h| *h != Hidden::None);
+    let detection = effects()
+        .map(|h| (h.name().to_string(), detection_bins(recs, h)))
+        .collect();
+    let ext_over_floor: BTreeMap<String, ExtRatio> = effects()
+        .filter(|h| h.in_catalog())
+        .map(|h| (h.name().to_string(), ext_ratio(recs, h)))
+        .collect();
     Summary {
         runs: recs.len(),
-        ripple_unexplained_all_sizes: ripple_all,
+        ripple_unexplained_all_sizes: rate(recs, &|r| r.hidden == "ripple", &correct).0,
         seeds: a.seeds,
         magnitudes: a.magnitudes.clone(),
         confusion,
         confusion_raise_ge_50pct: conf50,
         false_positive_rate: fp,
         detection,
+        criteria: criteria(recs, (fp, clean.len()), &ext_over_floor),
         ext_over_floor,
-        criteria,
     }
 }
 
@@ -475,6 +494,53 @@ fn print_confusion(title: &str, c: &BTreeMap<String, BTreeMap<String, usize>>) {
             print!(" {:>7}", row.get(col).copied().unwrap_or(0));
         }
         println!();
+    }
+}
+
+/// The text report's detection rates, extended-model ratios and criteria.
+fn print_rates(s: &Summary) {
+    println!("\ndetection rate (named correctly) against the raise");
+    print!("  {:<13}", "effect");
+    for w in EDGES.windows(2) {
+        let hi = if w[1].is_finite() {
+            format!("{:.0}%", w[1] * 100.0)
+        } else {
+            "∞".into()
+        };
+        print!(" {:>14}", format!("{:.0}-{}", w[0] * 100.0, hi));
+    }
+    println!();
+    for (h, bins) in &s.detection {
+        print!("  {h:<13}");
+        for b in bins {
+            if b.n == 0 {
+                print!(" {:>14}", "–");
+            } else {
+                print!(
+                    " {:>14}",
+                    format!("{:.0}% ({})", b.correct_rate * 100.0, b.n)
+                );
+            }
+        }
+        println!();
+    }
+    println!("\nextended held-out RMS / floor (catalogue effects named correctly, raise ≥ 50%)");
+    for (h, e) in &s.ext_over_floor {
+        println!(
+            "  {h:<13} n = {:>4}  mean {:.3}  p95 {:.3}  max {:.3}",
+            e.n, e.mean, e.p95, e.max
+        );
+    }
+    println!("\ncriteria (issue 5)");
+    for (k, c) in &s.criteria {
+        println!(
+            "  {:<48} {:>7.3}  target {:<5}  n = {:<5} {}",
+            k,
+            c.value,
+            c.target,
+            c.n,
+            if c.pass { "met" } else { "NOT MET" }
+        );
     }
 }
 
@@ -534,48 +600,6 @@ pub fn run(a: &Args) -> Result<()> {
         "ripple (out of catalogue) called unexplained at any size: {:.1}% (small ripples are rightly called none)",
         s.ripple_unexplained_all_sizes * 100.0
     );
-    println!("\ndetection rate (named correctly) against the raise");
-    print!("  {:<13}", "effect");
-    for w in EDGES.windows(2) {
-        let hi = if w[1].is_finite() {
-            format!("{:.0}%", w[1] * 100.0)
-        } else {
-            "∞".into()
-        };
-        print!(" {:>14}", format!("{:.0}-{}", w[0] * 100.0, hi));
-    }
-    println!();
-    for (h, bins) in &s.detection {
-        print!("  {h:<13}");
-        for b in bins {
-            if b.n == 0 {
-                print!(" {:>14}", "–");
-            } else {
-                print!(
-                    " {:>14}",
-                    format!("{:.0}% ({})", b.correct_rate * 100.0, b.n)
-                );
-            }
-        }
-        println!();
-    }
-    println!("\nextended held-out RMS / floor (catalogue effects named correctly, raise ≥ 50%)");
-    for (h, e) in &s.ext_over_floor {
-        println!(
-            "  {h:<13} n = {:>4}  mean {:.3}  p95 {:.3}  max {:.3}",
-            e.n, e.mean, e.p95, e.max
-        );
-    }
-    println!("\ncriteria (issue 5)");
-    for (k, c) in &s.criteria {
-        println!(
-            "  {:<48} {:>7.3}  target {:<5}  n = {:<5} {}",
-            k,
-            c.value,
-            c.target,
-            c.n,
-            if c.pass { "met" } else { "NOT MET" }
-        );
-    }
+    print_rates(&s);
     Ok(())
 }
