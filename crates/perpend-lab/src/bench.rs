@@ -321,6 +321,76 @@ pub fn accuracy(cfg: &AccuracyConfig) -> Result<AccuracyErrors> {
     Ok(out)
 }
 
+/// The text report of `perpend bench accuracy`: the rows against Chen
+/// Table 4, the EKF's readings used against Table 3, LSQ over the floor.
+fn print_accuracy(
+    a: &AccuracyArgs,
+    cfg: &AccuracyConfig,
+    errs: &AccuracyErrors,
+    [b, e, l, f]: [&Stats; 4],
+    diverged: &str,
+) {
+    let s = &cfg.cal.spread;
+    println!(
+        "Chen §5 simulation: {} seeds × {} test planes, {} calibration poses each",
+        a.seeds, cfg.test_planes, cfg.cal.poses
+    );
+    println!(
+        "pose spread: tilt {:.2}° ± {:.1}° about x, {:.2}° ± {:.1}° about y, standoff {:.2} ± {:.1} mm",
+        s.center_tilt_x_deg,
+        s.tilt_x_range_deg / 2.0,
+        s.center_tilt_y_deg,
+        s.tilt_y_range_deg / 2.0,
+        s.standoff_mm,
+        s.standoff_range_mm / 2.0
+    );
+    println!("normal: Chen eq. 18-19 (averaged cross products) for every row");
+    println!();
+    println!("                      this run                     |  Chen Table 4");
+    println!("                      max [°]   mean [°]   std [°]  |  max [°]   mean [°]   std [°]");
+    let row = |name: &str, s: &Stats, paper: Option<(f64, f64, f64)>| {
+        let p = paper.map_or(
+            "        –          –         –".to_string(),
+            |(x, m, d)| format!("{x:>8.4}   {m:>8.4}  {d:>8.4}"),
+        );
+        println!(
+            "{name:<20} {:>8.4}   {:>8.4}  {:>8.4}  | {p}",
+            s.max_deg, s.mean_deg, s.std_deg
+        );
+    };
+    row("before", b, Some((1.6801, 1.3387, 0.1841)));
+    let ekf_name = if a.ekf_nonlinear {
+        "EKF (nonlinear inn.)"
+    } else {
+        "EKF (Chen eq. 10-16)"
+    };
+    row(ekf_name, e, Some((0.0511, 0.0412, 0.0057)));
+    row("LSQ (5-DOF LM)", l, None);
+    row("floor (true head)", f, None);
+    println!("(paper's method 1, nonlinear LS of [19]: 0.4278 / 0.2446 / 0.1024)");
+    let n = errs.ekf_used.len().max(1) as f64;
+    let used: Vec<String> = (0..4)
+        .map(|i| {
+            format!(
+                "L{} {:.1}",
+                i + 1,
+                errs.ekf_used.iter().map(|u| u[i] as f64).sum::<f64>() / n
+            )
+        })
+        .collect();
+    println!();
+    println!(
+        "EKF readings used until the stop (mean over seeds): {}  (Chen Table 3: 75 86 91 81)",
+        used.join(", ")
+    );
+    println!("{diverged}");
+    println!(
+        "lsq / floor: mean {:.3}, max {:.3}   (done when ≤ 1.10 and ≤ 1.25)",
+        l.mean_deg / f.mean_deg,
+        l.max_deg / f.max_deg
+    );
+}
+
 fn run_accuracy(a: &AccuracyArgs) -> Result<()> {
     if a.seeds == 0 {
         bail!("--seeds must be at least 1");
@@ -359,65 +429,7 @@ fn run_accuracy(a: &AccuracyArgs) -> Result<()> {
         }
         return Ok(());
     }
-    let s = &cfg.cal.spread;
-    println!(
-        "Chen §5 simulation: {} seeds × {} test planes, {} calibration poses each",
-        a.seeds, cfg.test_planes, cfg.cal.poses
-    );
-    println!(
-        "pose spread: tilt {:.2}° ± {:.1}° about x, {:.2}° ± {:.1}° about y, standoff {:.2} ± {:.1} mm",
-        s.center_tilt_x_deg,
-        s.tilt_x_range_deg / 2.0,
-        s.center_tilt_y_deg,
-        s.tilt_y_range_deg / 2.0,
-        s.standoff_mm,
-        s.standoff_range_mm / 2.0
-    );
-    println!("normal: Chen eq. 18-19 (averaged cross products) for every row");
-    println!();
-    println!("                      this run                     |  Chen Table 4");
-    println!("                      max [°]   mean [°]   std [°]  |  max [°]   mean [°]   std [°]");
-    let row = |name: &str, s: &Stats, paper: Option<(f64, f64, f64)>| {
-        let p = paper.map_or(
-            "        –          –         –".to_string(),
-            |(x, m, d)| format!("{x:>8.4}   {m:>8.4}  {d:>8.4}"),
-        );
-        println!(
-            "{name:<20} {:>8.4}   {:>8.4}  {:>8.4}  | {p}",
-            s.max_deg, s.mean_deg, s.std_deg
-        );
-    };
-    row("before", &b, Some((1.6801, 1.3387, 0.1841)));
-    let ekf_name = if a.ekf_nonlinear {
-        "EKF (nonlinear inn.)"
-    } else {
-        "EKF (Chen eq. 10-16)"
-    };
-    row(ekf_name, &e, Some((0.0511, 0.0412, 0.0057)));
-    row("LSQ (5-DOF LM)", &l, None);
-    row("floor (true head)", &f, None);
-    println!("(paper's method 1, nonlinear LS of [19]: 0.4278 / 0.2446 / 0.1024)");
-    let n = errs.ekf_used.len().max(1) as f64;
-    let used: Vec<String> = (0..4)
-        .map(|i| {
-            format!(
-                "L{} {:.1}",
-                i + 1,
-                errs.ekf_used.iter().map(|u| u[i] as f64).sum::<f64>() / n
-            )
-        })
-        .collect();
-    println!();
-    println!(
-        "EKF readings used until the stop (mean over seeds): {}  (Chen Table 3: 75 86 91 81)",
-        used.join(", ")
-    );
-    println!("{diverged}");
-    println!(
-        "lsq / floor: mean {:.3}, max {:.3}   (done when ≤ 1.10 and ≤ 1.25)",
-        l.mean_deg / f.mean_deg,
-        l.max_deg / f.max_deg
-    );
+    print_accuracy(a, &cfg, &errs, [&b, &e, &l, &f], &diverged);
     Ok(())
 }
 
