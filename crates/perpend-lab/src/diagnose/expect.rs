@@ -15,7 +15,7 @@
 //! Limits: the expectation is only as good as σ and the tracker model; an
 //! optimistic datasheet σ shows up as residuals "above expectation".
 
-use perpend_core::calib::{LsqConfig, Poses, Regressors};
+use perpend_core::calib::{LsqConfig, Regressors};
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 use perpend_core::normal::Method;
@@ -147,21 +147,6 @@ pub struct Plan<'a> {
     pub method: Method,
 }
 
-/// In-sample residuals of the paper's model, `[pose][sensor]` (`None`
-/// where there is no reading or no prediction).
-fn insample_residuals(poses: &PoseTable, base_fit: &[SensorFit]) -> Vec<Vec<Option<f64>>> {
-    (0..poses.len())
-        .map(|k| {
-            (0..base_fit.len())
-                .map(|i| {
-                    let d = poses.reading(k, i)?;
-                    super::candidates::predict(&base_fit[i], poses, k, i).map(|p| d - p)
-                })
-                .collect()
-        })
-        .collect()
-}
-
 /// The share of the paper's model's in-sample residual variance that the
 /// regressors of candidate `e` explain, pooled over the sensors.
 fn explained_share(
@@ -215,7 +200,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         })
         .collect::<Result<_, _>>()?;
     let ns = plan.nominal.len();
-    let insample = insample_residuals(poses, &base_fit);
+    let insample = super::noise::residuals_of(&base_fit, poses);
     let per_sensor: Vec<Vec<Option<f64>>> = (0..ns)
         .map(|i| insample.iter().map(|r| r[i]).collect())
         .collect();
