@@ -194,7 +194,10 @@ pub fn run(a: &Args) -> Result<()> {
         })?;
     match status.code() {
         Some(0) => Ok(()),
-        Some(1) if a.check => bail!("the blind diagnosis missed a goal (listed above)"),
+        // score.py exits 1 on a missed goal, as Python does on an error.
+        Some(1) if a.check => bail!(
+            "the blind diagnosis missed a goal, or the scorer failed: its lines above say which"
+        ),
         _ => bail!("{python} {} failed: {status}", score.display()),
     }
 }
