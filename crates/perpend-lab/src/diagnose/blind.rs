@@ -173,7 +173,9 @@ fn scorer(a: &Args) -> Result<PathBuf> {
 /// No generator, no Python, a goal missed with `--check`, a scorer that
 /// fails.
 pub fn run(a: &Args) -> Result<()> {
-    if a.nulls == Some(0) && a.effects == Some(0) {
+    // (`--full` keeps its detection-limit block whatever the counts.)
+    let limit_block = a.full && !(a.combined || a.offcat);
+    if a.nulls == Some(0) && a.effects == Some(0) && !limit_block {
         bail!("--nulls 0 and --effects 0 leave nothing to run");
     }
     let score = scorer(a)?;
