@@ -15,4 +15,5 @@ case "$target" in /*) ;; *) target="$root/$target" ;; esac
 if [ "${1:-}" = "--full" ]; then
     exec "$target/debug/perpend" bench diagnose --blind "$here" "$@"
 fi
+case " $* " in *" --check "*) exec "$target/debug/perpend" bench diagnose --blind "$here" "$@" ;; esac
 exec "$target/debug/perpend" bench diagnose --blind "$here" --check "$@"

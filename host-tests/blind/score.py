@@ -341,7 +341,8 @@ def json_grid(cells):
     """The cells as JSON: regime -> class -> counts, with each class's rate
     (`ok`/`n`: for `none` one minus the false-positive rate, for `single`
     the named rate, for `pair` the both-named rate) and, for blunders, the
-    rate found."""
+    rate found; `_floor` holds the ratios of the tool's floor to the
+    same-draw floor, one per run where its noise model holds."""
     grid = {}
     for reg, c in cells.items():
         g = grid.setdefault(reg, {})
