@@ -41,23 +41,68 @@ use crate::bus::{self, BusSpec};
 use crate::canopen::{Client, ClientError, NodeState};
 
 /// How to reach one board: the bus and the node (`perpend node`,
-/// `perpend cell run`).
+/// `perpend cell run`). Every option may stand before or after the
+/// subcommand (`perpend node --bus B --node-id 5 info` and `perpend node
+/// info --bus B --node-id 5` are the same); `--node-id` may be left out only
+/// by the commands that address the whole bus (`lss`).
 #[derive(clap::Args, Debug)]
 pub struct LinkArgs {
     /// The CAN bus: `tcp:HOST:PORT` (virtual board), `slcan:/dev/ttyACM0[@BAUD]`
     /// (slcan adapter on a serial port), `socketcan:can0` (Linux SocketCAN).
-    #[arg(long)]
-    pub bus: String,
+    #[arg(long, global = true)]
+    pub bus: Option<String>,
     /// Node-id of the board, 1..127 (decimal or 0x hex).
-    #[arg(long, value_parser = crate::board::parse_node_id)]
-    pub node_id: u8,
+    #[arg(long, global = true, value_parser = crate::board::parse_node_id)]
+    pub node_id: Option<u8>,
     /// CAN bit rate an slcan adapter is set to [kbit/s] (SocketCAN
     /// interfaces keep theirs: `ip link set can0 type can bitrate …`).
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, global = true, default_value_t = 1000)]
     pub bitrate: u32,
     /// How long the board may take to answer one SDO request [ms].
-    #[arg(long, default_value_t = 500)]
+    #[arg(long, global = true, default_value_t = 500)]
     pub timeout_ms: u64,
+}
+
+impl LinkArgs {
+    /// The bus, or the sentence that says it is missing.
+    ///
+    /// # Errors
+    /// `--bus` not given.
+    pub fn bus(&self) -> Result<&str> {
+        match &self.bus {
+            Some(b) => Ok(b),
+            None => bail!(
+                "no bus given: add --bus tcp:HOST:PORT (virtual board), \
+                 --bus slcan:/dev/ttyACM0 or --bus socketcan:can0"
+            ),
+        }
+    }
+
+    /// The node-id, or the sentence that says it is missing.
+    ///
+    /// # Errors
+    /// `--node-id` not given.
+    pub fn node_id(&self) -> Result<u8> {
+        match self.node_id {
+            Some(n) => Ok(n),
+            None => bail!(
+                "no node-id given: add --node-id N (1..127; `perpend node lss fastscan` \
+                 lists the nodes on a bus that have none)"
+            ),
+        }
+    }
+
+    /// Opens the bus with this link's bit rate and SDO timeout.
+    ///
+    /// # Errors
+    /// A missing or bad `--bus`, a bus that cannot be opened.
+    pub fn client(&self) -> Result<Client> {
+        let spec: BusSpec = self.bus()?.parse()?;
+        let bus = bus::open(&spec, self.bitrate)?;
+        let mut client = Client::new(bus);
+        client.timeout = Duration::from_millis(self.timeout_ms.max(1));
+        Ok(client)
+    }
 }
 
 /// Arguments of `perpend node`.
@@ -124,13 +169,11 @@ impl Node {
     /// Opens the bus of `a` and addresses its node.
     ///
     /// # Errors
-    /// A bad `--bus`, a bus that cannot be opened.
+    /// A missing `--bus` or `--node-id`, a bad `--bus`, a bus that cannot be
+    /// opened.
     pub fn connect(a: &LinkArgs) -> Result<Self> {
-        let spec: BusSpec = a.bus.parse()?;
-        let bus = bus::open(&spec, a.bitrate)?;
-        let mut client = Client::new(bus);
-        client.timeout = Duration::from_millis(a.timeout_ms.max(1));
-        Ok(Self::new(client, a.node_id))
+        let id = a.node_id()?;
+        Ok(Self::new(a.client()?, id))
     }
 
     /// `node N on BUS`, for messages.
