@@ -27,6 +27,11 @@ use perpend_can::Frame;
 /// 1 + 8 + 1 + 16 = 26); longer lines are discarded as a whole.
 pub const MAX_LINE: usize = 64;
 
+/// The line the virtual board sends a second client before it closes that
+/// connection, followed by the address of the client that holds the board
+/// (short enough for [`MAX_LINE`] with an IPv4 address and port).
+pub const BUSY_PREFIX: &str = "perpend board: in use by";
+
 /// One parsed command line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Command {

@@ -143,6 +143,70 @@ fn info_and_status_describe_the_board() {
 }
 
 #[test]
+fn info_names_the_pdo_mappings_temperature_and_error_register() {
+    let b = Board::start(&["--temp-c", "31.5"]);
+    let v: serde_json::Value =
+        serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
+    assert_eq!(v["die_temp_c"], 31.5);
+    assert_eq!(v["error_register"], 0);
+    assert_eq!(v["error_register_words"], "no error");
+    let pdos = v["pdos"].as_array().unwrap();
+    let names: Vec<&str> = pdos.iter().map(|p| p["pdo"].as_str().unwrap()).collect();
+    assert_eq!(names, ["TPDO1", "TPDO2", "TPDO3", "TPDO4", "RPDO1"]);
+    // TPDO 1 at its default: 0x180 + node-id, every SYNC, θ1 and θ2 in °.
+    let t1 = &pdos[0];
+    assert_eq!(t1["cob_id"], 0x180 + 16);
+    assert_eq!(t1["transmission_words"], "every SYNC");
+    assert_eq!(t1["mapped"][0]["name"], "Theta1");
+    assert_eq!(t1["mapped"][0]["unit"], "°");
+    assert_eq!(pdos[4]["mapped"][0]["index"], 0x2500);
+    let out = ok(&b.node(&["info"]));
+    assert!(out.contains("die temp      31.5 °C"), "{out}");
+    assert!(out.contains("Theta1 [°] (0x2002 sub 1)"), "{out}");
+    assert!(
+        out.contains("Plane RMS residual [mm] (0x2006 sub 0)"),
+        "{out}"
+    );
+}
+
+#[test]
+fn options_may_follow_the_subcommand() {
+    let b = Board::start(&[]);
+    let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .args(["node", "info", "--json", "--bus", &b.bus, "--node-id", NODE])
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_str(ok(&out).trim()).unwrap();
+    assert_eq!(v["node_id"], 16);
+    let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .args(["node", "info", "--bus", &b.bus])
+        .output()
+        .unwrap();
+    assert!(failed(&out).contains("no node-id given: add --node-id N"));
+}
+
+#[test]
+fn a_board_held_by_another_client_says_so() {
+    let b = Board::start(&[]);
+    let addr = b.bus.trim_start_matches("tcp:");
+    // The first connection holds the board (as a python session would).
+    let holder = std::net::TcpStream::connect(addr).unwrap();
+    let port = holder.local_addr().unwrap().port();
+    std::thread::sleep(Duration::from_millis(200));
+    let t = Instant::now();
+    let err = failed(&b.node(&["info"]));
+    assert!(
+        err.contains("the port answers but is in use by another client"),
+        "{err}"
+    );
+    assert!(err.contains(&format!("127.0.0.1:{port}")), "{err}");
+    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    drop(holder);
+    std::thread::sleep(Duration::from_millis(200));
+    ok(&b.node(&["info"]));
+}
+
+#[test]
 fn push_reset_pull_round_trip() {
     let b = Board::start(&[]);
     let dir = tempfile::tempdir().unwrap();
@@ -317,7 +381,12 @@ fn monitor_logs_rows_and_returns_the_board_to_pre_operational() {
     let log = std::fs::read_to_string(&csv).unwrap();
     let mut lines = log.lines();
     let head = lines.next().unwrap();
-    assert!(head.starts_with("t_s,sample,theta1_deg,theta2_deg,theta_deg,nx,ny,nz,d1_mm"));
+    assert!(
+        head.starts_with(
+            "t_s,sample,theta1_deg,theta2_deg,theta_deg,pitch_deg,yaw_deg,nx,ny,nz,d1_mm"
+        ),
+        "{head}"
+    );
     let rows: Vec<&str> = lines.collect();
     assert!(rows.len() >= 10, "{} rows", rows.len());
     // θ1 of the plane within 0.01° (Tian eq. 1-3: atan2(n_y, -n_z)).
@@ -330,6 +399,25 @@ fn monitor_logs_rows_and_returns_the_board_to_pre_operational() {
     let k = (0.035f64 * 0.035 + 0.052 * 0.052 + 1.0).sqrt();
     let want = (0.052 / k).atan2(1.0 / k).to_degrees();
     assert!((th1 - want).abs() < 0.01, "{th1} vs {want}");
+    // Pitch/yaw (Chen eq. 22: Rot(y, yaw)·Rot(x, pitch)·e_z = -n, with
+    // -n = (a, b, c)/|(a, b, c)| for this plane): sin(pitch) = -(-n)_y,
+    // tan(yaw) = (-n)_x / (-n)_z.
+    let col = |k: usize| -> f64 {
+        rows[rows.len() - 1]
+            .split(',')
+            .nth(k)
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let (pitch, yaw) = (col(5), col(6));
+    let want_pitch = (0.052 / k).asin().to_degrees();
+    let want_yaw = 0.035f64.atan2(1.0).to_degrees();
+    assert!(
+        (pitch - want_pitch).abs() < 0.01,
+        "pitch {pitch} vs {want_pitch}"
+    );
+    assert!((yaw - want_yaw).abs() < 0.01, "yaw {yaw} vs {want_yaw}");
     let v: serde_json::Value =
         serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
     assert_eq!(v["nmt_state"], "pre-operational");

@@ -28,7 +28,7 @@ use perpend_can::Frame;
 
 use super::node::VirtualBoard;
 use super::world::World;
-use crate::slcan::{self, Command, LineSplitter};
+use crate::slcan::{self, Command, LineSplitter, BUSY_PREFIX};
 
 /// Largest amount of unsent output kept for a slow client [bytes]; beyond
 /// it frames are dropped (a bus does not wait either).
@@ -43,6 +43,8 @@ const MAX_READ: usize = 4096;
 
 struct Client {
     stream: TcpStream,
+    /// The client's address, told to a second client that is refused.
+    peer: String,
     lines: LineSplitter,
     open: bool,
     listen_only: bool,
@@ -67,8 +69,12 @@ impl Client {
     fn new(stream: TcpStream) -> std::io::Result<Self> {
         stream.set_nonblocking(true)?;
         stream.set_nodelay(true)?;
+        let peer = stream
+            .peer_addr()
+            .map_or_else(|_| "an unknown address".into(), |a| a.to_string());
         Ok(Self {
             stream,
+            peer,
             lines: LineSplitter::new(),
             open: false,
             listen_only: false,
@@ -280,6 +286,66 @@ impl Bus<'_> {
     }
 }
 
+/// Connections refused because the board is in use: told so in one line,
+/// then read until they close (at most [`REFUSED_KEEP`]), so that closing
+/// them never resets what they have not read yet.
+#[derive(Default)]
+struct Refused(Vec<(TcpStream, Instant)>);
+
+/// How long a refused connection is kept open for its client to read why.
+const REFUSED_KEEP: Duration = Duration::from_secs(2);
+
+impl Refused {
+    /// Tells `s` that the board is held by `holder` and keeps it.
+    fn refuse(&mut self, mut s: TcpStream, holder: &str) {
+        let _ = s.write_all(format!("{BUSY_PREFIX} {holder}\r").as_bytes());
+        if s.set_nonblocking(true).is_ok() {
+            self.0.push((s, Instant::now()));
+        }
+    }
+
+    /// Reads and drops what the refused clients send; closes those that
+    /// closed or are older than [`REFUSED_KEEP`].
+    fn poll(&mut self) {
+        let mut buf = [0u8; 256];
+        self.0.retain_mut(|(s, at)| {
+            let open = loop {
+                match s.read(&mut buf) {
+                    Ok(0) => break false,
+                    Ok(_) => {}
+                    Err(e) if e.kind() == ErrorKind::WouldBlock => break true,
+                    Err(_) => break false,
+                }
+            };
+            open && at.elapsed() < REFUSED_KEEP
+        });
+    }
+}
+
+/// Takes a new connection: the client when there is none, else a second
+/// one that is told in one line that the board is in use (by whom), so
+/// that its `perpend node` says so instead of waiting for an answer that
+/// never comes ([`crate::bus::slcan`] reads the line).
+fn accept(listener: &TcpListener, client: &mut Option<Client>, refused: &mut Refused) {
+    refused.poll();
+    match listener.accept() {
+        Ok((s, peer)) if client.is_some() => {
+            let holder = client.as_ref().map_or(String::new(), |c| c.peer.clone());
+            refused.refuse(s, &holder);
+            eprintln!("perpend board: client {peer} refused: in use by {holder}");
+        }
+        Ok((s, peer)) => match Client::new(s) {
+            Ok(c) => {
+                eprintln!("perpend board: client {peer} connected");
+                *client = Some(c);
+            }
+            Err(e) => eprintln!("perpend board: client {peer}: {e}"),
+        },
+        Err(e) if e.kind() == ErrorKind::WouldBlock => {}
+        Err(e) => eprintln!("perpend board: accept: {e}"),
+    }
+}
+
 /// Serves the boards on `listener` until the process is stopped: one
 /// board, or several on one virtual bus (a cell; every frame a board sends
 /// reaches the client and the other boards whose bit rate agrees);
@@ -304,21 +370,10 @@ pub fn serve(
         last_sample: vec![0; n],
     };
     let mut latency = Latency::default();
+    let mut refused = Refused::default();
     loop {
         let now = start.elapsed().as_micros() as u64;
-        if client.is_none() {
-            match listener.accept() {
-                Ok((s, peer)) => match Client::new(s) {
-                    Ok(c) => {
-                        eprintln!("perpend board: client {peer} connected");
-                        client = Some(c);
-                    }
-                    Err(e) => eprintln!("perpend board: client {peer}: {e}"),
-                },
-                Err(e) if e.kind() == ErrorKind::WouldBlock => {}
-                Err(e) => eprintln!("perpend board: accept: {e}"),
-            }
-        }
+        accept(&listener, &mut client, &mut refused);
         let mut busy = match (world.as_mut(), bus.boards.first_mut()) {
             (Some(w), Some(b)) => w.poll(b),
             _ => false,

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use perpend_can::Frame;
 
 use super::{Bus, BusError};
-use crate::slcan::{self as proto, Command, LineSplitter};
+use crate::slcan::{self as proto, Command, LineSplitter, BUSY_PREFIX};
 
 /// How long the adapter has to answer each set-up command.
 const SETUP_TIMEOUT: Duration = Duration::from_secs(1);
@@ -129,6 +129,9 @@ pub struct SlcanBus<L: Link> {
     frames: VecDeque<Frame>,
     /// Command replies seen: (accepted, refused).
     replies: (usize, usize),
+    /// A line of text the other end sent instead of slcan (the virtual
+    /// board's "in use by another client"), kept for the error message.
+    said: Option<String>,
 }
 
 /// The `Sn` code of a bit rate [kbit/s].
@@ -163,6 +166,7 @@ impl<L: Link> SlcanBus<L> {
             lines: LineSplitter::new(),
             frames: VecDeque::new(),
             replies: (0, 0),
+            said: None,
         };
         bus.write(b"\r\r\r")?;
         // Whatever the flush provokes (CR or BEL per adapter) is not an
@@ -171,12 +175,45 @@ impl<L: Link> SlcanBus<L> {
         while let Some(left) = end.checked_duration_since(Instant::now()) {
             bus.fill(left)?;
         }
-        bus.command(b"C\r", "close the channel", false)?;
-        let s = format!("S{code}\r");
-        bus.command(s.as_bytes(), &format!("set {bitrate_kbps} kbit/s"), true)?;
-        bus.command(b"O\r", "open the channel", true)?;
+        bus.setup(code, bitrate_kbps).map_err(|e| bus.explain(e))?;
         bus.frames.clear();
         Ok(bus)
+    }
+
+    /// The set-up commands: close, bit rate, open.
+    fn setup(&mut self, code: u8, bitrate_kbps: u32) -> Result<(), BusError> {
+        self.command(b"C\r", "close the channel", false)?;
+        let s = format!("S{code}\r");
+        self.command(s.as_bytes(), &format!("set {bitrate_kbps} kbit/s"), true)?;
+        self.command(b"O\r", "open the channel", true)
+    }
+
+    /// A set-up failure said as what was found: an endpoint that told us
+    /// it is in use, or one that closed the connection or kept silent
+    /// although it accepted it (a TCP port held by another client).
+    fn explain(&self, e: BusError) -> BusError {
+        let tcp = self.name.starts_with("tcp:");
+        let what = match (&self.said, &e) {
+            (Some(line), _) if line.starts_with(BUSY_PREFIX) => format!(
+                "the port answers but is in use by another client ({}): close that \
+                 `perpend node`/python session first; the virtual board serves one client",
+                line[BUSY_PREFIX.len()..].trim()
+            ),
+            (Some(line), _) => format!("the port answers but not in slcan: it said {line:?}"),
+            (None, BusError::Closed { .. }) => "the port answers but closed the connection \
+                 during set-up: is it in use by another client?"
+                .into(),
+            (None, BusError::Adapter { what, .. }) if tcp && what.contains("did not answer") => {
+                "the port answers (the connection was accepted) but nothing answered the \
+                 slcan set-up: it is in use by another client, or not an slcan endpoint"
+                    .into()
+            }
+            _ => return e,
+        };
+        BusError::Adapter {
+            bus: self.name.clone(),
+            what,
+        }
     }
 
     fn write(&mut self, b: &[u8]) -> Result<(), BusError> {
@@ -237,12 +274,18 @@ impl<L: Link> SlcanBus<L> {
         let bells = buf[..n].iter().filter(|&&b| b == 0x07).count();
         self.replies.1 += bells;
         let bytes: Vec<u8> = buf[..n].iter().copied().filter(|&b| b != 0x07).collect();
-        let (frames, replies) = (&mut self.frames, &mut self.replies);
-        self.lines.feed(&bytes, |line| match line.map(parse_line) {
-            Ok(Line::Frame(f)) => frames.push_back(f),
-            Ok(Line::Ok) => replies.0 += 1,
-            _ => {}
-        });
+        let (frames, replies, said) = (&mut self.frames, &mut self.replies, &mut self.said);
+        self.lines
+            .feed(&bytes, |line| match line.map(|l| (l, parse_line(l))) {
+                Ok((_, Line::Frame(f))) => frames.push_back(f),
+                Ok((_, Line::Ok)) => replies.0 += 1,
+                Ok((l, Line::Other))
+                    if l.len() > 8 && l.iter().all(|b| (0x20..0x7F).contains(b)) =>
+                {
+                    *said = Some(String::from_utf8_lossy(l).into_owned());
+                }
+                _ => {}
+            });
         Ok(())
     }
 }

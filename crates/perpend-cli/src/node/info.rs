@@ -2,10 +2,13 @@
 //! 0x1018, device type 0x1000, name and versions 0x1008-0x100A, NMT state
 //! from its heartbeat, node-id and bit rate 0x2400, acquisition 0x2300,
 //! calibration lock 0x2010), how it is (status word 0x2005 in words, error
-//! register 0x1001, the last emergencies from 0x1003), and NMT commands
-//! with their effect checked.
+//! register 0x1001, the last emergencies from 0x1003), its PDOs in words
+//! ([`super::mapping`]), die temperature (0x200A) and error register, and
+//! NMT commands with their effect checked.
 //!
-//! The dictionary has no stored-parameter stamp: `info` cannot show one.
+//! The calibration stamp (0x2011: record hash, UTC seconds, store count) is
+//! shown where the board's dictionary has it; a board whose firmware has
+//! no such object (SDO abort 0x06020000) is said to have none.
 
 use std::time::Duration;
 
@@ -13,8 +16,13 @@ use anyhow::Result;
 use serde_json::json;
 
 use super::words;
-use super::Node;
-use crate::canopen::{Nmt, NodeState};
+use super::{mapping, Node};
+use crate::canopen::{ClientError, Nmt, NodeState};
+
+/// The calibration stamp object (record hash, UTC seconds, store count).
+pub const STAMP: u16 = 0x2011;
+/// SDO abort: object does not exist in the object dictionary.
+const NO_OBJECT: u32 = 0x0602_0000;
 
 /// Options of `info` and `status`.
 #[derive(clap::Args, Debug)]
@@ -59,9 +67,14 @@ fn gather(node: &mut Node) -> Result<serde_json::Value> {
     let limit = c.read_f32(id, 0x2300, 4)?;
     let unlocked = c.read_u32(id, 0x2010, 0)? != 0;
     let st = c.read_u32(id, 0x2005, 0)?;
+    let reg = c.read_u32(id, 0x1001, 0)? as u8;
+    let temp = c.read_f32(id, 0x200A, 0)?;
     let sensors = node.sensors()?;
     let hb = node.heartbeat_ms()?;
     let state = node.state(hb)?;
+    let pdos = mapping::read(node)?;
+    let stamp = read_stamp(node)?;
+    let die_temp = (temp > perpend_can::od::DIE_TEMP_UNKNOWN).then_some(temp);
     Ok(json!({
         "node_id": id, "bus": node.client.bus_name(),
         "device_type": device_type, "device_name": name,
@@ -74,7 +87,25 @@ fn gather(node: &mut Node) -> Result<serde_json::Value> {
         "plane_method": if acq[2] == 0 { "Chen" } else { "least squares" },
         "residual_limit_mm": limit, "calibration_unlocked": unlocked,
         "calibrated": st & perpend_can::status::UNCALIBRATED == 0,
+        "error_register": reg, "error_register_words": words::error_register_words(reg),
+        "die_temp_c": die_temp, "calibration_stamp": stamp, "pdos": pdos,
     }))
+}
+
+/// The calibration stamp (0x2011) as JSON, `null` when the board's
+/// dictionary has no such object.
+fn read_stamp(node: &mut Node) -> Result<serde_json::Value> {
+    let (c, id) = (&mut node.client, node.id);
+    let hash = match c.read_u32(id, STAMP, 1) {
+        Ok(h) => h,
+        Err(ClientError::Abort {
+            code: NO_OBJECT, ..
+        }) => return Ok(serde_json::Value::Null),
+        Err(e) => return Err(e.into()),
+    };
+    let utc = c.read_u32(id, STAMP, 2)?;
+    let count = c.read_u32(id, STAMP, 3)?;
+    Ok(json!({"record_hash": format!("{hash:08x}"), "utc_s": utc, "store_count": count}))
 }
 
 /// `perpend node info`.
@@ -112,9 +143,50 @@ pub fn info(node: &mut Node, a: &InfoArgs) -> Result<()> {
         u("heartbeat_ms")
     );
     print_config(&v);
+    print_health(&v);
+    println!("  PDOs");
+    for l in mapping::lines(&v["pdos"]) {
+        println!("    {l}");
+    }
     Ok(())
 }
 
+/// The stamp, temperature and error register lines of `info`.
+fn print_health(v: &serde_json::Value) {
+    let st = &v["calibration_stamp"];
+    if st.is_null() {
+        println!(
+            "  stamp         none: this firmware has no calibration stamp object ({STAMP:#06x})"
+        );
+    } else if st["utc_s"].as_u64() == Some(0) {
+        println!("  stamp         none stored (the calibration was never pushed with a record)");
+    } else {
+        println!(
+            "  stamp         record {} stored {} (store #{})",
+            st["record_hash"].as_str().unwrap_or("?"),
+            utc_words(st["utc_s"].as_u64().unwrap_or(0)),
+            st["store_count"].as_u64().unwrap_or(0)
+        );
+    }
+    match v["die_temp_c"].as_f64() {
+        Some(t) => println!("  die temp      {t:.1} °C (0x200A)"),
+        None => println!(
+            "  die temp      not measured (0x200A reads {} °C)",
+            perpend_can::od::DIE_TEMP_UNKNOWN
+        ),
+    }
+    println!(
+        "  error reg.    {:#04x}: {}",
+        v["error_register"].as_u64().unwrap_or(0),
+        v["error_register_words"].as_str().unwrap_or("")
+    );
+}
+
+/// UTC seconds since 1970 as ISO 8601 (`2026-11-27T10:58:43Z`).
+pub fn utc_words(secs: u64) -> String {
+    let t = std::time::UNIX_EPOCH + Duration::from_secs(secs);
+    humantime::format_rfc3339_seconds(t).to_string()
+}
 /// The head, lock, acquisition and CAN lines of `info`.
 fn print_config(v: &serde_json::Value) {
     let s = |k: &str| v[k].as_str().unwrap_or("").to_string();

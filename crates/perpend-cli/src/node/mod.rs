@@ -28,6 +28,7 @@
 
 pub mod capture;
 pub mod info;
+pub mod mapping;
 pub mod monitor;
 pub mod params;
 pub mod words;

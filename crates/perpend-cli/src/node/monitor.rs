@@ -2,10 +2,11 @@
 //!
 //! The TPDO parameters are read from the board (0x1800.., 0x1A00..), so a
 //! remapped PDO is decoded right. Each SYNC gives one row: θ1, θ2, θ, the
+//! pitch/yaw correction the robot applies (0x2003, Chen eq. 22), the
 //! normal, the distances, the RMS residual, the status word and the sample
-//! counter; what no synchronous TPDO carries (in the default mapping: θ and
-//! the distances) is read by SDO once per row, after that SYNC's PDOs (so
-//! from a slightly later sample).
+//! counter; what no synchronous TPDO carries (in the default mapping: θ,
+//! pitch/yaw and the distances) is read by SDO once per row, after that
+//! SYNC's PDOs (so from a slightly later sample).
 //!
 //! SYNC: for half a second the monitor listens; if another producer (the
 //! robot controller) sends SYNC, rows follow its SYNCs, else the monitor
@@ -14,8 +15,8 @@
 //! that is not, and puts it back into pre-operational at the end.
 //!
 //! Ends after `--seconds` or at Ctrl-C. Rows are printed at most five times
-//! a second; `--csv FILE` logs every row (`t_s`, sample, angles, normal,
-//! distances, RMS, status). The board exposes no temperature: no column.
+//! a second; `--csv FILE` logs every row (`t_s`, sample, angles, pitch/yaw,
+//! normal, distances, RMS, status).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -66,6 +67,8 @@ fn fields(sensors: usize) -> Vec<Field> {
         f("theta1_deg", 0x2002, 1),
         f("theta2_deg", 0x2002, 2),
         f("theta_deg", 0x2002, 3),
+        f("pitch_deg", 0x2003, 1),
+        f("yaw_deg", 0x2003, 2),
         f("nx", 0x2001, 1),
         f("ny", 0x2001, 2),
         f("nz", 0x2001, 3),
@@ -174,11 +177,13 @@ impl Rows {
             .map(|i| g(&format!("d{i}_mm"), 3))
             .collect();
         println!(
-            "t {t_s:7.2} s  #{}  θ1 {}°  θ2 {}°  θ {}°  n ({}, {}, {})  d {} mm  rms {} mm  {}",
+            "t {t_s:7.2} s  #{}  θ1 {}°  θ2 {}°  θ {}°  pitch {}°  yaw {}°  n ({}, {}, {})  d {} mm  rms {} mm  {}",
             g("sample", 0),
             g("theta1_deg", 3),
             g("theta2_deg", 3),
             g("theta_deg", 3),
+            g("pitch_deg", 3),
+            g("yaw_deg", 3),
             g("nx", 4),
             g("ny", 4),
             g("nz", 4),
