@@ -94,6 +94,35 @@ class Board:
             sleep_after_open=0,
         )
 
+    def release(self):
+        """Disconnects the master: the virtual board serves one client, so
+        a `perpend node` command can run only while python lets go."""
+        self.network.disconnect()
+
+    def reconnect(self):
+        """Connects the master again after :meth:`release`."""
+        self.network = canopen.Network()
+        self.network.connect(
+            interface="slcan",
+            channel=f"socket://127.0.0.1:{self.port}",
+            sleep_after_open=0,
+        )
+        self.node = self.network.add_node(self.node_id, str(EDS))
+        self.raw = RawSdo(self.network, self.node_id)
+
+    def perpend(self, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
+        """Runs `perpend node --bus tcp:127.0.0.1:PORT --node-id N ARGS`
+        with the master released, and connects it again afterwards."""
+        self.release()
+        try:
+            return subprocess.run(
+                [perpend_bin(), "--quiet", "node", "--bus", f"tcp:127.0.0.1:{self.port}",
+                 "--node-id", str(self.node_id), *args],
+                capture_output=True, text=True, timeout=timeout, check=False,
+            )
+        finally:
+            self.reconnect()
+
     def bootup_queue(self, node_id=None) -> "queue.Queue[float]":
         """A queue that receives the time of every boot-up message of
         `node_id` (default: the board's), subscribed from now on."""

@@ -273,6 +273,47 @@ pub fn status(node: &mut Node, a: &InfoArgs) -> Result<()> {
     Ok(())
 }
 
+/// `perpend node clear-errors`: writes 0 to 0x1003 sub 0 (CiA 301
+/// §7.5.2.4: the only value allowed, it empties the history) and says
+/// what is left: errors still active stay in the error register (0x1001)
+/// and come back into the history with their next EMCY.
+///
+/// # Errors
+/// Client errors; a history that is not empty after the write.
+pub fn clear_errors(node: &mut Node, a: &InfoArgs) -> Result<()> {
+    let id = node.id;
+    node.hello()?;
+    let c = &mut node.client;
+    let before = c.read_u32(id, 0x1003, 0)?;
+    c.download(id, 0x1003, 0, &[0])?;
+    let after = c.read_u32(id, 0x1003, 0)?;
+    let reg = c.read_u32(id, 0x1001, 0)? as u8;
+    if after != 0 {
+        anyhow::bail!(
+            "{}: 0x1003 still lists {after} emergencies after it was cleared",
+            node.name()
+        );
+    }
+    if a.json {
+        let v = json!({"schema": "perpend.clear-errors/1", "node_id": id, "cleared": before,
+                       "error_register": reg,
+                       "error_register_words": words::error_register_words(reg)});
+        println!("{v}");
+        return Ok(());
+    }
+    println!(
+        "{}: emergency history cleared ({before} entries removed from 0x1003)",
+        node.name()
+    );
+    if reg != 0 {
+        println!(
+            "  still active (error register {reg:#04x}): {}; their cause is still there",
+            words::error_register_words(reg)
+        );
+    }
+    Ok(())
+}
+
 /// `perpend node nmt`: sends the command and checks its effect (a boot-up
 /// after a reset, else the next heartbeat's state).
 ///

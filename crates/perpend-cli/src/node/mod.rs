@@ -6,6 +6,7 @@
 //! perpend node --bus BUS --node-id N [--bitrate KBPS] [--timeout-ms MS] <command>
 //!   info [--json]                   identity, versions, NMT state, configuration
 //!   status [--json]                 status word in words, last emergencies (0x1003)
+//!   clear-errors [--json]           empty the emergency history (0x1003 sub 0 = 0)
 //!   nmt start|stop|preop|reset|reset-comm
 //!   monitor [--sync-hz HZ] [--seconds S] [--csv FILE] [--start]
 //!   push params.json [--preop]      write, verify, store, reset, verify again, lock
@@ -124,6 +125,9 @@ pub enum Cmd {
     Info(info::InfoArgs),
     /// The status word (0x2005) in words and the last emergencies (0x1003).
     Status(info::InfoArgs),
+    /// Empty the emergency history (0x1003 sub 0 = 0); active errors stay
+    /// in the error register until their cause goes.
+    ClearErrors(info::InfoArgs),
     /// Send an NMT command and wait for its effect (boot-up, heartbeat).
     Nmt(info::NmtArgs),
     /// Live θ1/θ2/θ, normal, distances, RMS and status from the TPDOs.
@@ -260,6 +264,7 @@ pub fn run(a: &Args) -> Result<()> {
     match &a.cmd {
         Cmd::Info(x) => info::info(&mut node, x),
         Cmd::Status(x) => info::status(&mut node, x),
+        Cmd::ClearErrors(x) => info::clear_errors(&mut node, x),
         Cmd::Nmt(x) => info::nmt(&mut node, x),
         Cmd::Monitor(x) => monitor::run(&mut node, x, cancel),
         Cmd::Push(x) => params::push(&mut node, x, cancel).map(|r| println!("{r}")),

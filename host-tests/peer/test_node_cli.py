@@ -1,0 +1,76 @@
+"""`perpend node info`, `status`, `clear-errors` and the busy endpoint,
+checked by a second master (python canopen) on the same virtual board: what
+`perpend` says about the board must be what the board answers to anyone."""
+
+import json
+import subprocess
+import time
+
+import pytest
+
+from conftest import NODE_ID, perpend_bin
+
+
+def as_json(p):
+    assert p.returncode == 0, p.stderr
+    return json.loads(p.stdout)
+
+
+def test_info_pdo_mappings_are_the_boards(board):
+    # Remap TPDO 3 through python canopen, then ask perpend.
+    tpdo = board.node.tpdo
+    tpdo.read()
+    t3 = tpdo[3]
+    t3.clear()
+    t3.add_variable(0x2003, 1)  # pitch
+    t3.add_variable(0x2003, 2)  # yaw
+    t3.trans_type = 2
+    t3.enabled = True
+    t3.save()
+    info = as_json(board.perpend("info", "--json"))
+    pdo3 = next(p for p in info["pdos"] if p["pdo"] == "TPDO3")
+    assert pdo3["transmission_words"] == "every 2nd SYNC"
+    assert [(m["index"], m["sub"], m["name"], m["unit"]) for m in pdo3["mapped"]] == [
+        (0x2003, 1, "Pitch", "°"),
+        (0x2003, 2, "Yaw", "°"),
+    ]
+    # Every mapping perpend lists is what python reads from 0x1A00..0x1A03.
+    board.node.tpdo.read()
+    for k in range(1, 5):
+        ours = next(p for p in info["pdos"] if p["pdo"] == f"TPDO{k}")
+        theirs = board.node.tpdo[k]
+        assert ours["cob_id"] == theirs.cob_id
+        assert [(m["index"], m["sub"]) for m in ours["mapped"]] == [
+            (v.index, v.subindex) for v in theirs.map
+        ]
+    assert info["error_register"] == board.node.sdo[0x1001].raw
+
+
+@pytest.mark.board_args("--fault", "2:open")
+def test_clear_errors_empties_the_history_and_keeps_the_active(board):
+    time.sleep(0.5)  # the open loop is raised after its debounce
+    n = board.node.sdo[0x1003][0].raw
+    assert n >= 1
+    reg = board.node.sdo[0x1001].raw
+    assert reg != 0
+    status = as_json(board.perpend("status", "--json"))
+    assert len(status["errors"]) == n
+    cleared = as_json(board.perpend("clear-errors", "--json"))
+    assert cleared["cleared"] == n
+    assert board.node.sdo[0x1003][0].raw == 0
+    # Sensor 2 is still open: the error register still says so.
+    assert board.node.sdo[0x1001].raw == reg
+    assert cleared["error_register"] == reg
+
+
+def test_a_second_client_is_told_the_board_is_in_use(board):
+    # python canopen holds the board: perpend must say so, not time out.
+    p = subprocess.run(
+        [perpend_bin(), "node", "--bus", f"tcp:127.0.0.1:{board.port}", "--node-id",
+         str(NODE_ID), "info"],
+        capture_output=True, text=True, timeout=20, check=False,
+    )
+    assert p.returncode == 1
+    assert "the port answers but is in use by another client" in p.stderr
+    # The holder is unaffected.
+    assert board.node.sdo[0x1001].raw == 0
