@@ -21,6 +21,11 @@ use crate::canopen::{ClientError, Nmt, NodeState};
 
 /// The calibration stamp object (record hash, UTC seconds, store count).
 pub const STAMP: u16 = 0x2011;
+/// The board's time since boot [s].
+pub const UPTIME: u16 = 0x200C;
+/// The time after boot [s] at which each 0x1003 entry was recorded (same
+/// sub-index).
+pub const ERROR_TIMES: u16 = 0x2012;
 /// SDO abort: object does not exist in the object dictionary.
 const NO_OBJECT: u32 = 0x0602_0000;
 
@@ -223,7 +228,38 @@ fn print_config(v: &serde_json::Value) {
     );
 }
 
-/// `perpend node status`.
+/// The board's uptime (0x200C) and the time after boot at which each of
+/// the first `n` 0x1003 entries was recorded (0x2012), in seconds; `None`
+/// on a firmware without these objects.
+fn error_times(node: &mut Node, n: u8) -> Result<Option<(u32, Vec<u32>)>> {
+    let (c, id) = (&mut node.client, node.id);
+    let up = match c.read_u32(id, UPTIME, 0) {
+        Ok(u) => u,
+        Err(ClientError::Abort { code: NO_OBJECT, .. }) => return Ok(None),
+        Err(e) => return Err(e.into()),
+    };
+    let mut at = Vec::new();
+    for s in 1..=n {
+        at.push(c.read_u32(id, ERROR_TIMES, s)?);
+    }
+    Ok(Some((up, at)))
+}
+
+/// An age in words: `42 s`, `3 min 5 s`, `2 h 10 min`, `3 d 4 h`.
+pub fn age_words(s: u32) -> String {
+    match s {
+        0..=59 => format!("{s} s"),
+        60..=3599 => format!("{} min {} s", s / 60, s % 60),
+        3600..=86_399 => format!("{} h {} min", s / 3600, s / 60 % 60),
+        _ => format!("{} d {} h", s / 86_400, s / 3600 % 24),
+    }
+}
+
+/// `perpend node status`: the status word in words, the error register,
+/// and the emergency history (0x1003) with each entry's time after boot
+/// and age (0x2012 against the uptime 0x200C), so that an old emergency
+/// is not taken for a present one (the history starts empty at boot, so
+/// every entry has a time; a firmware without 0x200C/0x2012 shows none).
 ///
 /// # Errors
 /// Client errors, in sentences.
@@ -241,15 +277,21 @@ pub fn status(node: &mut Node, a: &InfoArgs) -> Result<()> {
         let v = c.read_u32(id, 0x1003, s)?;
         errors.push(((v & 0xFFFF) as u16, (v >> 16) as u16));
     }
+    let times = error_times(node, n)?;
+    let age = |k: usize| times.as_ref().map(|(up, at)| (at[k], up.saturating_sub(at[k])));
     if a.json {
         let e: Vec<_> = errors
             .iter()
-            .map(|(code, info)| json!({"code": code, "info": info, "text": words::emcy_words(*code)}))
+            .enumerate()
+            .map(|(k, (code, info))| {
+                json!({"code": code, "info": info, "text": words::emcy_words(*code),
+                       "at_s": age(k).map(|x| x.0), "age_s": age(k).map(|x| x.1)})
+            })
             .collect();
         let v = json!({
             "node_id": id, "status": st, "sample": sample,
             "status_words": words::status_words(st, sensors),
-            "error_register": reg, "errors": e,
+            "error_register": reg, "uptime_s": times.as_ref().map(|t| t.0), "errors": e,
         });
         println!("{v}");
         return Ok(());
@@ -262,15 +304,33 @@ pub fn status(node: &mut Node, a: &InfoArgs) -> Result<()> {
         "error register {reg:#04x}: {}",
         words::error_register_words(reg)
     );
+    print_history(&errors, times.as_ref());
+    Ok(())
+}
+
+/// The emergency history lines of `status`.
+fn print_history(errors: &[(u16, u16)], times: Option<&(u32, Vec<u32>)>) {
     if errors.is_empty() {
         println!("no emergency recorded (0x1003 is empty)");
-    } else {
-        println!("last emergencies (0x1003, newest first):");
-        for (code, _) in &errors {
-            println!("  {code:#06x}  {}", words::emcy_words(*code));
+        return;
+    }
+    match times {
+        Some((up, _)) => println!(
+            "last emergencies (0x1003, newest first; up {}; `clear-errors` empties the list):",
+            age_words(*up)
+        ),
+        None => println!("last emergencies (0x1003, newest first; this firmware records no times):"),
+    }
+    for (k, (code, _)) in errors.iter().enumerate() {
+        match times {
+            Some((up, at)) => println!(
+                "  {code:#06x}  {:>14}  {}",
+                format!("{} ago", age_words(up.saturating_sub(at[k]))),
+                words::emcy_words(*code)
+            ),
+            None => println!("  {code:#06x}  {}", words::emcy_words(*code)),
         }
     }
-    Ok(())
 }
 
 /// `perpend node clear-errors`: writes 0 to 0x1003 sub 0 (CiA 301
