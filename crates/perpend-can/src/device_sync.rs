@@ -25,8 +25,9 @@
 //!   (0x06040043).
 //! * **Error behaviour** (§7.5.2.32, 0x1029 sub 1) on a communication
 //!   error (heartbeat lost, bus-off): 0 operational → pre-operational,
-//!   1 no state change, 2 → stopped. The EMCY of the error is sent before
-//!   the state changes (in stopped nothing is sent).
+//!   1 no state change, 2 → stopped (from pre-operational too). The EMCY
+//!   of the error is sent before the state changes (in stopped nothing is
+//!   sent).
 //! * **Command RPDO** (RPDO1, 0x1400 / 0x1600, default COB-ID 0x200 +
 //!   node-id, transmission type 254/255): its first byte is written to the
 //!   command object 0x2500 in operational; [`CMD_CAPTURE`] raises
@@ -182,14 +183,15 @@ impl Core {
     }
 
     /// The communication-error reaction of 0x1029 sub 1; queued EMCYs go
-    /// out first (nothing is sent in stopped).
+    /// out first (nothing is sent in stopped). CiA 301 §7.5.2.32 limits
+    /// only value 0 to operational: value 2 stops a pre-operational node
+    /// too. (CANopenNode's `CO_NMT_process` reacts in operational only,
+    /// with its compile-time `NMTcontrol` instead of 0x1029; CiA 301 is
+    /// not ambiguous here, so the device follows it.)
     fn comm_error(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
-        if self.state != NmtState::Operational {
-            return;
-        }
-        let next = match self.get(0x1029, 1) {
-            0 => NmtState::PreOperational,
-            2 => NmtState::Stopped,
+        let next = match (self.get(0x1029, 1), self.state) {
+            (0, NmtState::Operational) => NmtState::PreOperational,
+            (2, NmtState::Operational | NmtState::PreOperational) => NmtState::Stopped,
             _ => return,
         };
         self.send_emcys(now_us, out);

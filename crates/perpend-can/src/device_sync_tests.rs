@@ -208,3 +208,27 @@ fn layout_3_image_loads() {
     d.load_image(&img).unwrap();
     assert_eq!(d.read_u32(0x1019, 0), Some(7));
 }
+
+/// 0x1029 sub 1 = 2 (stopped) applies in pre-operational too (CiA 301
+/// §7.5.2.32 restricts only value 0 to operational): a heartbeat consumer
+/// timeout or a bus-off stops a pre-operational node; 0 leaves it
+/// pre-operational.
+#[test]
+fn error_behaviour_stopped_applies_in_pre_operational() {
+    for (behaviour, after) in [(2u8, NmtState::Stopped), (0, NmtState::PreOperational)] {
+        let mut b = Bus::new();
+        b.write_u32(0x1016, 1, (5 << 16) | 100).unwrap();
+        b.download(0x1029, 1, &[behaviour]).unwrap();
+        b.take();
+        b.send(Frame::new(0x705, &[0x7F]));
+        b.advance(150_000);
+        let f = b.take();
+        assert_eq!(emcy_codes(&f), vec![EMCY_HEARTBEAT], "sent before the stop");
+        assert_eq!(b.dev.nmt_state(), after, "behaviour {behaviour}");
+        // bus-off reported by the application
+        let mut b = Bus::new();
+        b.download(0x1029, 1, &[behaviour]).unwrap();
+        b.dev.communication_error(b.now, &mut |_| {});
+        assert_eq!(b.dev.nmt_state(), after, "bus-off, behaviour {behaviour}");
+    }
+}
