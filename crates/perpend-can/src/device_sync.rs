@@ -6,8 +6,11 @@
 //!   2..=240 the SYNC carries a one-byte counter; a TPDO of type 1..=240
 //!   with a non-zero *SYNC start value* (0x180x sub 6) is sent first at the
 //!   SYNC whose counter equals it, then every `type`-th SYNC. A SYNC whose
-//!   length does not match 0x1019 raises EMCY 0x8240 (unexpected SYNC data
-//!   length) until a matching one arrives; its counter is not used.
+//!   length does not match 0x1019 (DLC 0 without counter, 1 with one) is
+//!   ignored as CANopenNode does: no TPDO, nothing counted towards a
+//!   transmission type or start value; it raises EMCY 0x8240 (unexpected
+//!   SYNC data length, in pre-operational too) until a matching one
+//!   arrives.
 //! * **SYNC-locked acquisition** (0x2301 sub 1 = [`TRIGGER_SYNC`]): each
 //!   SYNC asks the application for one scan ([`Events::SYNC_SAMPLE`]); the
 //!   synchronous TPDOs due at that SYNC wait for that sample and carry it
@@ -104,21 +107,24 @@ impl Core {
         self.at(TRIGGER) == TRIGGER_SYNC as u32
     }
 
-    /// The counter of a SYNC with payload `p` (`None` without counter),
-    /// keeping EMCY 0x8240 in step with its length.
-    fn sync_counter(&mut self, p: &[u8]) -> Option<u8> {
+    /// The counter of a SYNC with payload `p` (`Some(None)` without
+    /// counter), keeping EMCY 0x8240 in step with its length; `None` when
+    /// the length does not match 0x1019 (DLC 0 without counter, 1 with
+    /// one): such a frame is no SYNC. As CANopenNode's `CO_SYNC_receive`,
+    /// which sets a receive error instead of the SYNC flag (reported as
+    /// `CO_EMC_SYNC_DATA_LENGTH` by `CO_SYNC_process`).
+    fn sync_counter(&mut self, p: &[u8]) -> Option<Option<u8>> {
         let with_counter = self.at(SYNC_OVERFLOW) >= 2;
-        let ok = p.len() == usize::from(with_counter);
-        if ok {
-            self.clear(EMCY_SYNC_LENGTH);
-        } else {
+        if p.len() != usize::from(with_counter) {
             self.raise(
                 EMCY_SYNC_LENGTH,
                 error_register::COMMUNICATION,
                 [p.len() as u8, 0, 0, 0, 0],
             );
+            return None;
         }
-        (ok && with_counter).then(|| p[0])
+        self.clear(EMCY_SYNC_LENGTH);
+        Some(p.first().copied().filter(|_| with_counter))
     }
 
     /// Whether TPDO `k` of transmission type `tt` is due at a SYNC with
@@ -300,10 +306,17 @@ impl Device {
     /// A SYNC with payload `p` at `now_us` (module docs).
     pub(super) fn sync(&mut self, p: &[u8], now_us: u64, out: &mut impl FnMut(Frame)) {
         let c = &mut self.core;
+        // The length is checked in pre-operational too (CANopenNode:
+        // `NMTisPreOrOperational`); only operational sends PDOs.
+        if !matches!(c.state, NmtState::Operational | NmtState::PreOperational) {
+            return;
+        }
+        let Some(counter) = c.sync_counter(p) else {
+            return; // wrong length: no PDO, nothing counted
+        };
         if c.state != NmtState::Operational {
             return;
         }
-        let counter = c.sync_counter(p);
         let locked = c.sync_locked();
         if locked {
             c.settle_sync(now_us, true, out);

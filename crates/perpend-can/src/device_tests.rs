@@ -437,8 +437,9 @@ fn default_tpdos_on_every_sync() {
     assert_eq!(f[3].payload(), cat(m.normal[2], m.rms_mm));
     assert_eq!(b.dev.sample_counter(), 1);
     assert_eq!(b.dev.measurement(), m);
-    // SYNC with counter byte works too
-    assert_eq!(b.send(Frame::new(0x80, &[7])).len(), 4);
+    // with 0x1019 = 0 a SYNC carrying a counter byte is no SYNC (CiA 301
+    // §7.2.5: DLC 0 without counter; CANopenNode ignores it too)
+    assert!(b.send(Frame::new(0x80, &[7])).is_empty());
     b.nmt(0x02, 0);
     assert!(b.sync().is_empty());
 }
