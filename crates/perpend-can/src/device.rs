@@ -922,8 +922,8 @@ impl Core {
 
     /// Writes TPDO communication parameter `sub` of TPDO `k` (CiA 301
     /// §7.5.2.35): COB-ID bits 0-30 and the inhibit time only while the PDO
-    /// does not exist (0x06090030 otherwise); transmission type and event
-    /// timer at any time.
+    /// does not exist (0x06090030 otherwise), a valid COB-ID only with
+    /// bit 30 = 1 (no RTR); transmission type and event timer at any time.
     fn write_tpdo_comm(&mut self, k: usize, sub: u8, v: u32) -> Result<Option<Written>, SdoAbort> {
         let index = 0x1800 + k as u16;
         match sub {
@@ -934,7 +934,14 @@ impl Core {
                 }
                 let valid = v & 0x8000_0000 == 0;
                 if valid {
-                    if !cob_allowed(v & 0x7FF) {
+                    // Bit 30 = 0 would allow remote frames, which the
+                    // device never answers: a TPDO that exists must have
+                    // it set. (CANopenNode's OD_write_18xx refuses only
+                    // bits 11-29, a moved or restricted CAN-ID and an
+                    // empty mapping; it ignores bit 30 and its TPDOs do
+                    // not answer RTR either.) An invalid PDO's bit 30 is
+                    // not checked: it describes nothing on the bus.
+                    if v & 0x4000_0000 == 0 || !cob_allowed(v & 0x7FF) {
                         return Err(SdoAbort::Range);
                     }
                     // CiA 301 §7.5.2.35: bits 0-30 change only
@@ -1057,6 +1064,10 @@ impl Core {
             return false;
         }
         match (index, sub) {
+            // Bit 30 is not checked here: firmware before the bit-30 rule
+            // of `write_tpdo_comm` may have stored a valid COB-ID with it
+            // clear; refusing would drop the whole image, and the PDO
+            // behaves the same either way (no RTR is ever answered).
             (0x1800..=0x1803, 1) => {
                 v & 0x3FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF))
             }

@@ -38,7 +38,7 @@ fn sync_start_value_with_counter() {
     b.write_u32(0x1800, 1, 0x8000_0000 | TPDO1 as u32).unwrap();
     b.download(0x1800, 6, &[3]).unwrap();
     b.download(0x1800, 2, &[2]).unwrap();
-    b.write_u32(0x1800, 1, TPDO1 as u32).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0000 | TPDO1 as u32).unwrap();
     b.nmt(0x01, 0);
     b.take();
     let mut sent = Vec::new();
@@ -80,7 +80,7 @@ fn sync_locked_tpdos_carry_the_sample_of_their_sync() {
     b.download(0x1A02, 0, &[0]).unwrap();
     b.write_u32(0x1A02, 2, od::mapping(0x2020, 0, 32)).unwrap();
     b.download(0x1A02, 0, &[2]).unwrap();
-    b.write_u32(0x1802, 1, 0x390).unwrap();
+    b.write_u32(0x1802, 1, 0x4000_0390).unwrap();
     b.nmt(0x01, 0);
     b.take();
     b.dev.take_events();

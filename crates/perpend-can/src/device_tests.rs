@@ -476,14 +476,14 @@ fn tpdo_remap_and_cyclic_type() {
     b.download(0x1A00, 0, &[2]).unwrap();
     b.download(0x1800, 2, &[2]).unwrap(); // every 2nd SYNC
                                           // changing the id while valid is refused; setting it valid works
-    b.write_u32(0x1800, 1, 0x0000_01A0).unwrap();
-    assert_eq!(b.write_u32(0x1800, 1, 0x0000_01A1), Err(0x0609_0030));
+    b.write_u32(0x1800, 1, 0x4000_01A0).unwrap();
+    assert_eq!(b.write_u32(0x1800, 1, 0x4000_01A1), Err(0x0609_0030));
     assert_eq!(
         b.write_u32(0x1801, 1, 0x8000_0000 | 0x2000_0000),
         Err(0x0609_0030)
     );
     b.write_u32(0x1801, 1, 0x8000_0290).unwrap();
-    assert_eq!(b.write_u32(0x1801, 1, 0x0000_0601), Err(0x0609_0030));
+    assert_eq!(b.write_u32(0x1801, 1, 0x4000_0601), Err(0x0609_0030));
     b.nmt(0x01, 0);
     b.dev.set_measurement(&sample());
     let ids = |v: Vec<Frame>| v.iter().map(|f| f.id).collect::<Vec<_>>();
@@ -1355,4 +1355,27 @@ fn layout_5_image_loads_without_lag() {
     let mut forged = img;
     forged[0..4].copy_from_slice(&old[0..4]);
     assert_eq!(d.load_image(&forged), Err(Error::ImageLayout));
+}
+
+/// The device never answers a remote frame, so a TPDO that exists must
+/// say "no RTR allowed" (COB-ID bit 30 = 1): a write making a TPDO valid
+/// with bit 30 = 0 is refused with 0x06090030 and leaves the value; the
+/// defaults (and the EDS) have bit 30 set.
+#[test]
+fn tpdo_cob_id_without_bit_30_is_refused() {
+    let mut b = Bus::new();
+    for k in 0..4u16 {
+        let id = 0x4000_0000 | (0x180 + 0x100 * u32::from(k) + u32::from(NODE));
+        assert_eq!(b.read32(0x1800 + k, 1), id);
+        assert_eq!(
+            b.write_u32(0x1800 + k, 1, id & !0x4000_0000),
+            Err(0x0609_0030)
+        );
+        assert_eq!(b.read32(0x1800 + k, 1), id, "unchanged");
+    }
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    assert_eq!(b.write_u32(0x1800, 1, 0x0000_0190), Err(0x0609_0030));
+    assert_eq!(b.read32(0x1800, 1), 0x8000_0190, "unchanged");
+    b.write_u32(0x1800, 1, 0x4000_0190).unwrap();
+    assert_eq!(b.read32(0x1800, 1), 0x4000_0190);
 }
