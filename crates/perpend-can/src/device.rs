@@ -122,9 +122,16 @@ impl Events {
 /// dictionary order.
 pub const IMAGE_LEN: usize = 8 + 4 * PERSISTENT;
 
-/// Largest number of simultaneously active emergencies tracked.
-pub const MAX_ACTIVE_ERRORS: usize = 8;
-const EMCY_QUEUE: usize = 8;
+/// Largest number of simultaneously active emergencies recorded code by
+/// code. The board holds at most 13 at once (both codes of each of the
+/// four sensors during its clear delay, no plane, data set, heartbeat,
+/// SYNC length, PDO length) plus one raised-and-cleared bus or reset event:
+/// 16 leaves a margin. Beyond it an overflow bucket still sends one EMCY
+/// per code and never a repeat ([`Device::signal_emcy`]).
+pub const MAX_ACTIVE_ERRORS: usize = 16;
+/// EMCYs waiting for the next poll: every code of a full table and the
+/// overflow bucket at once.
+const EMCY_QUEUE: usize = MAX_ACTIVE_ERRORS + 1;
 
 /// Length of an image of layout 1 (firmware before issue 16, without the
 /// entries of layout 2 and 3): still accepted by [`Device::load_image`].
@@ -228,6 +235,10 @@ struct Core {
     tpdo: [TpdoRt; TPDOS],
     active: [(u16, u8); MAX_ACTIVE_ERRORS],
     n_active: usize,
+    /// Overflow bucket: the first code raised while `active` was full (it
+    /// is active and was sent) and the error-register bits of it and of
+    /// the codes raised after it while still full (suppressed).
+    overflow: Option<(u16, u8)>,
     emcy_queue: [[u8; 8]; EMCY_QUEUE],
     emcy_len: usize,
     /// Time of the last EMCY sent (the inhibit time 0x1015 counts from it).
@@ -620,15 +631,38 @@ impl Core {
         }
     }
 
+    /// Whether emergency `code` is active (recorded, or the code of the
+    /// overflow bucket).
+    fn is_active(&self, code: u16) -> bool {
+        self.active[..self.n_active].iter().any(|&(k, _)| k == code)
+            || self.overflow.is_some_and(|(k, _)| k == code)
+    }
+
     /// Raises emergency `code` (see [`Device::signal_emcy`]); `false` if it
-    /// was already active.
+    /// was already active, or suppressed by the overflow bucket.
+    ///
+    /// Each code is recorded in `active`, so a repeat is never sent again
+    /// (CANopenNode keeps one status bit per error condition to the same
+    /// end). A code raised while the table is full goes to the overflow
+    /// bucket and is sent; codes raised while the bucket is taken cannot
+    /// be told from repeats, so they are suppressed (their register bits
+    /// still show in 0x1001) until a slot or the bucket frees up, when
+    /// their next raise is sent: still one EMCY per code, never a flood.
+    /// (CANopenNode reports an error bit beyond its table once as
+    /// 0x6100 `CO_EM_WRONG_ERROR_REPORT`; the bucket sends the real code.)
     fn raise(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
-        if self.active[..self.n_active].iter().any(|&(k, _)| k == code) {
+        if self.is_active(code) {
             return false;
         }
         if self.n_active < MAX_ACTIVE_ERRORS {
             self.active[self.n_active] = (code, reg);
             self.n_active += 1;
+        } else if let Some((_, bits)) = &mut self.overflow {
+            *bits |= reg;
+            self.update_error_register();
+            return false;
+        } else {
+            self.overflow = Some((code, reg));
         }
         self.update_error_register();
         let info = u16::from_le_bytes([mfr[0], mfr[1]]) as u32;
@@ -643,15 +677,20 @@ impl Core {
 
     /// Clears emergency `code` (see [`Device::clear_emcy`]); `false` if it
     /// was not active.
+    /// Clearing the bucket's code empties the bucket (the register bits
+    /// of suppressed codes with it, until they are raised again).
     fn clear(&mut self, code: u16) -> bool {
-        let Some(pos) = self.active[..self.n_active]
+        let pos = self.active[..self.n_active]
             .iter()
-            .position(|&(k, _)| k == code)
-        else {
+            .position(|&(k, _)| k == code);
+        if let Some(pos) = pos {
+            self.active.copy_within(pos + 1..self.n_active, pos);
+            self.n_active -= 1;
+        } else if self.overflow.is_some_and(|(k, _)| k == code) {
+            self.overflow = None;
+        } else {
             return false;
-        };
-        self.active.copy_within(pos + 1..self.n_active, pos);
-        self.n_active -= 1;
+        }
         self.update_error_register();
         let reg_now = self.get(0x1001, 0) as u8;
         let cb = code.to_le_bytes();
@@ -718,6 +757,7 @@ impl Core {
         self.set(0x2400, 1, comm[0]);
         self.set(0x2400, 2, comm[1]);
         self.n_active = 0;
+        self.overflow = None;
         self.emcy_len = 0;
         let from = self.boot_node();
         self.apply_node_id(from);
@@ -790,7 +830,7 @@ impl Core {
 
     fn update_error_register(&mut self) {
         let mut reg = 0u8;
-        for &(_, r) in &self.active[..self.n_active] {
+        for &(_, r) in self.active[..self.n_active].iter().chain(&self.overflow) {
             reg |= r | error_register::GENERIC;
         }
         self.set(0x1001, 0, reg as u32);
@@ -922,8 +962,8 @@ impl Core {
 
     /// Writes TPDO communication parameter `sub` of TPDO `k` (CiA 301
     /// §7.5.2.35): COB-ID bits 0-30 and the inhibit time only while the PDO
-    /// does not exist (0x06090030 otherwise); transmission type and event
-    /// timer at any time.
+    /// does not exist (0x06090030 otherwise), a valid COB-ID only with
+    /// bit 30 = 1 (no RTR); transmission type and event timer at any time.
     fn write_tpdo_comm(&mut self, k: usize, sub: u8, v: u32) -> Result<Option<Written>, SdoAbort> {
         let index = 0x1800 + k as u16;
         match sub {
@@ -934,7 +974,14 @@ impl Core {
                 }
                 let valid = v & 0x8000_0000 == 0;
                 if valid {
-                    if !cob_allowed(v & 0x7FF) {
+                    // Bit 30 = 0 would allow remote frames, which the
+                    // device never answers: a TPDO that exists must have
+                    // it set. (CANopenNode's OD_write_18xx refuses only
+                    // bits 11-29, a moved or restricted CAN-ID and an
+                    // empty mapping; it ignores bit 30 and its TPDOs do
+                    // not answer RTR either.) An invalid PDO's bit 30 is
+                    // not checked: it describes nothing on the bus.
+                    if v & 0x4000_0000 == 0 || !cob_allowed(v & 0x7FF) {
                         return Err(SdoAbort::Range);
                     }
                     // CiA 301 §7.5.2.35: bits 0-30 change only
@@ -1057,6 +1104,10 @@ impl Core {
             return false;
         }
         match (index, sub) {
+            // Bit 30 is not checked here: firmware before the bit-30 rule
+            // of `write_tpdo_comm` may have stored a valid COB-ID with it
+            // clear; refusing would drop the whole image, and the PDO
+            // behaves the same either way (no RTR is ever answered).
             (0x1800..=0x1803, 1) => {
                 v & 0x3FFF_F800 == 0 && (v & 0x8000_0000 != 0 || cob_allowed(v & 0x7FF))
             }
@@ -1138,6 +1189,7 @@ impl Device {
             tpdo: [TpdoRt::default(); TPDOS],
             active: [(0, 0); MAX_ACTIVE_ERRORS],
             n_active: 0,
+            overflow: None,
             emcy_queue: [[0; 8]; EMCY_QUEUE],
             emcy_len: 0,
             emcy_last_tx: None,
@@ -1554,6 +1606,13 @@ impl Device {
     /// (newest at sub 1; bits 16-31 = `mfr[0..2]`; a code already in the
     /// history moves to sub 1). Returns `false` (and sends nothing) if
     /// `code` is already active.
+    ///
+    /// With [`MAX_ACTIVE_ERRORS`] codes active, the next new code is
+    /// still sent and active; codes raised after it while the table stays
+    /// full only add their error-register bits to 0x1001 and return
+    /// `false` (nothing is recorded to tell them from repeats). Once a
+    /// code clears, the next raise of such a code is sent and recorded:
+    /// one EMCY per code, never a flood.
     pub fn signal_emcy(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
         self.core.raise(code, reg, mfr)
     }
@@ -1569,9 +1628,7 @@ impl Device {
     /// Whether emergency `code` is active.
     #[inline]
     pub fn emcy_active(&self, code: u16) -> bool {
-        self.core.active[..self.core.n_active]
-            .iter()
-            .any(|&(k, _)| k == code)
+        self.core.is_active(code)
     }
 
     /// Error register 0x1001.

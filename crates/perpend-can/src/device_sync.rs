@@ -6,8 +6,11 @@
 //!   2..=240 the SYNC carries a one-byte counter; a TPDO of type 1..=240
 //!   with a non-zero *SYNC start value* (0x180x sub 6) is sent first at the
 //!   SYNC whose counter equals it, then every `type`-th SYNC. A SYNC whose
-//!   length does not match 0x1019 raises EMCY 0x8240 (unexpected SYNC data
-//!   length) until a matching one arrives; its counter is not used.
+//!   length does not match 0x1019 (DLC 0 without counter, 1 with one) is
+//!   ignored as CANopenNode does: no TPDO, nothing counted towards a
+//!   transmission type or start value; it raises EMCY 0x8240 (unexpected
+//!   SYNC data length, in pre-operational too) until a matching one
+//!   arrives.
 //! * **SYNC-locked acquisition** (0x2301 sub 1 = [`TRIGGER_SYNC`]): each
 //!   SYNC asks the application for one scan ([`Events::SYNC_SAMPLE`]); the
 //!   synchronous TPDOs due at that SYNC wait for that sample and carry it
@@ -25,8 +28,9 @@
 //!   (0x06040043).
 //! * **Error behaviour** (§7.5.2.32, 0x1029 sub 1) on a communication
 //!   error (heartbeat lost, bus-off): 0 operational → pre-operational,
-//!   1 no state change, 2 → stopped. The EMCY of the error is sent before
-//!   the state changes (in stopped nothing is sent).
+//!   1 no state change, 2 → stopped (from pre-operational too). The EMCY
+//!   of the error is sent before the state changes (in stopped nothing is
+//!   sent).
 //! * **Command RPDO** (RPDO1, 0x1400 / 0x1600, default COB-ID 0x200 +
 //!   node-id, transmission type 254/255): its first byte is written to the
 //!   command object 0x2500 in operational; [`CMD_CAPTURE`] raises
@@ -103,21 +107,24 @@ impl Core {
         self.at(TRIGGER) == TRIGGER_SYNC as u32
     }
 
-    /// The counter of a SYNC with payload `p` (`None` without counter),
-    /// keeping EMCY 0x8240 in step with its length.
-    fn sync_counter(&mut self, p: &[u8]) -> Option<u8> {
+    /// The counter of a SYNC with payload `p` (`Some(None)` without
+    /// counter), keeping EMCY 0x8240 in step with its length; `None` when
+    /// the length does not match 0x1019 (DLC 0 without counter, 1 with
+    /// one): such a frame is no SYNC. As CANopenNode's `CO_SYNC_receive`,
+    /// which sets a receive error instead of the SYNC flag (reported as
+    /// `CO_EMC_SYNC_DATA_LENGTH` by `CO_SYNC_process`).
+    fn sync_counter(&mut self, p: &[u8]) -> Option<Option<u8>> {
         let with_counter = self.at(SYNC_OVERFLOW) >= 2;
-        let ok = p.len() == usize::from(with_counter);
-        if ok {
-            self.clear(EMCY_SYNC_LENGTH);
-        } else {
+        if p.len() != usize::from(with_counter) {
             self.raise(
                 EMCY_SYNC_LENGTH,
                 error_register::COMMUNICATION,
                 [p.len() as u8, 0, 0, 0, 0],
             );
+            return None;
         }
-        (ok && with_counter).then(|| p[0])
+        self.clear(EMCY_SYNC_LENGTH);
+        Some(p.first().copied().filter(|_| with_counter))
     }
 
     /// Whether TPDO `k` of transmission type `tt` is due at a SYNC with
@@ -182,14 +189,15 @@ impl Core {
     }
 
     /// The communication-error reaction of 0x1029 sub 1; queued EMCYs go
-    /// out first (nothing is sent in stopped).
+    /// out first (nothing is sent in stopped). CiA 301 §7.5.2.32 limits
+    /// only value 0 to operational: value 2 stops a pre-operational node
+    /// too. (CANopenNode's `CO_NMT_process` reacts in operational only,
+    /// with its compile-time `NMTcontrol` instead of 0x1029; CiA 301 is
+    /// not ambiguous here, so the device follows it.)
     fn comm_error(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
-        if self.state != NmtState::Operational {
-            return;
-        }
-        let next = match self.get(0x1029, 1) {
-            0 => NmtState::PreOperational,
-            2 => NmtState::Stopped,
+        let next = match (self.get(0x1029, 1), self.state) {
+            (0, NmtState::Operational) => NmtState::PreOperational,
+            (2, NmtState::Operational | NmtState::PreOperational) => NmtState::Stopped,
             _ => return,
         };
         self.send_emcys(now_us, out);
@@ -298,10 +306,17 @@ impl Device {
     /// A SYNC with payload `p` at `now_us` (module docs).
     pub(super) fn sync(&mut self, p: &[u8], now_us: u64, out: &mut impl FnMut(Frame)) {
         let c = &mut self.core;
+        // The length is checked in pre-operational too (CANopenNode:
+        // `NMTisPreOrOperational`); only operational sends PDOs.
+        if !matches!(c.state, NmtState::Operational | NmtState::PreOperational) {
+            return;
+        }
+        let Some(counter) = c.sync_counter(p) else {
+            return; // wrong length: no PDO, nothing counted
+        };
         if c.state != NmtState::Operational {
             return;
         }
-        let counter = c.sync_counter(p);
         let locked = c.sync_locked();
         if locked {
             c.settle_sync(now_us, true, out);

@@ -38,7 +38,7 @@ fn sync_start_value_with_counter() {
     b.write_u32(0x1800, 1, 0x8000_0000 | TPDO1 as u32).unwrap();
     b.download(0x1800, 6, &[3]).unwrap();
     b.download(0x1800, 2, &[2]).unwrap();
-    b.write_u32(0x1800, 1, TPDO1 as u32).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0000 | TPDO1 as u32).unwrap();
     b.nmt(0x01, 0);
     b.take();
     let mut sent = Vec::new();
@@ -80,7 +80,7 @@ fn sync_locked_tpdos_carry_the_sample_of_their_sync() {
     b.download(0x1A02, 0, &[0]).unwrap();
     b.write_u32(0x1A02, 2, od::mapping(0x2020, 0, 32)).unwrap();
     b.download(0x1A02, 0, &[2]).unwrap();
-    b.write_u32(0x1802, 1, 0x390).unwrap();
+    b.write_u32(0x1802, 1, 0x4000_0390).unwrap();
     b.nmt(0x01, 0);
     b.take();
     b.dev.take_events();
@@ -207,4 +207,69 @@ fn layout_3_image_loads() {
     assert_eq!(d.read_u32(0x1019, 0), Some(0));
     d.load_image(&img).unwrap();
     assert_eq!(d.read_u32(0x1019, 0), Some(7));
+}
+
+/// 0x1029 sub 1 = 2 (stopped) applies in pre-operational too (CiA 301
+/// §7.5.2.32 restricts only value 0 to operational): a heartbeat consumer
+/// timeout or a bus-off stops a pre-operational node; 0 leaves it
+/// pre-operational.
+#[test]
+fn error_behaviour_stopped_applies_in_pre_operational() {
+    for (behaviour, after) in [(2u8, NmtState::Stopped), (0, NmtState::PreOperational)] {
+        let mut b = Bus::new();
+        b.write_u32(0x1016, 1, (5 << 16) | 100).unwrap();
+        b.download(0x1029, 1, &[behaviour]).unwrap();
+        b.take();
+        b.send(Frame::new(0x705, &[0x7F]));
+        b.advance(150_000);
+        let f = b.take();
+        assert_eq!(emcy_codes(&f), vec![EMCY_HEARTBEAT], "sent before the stop");
+        assert_eq!(b.dev.nmt_state(), after, "behaviour {behaviour}");
+        // bus-off reported by the application
+        let mut b = Bus::new();
+        b.download(0x1029, 1, &[behaviour]).unwrap();
+        b.dev.communication_error(b.now, &mut |_| {});
+        assert_eq!(b.dev.nmt_state(), after, "bus-off, behaviour {behaviour}");
+    }
+}
+
+/// A SYNC whose length does not match 0x1019 is no SYNC (CANopenNode
+/// CO_SYNC_receive): no TPDO, no counting towards the transmission type or
+/// the SYNC start value; it raises EMCY 0x8240 once. A matching SYNC after
+/// it works as before.
+#[test]
+fn sync_of_wrong_length_is_ignored() {
+    // 0x1019 = 0: a SYNC with one data byte; TPDO1 type 2.
+    let mut b = Bus::new();
+    b.write_u32(0x1800, 1, 0x8000_0000 | TPDO1 as u32).unwrap();
+    b.download(0x1800, 2, &[2]).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0000 | TPDO1 as u32).unwrap();
+    b.nmt(0x01, 0);
+    b.take();
+    for _ in 0..3 {
+        assert_eq!(tpdo1_count(&b.send(Frame::new(0x80, &[1]))), 0);
+    }
+    b.advance(100);
+    assert_eq!(emcy_codes(&b.take()), vec![EMCY_SYNC_LENGTH]);
+    assert_eq!(tpdo1_count(&b.sync()), 0, "the first counting SYNC");
+    assert_eq!(tpdo1_count(&b.sync()), 1, "the second");
+    // 0x1019 = 5, TPDO1 type 1 with SYNC start value 3: a SYNC without
+    // counter neither starts nor counts.
+    let mut b = Bus::new();
+    b.download(0x1019, 0, &[5]).unwrap();
+    b.write_u32(0x1800, 1, 0x8000_0000 | TPDO1 as u32).unwrap();
+    b.download(0x1800, 6, &[3]).unwrap();
+    b.download(0x1800, 2, &[1]).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0000 | TPDO1 as u32).unwrap();
+    b.nmt(0x01, 0);
+    b.take();
+    for _ in 0..4 {
+        assert_eq!(tpdo1_count(&b.sync()), 0, "DLC 0 with a counter");
+    }
+    let mut at = Vec::new();
+    for counter in [1u8, 2, 3, 4] {
+        let f = b.send(Frame::new(0x80, &[counter]));
+        at.extend((tpdo1_count(&f) == 1).then_some(counter));
+    }
+    assert_eq!(at, vec![3, 4], "first at the start value, then every SYNC");
 }

@@ -437,8 +437,9 @@ fn default_tpdos_on_every_sync() {
     assert_eq!(f[3].payload(), cat(m.normal[2], m.rms_mm));
     assert_eq!(b.dev.sample_counter(), 1);
     assert_eq!(b.dev.measurement(), m);
-    // SYNC with counter byte works too
-    assert_eq!(b.send(Frame::new(0x80, &[7])).len(), 4);
+    // with 0x1019 = 0 a SYNC carrying a counter byte is no SYNC (CiA 301
+    // §7.2.5: DLC 0 without counter; CANopenNode ignores it too)
+    assert!(b.send(Frame::new(0x80, &[7])).is_empty());
     b.nmt(0x02, 0);
     assert!(b.sync().is_empty());
 }
@@ -475,14 +476,14 @@ fn tpdo_remap_and_cyclic_type() {
     b.download(0x1A00, 0, &[2]).unwrap();
     b.download(0x1800, 2, &[2]).unwrap(); // every 2nd SYNC
                                           // changing the id while valid is refused; setting it valid works
-    b.write_u32(0x1800, 1, 0x0000_01A0).unwrap();
-    assert_eq!(b.write_u32(0x1800, 1, 0x0000_01A1), Err(0x0609_0030));
+    b.write_u32(0x1800, 1, 0x4000_01A0).unwrap();
+    assert_eq!(b.write_u32(0x1800, 1, 0x4000_01A1), Err(0x0609_0030));
     assert_eq!(
         b.write_u32(0x1801, 1, 0x8000_0000 | 0x2000_0000),
         Err(0x0609_0030)
     );
     b.write_u32(0x1801, 1, 0x8000_0290).unwrap();
-    assert_eq!(b.write_u32(0x1801, 1, 0x0000_0601), Err(0x0609_0030));
+    assert_eq!(b.write_u32(0x1801, 1, 0x4000_0601), Err(0x0609_0030));
     b.nmt(0x01, 0);
     b.dev.set_measurement(&sample());
     let ids = |v: Vec<Frame>| v.iter().map(|f| f.id).collect::<Vec<_>>();
@@ -1354,4 +1355,185 @@ fn layout_5_image_loads_without_lag() {
     let mut forged = img;
     forged[0..4].copy_from_slice(&old[0..4]);
     assert_eq!(d.load_image(&forged), Err(Error::ImageLayout));
+}
+
+/// The codes the device and the board application can have active at
+/// once, with their error-register bits: both codes of every sensor
+/// (current and reading overlap during the board's clear delay), no
+/// plane, data set, and the communication errors of `device_sync.rs`.
+fn codes_active_at_once() -> Vec<(u16, u8)> {
+    use status::emcy;
+    use status::error_register as r;
+    let mut v: Vec<(u16, u8)> = (0..4)
+        .flat_map(|i| {
+            [
+                (emcy::sensor_current(i), r::CURRENT),
+                (emcy::sensor_reading(i), r::MANUFACTURER),
+            ]
+        })
+        .collect();
+    v.extend([
+        (emcy::NO_PLANE, r::MANUFACTURER),
+        (emcy::DATA_SET, r::GENERIC),
+        (EMCY_HEARTBEAT, r::COMMUNICATION),
+        (EMCY_SYNC_LENGTH, r::COMMUNICATION),
+        (EMCY_PDO_LENGTH, r::COMMUNICATION),
+    ]);
+    v
+}
+
+/// The EMCY frames (code, register, manufacturer bytes 0-1) in `f`.
+fn emcys_of(f: &[Frame]) -> Vec<(u16, u8, u16)> {
+    f.iter()
+        .filter(|f| f.id == 0x80 + NODE as u16)
+        .map(|f| {
+            (
+                u16::from_le_bytes([f.data[0], f.data[1]]),
+                f.data[2],
+                u16::from_le_bytes([f.data[3], f.data[4]]),
+            )
+        })
+        .collect()
+}
+
+/// More than eight codes active at once (13: what the board reaches),
+/// raised again on every sample (0x1015 = 0): one EMCY per code, never a
+/// repeat; each clear sends one error reset with the register that
+/// remains; 0x1001 follows throughout.
+#[test]
+fn emcy_once_per_code_with_thirteen_active() {
+    let mut b = Bus::new();
+    b.take();
+    let codes = codes_active_at_once();
+    assert!(codes.len() > 8);
+    let reg = codes
+        .iter()
+        .fold(0u8, |a, &(_, r)| a | r | status::error_register::GENERIC);
+    let mut sent = Vec::new();
+    // All at once from the first sample (the queue holds them all), then
+    // again on every sample, as `publish` does.
+    for k in 0..20 {
+        for &(c, r) in &codes {
+            b.dev.signal_emcy(c, r, [0; 5]);
+        }
+        assert_eq!(b.dev.error_register(), reg, "sample {k}");
+        b.advance(1_000);
+        sent.extend(emcys_of(&b.take()));
+    }
+    let want: Vec<u16> = codes.iter().map(|c| c.0).collect();
+    let got: Vec<u16> = sent.iter().map(|e| e.0).collect();
+    assert_eq!(got, want, "one EMCY per code");
+    assert_eq!(b.read32(0x1001, 0), u32::from(reg));
+    for (k, &(c, _)) in codes.iter().enumerate() {
+        assert!(b.dev.emcy_active(c), "{c:#06x}");
+        assert!(b.dev.clear_emcy(c), "{c:#06x}");
+        assert!(!b.dev.clear_emcy(c));
+        let left = codes[k + 1..]
+            .iter()
+            .fold(0u8, |a, &(_, r)| a | r | status::error_register::GENERIC);
+        b.advance(1_000);
+        assert_eq!(emcys_of(&b.take()), vec![(0, left, c)], "clear {c:#06x}");
+        assert_eq!(b.dev.error_register(), left);
+    }
+    assert_eq!(b.read32(0x1001, 0), 0);
+}
+
+/// The device never answers a remote frame, so a TPDO that exists must
+/// say "no RTR allowed" (COB-ID bit 30 = 1): a write making a TPDO valid
+/// with bit 30 = 0 is refused with 0x06090030 and leaves the value; the
+/// defaults (and the EDS) have bit 30 set.
+#[test]
+fn tpdo_cob_id_without_bit_30_is_refused() {
+    let mut b = Bus::new();
+    for k in 0..4u16 {
+        let id = 0x4000_0000 | (0x180 + 0x100 * u32::from(k) + u32::from(NODE));
+        assert_eq!(b.read32(0x1800 + k, 1), id);
+        assert_eq!(
+            b.write_u32(0x1800 + k, 1, id & !0x4000_0000),
+            Err(0x0609_0030)
+        );
+        assert_eq!(b.read32(0x1800 + k, 1), id, "unchanged");
+    }
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    assert_eq!(b.write_u32(0x1800, 1, 0x0000_0190), Err(0x0609_0030));
+    assert_eq!(b.read32(0x1800, 1), 0x8000_0190, "unchanged");
+    b.write_u32(0x1800, 1, 0x4000_0190).unwrap();
+    assert_eq!(b.read32(0x1800, 1), 0x4000_0190);
+}
+
+/// More codes than [`MAX_ACTIVE_ERRORS`], raised on every sample while
+/// their condition lasts: the first beyond the table is sent (the
+/// overflow bucket), the later ones are suppressed but show in 0x1001; as
+/// conditions end and their codes clear, each suppressed one is sent at
+/// its next raise. Over the whole run every code is sent exactly once and
+/// every clear of an active code sends one error reset.
+#[test]
+fn emcy_beyond_the_table_never_floods() {
+    use status::error_register as r;
+    let mut b = Bus::new();
+    b.take();
+    let n = MAX_ACTIVE_ERRORS + 3;
+    let codes: Vec<(u16, u8)> = (0..n)
+        .map(|k| {
+            (
+                0x5000 + k as u16,
+                if k < n - 2 {
+                    r::VOLTAGE
+                } else {
+                    r::TEMPERATURE
+                },
+            )
+        })
+        .collect();
+    let mut emcys = Vec::new();
+    let mut ended = Vec::new();
+    let sample = |b: &mut Bus, emcys: &mut Vec<(u16, u8, u16)>, ended: &[u16]| {
+        for &(c, reg) in codes.iter().filter(|c| !ended.contains(&c.0)) {
+            b.dev.signal_emcy(c, reg, [0; 5]);
+        }
+        b.advance(1_000);
+        emcys.extend(emcys_of(&b.take()));
+    };
+    for _ in 0..10 {
+        sample(&mut b, &mut emcys, &ended);
+    }
+    let sent: Vec<u16> = emcys.iter().map(|e| e.0).collect();
+    let want: Vec<u16> = codes[..=MAX_ACTIVE_ERRORS].iter().map(|c| c.0).collect();
+    assert_eq!(sent, want, "the table and the bucket, once");
+    assert_eq!(
+        b.dev.error_register(),
+        r::GENERIC | r::VOLTAGE | r::TEMPERATURE
+    );
+    assert!(b.dev.emcy_active(codes[MAX_ACTIVE_ERRORS].0));
+    assert!(
+        !b.dev.emcy_active(codes[n - 1].0),
+        "suppressed, not recorded"
+    );
+    // Clear the bucket's code, then a recorded one: each suppressed code
+    // is sent once at its next raise.
+    let mut resets = 0;
+    for k in [MAX_ACTIVE_ERRORS, 0] {
+        ended.push(codes[k].0);
+        assert!(b.dev.clear_emcy(codes[k].0));
+        resets += 1;
+        for _ in 0..10 {
+            sample(&mut b, &mut emcys, &ended);
+        }
+    }
+    let mut sent: Vec<u16> = emcys.iter().filter(|e| e.0 != 0).map(|e| e.0).collect();
+    sent.sort_unstable();
+    let want: Vec<u16> = codes.iter().map(|c| c.0).collect();
+    assert_eq!(sent, want, "every code once");
+    assert_eq!(
+        b.dev.error_register(),
+        r::GENERIC | r::VOLTAGE | r::TEMPERATURE
+    );
+    // Clear everything: one error reset per active code, register 0.
+    for &(c, _) in &codes {
+        resets += usize::from(b.dev.clear_emcy(c));
+    }
+    b.advance(1_000);
+    emcys.extend(emcys_of(&b.take()));
+    assert_eq!(emcys.iter().filter(|e| e.0 == 0).count(), resets);
+    assert_eq!(b.dev.error_register(), 0);
 }

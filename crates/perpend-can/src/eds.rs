@@ -23,9 +23,9 @@ use crate::od::{self, Access, DataType, Init, Kind, Limits, Object, Text};
 
 /// Date written to `[FileInfo]` (`MM-DD-YYYY`): the date of the dictionary
 /// layout, changed by hand together with [`FILE_VERSION`].
-pub const FILE_DATE: &str = "11-24-2026";
+pub const FILE_DATE: &str = "11-27-2026";
 /// `FileVersion` of the EDS: increment when the dictionary changes.
-pub const FILE_VERSION: u32 = 3;
+pub const FILE_VERSION: u32 = 4;
 
 fn access(a: Access) -> &'static str {
     match a {
@@ -214,6 +214,15 @@ fn write_list(
     writeln!(w)
 }
 
+/// Number of objects of the dictionary with an index in `range` (the PDO
+/// communication objects for `NrOfRXPDO` / `NrOfTXPDO`).
+fn count_objects(range: core::ops::RangeInclusive<u16>) -> usize {
+    od::OBJECTS
+        .iter()
+        .filter(|o| range.contains(&o.index))
+        .count()
+}
+
 /// Writes the EDS of the dictionary with the defaults `d`.
 ///
 /// # Errors
@@ -259,8 +268,10 @@ pub fn write(w: &mut impl Write, d: &Defaults) -> fmt::Result {
     writeln!(w, "Granularity=8")?;
     writeln!(w, "DynamicChannelsSupported=0")?;
     writeln!(w, "GroupMessaging=0")?;
-    writeln!(w, "NrOfRXPDO=0")?;
-    writeln!(w, "NrOfTXPDO={}", od::TPDOS)?;
+    // Counted from the table: the file cannot claim fewer PDOs than it
+    // describes.
+    writeln!(w, "NrOfRXPDO={}", count_objects(0x1400..=0x15FF))?;
+    writeln!(w, "NrOfTXPDO={}", count_objects(0x1800..=0x19FF))?;
     writeln!(w, "LSS_Supported=1")?;
     writeln!(w)?;
     writeln!(w, "[DummyUsage]")?;
@@ -348,6 +359,20 @@ mod tests {
         }
         assert!(s.contains("DefaultValue=$NODEID+0x40000180\n"));
         assert!(s.contains("DefaultValue=perpend normal sensor\n"));
+    }
+
+    /// NrOfRXPDO / NrOfTXPDO count the PDO communication objects of the
+    /// dictionary (0x1400..0x15FF, 0x1800..0x19FF).
+    #[test]
+    fn pdo_counts_follow_the_dictionary() {
+        let count = |r: core::ops::RangeInclusive<u16>| {
+            od::OBJECTS.iter().filter(|o| r.contains(&o.index)).count()
+        };
+        let (rx, tx) = (count(0x1400..=0x15FF), count(0x1800..=0x19FF));
+        assert_eq!((rx, tx), (1, od::TPDOS));
+        let s = eds();
+        assert!(s.contains(&format!("\nNrOfRXPDO={rx}\n")), "NrOfRXPDO");
+        assert!(s.contains(&format!("\nNrOfTXPDO={tx}\n")), "NrOfTXPDO");
     }
 
     #[test]
