@@ -38,7 +38,7 @@ def remap_tpdo(sdo, k, cob_id, mapping=None, trans_type=None, start=None):
     bits)), transmission type and SYNC start value written, valid again:
     the CiA 301 order the device enforces."""
     comm, mp = sdo[0x1800 + k - 1], sdo[0x1A00 + k - 1]
-    comm[1].raw = 0x80000000 | cob_id
+    comm[1].raw = 0xC0000000 | cob_id
     if mapping is not None:
         mp[0].raw = 0
         for i, (index, sub, bits) in enumerate(mapping, start=1):
@@ -48,7 +48,9 @@ def remap_tpdo(sdo, k, cob_id, mapping=None, trans_type=None, start=None):
         comm[2].raw = trans_type
     if start is not None:
         comm[6].raw = start
-    comm[1].raw = cob_id
+    # Bit 30 set: no remote frames (the board answers none and refuses a
+    # valid COB-ID that would allow them, 0x06090030).
+    comm[1].raw = 0x40000000 | cob_id
 
 
 def test_sync_counter_and_start_value(board):
