@@ -31,6 +31,9 @@ use crate::sdo::{Dictionary, SdoAbort, SdoServer, Value, Written};
 use crate::status::{self, error_register};
 use crate::Error;
 
+/// Slot of the uptime 0x200C, written on every poll (no lookup).
+const UPTIME: usize = od::slot_of(0x200C, 0);
+
 /// NMT states (CiA 301 §7.3.2.2), with their heartbeat codes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum NmtState {
@@ -811,8 +814,10 @@ impl Core {
     }
 
     /// Records `code` (with additional information `info`) as the newest
-    /// entry of 0x1003. A code already in the history moves to sub 1
-    /// instead of appearing twice (a flapping condition fills no history).
+    /// entry of 0x1003, and the uptime (0x200C) as its time in 0x2012 (same
+    /// sub-index: the two move together). A code already in the history
+    /// moves to sub 1 instead of appearing twice (a flapping condition
+    /// fills no history; its time is that of its latest raise).
     fn record_error(&mut self, code: u16, info: u32) {
         let n = (self.get(0x1003, 0) as u8).min(8);
         let found = (1..=n).find(|&s| self.get(0x1003, s) & 0xFFFF == code as u32);
@@ -821,8 +826,12 @@ impl Core {
         for s in (2..=last).rev() {
             let prev = self.get(0x1003, s - 1);
             self.set(0x1003, s, prev);
+            let at = self.get(0x2012, s - 1);
+            self.set(0x2012, s, at);
         }
         self.set(0x1003, 1, (info << 16) | code as u32);
+        let now = self.get(0x200C, 0);
+        self.set(0x2012, 1, now);
         if found.is_none() {
             self.set(0x1003, 0, (n + 1).min(8) as u32);
         }
@@ -884,6 +893,7 @@ impl Core {
                 // Only 0 is accepted (limits): clears the history.
                 for s in 1..=8 {
                     self.set(0x1003, s, 0);
+                    self.set(0x2012, s, 0);
                 }
                 self.set(0x1003, 0, 0);
                 Ok(Some(Written::Done))
@@ -1287,6 +1297,9 @@ impl Device {
         }
         let c = &mut self.core;
         let node = c.node_id as u16;
+        if let Some(v) = c.values.get_mut(UPTIME) {
+            *v = (now_us / 1_000_000) as u32;
+        }
         if c.state == NmtState::Initialising {
             out(Frame::new(0x700 + node, &[0]));
             c.set_state(NmtState::PreOperational);

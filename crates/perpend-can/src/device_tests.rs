@@ -730,6 +730,34 @@ fn emergency_producer_and_error_history() {
     assert!(!b.dev.emcy_active(status::emcy::DATA_SET));
 }
 
+/// 0x200C counts seconds since power-on; 0x2012 holds, at the sub-index of
+/// each 0x1003 entry, the uptime at which it was recorded: the entries and
+/// their times move together, a repeated code takes its latest time, and
+/// clearing the history clears the times.
+#[test]
+fn error_history_times_follow_their_entries() {
+    let mut b = Bus::new();
+    b.download(0x1017, 0, &[0, 0]).unwrap();
+    b.advance(5_200_000);
+    assert_eq!(b.read32(0x200C, 0), 5);
+    b.dev.signal_emcy(status::emcy::NO_PLANE, 0x80, [0; 5]);
+    b.advance(2_000_000);
+    b.dev.signal_emcy(status::emcy::DATA_SET, 0x01, [0; 5]);
+    b.advance(3_000_000);
+    assert_eq!(b.read32(0x200C, 0), 10);
+    assert_eq!(b.read32(0x1003, 1) & 0xFFFF, status::emcy::DATA_SET as u32);
+    assert_eq!((b.read32(0x2012, 1), b.read32(0x2012, 2)), (7, 5));
+    // NO_PLANE again (cleared, raised at 10 s): back to sub 1 with its time.
+    b.dev.clear_emcy(status::emcy::NO_PLANE);
+    b.dev.signal_emcy(status::emcy::NO_PLANE, 0x80, [0; 5]);
+    assert_eq!(b.read32(0x1003, 0), 2);
+    assert_eq!(b.read32(0x1003, 1) & 0xFFFF, status::emcy::NO_PLANE as u32);
+    assert_eq!((b.read32(0x2012, 1), b.read32(0x2012, 2)), (10, 7));
+    b.download(0x1003, 0, &[0]).unwrap();
+    assert_eq!((b.read32(0x2012, 1), b.read32(0x2012, 2)), (0, 0));
+    assert_eq!(b.download(0x2012, 1, &[1, 0, 0, 0]), Err(0x0601_0002));
+}
+
 /// 0x1015: at most one EMCY per inhibit time; a flapping code appears
 /// once in 0x1003.
 #[test]
@@ -1002,7 +1030,8 @@ proptest! {
     /// Arbitrary frame sequences: no panic; every SDO request in
     /// pre-operational/operational is answered exactly once with a valid
     /// response or abort (client aborts and deferred stores excepted); read-
-    /// only objects keep their values; every entry reads back over SDO as
+    /// only objects keep their values (the clock 0x200C and the error
+    /// times 0x2012 excepted, like 0x1001/0x1003); every entry reads back over SDO as
     /// the device holds it; values stay within their limits.
     #[test]
     fn arbitrary_frames_keep_the_dictionary_sound(
@@ -1010,7 +1039,7 @@ proptest! {
     ) {
         let mut b = Bus::new();
         let ro_before: Vec<(usize, u32)> = od::entries()
-            .filter(|(_, i, e)| e.access != od::Access::Rw && !matches!(i, 0x1001 | 0x1003 | 0x1014 | 0x1200 | 0x2001..=0x2007))
+            .filter(|(_, i, e)| e.access != od::Access::Rw && !matches!(i, 0x1001 | 0x1003 | 0x1014 | 0x1200 | 0x2001..=0x2007 | 0x200C | 0x2012))
             .map(|(s, _, _)| (s, b.dev.core.values[s]))
             .collect();
         let meas_before: Vec<(usize, u32)> = od::entries()

@@ -862,9 +862,29 @@ pub const OBJECTS: &[Object] = &[
         ],
     ),
     var(
+        0x200C,
+        "Uptime s",
+        &[Entry::new(0, "Uptime s", U32, Ro, Class::Measurement).pdo()],
+    ),
+    var(
         0x2010,
         "Calibration unlock",
         &[Entry::new(0, "Calibration unlock", U32, Rw, Class::Command)],
+    ),
+    arr(
+        0x2012,
+        "Error history time s",
+        &[
+            sub0m(8),
+            Entry::new(1, "Error time s", U32, Ro, Class::Measurement),
+            Entry::new(2, "Error time s", U32, Ro, Class::Measurement),
+            Entry::new(3, "Error time s", U32, Ro, Class::Measurement),
+            Entry::new(4, "Error time s", U32, Ro, Class::Measurement),
+            Entry::new(5, "Error time s", U32, Ro, Class::Measurement),
+            Entry::new(6, "Error time s", U32, Ro, Class::Measurement),
+            Entry::new(7, "Error time s", U32, Ro, Class::Measurement),
+            Entry::new(8, "Error time s", U32, Ro, Class::Measurement),
+        ],
     ),
     var(
         0x2020,
@@ -1288,7 +1308,7 @@ mod tests {
         assert_eq!(slot(0x1A00, 9), None);
         assert_eq!(slot(0x2001, 200), None);
         assert_eq!(slot(0x1804, 0), None);
-        assert_eq!(slot(0x200C, 0), None);
+        assert_eq!(slot(0x200D, 0), None);
         assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
         assert_eq!(persistent_of(LAYOUT), PERSISTENT);
         const {
