@@ -417,9 +417,11 @@ impl Client {
     }
 
     /// A configure or store request to every slave in configuration
-    /// state: how many answered success within the window (at least
-    /// [`STORE_TIMEOUT`] for a store); the first refusal is the error.
-    fn lss_configure_all(&mut self, d: [u8; 8]) -> Result<usize, LssError> {
+    /// state, answers collected for the window (at least [`STORE_TIMEOUT`]
+    /// for a store): the first refusal is the error. Identical answers of
+    /// several slaves are one frame on a CAN bus (the virtual board's bus
+    /// merges them too), so the answers do not count the slaves.
+    fn lss_configure_all(&mut self, d: [u8; 8]) -> Result<(), LssError> {
         let window = if d[0] == cs::STORE {
             self.lss_timeout.max(STORE_TIMEOUT)
         } else {
@@ -438,25 +440,24 @@ impl Client {
             let hint = "no node is in LSS configuration state, or the bus or bit rate is wrong";
             return Err(self.lss_silent(service(d[0]), window, hint));
         }
-        Ok(got.len())
+        Ok(())
     }
 
-    /// Configure bit timing of every slave in configuration state: how
-    /// many accepted.
+    /// Configure bit timing of every slave in configuration state.
     ///
     /// # Errors
-    /// As [`Client::lss_configure_bit_timing`]; no answer at all.
-    pub fn lss_configure_bit_timing_all(&mut self, kbps: u16) -> Result<usize, LssError> {
+    /// As [`Client::lss_configure_bit_timing`] (any slave's refusal); no
+    /// answer at all.
+    pub fn lss_configure_bit_timing_all(&mut self, kbps: u16) -> Result<(), LssError> {
         let index = table0_index(kbps)?;
         self.lss_configure_all(request(cs::CONFIGURE_BIT_TIMING, &[0, index]))
     }
 
-    /// Store configuration of every slave in configuration state: how
-    /// many stored.
+    /// Store configuration of every slave in configuration state.
     ///
     /// # Errors
-    /// As [`Client::lss_store`]; no answer at all.
-    pub fn lss_store_all(&mut self) -> Result<usize, LssError> {
+    /// As [`Client::lss_store`] (any slave's refusal); no answer at all.
+    pub fn lss_store_all(&mut self) -> Result<(), LssError> {
         self.lss_configure_all(request(cs::STORE, &[]))
     }
 
@@ -471,7 +472,8 @@ impl Client {
     }
 
     /// Inquire `c` of every slave in configuration state: all the values
-    /// answered within the window.
+    /// answered within the window (slaves answering the same value merge
+    /// into one frame on a CAN bus: inquire the serial to count them).
     ///
     /// # Errors
     /// [`LssError::Bus`].
@@ -505,8 +507,9 @@ impl Client {
         Ok(self.lss_inquire(cs::INQUIRE_NODE_ID)? as u8)
     }
 
-    /// Identify non-configured remote slave: how many non-configured
-    /// slaves answered within the window.
+    /// Identify non-configured remote slave: how many answers came within
+    /// the window (identical answers of several slaves merge into one
+    /// frame on a CAN bus: more than 0 means at least one slave).
     ///
     /// # Errors
     /// [`LssError::Bus`].
@@ -518,8 +521,9 @@ impl Client {
             .len())
     }
 
-    /// Identify remote slave: how many slaves with this vendor and product
-    /// and a revision and serial inside the ranges answered.
+    /// Identify remote slave: how many answers came from slaves with this
+    /// vendor and product and a revision and serial inside the ranges
+    /// (more than 0: at least one, identical answers merge on a CAN bus).
     ///
     /// # Errors
     /// [`LssError::Bus`].

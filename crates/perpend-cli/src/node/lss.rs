@@ -232,6 +232,16 @@ fn select(c: &mut Client, link: &LinkArgs, s: &Select) -> Result<Selected> {
     })
 }
 
+/// The error when no node answers an inquiry of all.
+fn nobody(c: &Client) -> anyhow::Error {
+    anyhow::anyhow!(
+        "no node answered LSS on {} within {} ms: is the bus and bit rate right and a board \
+         powered? (a slow adapter needs a larger --timeout-ms)",
+        c.bus_name(),
+        c.lss_timeout.as_millis()
+    )
+}
+
 /// Switch state global to configuration, refused unless exactly one node
 /// answers (its serial).
 fn only_node(c: &mut Client) -> Result<()> {
@@ -240,11 +250,7 @@ fn only_node(c: &mut Client) -> Result<()> {
     let bus = c.bus_name().to_string();
     match serials.as_slice() {
         [_] => Ok(()),
-        [] => bail!(
-            "no node answered LSS on {bus} within {} ms: is the bus and bit rate right and \
-             a board powered? (a slow adapter needs a larger --timeout-ms)",
-            c.lss_timeout.as_millis()
-        ),
+        [] => Err(nobody(c)),
         many => {
             let list: Vec<String> = many.iter().map(|s| format!("{s:#010x}")).collect();
             bail!(
@@ -455,28 +461,37 @@ fn id_words(n: u8) -> String {
     }
 }
 
-/// Selects one node, or puts every node into configuration state (no
-/// selection): `None` for every node.
-fn select_or_all(c: &mut Client, link: &LinkArgs, s: &Select) -> Result<Option<Selected>> {
+/// Selects one node (`Ok(Ok(_))`), or puts every node into configuration
+/// state (no selection): `Ok(Err(n))`, `n` nodes (counted by their
+/// serials: identical answers would merge into one frame on the bus).
+fn select_or_all(
+    c: &mut Client,
+    link: &LinkArgs,
+    s: &Select,
+) -> Result<std::result::Result<Selected, usize>> {
     if s.serial.is_some() || link.node_id.is_some() {
-        return Ok(Some(select(c, link, s)?));
+        return Ok(Ok(select(c, link, s)?));
     }
     c.lss_switch_global(LssState::Configuration)?;
-    Ok(None)
+    let n = c.lss_inquire_all(cs::INQUIRE_SERIAL)?.len();
+    if n == 0 {
+        return Err(nobody(c));
+    }
+    Ok(Err(n))
 }
 
 /// `lss set-bitrate`.
 fn set_bitrate(c: &mut Client, link: &LinkArgs, a: &SetBitrateArgs) -> Result<()> {
     let who = match select_or_all(c, link, &a.select)? {
-        Some(s) => {
+        Ok(s) => {
             c.lss_configure_bit_timing(a.kbps)?;
             if a.store {
                 c.lss_store()?;
             }
             format!("serial {:#010x}", s.identity.serial)
         }
-        None => {
-            let n = c.lss_configure_bit_timing_all(a.kbps)?;
+        Err(n) => {
+            c.lss_configure_bit_timing_all(a.kbps)?;
             if a.store {
                 c.lss_store_all()?;
             }
@@ -524,11 +539,14 @@ fn activate(c: &mut Client, link: &LinkArgs, a: &ActivateArgs) -> Result<()> {
 /// `lss store`.
 fn store(c: &mut Client, link: &LinkArgs, s: &Select) -> Result<()> {
     let who = match select_or_all(c, link, s)? {
-        Some(s) => {
+        Ok(s) => {
             c.lss_store()?;
             format!("serial {:#010x}", s.identity.serial)
         }
-        None => format!("{} node(s)", c.lss_store_all()?),
+        Err(n) => {
+            c.lss_store_all()?;
+            format!("{n} node(s)")
+        }
     };
     c.lss_switch_global(LssState::Waiting)?;
     println!(
