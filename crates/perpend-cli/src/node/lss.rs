@@ -71,7 +71,7 @@ pub enum Cmd {
 pub struct ScanArgs {
     /// Give the nodes found consecutive node-ids from FIRST on (skipping
     /// node-ids heard on the bus); each starts with it at once.
-    #[arg(long, value_parser = crate::board::parse_node_id)]
+    #[arg(long, value_name = "FIRST", value_parser = crate::board::parse_node_id)]
     pub assign: Option<u8>,
     /// Store the node-ids given (else a power cycle forgets them).
     #[arg(long, requires = "assign")]
@@ -114,7 +114,7 @@ pub struct InquireArgs {
 #[derive(clap::Args, Debug)]
 pub struct SetNodeIdArgs {
     /// The new node-id: 1..127, or 0xFF (non-configured), decimal or 0x hex.
-    #[arg(value_parser = crate::board::parse_node_id)]
+    #[arg(value_name = "N", value_parser = crate::board::parse_node_id)]
     pub new_id: u8,
     /// The node.
     #[command(flatten)]
