@@ -19,6 +19,9 @@
 //!   one virtual bus, a cell of heads behind one slcan port (board k has
 //!   seed `--seed` + k; the world channel moves the first); the first
 //!   stdout line is then `perpend board: N boards, nodes A,B,.. on HOST:PORT`.
+//!   `--serial S:NODEID` gives that board its own node-id instead of
+//!   `--node-id` (a cell of configured and non-configured heads:
+//!   `--node-id 0xFF --serial 0x101:16 --serial 0x102:17 --serial 0x103`).
 //! * `--node-id 0xFF`: the board is not configured (CiA 305): it sends
 //!   nothing and waits for an LSS master to give it a node-id
 //!   (`perpend_can::lss`, docs/can.md "LSS commissioning").
@@ -116,8 +119,9 @@ pub struct Args {
     /// default: derived from --seed like the firmware folds the MCU UID
     /// ([`node::serial_for_seed`]). Repeated: one board per serial, all
     /// on one virtual bus (a cell), each with the other options.
-    #[arg(long, value_parser = parse_serial)]
-    pub serial: Vec<u32>,
+    /// `S:NODEID`: this board's node-id instead of --node-id.
+    #[arg(long, value_name = "S[:NODEID]")]
+    pub serial: Vec<SerialArg>,
     /// The head really built (sensors.csv): simulated, not stored.
     #[arg(long)]
     pub truth: Option<PathBuf>,
@@ -131,6 +135,29 @@ pub struct Args {
 pub fn parse_serial(s: &str) -> Result<u32> {
     perpend_can::config::parse_u32(s.trim().as_bytes())
         .ok_or_else(|| anyhow!("serial '{s}': expected a decimal or 0x hex u32"))
+}
+
+/// One `--serial S[:NODEID]`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SerialArg {
+    /// The serial number (0x1018 sub 4).
+    pub serial: u32,
+    /// The board's own node-id (1..127 or 0xFF), else `--node-id`.
+    pub node_id: Option<u8>,
+}
+
+impl FromStr for SerialArg {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        let (serial, node_id) = match s.split_once(':') {
+            Some((a, b)) => (a, Some(parse_node_id(b.trim())?)),
+            None => (s, None),
+        };
+        Ok(Self {
+            serial: parse_serial(serial)?,
+            node_id,
+        })
+    }
 }
 
 /// One `--fault`.
@@ -196,6 +223,7 @@ pub fn build_all(a: &Args) -> Result<Vec<VirtualBoard>> {
         .map(|(k, &s)| {
             build(&Args {
                 serial: vec![s],
+                node_id: s.node_id.unwrap_or(a.node_id),
                 seed: a.seed.wrapping_add(k as u64),
                 slcan: a.slcan.clone(),
                 plane: a.plane.clone(),
@@ -255,17 +283,14 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
             FaultArg::BusNoAck(t) => noack_us = Some((t * 1e6) as u64),
         }
     }
+    let first = a.serial.first().copied();
     let cfg = BoardConfig {
-        node_id: a.node_id,
+        node_id: first.and_then(|s| s.node_id).unwrap_or(a.node_id),
         head,
         calibration,
         thermal_tau_s,
     };
-    let serial = a
-        .serial
-        .first()
-        .copied()
-        .unwrap_or_else(|| node::serial_for_seed(a.seed));
+    let serial = first.map_or_else(|| node::serial_for_seed(a.seed), |s| s.serial);
     let mut board = VirtualBoard::with_serial(&cfg, sim, serial)?;
     board.set_bus_noack(noack_us);
     Ok(board)
@@ -372,15 +397,35 @@ mod tests {
         assert_eq!(b.app().device().read_u32(0x1018, 4), Some(seed1));
         assert_ne!(node::serial_for_seed(2), seed1);
         let b = build(&Args {
-            serial: vec![0xABCD],
+            serial: vec!["0xABCD".parse().unwrap()],
             ..args()
         })
         .unwrap();
         assert_eq!(b.app().device().read_u32(0x1018, 4), Some(0xABCD));
+        assert_eq!(b.app().device().node_id(), 0x20);
         assert_eq!(
             b.app().device().read_u32(0x1018, 1),
             Some(perpend_can::config::VENDOR_ID)
         );
+    }
+
+    #[test]
+    fn a_cell_mixes_configured_and_non_configured_heads() {
+        let mut a = args();
+        a.node_id = perpend_can::lss::UNCONFIGURED;
+        a.serial = ["0x101:16", "0x102:0x11", "0x103"]
+            .iter()
+            .map(|s| s.parse().unwrap())
+            .collect();
+        let ids: Vec<u8> = build_all(&a)
+            .unwrap()
+            .iter()
+            .map(|b| b.app().device().active_node_id())
+            .collect();
+        assert_eq!(ids, vec![16, 17, 0xFF]);
+        for bad in ["0x101:0", "0x101:128", "x:16", "0x101:"] {
+            assert!(bad.parse::<SerialArg>().is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -1,7 +1,8 @@
 //! The CANopen master side of the host tool, on any [`Bus`]: SDO upload and
 //! download (expedited and segmented, [`sdo`]), NMT commands, SYNC, the
-//! boot-up and heartbeat of each node, EMCY, and TPDO decoding through the
-//! mapping read from the device ([`pdo`]).
+//! boot-up and heartbeat of each node, EMCY, TPDO decoding through the
+//! mapping read from the device ([`pdo`]), and the LSS master (CiA 305,
+//! [`lss`]).
 //!
 //! One [`Client`] owns the bus. Frames that arrive while it waits for
 //! something else (an SDO answer, a boot-up) are kept, bounded, for
@@ -14,6 +15,7 @@
 //! was asked, and (for an abort) what the code means ([`abort::describe`]).
 
 pub mod abort;
+pub mod lss;
 pub mod pdo;
 pub mod sdo;
 
@@ -222,6 +224,8 @@ pub struct Client {
     bus: Box<dyn Bus>,
     /// How long an SDO answer may take.
     pub timeout: Duration,
+    /// How long an LSS request waits for its answers ([`lss`]).
+    pub lss_timeout: Duration,
     backlog: VecDeque<(Instant, Frame)>,
     heard: BTreeMap<u8, Heard>,
     emcy: VecDeque<Emcy>,
@@ -229,11 +233,12 @@ pub struct Client {
 }
 
 impl Client {
-    /// A client on `bus` with a 500 ms SDO timeout.
+    /// A client on `bus` with a 500 ms SDO timeout and a 50 ms LSS one.
     pub fn new(bus: Box<dyn Bus>) -> Self {
         Self {
             bus,
             timeout: Duration::from_millis(500),
+            lss_timeout: lss::DEFAULT_TIMEOUT,
             backlog: VecDeque::new(),
             heard: BTreeMap::new(),
             emcy: VecDeque::new(),

@@ -1,6 +1,7 @@
 //! `perpend node`: a board on a real (or virtual) CAN bus, from the host:
 //! what it is, how it is, what it measures, its calibration in and out,
-//! and calibration poses captured from it.
+//! calibration poses captured from it, and LSS commissioning of the nodes
+//! on a bus.
 //!
 //! ```text
 //! perpend node --bus BUS --node-id N [--bitrate KBPS] [--timeout-ms MS] <command>
@@ -12,6 +13,8 @@
 //!   push params.json [--preop]      write, verify, store, reset, verify again, lock
 //!   pull [--out params.json]        the board's calibration as a params.json
 //!   capture --plane A,B,C,D --pose K --out poses.csv [--samples N]
+//!   lss scan|inquire|set-node-id|set-bitrate|activate-bitrate|store
+//!                                   LSS (CiA 305, see [`lss`]): --node-id optional
 //! ```
 //!
 //! BUS is `tcp:HOST:PORT` (the virtual board), `slcan:/dev/ttyACM0[@BAUD]`
@@ -29,6 +32,7 @@
 
 pub mod capture;
 pub mod info;
+pub mod lss;
 pub mod mapping;
 pub mod monitor;
 pub mod params;
@@ -60,9 +64,11 @@ pub struct LinkArgs {
     /// interfaces keep theirs: `ip link set can0 type can bitrate …`).
     #[arg(long, global = true, default_value_t = 1000)]
     pub bitrate: u32,
-    /// How long the board may take to answer one SDO request [ms].
-    #[arg(long, global = true, default_value_t = 500)]
-    pub timeout_ms: u64,
+    /// How long the board may take to answer one SDO request [ms]
+    /// (default 500), and how long an LSS request waits for its answers
+    /// (default 50).
+    #[arg(long, global = true)]
+    pub timeout_ms: Option<u64>,
 }
 
 impl LinkArgs {
@@ -102,7 +108,10 @@ impl LinkArgs {
         let spec: BusSpec = self.bus()?.parse()?;
         let bus = bus::open(&spec, self.bitrate)?;
         let mut client = Client::new(bus);
-        client.timeout = Duration::from_millis(self.timeout_ms.max(1));
+        client.timeout = Duration::from_millis(self.timeout_ms.unwrap_or(500).max(1));
+        if let Some(ms) = self.timeout_ms {
+            client.lss_timeout = Duration::from_millis(ms.max(1));
+        }
         Ok(client)
     }
 }
@@ -138,13 +147,15 @@ pub enum Cmd {
     Pull(params::PullArgs),
     /// Average N samples at one pose and append them to poses.csv.
     Capture(capture::Args),
+    /// LSS (CiA 305): find non-configured nodes, set node-ids and bit rates.
+    Lss(lss::Args),
 }
 
 /// Set by Ctrl-C; long operations look at it between steps.
 static CANCEL: AtomicBool = AtomicBool::new(false);
 
 /// Installs the Ctrl-C handler. For a command that `checks` the flag
-/// (monitor, push, pull, capture), the first Ctrl-C sets it and the second
+/// (monitor, push, pull, capture, lss scan), the first Ctrl-C sets it and the second
 /// quits at once; for the others (short reads) the first quits (exit code
 /// 130, as without a handler).
 fn install_ctrlc(checks: bool) {
@@ -257,10 +268,20 @@ impl Node {
 pub fn run(a: &Args) -> Result<()> {
     install_ctrlc(matches!(
         a.cmd,
-        Cmd::Monitor(_) | Cmd::Push(_) | Cmd::Pull(_) | Cmd::Capture(_)
+        Cmd::Monitor(_)
+            | Cmd::Push(_)
+            | Cmd::Pull(_)
+            | Cmd::Capture(_)
+            | Cmd::Lss(lss::Args {
+                cmd: lss::Cmd::Scan(_)
+            })
     ));
-    let mut node = Node::connect(&a.link)?;
     let cancel = &CANCEL;
+    // LSS addresses the bus (non-configured nodes have no node-id).
+    if let Cmd::Lss(x) = &a.cmd {
+        return lss::run(&a.link, x, cancel);
+    }
+    let mut node = Node::connect(&a.link)?;
     match &a.cmd {
         Cmd::Info(x) => info::info(&mut node, x),
         Cmd::Status(x) => info::status(&mut node, x),
@@ -270,5 +291,6 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::Push(x) => params::push(&mut node, x, cancel).map(|r| println!("{r}")),
         Cmd::Pull(x) => params::pull_to(&mut node, x, cancel),
         Cmd::Capture(x) => capture::run(&mut node, x, cancel),
+        Cmd::Lss(_) => Ok(()),
     }
 }
