@@ -11,6 +11,9 @@
 //!   push params.json [--preop]      write, verify, store, reset, verify again, lock
 //!   pull [--out params.json]        the board's calibration as a params.json
 //!   capture --plane A,B,C,D --pose K --out poses.csv [--samples N]
+//!   sdo read IDX SUB [--json]       any object, typed by the EDS (--eds FILE)
+//!   sdo write IDX SUB VALUE [--force] [--json]   checked, then read back
+//!   sdo list [IDX] [--json]         the EDS's entries (no bus needed)
 //! ```
 //!
 //! BUS is `tcp:HOST:PORT` (the virtual board), `slcan:/dev/ttyACM0[@BAUD]`
@@ -30,6 +33,7 @@ pub mod capture;
 pub mod info;
 pub mod monitor;
 pub mod params;
+pub mod sdo;
 pub mod words;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -133,6 +137,8 @@ pub enum Cmd {
     Pull(params::PullArgs),
     /// Average N samples at one pose and append them to poses.csv.
     Capture(capture::Args),
+    /// Read or write any object by index and sub-index, typed by the EDS; list the EDS.
+    Sdo(sdo::Args),
 }
 
 /// Set by Ctrl-C; long operations look at it between steps.
@@ -254,6 +260,11 @@ pub fn run(a: &Args) -> Result<()> {
         a.cmd,
         Cmd::Monitor(_) | Cmd::Push(_) | Cmd::Pull(_) | Cmd::Capture(_)
     ));
+    if let Cmd::Sdo(x) = &a.cmd {
+        if x.offline() {
+            return sdo::list(x);
+        }
+    }
     let mut node = Node::connect(&a.link)?;
     let cancel = &CANCEL;
     match &a.cmd {
@@ -264,5 +275,6 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::Push(x) => params::push(&mut node, x, cancel).map(|r| println!("{r}")),
         Cmd::Pull(x) => params::pull_to(&mut node, x, cancel),
         Cmd::Capture(x) => capture::run(&mut node, x, cancel),
+        Cmd::Sdo(x) => sdo::run(&mut node, x),
     }
 }
