@@ -268,3 +268,24 @@ fn text_without_object_lists_is_not_an_eds() {
     let e = Eds::parse("x.ini", "[a]\nb=c\n").unwrap_err();
     assert!(e.to_string().contains("is this an EDS"), "{e}");
 }
+
+proptest::proptest! {
+    /// The built-in EDS with one line replaced, removed or doubled: parsed
+    /// or refused with a line of the text, never a panic (the fuzz target
+    /// `eds` does the same on arbitrary bytes).
+    #[test]
+    fn a_damaged_eds_is_refused_with_a_line(at in 0usize..4000, what in 0u8..3, junk in "[ -~]{0,12}") {
+        let text = builtin_text();
+        let mut lines: Vec<&str> = text.lines().collect();
+        let k = at % lines.len();
+        match what {
+            0 => lines[k] = &junk,
+            1 => { lines.remove(k); }
+            _ => lines.insert(k, lines[k]),
+        }
+        let damaged = lines.join("\n");
+        if let Err(e) = Eds::parse("d.eds", &damaged) {
+            proptest::prop_assert!(e.line <= lines.len(), "{}", e);
+        }
+    }
+}
