@@ -23,6 +23,7 @@
 //! Limits: an object whose type the EDS does not give cannot be written;
 //! objects are addressed by number, not by name.
 
+use std::io::Write;
 use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Result};
@@ -647,11 +648,17 @@ fn list_eds(eds: &Eds, a: &ListArgs) -> Result<()> {
         println!("{v}");
         return Ok(());
     }
-    println!("{}: {} entries", eds.file, entries.len());
+    // A long listing is often piped into `head` or `grep -m`: a closed
+    // pipe ends it quietly.
+    let mut text = format!("{}: {} entries\n", eds.file, entries.len());
     for e in entries {
-        println!("{}", list_line(e));
+        text += &list_line(e);
+        text.push('\n');
     }
-    Ok(())
+    match std::io::stdout().lock().write_all(text.as_bytes()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(()),
+    }
 }
 
 fn list_line(e: &Entry) -> String {
