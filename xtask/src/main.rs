@@ -78,6 +78,7 @@ const FUZZ_TARGETS: &[&str] = &[
     "can_device",
     "slcan_line",
     "host_inputs",
+    "eds",
 ];
 
 fn fuzz(args: &[String]) -> Result<()> {

@@ -9,5 +9,6 @@ pub mod bus;
 pub mod canopen;
 pub mod cell;
 pub mod demo;
+pub mod eds;
 pub mod node;
 pub mod slcan;

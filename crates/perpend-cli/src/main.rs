@@ -2,7 +2,7 @@
 //! diagnose what the model misses, benchmark, and run a virtual board.
 
 use clap::{Parser, Subcommand};
-use perpend_cli::{board, cell, demo, node};
+use perpend_cli::{board, cell, demo, eds, node};
 use perpend_lab::{bench, calibrate, diagnose, measure, sim};
 
 /// The conventions every command's output follows.
@@ -61,6 +61,8 @@ enum Cmd {
     Node(node::Args),
     /// Calibrate a cell end to end over the bus: before, capture, calibrate, push, after.
     Cell(cell::Args),
+    /// Print the board's EDS (CiA 306) built into this binary (= perpend.eds).
+    Eds(eds::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -78,6 +80,7 @@ fn main() -> std::process::ExitCode {
         Cmd::Board(a) => board::run(&a),
         Cmd::Node(a) => node::run(&a),
         Cmd::Cell(a) => cell::run(&a),
+        Cmd::Eds(a) => eds::run(&a),
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,

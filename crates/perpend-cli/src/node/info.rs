@@ -235,7 +235,9 @@ fn error_times(node: &mut Node, n: u8) -> Result<Option<(u32, Vec<u32>)>> {
     let (c, id) = (&mut node.client, node.id);
     let up = match c.read_u32(id, UPTIME, 0) {
         Ok(u) => u,
-        Err(ClientError::Abort { code: NO_OBJECT, .. }) => return Ok(None),
+        Err(ClientError::Abort {
+            code: NO_OBJECT, ..
+        }) => return Ok(None),
         Err(e) => return Err(e.into()),
     };
     let mut at = Vec::new();
@@ -278,7 +280,11 @@ pub fn status(node: &mut Node, a: &InfoArgs) -> Result<()> {
         errors.push(((v & 0xFFFF) as u16, (v >> 16) as u16));
     }
     let times = error_times(node, n)?;
-    let age = |k: usize| times.as_ref().map(|(up, at)| (at[k], up.saturating_sub(at[k])));
+    let age = |k: usize| {
+        times
+            .as_ref()
+            .map(|(up, at)| (at[k], up.saturating_sub(at[k])))
+    };
     if a.json {
         let e: Vec<_> = errors
             .iter()
@@ -319,7 +325,9 @@ fn print_history(errors: &[(u16, u16)], times: Option<&(u32, Vec<u32>)>) {
             "last emergencies (0x1003, newest first; up {}; `clear-errors` empties the list):",
             age_words(*up)
         ),
-        None => println!("last emergencies (0x1003, newest first; this firmware records no times):"),
+        None => {
+            println!("last emergencies (0x1003, newest first; this firmware records no times):")
+        }
     }
     for (k, (code, _)) in errors.iter().enumerate() {
         match times {

@@ -19,44 +19,37 @@ use super::Node;
 use crate::canopen::pdo::{Mapped, Tpdo};
 use crate::canopen::ClientError;
 
-/// Units that end object names, longest first (so "mm per degC" wins over
-/// "degC").
-const UNITS: &[&str] = &[
-    "mm per degC",
-    "mm per s",
-    "per mm2",
-    "per mm",
-    "degC",
-    "deg",
-    "mm",
-    "us",
-    "ms",
-    "mV",
-    "ohm",
-    "bytes",
-    "s",
-];
-
-/// `name` split into its words and its unit (the unit as printed: `°C`,
-/// `°`, `µs`, …), e.g. "Theta1 deg" → ("Theta1", Some("°")).
-pub fn split_unit(name: &str) -> (&str, Option<&'static str>) {
-    for u in UNITS {
-        if let Some(base) = name.strip_suffix(u).and_then(|b| b.strip_suffix(' ')) {
-            let shown = match *u {
-                "degC" => "°C",
-                "deg" => "°",
-                "us" => "µs",
-                "mm per degC" => "mm/°C",
-                "mm per s" => "mm/s",
-                "per mm2" => "1/mm²",
-                "per mm" => "1/mm",
-                "ohm" => "Ω",
-                other => other,
-            };
-            return (base, Some(shown));
-        }
-    }
-    (name, None)
+/// `name` split into its words and its unit as printed (`°C`, `°`, `µs`,
+/// `mm/°C`, …), e.g. "Theta1 deg" → ("Theta1", Some("°")); the unit is
+/// the one [`crate::eds::unit_of`] finds at the end of the name.
+pub fn split_unit(name: &str) -> (&str, Option<String>) {
+    let Some(unit) = crate::eds::unit_of(name) else {
+        return (name, None);
+    };
+    // "mm/degC" was "mm per degC" (3 words), "1/mm" was "per mm" (2), else 1.
+    let words = match unit.split_once('/') {
+        Some(("1", _)) => 2,
+        Some(_) => 3,
+        None => 1,
+    };
+    let base = name.trim_end();
+    let cut = base
+        .rmatch_indices(' ')
+        .nth(words - 1)
+        .map_or(base.len(), |(i, _)| i);
+    let pretty = |u: &str| match u {
+        "degC" => "°C".to_string(),
+        "deg" => "°".to_string(),
+        "us" => "µs".to_string(),
+        "ohm" => "Ω".to_string(),
+        "mm2" => "mm²".to_string(),
+        other => other.to_string(),
+    };
+    let shown = match unit.split_once('/') {
+        Some((a, b)) => format!("{}/{}", pretty(a), pretty(b)),
+        None => pretty(&unit),
+    };
+    (&base[..cut], Some(shown))
 }
 
 /// One mapped object in words: "Theta1 [°] (0x2002 sub 1)".
@@ -208,26 +201,22 @@ mod tests {
 
     #[test]
     fn units_come_off_the_names() {
-        assert_eq!(split_unit("Theta1 deg"), ("Theta1", Some("°")));
+        let u = |n: &'static str| split_unit(n);
+        let s = |x: &str| Some(x.to_string());
+        assert_eq!(u("Theta1 deg"), ("Theta1", s("°")));
+        assert_eq!(u("Distance sensor 1 mm"), ("Distance sensor 1", s("mm")));
         assert_eq!(
-            split_unit("Distance sensor 1 mm"),
-            ("Distance sensor 1", Some("mm"))
+            u("Thermal drift mm per degC"),
+            ("Thermal drift", s("mm/°C"))
         );
         assert_eq!(
-            split_unit("Thermal drift mm per degC"),
-            ("Thermal drift", Some("mm/°C"))
+            u("Cubic nonlinearity per mm2"),
+            ("Cubic nonlinearity", s("1/mm²"))
         );
-        assert_eq!(
-            split_unit("Die temperature degC"),
-            ("Die temperature", Some("°C"))
-        );
-        assert_eq!(split_unit("Sample counter"), ("Sample counter", None));
+        assert_eq!(u("Die temperature degC"), ("Die temperature", s("°C")));
+        assert_eq!(u("Sample counter"), ("Sample counter", None));
         // A word that merely ends in a unit's letters is not a unit.
-        assert_eq!(split_unit("Frames dropped"), ("Frames dropped", None));
-        assert_eq!(
-            split_unit("Stack used bytes"),
-            ("Stack used", Some("bytes"))
-        );
+        assert_eq!(u("Frames dropped"), ("Frames dropped", None));
     }
 
     #[test]

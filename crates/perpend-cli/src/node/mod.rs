@@ -15,6 +15,9 @@
 //!   capture --plane A,B,C,D --pose K --out poses.csv [--samples N]
 //!   lss scan|inquire|set-node-id|set-bitrate|activate-bitrate|store
 //!                                   LSS (CiA 305, see [`lss`]): --node-id optional
+//!   sdo read IDX SUB [--json]       any object, typed by the EDS (--eds FILE)
+//!   sdo write IDX SUB VALUE [--force] [--json]   checked, then read back
+//!   sdo list [IDX] [--json]         the EDS's entries (no bus needed)
 //! ```
 //!
 //! BUS is `tcp:HOST:PORT` (the virtual board), `slcan:/dev/ttyACM0[@BAUD]`
@@ -36,6 +39,7 @@ pub mod lss;
 pub mod mapping;
 pub mod monitor;
 pub mod params;
+pub mod sdo;
 pub mod words;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -149,6 +153,8 @@ pub enum Cmd {
     Capture(capture::Args),
     /// LSS (CiA 305): find non-configured nodes, set node-ids and bit rates.
     Lss(lss::Args),
+    /// Read or write any object by index and sub-index, typed by the EDS; list the EDS.
+    Sdo(sdo::Args),
 }
 
 /// Set by Ctrl-C; long operations look at it between steps.
@@ -276,6 +282,11 @@ pub fn run(a: &Args) -> Result<()> {
                 cmd: lss::Cmd::Scan(_)
             })
     ));
+    if let Cmd::Sdo(x) = &a.cmd {
+        if x.offline() {
+            return sdo::list(x);
+        }
+    }
     let cancel = &CANCEL;
     // LSS addresses the bus (non-configured nodes have no node-id).
     if let Cmd::Lss(x) = &a.cmd {
@@ -292,5 +303,6 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::Pull(x) => params::pull_to(&mut node, x, cancel),
         Cmd::Capture(x) => capture::run(&mut node, x, cancel),
         Cmd::Lss(_) => Ok(()),
+        Cmd::Sdo(x) => sdo::run(&mut node, x),
     }
 }

@@ -1,0 +1,215 @@
+//! `perpend eds` and `perpend node sdo` end to end: the printed EDS is the
+//! committed `perpend.eds`; read, write (checked before sending, read
+//! back), the refusals (limits, const, an unknown object's type) and an
+//! abort in words, against a virtual board over slcan/TCP on loopback
+//! (its own free port, killed when the test ends, also on failure);
+//! `sdo list` without a bus; another EDS with `--eds`.
+#![allow(clippy::unwrap_used, clippy::panic)]
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+const NODE: &str = "21";
+
+/// A running virtual board; killed on drop.
+struct Board {
+    child: Child,
+    bus: String,
+}
+
+impl Board {
+    fn start() -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_perpend"))
+            .args(["board", "--slcan", "127.0.0.1:0", "--node-id", NODE])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut line = String::new();
+            let _ = BufReader::new(stdout).read_line(&mut line);
+            let _ = tx.send(line);
+        });
+        let Ok(line) = rx.recv_timeout(Duration::from_secs(20)) else {
+            let _ = child.kill();
+            panic!("perpend board did not start");
+        };
+        // "perpend board: node N on 127.0.0.1:PORT"
+        let addr = line.trim().rsplit(' ').next().unwrap().to_string();
+        Board {
+            child,
+            bus: format!("tcp:{addr}"),
+        }
+    }
+
+    /// `perpend node <args> --bus … --node-id 21` (the link options last:
+    /// they are global).
+    fn node(&self, args: &[&str]) -> Output {
+        let t = Instant::now();
+        let out = perpend(&[&["node"], args, &["--bus", &self.bus, "--node-id", NODE]].concat());
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "{args:?} took too long"
+        );
+        out
+    }
+}
+
+impl Drop for Board {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn perpend(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .arg("--quiet")
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn ok(o: &Output) -> String {
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "failed:\n{out}\n{err}");
+    out
+}
+
+fn failed(o: &Output) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    err
+}
+
+fn json(o: &Output) -> serde_json::Value {
+    serde_json::from_str(ok(o).trim()).unwrap()
+}
+
+const COMMITTED: &str = include_str!("../../../perpend.eds");
+
+#[test]
+fn perpend_eds_prints_the_committed_file() {
+    assert_eq!(ok(&perpend(&["eds"])), COMMITTED);
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("x.eds");
+    ok(&perpend(&["eds", "--out", p.to_str().unwrap()]));
+    assert_eq!(std::fs::read_to_string(&p).unwrap(), COMMITTED);
+}
+
+#[test]
+fn sdo_list_needs_no_bus_and_reads_another_eds() {
+    let out = ok(&perpend(&["node", "sdo", "list", "0x2300"]));
+    assert!(
+        out.contains("Residual limit mm  [mm]  limits 0.0001..100"),
+        "{out}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("other.eds");
+    let other = COMMITTED.replace("1=0x1000\n", "1=0x1234\n");
+    std::fs::write(&p, other).unwrap();
+    let err = failed(&perpend(&[
+        "node",
+        "sdo",
+        "list",
+        "--eds",
+        p.to_str().unwrap(),
+    ]));
+    assert!(
+        err.contains("other.eds line 49") && err.contains("no section [1234]"),
+        "{err}"
+    );
+    let v = json(&perpend(&[
+        "node",
+        "sdo",
+        "--eds",
+        "../../perpend.eds",
+        "list",
+        "--json",
+        "0x1017",
+    ]));
+    assert_eq!(v["entries"][0]["type"], "UNSIGNED16");
+    assert_eq!(v["eds"], "../../perpend.eds");
+}
+
+#[test]
+fn sdo_read_and_write_the_virtual_board() {
+    let b = Board::start();
+    let out = ok(&b.node(&["sdo", "read", "0x2300", "4"]));
+    assert_eq!(
+        out.trim(),
+        "0x2300 sub 4  Acquisition: Residual limit mm (REAL32, rw) = 0.05 mm  [limits 0.0001..100]"
+    );
+    let out = ok(&b.node(&["sdo", "read", "1008h", "0"]));
+    assert!(out.contains("= \"perpend normal sensor\""), "{out}");
+    // write, read back, old → new
+    let out = ok(&b.node(&["sdo", "write", "0x1017", "0", "250"]));
+    assert!(
+        out.contains("Producer heartbeat time (UNSIGNED16, rw): 1000 (0x3e8) → 250 (0xfa)"),
+        "{out}"
+    );
+    let v = json(&b.node(&["sdo", "read", "0x1017", "0", "--json"]));
+    assert_eq!(
+        (v["schema"].as_str(), v["value"].as_u64()),
+        (Some("perpend.sdo/1"), Some(250))
+    );
+    assert_eq!(
+        (v["index"].as_u64(), v["raw_hex"].as_str()),
+        (Some(0x1017), Some("fa 00"))
+    );
+    let v = json(&b.node(&["sdo", "write", "0x2300", "4", "0.1", "--json"]));
+    assert_eq!(
+        (v["old"].as_f64(), v["value"].as_f64()),
+        (Some(0.05), Some(0.1))
+    );
+    assert_eq!(v["unit"], "mm");
+    // refused before sending: limits, const
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "4", "200"]));
+    assert!(
+        err.contains("outside the EDS limits 0.0001..100") && err.contains("nothing was sent"),
+        "{err}"
+    );
+    let err = failed(&b.node(&["sdo", "write", "0x1018", "4", "7"]));
+    assert!(
+        err.contains("Serial number (UNSIGNED32, const) is constant"),
+        "{err}"
+    );
+    let err = failed(&b.node(&["sdo", "write", "0x3000", "0", "1"]));
+    assert!(
+        err.contains("type is unknown") && err.contains("--eds"),
+        "{err}"
+    );
+    let out = ok(&b.node(&["sdo", "read", "0x2300", "4"]));
+    assert!(
+        out.contains("= 0.1 mm"),
+        "a refused write changed the value: {out}"
+    );
+    // --force sends it: the node's own abort, in words
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "4", "200", "--force"]));
+    assert!(
+        err.contains("abort 0x06090031") && err.contains("too high"),
+        "{err}"
+    );
+    // the board's lock and state aborts, with what to do
+    let err = failed(&b.node(&["sdo", "write", "0x2101", "1", "-1.5"]));
+    assert!(
+        err.contains("abort 0x08000021") && err.contains("sdo write 0x2010 0 0x6c616375"),
+        "{err}"
+    );
+    ok(&b.node(&["nmt", "start"]));
+    let err = failed(&b.node(&["sdo", "write", "0x2101", "1", "1.5"]));
+    assert!(
+        err.contains("abort 0x08000022") && err.contains("nmt preop` first"),
+        "{err}"
+    );
+    let o = b.node(&["sdo", "write", "0x2300", "1", "500", "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(v["error"].as_str().unwrap().contains("0x08000022"), "{v}");
+    // an object the node lacks
+    let err = failed(&b.node(&["sdo", "read", "0x3000", "0"]));
+    assert!(err.contains("abort 0x06020000"), "{err}");
+}
