@@ -55,6 +55,11 @@ def test_clear_errors_empties_the_history_and_keeps_the_active(board):
     assert reg != 0
     status = as_json(board.perpend("status", "--json"))
     assert len(status["errors"]) == n
+    # Each entry's time after boot (0x2012) is what python reads, and its
+    # age is the uptime (0x200C) minus it.
+    for k, e in enumerate(status["errors"], start=1):
+        assert e["at_s"] == board.node.sdo[0x2012][k].raw
+        assert e["age_s"] == status["uptime_s"] - e["at_s"] >= 0
     cleared = as_json(board.perpend("clear-errors", "--json"))
     assert cleared["cleared"] == n
     assert board.node.sdo[0x1003][0].raw == 0

@@ -170,6 +170,25 @@ fn info_names_the_pdo_mappings_temperature_and_error_register() {
 }
 
 #[test]
+fn status_gives_each_emergency_its_age() {
+    let b = Board::start(&["--fault", "2:open"]);
+    std::thread::sleep(Duration::from_millis(1500));
+    let v: serde_json::Value =
+        serde_json::from_str(ok(&b.node(&["status", "--json"])).trim()).unwrap();
+    let up = v["uptime_s"].as_u64().unwrap();
+    assert!(up >= 1, "{v}");
+    let errors = v["errors"].as_array().unwrap();
+    assert!(!errors.is_empty(), "{v}");
+    for e in errors {
+        let (at, age) = (e["at_s"].as_u64().unwrap(), e["age_s"].as_u64().unwrap());
+        assert_eq!(at + age, up, "{e}");
+    }
+    let out = ok(&b.node(&["status"]));
+    assert!(out.contains(" ago "), "{out}");
+    assert!(out.contains("`clear-errors` empties the list"), "{out}");
+}
+
+#[test]
 fn options_may_follow_the_subcommand() {
     let b = Board::start(&[]);
     let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
