@@ -47,8 +47,8 @@ STATE = 0x08000022
 
 # Measurement outputs and the transmit-queue counters (0x2008) change
 # while the board runs: not part of the dump.
-# measurements, and the sample time 0x2020
-LIVE = set(range(0x2001, 0x2009)) | {0x2020}
+# measurements, the uptime 0x200C and the sample time 0x2020
+LIVE = set(range(0x2001, 0x2009)) | {0x200C, 0x2020}
 
 F32_NAN = struct.pack("<I", 0x7FC00000)
 F32_SNAN = struct.pack("<I", 0x7F800001)
