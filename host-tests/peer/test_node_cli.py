@@ -3,6 +3,7 @@ checked by a second master (python canopen) on the same virtual board: what
 `perpend` says about the board must be what the board answers to anyone."""
 
 import json
+import struct
 import subprocess
 import time
 
@@ -79,3 +80,27 @@ def test_a_second_client_is_told_the_board_is_in_use(board):
     assert "the port answers but is in use by another client" in p.stderr
     # The holder is unaffected.
     assert board.node.sdo[0x1001].raw == 0
+
+
+def test_pdo_map_is_seen_by_a_second_master(board):
+    p = board.perpend("pdo", "map", "3", "0x2003:1", "0x2003:2", "--type", "2")
+    assert p.returncode == 0, p.stderr
+    tpdo = board.node.tpdo
+    tpdo.read()
+    t3 = tpdo[3]
+    assert t3.enabled and t3.trans_type == 2
+    assert [(v.index, v.subindex) for v in t3.map] == [(0x2003, 1), (0x2003, 2)]
+    # Operational, 6 SYNCs: TPDO 3 comes on every 2nd, with pitch and yaw
+    # as the board reads them.
+    got = []
+    board.network.subscribe(t3.cob_id, lambda cid, data, ts: got.append(bytes(data)))
+    board.node.nmt.state = "OPERATIONAL"
+    time.sleep(0.2)
+    for _ in range(6):
+        board.network.send_message(0x80, b"")
+        time.sleep(0.05)
+    board.node.nmt.state = "PRE-OPERATIONAL"
+    assert 2 <= len(got) <= 4, got
+    pitch, yaw = struct.unpack("<ff", got[-1])
+    assert abs(pitch - board.node.sdo[0x2003][1].raw) < 0.01
+    assert abs(yaw - board.node.sdo[0x2003][2].raw) < 0.01

@@ -189,6 +189,38 @@ fn status_gives_each_emergency_its_age() {
 }
 
 #[test]
+fn pdo_map_in_cia_order_and_a_refused_step_puts_the_pdo_back() {
+    let b = Board::start(&[]);
+    let out = ok(&b.node(&["pdo", "map", "3", "0x2003:1", "0x2003:2", "--type", "2"]));
+    assert!(out.contains("Pitch [°] (0x2003 sub 1)"), "{out}");
+    let mapped = |b: &Board| -> serde_json::Value {
+        let v: serde_json::Value =
+            serde_json::from_str(ok(&b.node(&["pdo", "show", "--json"])).trim()).unwrap();
+        v["pdos"][2].clone()
+    };
+    let t3 = mapped(&b);
+    assert_eq!(t3["transmission"], 2);
+    assert_eq!(t3["valid"], true);
+    assert_eq!(t3["mapped"][1]["name"], "Yaw");
+    // The SYNC start value 250 is refused by the board (0..240) after the
+    // mapping was written: the PDO is put back as it was.
+    let err = failed(&b.node(&["pdo", "map", "3", "0x2002:3", "--sync-start", "250"]));
+    assert!(err.contains("its previous parameters were written back"), "{err}");
+    assert!(err.contains("0x06090031"), "{err}");
+    assert_eq!(mapped(&b), t3);
+    // Refused before anything is sent: not mappable, too long.
+    assert!(failed(&b.node(&["pdo", "map", "3", "0x1017:0"])).contains("cannot be mapped"));
+    let err = failed(&b.node(&["pdo", "map", "3", "0x2001:1", "0x2001:2", "0x2001:3"]));
+    assert!(err.contains("96 bits"), "{err}");
+    // Off, stored, survives a reset; on again.
+    ok(&b.node(&["pdo", "off", "3", "--store"]));
+    ok(&b.node(&["nmt", "reset"]));
+    assert_eq!(mapped(&b)["valid"], false);
+    ok(&b.node(&["pdo", "on", "3"]));
+    assert_eq!(mapped(&b)["valid"], true);
+}
+
+#[test]
 fn options_may_follow_the_subcommand() {
     let b = Board::start(&[]);
     let out = Command::new(env!("CARGO_BIN_EXE_perpend"))

@@ -18,6 +18,7 @@
 //!   sdo read IDX SUB [--json]       any object, typed by the EDS (--eds FILE)
 //!   sdo write IDX SUB VALUE [--force] [--json]   checked, then read back
 //!   sdo list [IDX] [--json]         the EDS's entries (no bus needed)
+//!   pdo show|map N OBJ… [--type T] [--event-ms MS] [--inhibit-ms MS] [--store]|off N|on N
 //! ```
 //!
 //! BUS is `tcp:HOST:PORT` (the virtual board), `slcan:/dev/ttyACM0[@BAUD]`
@@ -39,6 +40,7 @@ pub mod lss;
 pub mod mapping;
 pub mod monitor;
 pub mod params;
+pub mod pdo;
 pub mod sdo;
 pub mod words;
 
@@ -155,6 +157,8 @@ pub enum Cmd {
     Lss(lss::Args),
     /// Read or write any object by index and sub-index, typed by the EDS; list the EDS.
     Sdo(sdo::Args),
+    /// Show the PDOs in words; map objects into a TPDO, set its timing, switch it off or on.
+    Pdo(pdo::Args),
 }
 
 /// Set by Ctrl-C; long operations look at it between steps.
@@ -304,5 +308,6 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::Capture(x) => capture::run(&mut node, x, cancel),
         Cmd::Lss(_) => Ok(()),
         Cmd::Sdo(x) => sdo::run(&mut node, x),
+        Cmd::Pdo(x) => pdo::run(&mut node, x),
     }
 }
