@@ -8,49 +8,32 @@
 //! end, also on failure.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_perpend");
+mod support;
+
+use support::{text, VirtualBus, BIN};
+
 const NEW: u32 = 0x0C0F_FEE3;
 
 /// A running cell of virtual boards; killed on drop.
 struct Cell {
-    child: Child,
+    _vb: VirtualBus,
     bus: String,
 }
 
 impl Cell {
     fn start(serials: &[&str]) -> Self {
-        let mut cmd = Command::new(BIN);
-        cmd.args(["board", "--slcan", "127.0.0.1:0", "--node-id", "0xFF"]);
+        let mut args = vec!["--node-id", "0xFF"];
         for s in serials {
-            cmd.args(["--serial", s]);
+            args.extend(["--serial", s]);
         }
-        let mut child = cmd
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let stdout = child.stdout.take().unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let mut line = String::new();
-            let _ = BufReader::new(stdout).read_line(&mut line);
-            let _ = tx.send(line);
-        });
-        let Ok(line) = rx.recv_timeout(Duration::from_secs(20)) else {
-            let _ = child.kill();
-            panic!("perpend board did not start");
-        };
+        let vb = VirtualBus::start(&args);
         // "perpend board: 3 boards, nodes 16,17,255 on 127.0.0.1:PORT"
-        assert!(line.contains("nodes 16,17,255"), "{line}");
-        let addr = line.trim().rsplit(' ').next().unwrap().to_string();
-        Cell {
-            child,
-            bus: format!("tcp:{addr}"),
-        }
+        assert!(vb.banner.contains("nodes 16,17,255"), "{}", vb.banner);
+        let bus = vb.bus.clone();
+        Cell { _vb: vb, bus }
     }
 
     /// Runs `perpend node --bus … <args>` (bounded in time).
@@ -81,20 +64,6 @@ impl Cell {
         assert_eq!(o.status.code(), Some(1), "{args:?}:\n{out}\n{err}");
         err
     }
-}
-
-impl Drop for Cell {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn text(o: &Output) -> (String, String) {
-    (
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
 }
 
 fn json(s: &str) -> serde_json::Value {

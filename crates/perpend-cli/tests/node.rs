@@ -6,53 +6,30 @@
 //! line) and kills it when it ends, also on failure.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+mod support;
+
 use perpend_core::params::Params;
 use perpend_lab::paramfile::{ParamFile, TransferParams, TRANSFER_CURRENT};
+use support::{failed, ok, text, VirtualBus};
 
 const NODE: &str = "16";
 const PLANE: &str = "0.035,-0.052,1,-40";
 
 /// A running virtual board; killed on drop.
 struct Board {
-    child: Child,
+    _vb: VirtualBus,
     bus: String,
 }
 
 impl Board {
     fn start(extra: &[&str]) -> Self {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_perpend"))
-            .args(["board", "--slcan", "127.0.0.1:0", "--node-id", NODE])
-            .args(["--plane", PLANE])
-            .args(extra)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let stdout = child.stdout.take().unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let mut line = String::new();
-            let _ = BufReader::new(stdout).read_line(&mut line);
-            let _ = tx.send(line);
-        });
-        let line = match rx.recv_timeout(Duration::from_secs(20)) {
-            Ok(l) => l,
-            Err(_) => {
-                let _ = child.kill();
-                panic!("perpend board did not start");
-            }
-        };
-        // "perpend board: node N on 127.0.0.1:PORT"
-        let addr = line.trim().rsplit(' ').next().unwrap().to_string();
-        Board {
-            child,
-            bus: format!("tcp:{addr}"),
-        }
+        let vb = VirtualBus::start(&[&["--node-id", NODE, "--plane", PLANE], extra].concat());
+        let bus = vb.bus.clone();
+        Board { _vb: vb, bus }
     }
 
     /// Runs `perpend node --bus … --node-id 16 <args>` (bounded in time).
@@ -73,33 +50,6 @@ impl Board {
         );
         out
     }
-}
-
-impl Drop for Board {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn text(o: &Output) -> (String, String) {
-    (
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
-}
-
-fn ok(o: &Output) -> String {
-    let (out, err) = text(o);
-    assert!(o.status.success(), "failed:\n{out}\n{err}");
-    out
-}
-
-fn failed(o: &Output) -> String {
-    let (out, err) = text(o);
-    assert!(!o.status.success(), "succeeded:\n{out}\n{err}");
-    assert_eq!(o.status.code(), Some(1));
-    err
 }
 
 /// The factory head moved a little, a gain, transfer functions; `n` sensors.
@@ -205,7 +155,10 @@ fn pdo_map_in_cia_order_and_a_refused_step_puts_the_pdo_back() {
     // The SYNC start value 250 is refused by the board (0..240) after the
     // mapping was written: the PDO is put back as it was.
     let err = failed(&b.node(&["pdo", "map", "3", "0x2002:3", "--sync-start", "250"]));
-    assert!(err.contains("its previous parameters were written back"), "{err}");
+    assert!(
+        err.contains("its previous parameters were written back"),
+        "{err}"
+    );
     assert!(err.contains("0x06090031"), "{err}");
     assert_eq!(mapped(&b), t3);
     // Refused before anything is sent: not mappable, too long.

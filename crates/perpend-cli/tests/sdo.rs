@@ -6,43 +6,26 @@
 //! `sdo list` without a bus; another EDS with `--eds`.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::{Duration, Instant};
+
+mod support;
+
+use support::{failed, ok, VirtualBus};
 
 const NODE: &str = "21";
 
 /// A running virtual board; killed on drop.
 struct Board {
-    child: Child,
+    _vb: VirtualBus,
     bus: String,
 }
 
 impl Board {
     fn start() -> Self {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_perpend"))
-            .args(["board", "--slcan", "127.0.0.1:0", "--node-id", NODE])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let stdout = child.stdout.take().unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let mut line = String::new();
-            let _ = BufReader::new(stdout).read_line(&mut line);
-            let _ = tx.send(line);
-        });
-        let Ok(line) = rx.recv_timeout(Duration::from_secs(20)) else {
-            let _ = child.kill();
-            panic!("perpend board did not start");
-        };
-        // "perpend board: node N on 127.0.0.1:PORT"
-        let addr = line.trim().rsplit(' ').next().unwrap().to_string();
-        Board {
-            child,
-            bus: format!("tcp:{addr}"),
-        }
+        let vb = VirtualBus::start(&["--node-id", NODE]);
+        let bus = vb.bus.clone();
+        Board { _vb: vb, bus }
     }
 
     /// `perpend node <args> --bus … --node-id 21` (the link options last:
@@ -58,32 +41,12 @@ impl Board {
     }
 }
 
-impl Drop for Board {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn perpend(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_perpend"))
+    Command::new(support::BIN)
         .arg("--quiet")
         .args(args)
         .output()
         .unwrap()
-}
-
-fn ok(o: &Output) -> String {
-    let out = String::from_utf8_lossy(&o.stdout).into_owned();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "failed:\n{out}\n{err}");
-    out
-}
-
-fn failed(o: &Output) -> String {
-    let err = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    err
 }
 
 fn json(o: &Output) -> serde_json::Value {
