@@ -100,24 +100,30 @@ class Board:
         self.network.disconnect()
 
     def reconnect(self):
-        """Connects the master again after :meth:`release`."""
+        """Connects the master again after :meth:`release` (with the node
+        added again where the board has a node-id, and a 50 ms LSS window)."""
         self.network = canopen.Network()
         self.network.connect(
             interface="slcan",
             channel=f"socket://127.0.0.1:{self.port}",
             sleep_after_open=0,
         )
-        self.node = self.network.add_node(self.node_id, str(EDS))
-        self.raw = RawSdo(self.network, self.node_id)
+        self.network.lss.RESPONSE_TIMEOUT = 0.05
+        if 1 <= self.node_id <= 127:
+            self.node = self.network.add_node(self.node_id, str(EDS))
+            self.raw = RawSdo(self.network, self.node_id)
 
-    def perpend(self, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
-        """Runs `perpend node --bus tcp:127.0.0.1:PORT --node-id N ARGS`
-        with the master released, and connects it again afterwards."""
+    def perpend(self, *args: str, node_id: bool = True, timeout: float = 60.0) -> subprocess.CompletedProcess:
+        """Runs `perpend node ARGS --bus tcp:127.0.0.1:PORT [--node-id N]`
+        (the link options last: they are global) with the master released,
+        and connects it again afterwards."""
+        link = ["--bus", f"tcp:127.0.0.1:{self.port}"]
+        if node_id:
+            link += ["--node-id", str(self.node_id)]
         self.release()
         try:
             return subprocess.run(
-                [perpend_bin(), "--quiet", "node", "--bus", f"tcp:127.0.0.1:{self.port}",
-                 "--node-id", str(self.node_id), *args],
+                [perpend_bin(), "--quiet", "node", *args, *link],
                 capture_output=True, text=True, timeout=timeout, check=False,
             )
         finally:

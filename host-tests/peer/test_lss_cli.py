@@ -18,22 +18,9 @@ SERIAL_CS = 0x5D
 
 
 def run_cli(board: Board, *args: str) -> str:
-    """Runs `perpend node --bus tcp:… <args>` with the master disconnected;
-    returns stdout (asserting success), the master connected again."""
-    board.network.disconnect()
-    try:
-        out = subprocess.run(
-            [perpend_bin(), "--quiet", "node", "--bus", f"tcp:127.0.0.1:{board.port}", *args],
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
-    finally:
-        board.network = canopen.Network()
-        board.network.connect(
-            interface="slcan", channel=f"socket://127.0.0.1:{board.port}", sleep_after_open=0
-        )
-        board.network.lss.RESPONSE_TIMEOUT = 0.05
+    """Runs `perpend node <args> --bus tcp:…` (no node-id) with the master
+    released; returns stdout (asserting success)."""
+    out = board.perpend(*args, node_id=False)
     assert out.returncode == 0, f"{args}: {out.stdout}\n{out.stderr}"
     return out.stdout
 

@@ -10,27 +10,13 @@ import subprocess
 
 import canopen
 
-from conftest import EDS, RawSdo, perpend_bin
+from conftest import EDS, perpend_bin
 
 
 def node_cmd(board, *args: str) -> subprocess.CompletedProcess:
-    """Runs `perpend node ARGS --bus tcp:127.0.0.1:PORT --node-id N` with
-    python's master disconnected (the virtual board serves one client at a
-    time) and connects it again afterwards."""
-    board.network.disconnect()
-    try:
-        return subprocess.run(
-            [perpend_bin(), "--quiet", "node", *args,
-             "--bus", f"tcp:127.0.0.1:{board.port}", "--node-id", str(board.node_id)],
-            capture_output=True, text=True, timeout=30, check=False,
-        )
-    finally:
-        board.network = canopen.Network()
-        board.network.connect(
-            interface="slcan", channel=f"socket://127.0.0.1:{board.port}", sleep_after_open=0
-        )
-        board.node = board.network.add_node(board.node_id, str(EDS))
-        board.raw = RawSdo(board.network, board.node_id)
+    """`perpend node ARGS` on the board, python's master released meanwhile
+    (the virtual board serves one client at a time)."""
+    return board.perpend(*args, timeout=30)
 
 
 def ok(r: subprocess.CompletedProcess) -> str:
