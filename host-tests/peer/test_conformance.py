@@ -133,6 +133,22 @@ def test_tpdo_cob_id_allowing_rtr_is_refused(board):
     assert sdo[0x1800][1].raw == 0x40000000 | TPDO1
 
 
+def test_rpdo_cob_id_bit_30_is_dont_care(board):
+    """RPDO COB-ID bit 30 is reserved (CiA 301: don't care): accepted either
+    way, as CANopenNode does; the RPDO still works on the new identifier."""
+    sdo = board.node.sdo
+    rpdo = 0x200 + NODE_ID
+    sdo[0x1400][1].raw = 0x40000000 | rpdo
+    assert sdo[0x1400][1].raw == 0x40000000 | rpdo
+    sdo[0x1400][1].raw = 0xC0000000 | rpdo
+    sdo[0x1400][1].raw = 0x40000000 | 0x220
+    board.node.nmt.state = "OPERATIONAL"
+    time.sleep(0.1)
+    board.network.send_message(0x220, bytes([1]))  # capture
+    assert wait_until(lambda: sdo[0x2502][7].raw >= 1, 3.0), "no capture from the RPDO"
+    board.node.nmt.state = "PRE-OPERATIONAL"
+
+
 def test_sync_of_wrong_length_is_ignored(board):
     """0x1019 = 0: a SYNC with a data byte sends no TPDO and raises EMCY
     0x8240; the next SYNC without data sends TPDO1 (type 1) again."""

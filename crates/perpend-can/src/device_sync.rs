@@ -273,14 +273,17 @@ impl Core {
             return Ok(None);
         }
         let old = self.get(0x1400, 1);
-        if v & 0x6000_0000 != 0 || v & 0x1FFF_F800 != 0 {
+        // Bit 30 is reserved for an RPDO (CiA 301 Table 70: "don't care");
+        // CANopenNode (OD_write_14xx) accepts it either way, and so do we.
+        // Bit 29 (a 29-bit identifier) and bits 11..28 are refused.
+        if v & 0x2000_0000 != 0 || v & 0x1FFF_F800 != 0 {
             return Err(SdoAbort::Range);
         }
         if v & 0x8000_0000 == 0 {
             if !super::cob_allowed(v & 0x7FF) {
                 return Err(SdoAbort::Range);
             }
-            if old & 0x8000_0000 == 0 && old & 0x7FFF_FFFF != v & 0x7FFF_FFFF {
+            if old & 0x8000_0000 == 0 && old & 0x3FFF_FFFF != v & 0x3FFF_FFFF {
                 return Err(SdoAbort::Range);
             }
         }

@@ -191,6 +191,24 @@ fn command_rpdo_and_capture_result() {
     assert_eq!(b.dev.command(), CMD_CAPTURE);
 }
 
+/// RPDO COB-ID bit 30 is reserved ("don't care", CiA 301 Table 70) and is
+/// accepted as CANopenNode accepts it, also when re-validating the same
+/// identifier; bit 29 (a 29-bit identifier) is still refused.
+#[test]
+fn rpdo_cob_id_bit_30_is_dont_care() {
+    let mut b = Bus::new();
+    let rpdo = 0x200 + NODE as u32;
+    b.write_u32(0x1400, 1, 0x4000_0000 | rpdo).unwrap();
+    b.write_u32(0x1400, 1, rpdo).unwrap();
+    b.write_u32(0x1400, 1, 0xC000_0000 | rpdo).unwrap();
+    b.write_u32(0x1400, 1, 0x4000_0220).unwrap();
+    b.nmt(0x01, 0);
+    b.dev.take_events();
+    b.send(Frame::new(0x220, &[CMD_CAPTURE]));
+    assert_eq!(b.dev.command(), CMD_CAPTURE);
+    assert_eq!(b.write_u32(0x1400, 1, 0xA000_0220), Err(0x0609_0030));
+}
+
 /// An image written before layout 4 loads; the new objects keep their
 /// values.
 #[test]
