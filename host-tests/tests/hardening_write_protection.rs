@@ -48,6 +48,8 @@ struct Dump {
 
 fn dump(d: &Device) -> Dump {
     let values = od::entries()
+        // The uptime (0x200C) is a clock: it moves by itself.
+        .filter(|(_, index, _)| *index != 0x200C)
         .map(|(_, index, e)| {
             let v = match e.ty {
                 DataType::VisibleString => Err(d.read_str(index, e.sub).unwrap().to_string()),
