@@ -286,29 +286,46 @@ impl Bus<'_> {
     }
 }
 
-/// Connections refused because the board is in use: told so in one line,
-/// then read until they close (at most [`REFUSED_KEEP`]), so that closing
-/// them never resets what they have not read yet.
+/// New connections while a client holds the board: each waits up to
+/// [`DOOR_GRACE`] (the holder may just be closing: a `perpend node` command
+/// that ended, whose close the loop has not read yet), then is told in one
+/// line that the board is in use (by whom) and read until it closes (at
+/// most [`REFUSED_KEEP`]), so that closing it never resets what it has not
+/// read yet.
 #[derive(Default)]
-struct Refused(Vec<(TcpStream, Instant)>);
+struct Door {
+    waiting: Vec<(TcpStream, String, Instant)>,
+    refused: Vec<(TcpStream, Instant)>,
+}
 
+/// How long a new connection waits for the holder to go (shorter than the
+/// host client's one-second set-up timeout, so it reads why).
+const DOOR_GRACE: Duration = Duration::from_millis(500);
 /// How long a refused connection is kept open for its client to read why.
 const REFUSED_KEEP: Duration = Duration::from_secs(2);
 
-impl Refused {
-    /// Tells `s` that the board is held by `holder` and keeps it.
-    fn refuse(&mut self, mut s: TcpStream, holder: &str) {
-        let _ = s.write_all(format!("{BUSY_PREFIX} {holder}\r").as_bytes());
-        if s.set_nonblocking(true).is_ok() {
-            self.0.push((s, Instant::now()));
+impl Door {
+    /// Tells waiting connections older than [`DOOR_GRACE`] that the board
+    /// is held by `holder` and keeps them until they close.
+    fn refuse_stale(&mut self, holder: &str) {
+        let (stale, fresh): (Vec<_>, Vec<_>) = std::mem::take(&mut self.waiting)
+            .into_iter()
+            .partition(|(_, _, at)| at.elapsed() >= DOOR_GRACE);
+        self.waiting = fresh;
+        for (mut s, peer, _) in stale {
+            let _ = s.write_all(format!("{BUSY_PREFIX} {holder}\r").as_bytes());
+            eprintln!("perpend board: client {peer} refused: in use by {holder}");
+            if s.set_nonblocking(true).is_ok() {
+                self.refused.push((s, Instant::now()));
+            }
         }
     }
 
     /// Reads and drops what the refused clients send; closes those that
     /// closed or are older than [`REFUSED_KEEP`].
-    fn poll(&mut self) {
+    fn drain_refused(&mut self) {
         let mut buf = [0u8; 256];
-        self.0.retain_mut(|(s, at)| {
+        self.refused.retain_mut(|(s, at)| {
             let open = loop {
                 match s.read(&mut buf) {
                     Ok(0) => break false,
@@ -320,29 +337,33 @@ impl Refused {
             open && at.elapsed() < REFUSED_KEEP
         });
     }
-}
 
-/// Takes a new connection: the client when there is none, else a second
-/// one that is told in one line that the board is in use (by whom), so
-/// that its `perpend node` says so instead of waiting for an answer that
-/// never comes ([`crate::bus::slcan`] reads the line).
-fn accept(listener: &TcpListener, client: &mut Option<Client>, refused: &mut Refused) {
-    refused.poll();
-    match listener.accept() {
-        Ok((s, peer)) if client.is_some() => {
-            let holder = client.as_ref().map_or(String::new(), |c| c.peer.clone());
-            refused.refuse(s, &holder);
-            eprintln!("perpend board: client {peer} refused: in use by {holder}");
+    /// One turn: a new connection waits; the oldest waiting one becomes
+    /// the client when there is none; the stale ones are refused.
+    fn turn(&mut self, listener: &TcpListener, client: &mut Option<Client>) {
+        self.drain_refused();
+        match listener.accept() {
+            Ok((s, peer)) => self.waiting.push((s, peer.to_string(), Instant::now())),
+            Err(e) if e.kind() == ErrorKind::WouldBlock => {}
+            Err(e) => eprintln!("perpend board: accept: {e}"),
         }
-        Ok((s, peer)) => match Client::new(s) {
-            Ok(c) => {
-                eprintln!("perpend board: client {peer} connected");
-                *client = Some(c);
+        match client {
+            Some(c) => {
+                let holder = c.peer.clone();
+                self.refuse_stale(&holder);
             }
-            Err(e) => eprintln!("perpend board: client {peer}: {e}"),
-        },
-        Err(e) if e.kind() == ErrorKind::WouldBlock => {}
-        Err(e) => eprintln!("perpend board: accept: {e}"),
+            None if !self.waiting.is_empty() => {
+                let (s, peer, _) = self.waiting.remove(0);
+                match Client::new(s) {
+                    Ok(c) => {
+                        eprintln!("perpend board: client {peer} connected");
+                        *client = Some(c);
+                    }
+                    Err(e) => eprintln!("perpend board: client {peer}: {e}"),
+                }
+            }
+            None => {}
+        }
     }
 }
 
@@ -370,10 +391,10 @@ pub fn serve(
         last_sample: vec![0; n],
     };
     let mut latency = Latency::default();
-    let mut refused = Refused::default();
+    let mut door = Door::default();
     loop {
         let now = start.elapsed().as_micros() as u64;
-        accept(&listener, &mut client, &mut refused);
+        door.turn(&listener, &mut client);
         let mut busy = match (world.as_mut(), bus.boards.first_mut()) {
             (Some(w), Some(b)) => w.poll(b),
             _ => false,
