@@ -887,9 +887,9 @@ pub fn history_svg(h: &History) -> String {
             y(l.a + l.b * tmax)
         );
     }
-    let _ = write!(
+    let _ = writeln!(
         s,
-        "<text x=\"{m}\" y=\"20\" font-size=\"12\">verification p95 [deg] (0 to {}) against days since {}; dashed: tolerance; {}</text></svg>\n",
+        "<text x=\"{m}\" y=\"20\" font-size=\"12\">verification p95 [deg] (0 to {}) against days since {}; dashed: tolerance; {}</text></svg>",
         deg(ymax),
         esc(h.entries.first().map_or("", |e| e.utc.as_str())),
         esc(&h.verdict)
