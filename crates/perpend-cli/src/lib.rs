@@ -11,4 +11,5 @@ pub mod cell;
 pub mod demo;
 pub mod eds;
 pub mod node;
+pub mod record;
 pub mod slcan;

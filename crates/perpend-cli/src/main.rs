@@ -2,7 +2,7 @@
 //! diagnose what the model misses, benchmark, and run a virtual board.
 
 use clap::{Parser, Subcommand};
-use perpend_cli::{board, cell, demo, eds, node};
+use perpend_cli::{board, cell, demo, eds, node, record};
 use perpend_lab::{bench, calibrate, diagnose, measure, sim};
 
 /// The conventions every command's output follows.
@@ -63,6 +63,8 @@ enum Cmd {
     Cell(cell::Args),
     /// Print the board's EDS (CiA 306) built into this binary (= perpend.eds).
     Eds(eds::Args),
+    /// Calibration records: show one, write its certificate, follow a head's history.
+    Record(record::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -81,6 +83,7 @@ fn main() -> std::process::ExitCode {
         Cmd::Node(a) => node::run(&a),
         Cmd::Cell(a) => cell::run(&a),
         Cmd::Eds(a) => eds::run(&a),
+        Cmd::Record(a) => record::run(&a),
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -380,6 +380,10 @@ struct Outcome {
     report: String,
     file: ParamFile,
     failures: Vec<String>,
+    /// The expected normal error (RMS, 95 %) [deg], when computed.
+    expected: Option<(f64, f64)>,
+    /// Held-out normal errors (pose, deg), when asked for (`--out`, lsq).
+    heldout: Option<Vec<crate::record::PoseError>>,
 }
 
 /// Least squares with `model` on every sensor (the run re-timed for a
@@ -390,6 +394,7 @@ fn calibrate_lsq(
     all: (&PoseTable, &[crate::diagnose::noise::Outlier]),
     poses: &PoseTable,
     o: &mut Outcome,
+    verify: bool,
 ) {
     let poses = retime(model, nominal, all, poses, &mut o.report, &mut o.file);
     // The table's knots and ridge as the diagnosis chooses them.
@@ -423,7 +428,54 @@ fn calibrate_lsq(
         }
     }
     if o.failures.is_empty() {
-        expected_accuracy(&mut o.report, &geometry, nominal, (&poses, &refs), model);
+        o.expected = expected_accuracy(&mut o.report, &geometry, nominal, (&poses, &refs), model);
+        if verify {
+            o.heldout = heldout_errors(model, nominal, &poses, &mut o.report);
+        }
+    }
+}
+
+/// Held-out normal errors of every pose by k-fold cross-validation by pose
+/// (the folds `perpend diagnose` uses, [`crate::diagnose::folds_for`],
+/// seed 1): each pose measured by the head fitted with `model` on the other
+/// folds, against the pose's plane normal. `None` (and a line in the
+/// report) when a fold cannot be fitted.
+fn heldout_errors(
+    model: Effect,
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    report: &mut String,
+) -> Option<Vec<crate::record::PoseError>> {
+    use crate::diagnose::cv;
+    let folds = cv::Folds::new(
+        poses.rows.len(),
+        crate::diagnose::folds_for(poses.rows.len(), None),
+        1,
+    );
+    let refs = Refs::of(poses);
+    let cfg = LsqConfig::default();
+    match cv::cross_validate(model, nominal, poses, &refs, &folds, &cfg) {
+        Ok(r) => {
+            let m = perpend_core::normal::Method::LeastSquares;
+            let errs = cv::normal_errors(&r, poses, &folds, m);
+            Some(
+                poses
+                    .rows
+                    .iter()
+                    .zip(errs)
+                    .filter_map(|(row, e)| {
+                        e.map(|error_deg| crate::record::PoseError {
+                            pose: row.pose,
+                            error_deg,
+                        })
+                    })
+                    .collect(),
+            )
+        }
+        Err(e) => {
+            let _ = writeln!(report, "held-out verification: not computed ({e})");
+            None
+        }
     }
 }
 
@@ -599,9 +651,19 @@ pub fn run(a: &Args) -> Result<()> {
         report,
         file: ParamFile::new(method, name, poses.len()),
         failures: Vec::new(),
+        expected: None,
+        heldout: None,
     };
+    let verify = a.out.is_some();
     match a.method {
-        Method::Lsq => calibrate_lsq(model, &nominal, (&all_poses, &outliers), &poses, &mut o),
+        Method::Lsq => calibrate_lsq(
+            model,
+            &nominal,
+            (&all_poses, &outliers),
+            &poses,
+            &mut o,
+            verify,
+        ),
         Method::Ekf => calibrate_ekf(a, &nominal, &poses, &mut o)?,
     }
     print!("{}", o.report);
@@ -615,10 +677,51 @@ pub fn run(a: &Args) -> Result<()> {
     }
     if let Some(out) = &a.out {
         o.file.validate()?;
+        let previous = crate::record::Previous::of(out)?;
         o.file.write(out)?;
         println!("\nwrote {}", out.display());
+        let rec = write_record(a, &o, &outliers, previous, out)?;
+        println!("wrote {}", rec.display());
     }
     Ok(())
+}
+
+/// Writes the calibration record beside `out` ([`crate::record`]): inputs
+/// and their hashes, the parameters as written, the poses left out, the
+/// held-out verification (or "expected only"), what `out` replaced.
+///
+/// # Errors
+/// An input or `out` unreadable, I/O.
+fn write_record(
+    a: &Args,
+    o: &Outcome,
+    outliers: &[crate::diagnose::noise::Outlier],
+    previous: Option<crate::record::Previous>,
+    out: &std::path::Path,
+) -> Result<PathBuf> {
+    use crate::record::{Record, Verification, KIND_CROSS_VALIDATED};
+    let v = match &o.heldout {
+        Some(errs) => Verification::from_errors(
+            KIND_CROSS_VALIDATED,
+            &format!(
+                "held-out normal error of every pose: {}-fold cross-validation by pose (seed 1), \
+                 each pose measured by the head fitted on the other folds, against its plane \
+                 normal; includes the reading noise",
+                crate::diagnose::folds_for(o.file.poses, None)
+            ),
+            errs.clone(),
+        ),
+        None => Verification::expected_only(match a.method {
+            Method::Ekf => "the EKF gives no held-out verification nor an expected accuracy",
+            Method::Lsq => "the held-out verification could not be computed (see the report)",
+        }),
+    };
+    let mut r = Record::new(&[&a.sensors, &a.poses], &o.file)?
+        .with_verification(v.with_expected(o.expected))
+        .with_dropped(outliers.iter().map(Into::into).collect())
+        .with_previous(previous);
+    r.push_event(&format!("perpend calibrate wrote {}", out.display()));
+    r.write_beside(out)
 }
 
 /// Appends the expected angular accuracy of the calibrated head over the
@@ -632,7 +735,7 @@ fn expected_accuracy(
     nominal: &[Sensor<f64>],
     (poses, refs): (&PoseTable, &Refs),
     model: Effect,
-) {
+) -> Option<(f64, f64)> {
     const DRAWS: usize = 100;
     let refit = |sub: &candidates::Subset<'_>| -> Option<Vec<Sensor<f64>>> {
         nominal
@@ -655,9 +758,11 @@ fn expected_accuracy(
                  noise at measurement time adds to this)",
                 e.poses, e.rms_deg, e.p95_deg, e.draws
             );
+            Some((e.rms_deg, e.p95_deg))
         }
         Err(e) => {
             let _ = writeln!(report, "expected normal error: not computed ({e})");
+            None
         }
     }
 }

@@ -19,4 +19,5 @@ pub mod measure;
 pub mod paramfile;
 pub mod plan;
 pub mod progress;
+pub mod record;
 pub mod sim;

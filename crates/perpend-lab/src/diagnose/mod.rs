@@ -1226,8 +1226,12 @@ pub fn run(a: &Args) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         plot::write_all(&d, dir)?;
     }
+    let mut record = None;
     if let Some(out) = &a.out {
-        param_file(&d, &settings.lsq)?.write(out)?;
+        let file = param_file(&d, &settings.lsq)?;
+        let previous = crate::record::Previous::of(out)?;
+        file.write(out)?;
+        record = Some(write_record(a, &d, &file, previous, out)?);
     }
     if a.json {
         println!("{}", serde_json::to_string(&d.json())?);
@@ -1243,8 +1247,52 @@ pub fn run(a: &Args) -> Result<()> {
                 out.display()
             );
         }
+        if let Some(r) = &record {
+            println!("calibration record written to {}", r.display());
+        }
     }
     Ok(())
+}
+
+/// Writes the calibration record beside `out` ([`crate::record`]): the
+/// stored model's held-out normal errors of the diagnosis'
+/// cross-validation are its verification.
+///
+/// # Errors
+/// An input or `out` unreadable, I/O.
+fn write_record(
+    a: &Args,
+    d: &Diagnosis,
+    file: &ParamFile,
+    previous: Option<crate::record::Previous>,
+    out: &std::path::Path,
+) -> Result<std::path::PathBuf> {
+    use crate::record::{PoseError, Record, Verification, KIND_CROSS_VALIDATED};
+    let errs = d
+        .poses
+        .rows
+        .iter()
+        .zip(&d.ext_normals)
+        .filter_map(|(row, e)| {
+            e.map(|error_deg| PoseError {
+                pose: row.pose,
+                error_deg,
+            })
+        })
+        .collect();
+    let note = format!(
+        "held-out normal error of every pose of the {} model: {}-fold cross-validation by pose \
+         (seed {}), each pose measured by the head fitted on the other folds, against its plane \
+         normal; includes the reading noise",
+        file.model, d.folds.k, a.seed
+    );
+    let v = Verification::from_errors(KIND_CROSS_VALIDATED, &note, errs);
+    let mut r = Record::new(&[&a.sensors, &a.poses], file)?
+        .with_verification(v)
+        .with_dropped(d.outliers.iter().map(Into::into).collect())
+        .with_previous(previous);
+    r.push_event(&format!("perpend diagnose wrote {}", out.display()));
+    r.write_beside(out)
 }
 
 #[cfg(test)]
