@@ -793,7 +793,18 @@ impl<'a> Session<'a> {
             file: params.to_path_buf(),
             preop: true,
         };
-        println!("{}", params::push(&mut self.node, &push, self.cancel)?);
+        let report = params::push(&mut self.node, &push, self.cancel).map_err(|e| {
+            // What push says the board is left with is superseded by the
+            // restore: its cause comes first.
+            let left = e.to_string();
+            let cause: Vec<String> = if left.starts_with("nothing was stored") {
+                e.chain().skip(1).map(ToString::to_string).collect()
+            } else {
+                e.chain().map(ToString::to_string).collect()
+            };
+            anyhow!("pushing the new calibration: {}", cause.join(": "))
+        })?;
+        println!("{report}");
         self.push = PushStage::Verified;
         Ok(())
     }
