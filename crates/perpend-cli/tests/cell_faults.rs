@@ -178,3 +178,27 @@ fn an_after_pass_worse_than_the_before_pass_reverts_the_calibration() {
     assert_eq!(state.sensors, calibration(d, "run/previous.json"));
     as_found(&state, "pre-operational");
 }
+
+#[test]
+fn keep_worse_keeps_the_new_calibration_and_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    let (_board, bus, world) = board(d, "nominal.csv", &[]);
+    let extra = ["--robot", "manual", "--keep-worse"];
+    let mut run = cell_run(d, &bus, "run", &extra, Stdio::piped());
+    lying_tracker(&mut run, &world);
+    // Standard output went to the lying tracker.
+    let (status, _, err) = finish(run, 120);
+    assert!(status.success(), "{err}");
+    let f = cell_json(d, "run");
+    assert_eq!(f["outcome"], "kept-worse", "{f}");
+    assert!(
+        f["reason"].as_str().unwrap().contains("--keep-worse"),
+        "{f}"
+    );
+    let state = board_state(d, &bus, "run");
+    let new = calibration(d, "run/params.json");
+    assert!(common::same_geometry(&state.sensors, &new), "{state:?}");
+    as_found(&state, "pre-operational");
+}
