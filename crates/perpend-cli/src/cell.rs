@@ -114,8 +114,8 @@ pub struct RunArgs {
     /// `sim:HOST:PORT` (the virtual board's world channel) or `manual`.
     #[arg(long)]
     pub robot: String,
-    /// Directory for poses.csv, params.json and cell.json (must not hold a
-    /// poses.csv yet).
+    /// Directory for previous.json (the board's calibration as found),
+    /// poses.csv, params.json and cell.json (must not hold a poses.csv yet).
     #[arg(long)]
     pub out: PathBuf,
     /// The true head (sensors.csv) for the floor; default: the calibrated one.
@@ -207,13 +207,13 @@ enum Robot {
     /// The virtual board's world channel and a simulated tracker.
     Sim(Box<SimRobot>),
     /// An operator moves the robot and types the tracker's plane.
-    Manual,
+    Manual(Lines),
 }
 
 impl Robot {
     fn open(spec: &str, seed: u64) -> Result<Self> {
         if spec == "manual" {
-            return Ok(Robot::Manual);
+            return Ok(Robot::Manual(Lines::stdin()));
         }
         let Some(addr) = spec.strip_prefix("sim:") else {
             bail!("--robot '{spec}': expected sim:HOST:PORT or manual");
@@ -229,7 +229,12 @@ impl Robot {
     }
 
     /// Presents `pose` (called `label`) and measures it.
-    fn present(&mut self, label: &str, pose: &PlannedPose) -> Result<Presented> {
+    fn present(
+        &mut self,
+        label: &str,
+        pose: &PlannedPose,
+        cancel: &AtomicBool,
+    ) -> Result<Presented> {
         let truth = pose.plane();
         match self {
             Robot::Sim(sim) => {
@@ -252,7 +257,7 @@ impl Robot {
                     truth,
                 })
             }
-            Robot::Manual => {
+            Robot::Manual(lines) => {
                 println!(
                     "{label}: move the datum plane to θ1 {:.3}°, θ2 {:.3}°, standoff {:.3} mm \
                      (plane {}), measure it with the tracker and type its A,B,C,D:",
@@ -261,7 +266,7 @@ impl Robot {
                     pose.standoff_mm,
                     abcd(&truth)
                 );
-                let tracker = read_plane(label, &mut std::io::stdin().lock())?;
+                let tracker = read_plane(label, &mut || lines.next(cancel, label))?;
                 Ok(Presented {
                     tracker,
                     truth: tracker,
@@ -271,17 +276,61 @@ impl Robot {
     }
 }
 
-/// Reads the tracker's plane for `label` from `input`: a line it cannot
-/// read is asked again (saying why), the end of input is an error.
-fn read_plane(label: &str, input: &mut dyn BufRead) -> Result<Plane<f64>> {
-    loop {
-        let mut line = String::new();
-        let n = input
-            .read_line(&mut line)
-            .with_context(|| format!("reading the tracker's plane at {label}"))?;
-        if n == 0 {
-            bail!("reading the tracker's plane: end of input at {label}");
+/// The lines of standard input, read by a thread so that a Ctrl-C is
+/// seen while the operator has not typed anything yet.
+struct Lines(std::sync::mpsc::Receiver<std::io::Result<String>>);
+
+impl Lines {
+    /// Starts reading standard input.
+    fn stdin() -> Self {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut input = std::io::stdin().lock();
+            loop {
+                let mut line = String::new();
+                match input.read_line(&mut line) {
+                    Ok(0) => break,
+                    Ok(_) => {
+                        if tx.send(Ok(line)).is_err() {
+                            break;
+                        }
+                    }
+                    Err(e) => {
+                        let _ = tx.send(Err(e));
+                        break;
+                    }
+                }
+            }
+        });
+        Self(rx)
+    }
+
+    /// The next line; `None` at the end of input; an error on Ctrl-C.
+    fn next(&self, cancel: &AtomicBool, label: &str) -> Result<Option<String>> {
+        use std::sync::mpsc::RecvTimeoutError;
+        loop {
+            check_cancel(cancel, label)?;
+            match self.0.recv_timeout(Duration::from_millis(100)) {
+                Ok(line) => {
+                    return Ok(Some(line.with_context(|| {
+                        format!("reading the tracker's plane at {label}")
+                    })?))
+                }
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => return Ok(None),
+            }
         }
+    }
+}
+
+/// Reads the tracker's plane for `label` from `next` (a line, `None` at
+/// the end of input): a line it cannot read is asked again (saying why),
+/// the end of input is an error.
+fn read_plane(label: &str, next: &mut dyn FnMut() -> Result<Option<String>>) -> Result<Plane<f64>> {
+    loop {
+        let Some(line) = next()? else {
+            bail!("reading the tracker's plane: end of input at {label}");
+        };
         match parse_tracker_plane(line.trim()) {
             Ok(p) => return Ok(p),
             Err(why) => println!(
@@ -514,7 +563,7 @@ fn verify(
     for (k, pose) in poses.iter().enumerate() {
         check_cancel(cancel, what)?;
         let label = format!("{what}: verification pose {}", k + 1);
-        let p = robot.present(&label, pose)?;
+        let p = robot.present(&label, pose, cancel)?;
         std::thread::sleep(Duration::from_millis(a.settle_ms));
         let (normals, miss) = board_normals(node, &pdos, a.verify_samples, &label)?;
         for n in normals {
@@ -555,7 +604,7 @@ fn capture_all(
     for (done, (k, pose)) in plan.iter().enumerate() {
         check_cancel(s.cancel, "the capture")?;
         let p = robot
-            .present(&format!("pose {k}"), pose)
+            .present(&format!("pose {k}"), pose, s.cancel)
             .map_err(|e| anyhow!("{e:#} ({})", captured(done, plan.len())))?;
         std::thread::sleep(Duration::from_millis(a.settle_ms));
         let c = capture::Args {
@@ -1351,10 +1400,11 @@ mod tests {
             parse_tracker_plane("0,0,0,5").unwrap_err(),
             "not a plane: |(A,B,C)| = 0"
         );
-        let mut input = "hello\n\n0,0,1,-28\n".as_bytes();
-        let p = read_plane("pose 1", &mut input).unwrap();
+        let mut input = ["hello\n", "\n", "0,0,1,-28\n"].into_iter();
+        let mut next = || Ok(input.next().map(String::from));
+        let p = read_plane("pose 1", &mut next).unwrap();
         assert!((p.d + 28.0).abs() < 1e-12);
-        let e = read_plane("pose 2", &mut input).unwrap_err().to_string();
+        let e = read_plane("pose 2", &mut next).unwrap_err().to_string();
         assert_eq!(e, "reading the tracker's plane: end of input at pose 2");
     }
 }

@@ -202,3 +202,37 @@ fn keep_worse_keeps_the_new_calibration_and_says_so() {
     assert!(common::same_geometry(&state.sensors, &new), "{state:?}");
     as_found(&state, "pre-operational");
 }
+
+#[test]
+fn ctrl_c_at_a_manual_prompt_puts_back_what_the_run_changed() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    let (_board, bus, _world) = board(d, "truth.csv", &[]);
+    let mut run = cell_run(d, &bus, "run", &["--robot", "manual"], Stdio::piped());
+    // The operator types nothing; the residual limit is raised by now.
+    let _stdin = run.0.stdin.take().unwrap();
+    let mut lines = BufReader::new(run.0.stdout.take().unwrap()).lines();
+    for line in lines.by_ref().map_while(Result::ok) {
+        if line.contains("type its A,B,C,D") {
+            break;
+        }
+    }
+    // Keep reading: the run reports on standard output.
+    std::thread::spawn(move || lines.for_each(drop));
+    let pid = run.0.id().to_string();
+    let kill = std::process::Command::new("kill")
+        .args(["-INT", &pid])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let (status, _, err) = finish(run, 60);
+    assert!(!status.success(), "{err}");
+    let cause = "interrupted (Ctrl-C) during before: verification pose 1";
+    failed_safely(d, &bus, "run", cause, "pre-operational", &err);
+    let f = cell_json(d, "run");
+    assert!(
+        f["restored"].to_string().contains("0x2300 sub 4 back"),
+        "{f}"
+    );
+}
