@@ -8,72 +8,19 @@
 //! reading stays inside the board's 20-80 mm range.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-use std::io::{BufRead, BufReader};
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
+mod common;
+
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_perpend");
-
-/// A child process killed on drop.
-struct Killed(Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn ok(args: &[&str], dir: &Path) {
-    let out = Command::new(BIN)
-        .arg("--quiet")
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// Starts the board; returns it and its slcan and world addresses.
-fn board(dir: &Path) -> (Killed, String, String) {
-    let mut child = Killed(
-        Command::new(BIN)
-            .args(["board", "--slcan", "127.0.0.1:0", "--node-id", "16"])
-            .args(["--plane", "0,0,1,-28", "--noise-mm", "0.01"])
-            .args(["--sensors", "nominal.csv", "--truth", "truth.csv"])
-            .args(["--world", "127.0.0.1:0"])
-            .current_dir(dir)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
-    let stdout = child.0.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut r = BufReader::new(stdout);
-        for _ in 0..2 {
-            let mut line = String::new();
-            let _ = r.read_line(&mut line);
-            let _ = tx.send(line.trim().rsplit(' ').next().unwrap_or("").to_string());
-        }
-    });
-    let addr = || rx.recv_timeout(Duration::from_secs(20)).unwrap();
-    let (bus, world) = (addr(), addr());
-    (child, bus, world)
-}
+use common::{board, ok, Killed, BIN};
 
 #[test]
 fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    ok(&["cell", "sim-head", "--out", "."], d);
-    ok(
+    let _ = ok(&["cell", "sim-head", "--out", "."], d);
+    let _ = ok(
         &[
             "plan",
             "--sensors",
@@ -93,7 +40,7 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
         ],
         d,
     );
-    let (_board, bus, world) = board(d);
+    let (_board, bus, world) = board(d, "truth.csv", &[]);
     let mut run = Killed(
         Command::new(BIN)
             .args(["--quiet", "cell", "run", "--node-id", "16"])
@@ -128,4 +75,13 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     assert!(g("after_deg") <= 1.2 * g("floor_deg"), "{text}");
     assert!(g("floor_deg") > 0.0 && g("floor_deg") < 0.05, "{text}");
     assert_eq!(f["poses"], 16);
+    assert_eq!(f["outcome"], "kept", "{text}");
+    // The board holds what was pushed; previous.json what it held before.
+    let state = common::board_state(d, &bus, "run");
+    let new = common::calibration(d, "run/params.json");
+    assert!(common::same_geometry(&state.sensors, &new), "{state:?}");
+    assert_eq!(common::geometry(&state.sensors).len(), 24);
+    let previous = common::calibration(d, "run/previous.json");
+    assert!(!common::same_geometry(&state.sensors, &previous));
+    common::as_found(&state, "pre-operational");
 }

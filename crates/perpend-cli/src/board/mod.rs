@@ -54,6 +54,12 @@
 //!   0x8110 `[1, count]`), acquisition goes on (0x2007 advances), frames it
 //!   receives are handled; afterwards it sends the queue and answers at
 //!   once (see [`node`]).
+//! * `--fault bus:drop:IDX:N` / `bus:reset:IDX:N` (testing a master's
+//!   recovery): at the N-th SDO request (upload or download) to object IDX
+//!   the server closes the client's connection, the board's answer lost
+//!   (an adapter unplugged), or the board resets as on an NMT reset node
+//!   after answering it (a brown-out). Each fires once; the board then
+//!   accepts a new client as usual (see [`server::LinkFault`]).
 //! * Port 0 picks a free port. The first line on stdout is
 //!   `perpend board: node N on HOST:PORT` once the port accepts clients.
 //!
@@ -108,8 +114,10 @@ pub struct Args {
     #[arg(long, allow_hyphen_values = true)]
     pub temp_c: Option<f64>,
     /// Fault `SENSOR:KIND` (1-based sensor; open, overcurrent, saturated,
-    /// stuck, noisy) or `bus:noack:SECONDS` (nothing the board sends is
-    /// acknowledged for the first SECONDS); repeatable.
+    /// stuck, noisy), `bus:noack:SECONDS` (nothing the board sends is
+    /// acknowledged for the first SECONDS), `bus:drop:IDX:N` (the client's
+    /// connection is closed at its N-th SDO request to object IDX) or
+    /// `bus:reset:IDX:N` (the board resets after answering it); repeatable.
     #[arg(long)]
     pub fault: Vec<FaultArg>,
     /// Seed of the noise generator.
@@ -167,6 +175,8 @@ pub enum FaultArg {
     Sensor(Fault),
     /// `bus:noack:SECONDS`: no acknowledge for the first SECONDS.
     BusNoAck(f64),
+    /// `bus:drop:IDX:N` or `bus:reset:IDX:N`: the server's link faults.
+    Link(server::LinkFault),
 }
 
 impl FromStr for FaultArg {
@@ -175,13 +185,19 @@ impl FromStr for FaultArg {
         let Some(rest) = s.strip_prefix("bus:") else {
             return Ok(FaultArg::Sensor(s.parse()?));
         };
+        if rest.starts_with("drop:") || rest.starts_with("reset:") {
+            return Ok(FaultArg::Link(rest.parse()?));
+        }
         let secs = rest
             .strip_prefix("noack:")
             .and_then(|t| t.trim().parse::<f64>().ok())
             .filter(|t| t.is_finite() && (0.0..=86_400.0).contains(t));
         match secs {
             Some(t) => Ok(FaultArg::BusNoAck(t)),
-            None => bail!("--fault '{s}': expected bus:noack:SECONDS (0..86400)"),
+            None => bail!(
+                "--fault '{s}': expected bus:noack:SECONDS (0..86400), bus:drop:IDX:N or \
+                 bus:reset:IDX:N"
+            ),
         }
     }
 }
@@ -281,6 +297,7 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
         match *f {
             FaultArg::Sensor(f) => sim.set_fault(f.sensor, Some(f.kind)),
             FaultArg::BusNoAck(t) => noack_us = Some((t * 1e6) as u64),
+            FaultArg::Link(_) => {}
         }
     }
     let first = a.serial.first().copied();
@@ -326,7 +343,15 @@ pub fn run(a: &Args) -> Result<()> {
         None => None,
     };
     std::io::stdout().flush()?;
-    server::serve(listener, world, &mut boards)
+    let faults = a
+        .fault
+        .iter()
+        .filter_map(|f| match f {
+            FaultArg::Link(l) => Some(*l),
+            _ => None,
+        })
+        .collect();
+    server::serve(listener, world, &mut boards, faults)
 }
 
 #[cfg(test)]
@@ -444,9 +469,20 @@ mod tests {
             "bus:noack:nan",
             "bus:off:1",
             "5:open",
+            "bus:drop:0x2101",
+            "bus:drop:0x2101:0",
+            "bus:reset:zz:1",
         ] {
             assert!(bad.parse::<FaultArg>().is_err(), "{bad}");
         }
+        assert!(matches!(
+            "bus:drop:0x2103:2".parse::<FaultArg>().unwrap(),
+            FaultArg::Link(server::LinkFault {
+                index: 0x2103,
+                nth: 2,
+                ..
+            })
+        ));
         let mut a = args();
         a.fault = vec![FaultArg::BusNoAck(1.0)];
         let mut b = build(&a).unwrap();

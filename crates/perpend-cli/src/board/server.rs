@@ -15,6 +15,11 @@
 //! the acquisition-to-frame latency as far as it can be measured on the
 //! host (it includes the wait for the controller's SYNC).
 //!
+//! Link faults (`perpend board --fault bus:drop:IDX:N`, `bus:reset:IDX:N`,
+//! [`LinkFault`]) act on the client's N-th SDO request to one object: the
+//! connection is closed before the answer goes out, or an NMT reset node
+//! follows the request on the bus; each fires once.
+//!
 //! Limits: the loop sleeps at most 200 µs when idle, so timestamps are
 //! accurate to a fraction of a millisecond; if it falls more than 50
 //! samples behind (machine overloaded) it skips the missed samples.
@@ -227,6 +232,105 @@ fn rates_agree(a: Option<u16>, b: Option<u16>) -> bool {
     a.is_none() || b.is_none() || a == b
 }
 
+/// What a [`LinkFault`] does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkAction {
+    /// Close the client's connection (its answer lost).
+    Drop,
+    /// Reset the addressed board (NMT reset node) after the request.
+    Reset,
+}
+
+/// `--fault bus:drop:IDX:N` or `bus:reset:IDX:N`: at the client's N-th
+/// SDO request (upload or download initiate) to object IDX.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LinkFault {
+    /// What happens.
+    pub action: LinkAction,
+    /// The object whose requests are counted.
+    pub index: u16,
+    /// Which request (1 = the first).
+    pub nth: u32,
+}
+
+impl std::str::FromStr for LinkFault {
+    type Err = anyhow::Error;
+    /// Parses `drop:IDX:N` or `reset:IDX:N` (IDX decimal or 0x hex).
+    fn from_str(s: &str) -> Result<Self> {
+        let mut it = s.split(':');
+        let action = match it.next() {
+            Some("drop") => Some(LinkAction::Drop),
+            Some("reset") => Some(LinkAction::Reset),
+            _ => None,
+        };
+        let index = it.next().and_then(|t| {
+            let t = t.trim();
+            match t.strip_prefix("0x").or_else(|| t.strip_prefix("0X")) {
+                Some(h) => u16::from_str_radix(h, 16).ok(),
+                None => t.parse().ok(),
+            }
+        });
+        let nth = it.next().and_then(|t| t.trim().parse::<u32>().ok());
+        match (action, index, nth, it.next()) {
+            (Some(action), Some(index), Some(nth), None) if nth >= 1 => {
+                Ok(Self { action, index, nth })
+            }
+            _ => anyhow::bail!(
+                "--fault 'bus:{s}': expected bus:drop:IDX:N or bus:reset:IDX:N (IDX an object, \
+                 e.g. 0x2101; N ≥ 1: the N-th SDO request to it)"
+            ),
+        }
+    }
+}
+
+/// The link faults of a run with their counts; each fires once.
+struct LinkFaults(Vec<(LinkFault, u32, bool)>);
+
+impl LinkFaults {
+    /// Looks at the client's `frames` of one turn: inserts the NMT resets
+    /// that fire; returns `true` when the connection is to be dropped (the
+    /// frames after the one that fired it are discarded).
+    fn apply(&mut self, frames: &mut Vec<Frame>) -> bool {
+        let mut k = 0;
+        while k < frames.len() {
+            let f = frames[k];
+            k += 1;
+            let sdo = (0x601..=0x67F).contains(&f.id) && f.len == 8 && !f.rtr;
+            if !(sdo && matches!(f.data[0] >> 5, 1 | 2)) {
+                continue;
+            }
+            let index = u16::from_le_bytes([f.data[1], f.data[2]]);
+            for (fault, count, fired) in &mut self.0 {
+                if *fired || fault.index != index {
+                    continue;
+                }
+                *count += 1;
+                if *count < fault.nth {
+                    continue;
+                }
+                *fired = true;
+                match fault.action {
+                    LinkAction::Drop => {
+                        eprintln!("perpend board: fault: dropping the client at its SDO request {} to {index:#06x}", fault.nth);
+                        frames.truncate(k);
+                        return true;
+                    }
+                    LinkAction::Reset => {
+                        eprintln!(
+                            "perpend board: fault: reset after the SDO request {} to {index:#06x}",
+                            fault.nth
+                        );
+                        let node = (f.id - 0x600) as u8;
+                        frames.insert(k, Frame::new(0x000, &[0x81, node]));
+                        k += 1;
+                    }
+                }
+            }
+        }
+        false
+    }
+}
+
 /// The virtual bus: the boards, one sample clock each.
 struct Bus<'a> {
     boards: &'a mut [VirtualBoard],
@@ -378,7 +482,9 @@ pub fn serve(
     listener: TcpListener,
     mut world: Option<World>,
     boards: &mut [VirtualBoard],
+    faults: Vec<LinkFault>,
 ) -> Result<()> {
+    let mut faults = LinkFaults(faults.into_iter().map(|f| (f, 0, false)).collect());
     listener
         .set_nonblocking(true)
         .context("making the listener non-blocking")?;
@@ -402,9 +508,11 @@ pub fn serve(
         // The bus of this turn: the client's frames, then what the boards
         // send (handed to the client and to the other boards).
         let mut wire: Vec<Wire> = Vec::new();
+        let mut drop_client = false;
         if let Some(c) = client.as_mut() {
             match c.read() {
-                Some(frames) => {
+                Some(mut frames) => {
+                    drop_client = faults.apply(&mut frames);
                     busy |= !frames.is_empty();
                     wire.extend(frames.into_iter().map(|f| (None, c.kbps, f)));
                 }
@@ -431,6 +539,10 @@ pub fn serve(
                 bus.tick(now, &mut wire);
                 polled = true;
             }
+        }
+        if drop_client {
+            eprintln!("perpend board: client dropped (fault)");
+            client = None;
         }
         if let Some(c) = client.as_mut() {
             let mut tpdo1 = Vec::new();

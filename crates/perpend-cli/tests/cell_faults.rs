@@ -1,0 +1,238 @@
+//! `perpend cell run` fails safe, against the virtual board: the bus
+//! dropped during the push (`--fault bus:drop:0x2103:N`), the board reset
+//! during the capture (`--fault bus:reset:0x2004:N`), bad, empty and ended
+//! manual entries, and an after pass worse than the before pass. After
+//! each, the board holds its previous calibration (pulled and compared with
+//! `previous.json`), its residual limit and NMT state are as found and
+//! calibration writes are locked; cell.json says what happened. Few poses
+//! and samples: a few seconds each.
+#![allow(clippy::unwrap_used, clippy::panic)]
+
+mod common;
+
+use std::io::{BufRead, BufReader, Write as _};
+use std::net::TcpStream;
+use std::path::Path;
+use std::process::Stdio;
+
+use common::{as_found, board, board_state, calibration, cell_json, cell_run, finish};
+
+/// The run failed with `cause` first and left the board with its previous
+/// calibration, as found otherwise.
+fn failed_safely(d: &Path, bus: &str, out: &str, cause: &str, nmt: &str, err: &str) {
+    let f = cell_json(d, out);
+    assert_eq!(f["outcome"], "failed", "{f}");
+    let first = f["first_cause"].as_str().unwrap();
+    assert!(first.contains(cause), "{first}");
+    assert!(err.contains(&format!("error: {first}")), "{err}");
+    assert_eq!(f["restore_problems"], serde_json::json!([]), "{f}");
+    let state = board_state(d, bus, out);
+    assert_eq!(
+        state.sensors,
+        calibration(d, &format!("{out}/previous.json"))
+    );
+    as_found(&state, nmt);
+}
+
+#[test]
+fn the_bus_dropped_during_the_push_leaves_the_previous_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    // 0x2103: 23 reads by the pull, 23 by the push before it writes, then
+    // the fifth write of sensor 3 is the one whose answer is lost.
+    let (_board, bus, world) = board(d, "truth.csv", &["--fault", "bus:drop:0x2103:51"]);
+    let robot = format!("sim:{world}");
+    let run = cell_run(d, &bus, "run", &["--robot", &robot], Stdio::null());
+    let (status, out, err) = finish(run, 120);
+    assert!(!status.success(), "{out}");
+    let cause = "pushing the new calibration: writing sensor 3";
+    failed_safely(d, &bus, "run", cause, "pre-operational", &err);
+    let f = cell_json(d, "run");
+    let restored = f["restored"].to_string();
+    assert!(restored.contains("previous calibration"), "{f}");
+    assert!(f["before_deg"].as_f64().unwrap() > 0.5, "{f}");
+}
+
+#[test]
+fn a_board_reset_during_the_capture_stops_the_run_safely() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    let (_board, bus, world) = board(d, "truth.csv", &["--fault", "bus:reset:0x2004:40"]);
+    let robot = format!("sim:{world}");
+    let run = cell_run(d, &bus, "run", &["--robot", &robot], Stdio::null());
+    let (status, out, err) = finish(run, 120);
+    assert!(!status.success(), "{out}");
+    let cause = "reset itself during the capture of pose";
+    failed_safely(d, &bus, "run", cause, "pre-operational", &err);
+    assert!(err.contains("nothing was pushed"), "{err}");
+}
+
+#[test]
+fn manual_entries_are_asked_again_and_the_end_of_input_stops_safely() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    let (_board, bus, _world) = board(d, "truth.csv", &[]);
+    let mut run = cell_run(d, &bus, "run", &["--robot", "manual"], Stdio::piped());
+    // The two verification poses: a word, an empty line, then the board's
+    // plane; no plane, then the board's plane; then the end.
+    let mut stdin = run.0.stdin.take().unwrap();
+    stdin
+        .write_all(b"hello\n\n0,0,1,-28\n0,0,0,5\n0,0,1,-28\n")
+        .unwrap();
+    drop(stdin);
+    let (status, out, err) = finish(run, 120);
+    assert!(!status.success(), "{out}");
+    for why in [
+        "'hello' is not four numbers A,B,C,D",
+        "'' is not four numbers A,B,C,D",
+        "'0,0,0,5' is not a plane: |(A,B,C)| = 0",
+        "before calibration, normal error",
+    ] {
+        assert!(out.contains(why), "{why}: {out}\n{err}");
+    }
+    let cause = "reading the tracker's plane: end of input at pose 1 (nothing was captured)";
+    failed_safely(d, &bus, "run", cause, "pre-operational", &err);
+}
+
+#[test]
+fn the_end_of_input_at_the_first_prompt_puts_back_limit_and_nmt_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    let (_board, bus, _world) = board(d, "truth.csv", &[]);
+    let link = format!("tcp:{bus}");
+    common::ok(
+        &["node", "--bus", &link, "--node-id", "16", "nmt", "start"],
+        d,
+    );
+    let run = cell_run(d, &bus, "run", &["--robot", "manual"], Stdio::null());
+    let (status, out, err) = finish(run, 60);
+    assert!(!status.success(), "{out}");
+    let cause = "end of input at before: verification pose 1";
+    failed_safely(d, &bus, "run", cause, "operational", &err);
+    let f = cell_json(d, "run");
+    assert!(
+        f["restored"].to_string().contains("0x2300 sub 4 back"),
+        "{f}"
+    );
+}
+
+/// Answers the manual prompts of `run` through the world channel: the
+/// plane of each prompt goes to the board, the tracker reads it exactly at
+/// the verification poses and tilted ±0.5° at the captured ones (a tracker
+/// that lies while the calibration is captured).
+fn lying_tracker(run: &mut common::Killed, world: &str) {
+    let mut w = BufReader::new(TcpStream::connect(world).unwrap());
+    let mut stdin = run.0.stdin.take().unwrap();
+    let stdout = BufReader::new(run.0.stdout.take().unwrap());
+    for (k, line) in stdout.lines().map_while(Result::ok).enumerate() {
+        let Some(plane) = line
+            .split("(plane ")
+            .nth(1)
+            .and_then(|t| t.split(')').next())
+        else {
+            continue;
+        };
+        w.get_mut()
+            .write_all(format!("plane {plane}\n").as_bytes())
+            .unwrap();
+        let mut ok = String::new();
+        w.read_line(&mut ok).unwrap();
+        assert_eq!(ok.trim(), "ok");
+        let mut v: Vec<f64> = plane.split(',').map(|x| x.parse().unwrap()).collect();
+        if line.starts_with("pose ") {
+            v[0] += if k % 2 == 0 { 0.009 } else { -0.009 };
+        }
+        let typed = format!("{},{},{},{}\n", v[0], v[1], v[2], v[3]);
+        if stdin.write_all(typed.as_bytes()).is_err() {
+            break;
+        }
+    }
+}
+
+#[test]
+fn an_after_pass_worse_than_the_before_pass_reverts_the_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    // The board is built as it is stored: already perfect before.
+    let (_board, bus, world) = board(d, "nominal.csv", &[]);
+    let mut run = cell_run(d, &bus, "run", &["--robot", "manual"], Stdio::piped());
+    lying_tracker(&mut run, &world);
+    let (status, out, err) = finish(run, 120);
+    assert!(!status.success(), "{out}");
+    let f = cell_json(d, "run");
+    assert_eq!(f["outcome"], "reverted", "{f}");
+    let (before, after) = (
+        f["before_deg"].as_f64().unwrap(),
+        f["after_deg"].as_f64().unwrap(),
+    );
+    assert!(after > before, "{f}");
+    let first = f["first_cause"].as_str().unwrap();
+    assert!(first.contains("is worse than before"), "{f}");
+    assert!(err.contains(&format!("error: {first}")), "{err}");
+    let state = board_state(d, &bus, "run");
+    assert_eq!(state.sensors, calibration(d, "run/previous.json"));
+    as_found(&state, "pre-operational");
+}
+
+#[test]
+fn keep_worse_keeps_the_new_calibration_and_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    let (_board, bus, world) = board(d, "nominal.csv", &[]);
+    let extra = ["--robot", "manual", "--keep-worse"];
+    let mut run = cell_run(d, &bus, "run", &extra, Stdio::piped());
+    lying_tracker(&mut run, &world);
+    // Standard output went to the lying tracker.
+    let (status, _, err) = finish(run, 120);
+    assert!(status.success(), "{err}");
+    let f = cell_json(d, "run");
+    assert_eq!(f["outcome"], "kept-worse", "{f}");
+    assert!(
+        f["reason"].as_str().unwrap().contains("--keep-worse"),
+        "{f}"
+    );
+    let state = board_state(d, &bus, "run");
+    let new = calibration(d, "run/params.json");
+    assert!(common::same_geometry(&state.sensors, &new), "{state:?}");
+    as_found(&state, "pre-operational");
+}
+
+#[test]
+fn ctrl_c_at_a_manual_prompt_puts_back_what_the_run_changed() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::head_and_plan(d, 8);
+    let (_board, bus, _world) = board(d, "truth.csv", &[]);
+    let mut run = cell_run(d, &bus, "run", &["--robot", "manual"], Stdio::piped());
+    // The operator types nothing; the residual limit is raised by now.
+    let _stdin = run.0.stdin.take().unwrap();
+    let mut lines = BufReader::new(run.0.stdout.take().unwrap()).lines();
+    for line in lines.by_ref().map_while(Result::ok) {
+        if line.contains("type its A,B,C,D") {
+            break;
+        }
+    }
+    // Keep reading: the run reports on standard output.
+    std::thread::spawn(move || lines.for_each(drop));
+    let pid = run.0.id().to_string();
+    let kill = std::process::Command::new("kill")
+        .args(["-INT", &pid])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let (status, _, err) = finish(run, 60);
+    assert!(!status.success(), "{err}");
+    let cause = "interrupted (Ctrl-C) during before: verification pose 1";
+    failed_safely(d, &bus, "run", cause, "pre-operational", &err);
+    let f = cell_json(d, "run");
+    assert!(
+        f["restored"].to_string().contains("0x2300 sub 4 back"),
+        "{f}"
+    );
+}
