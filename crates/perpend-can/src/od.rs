@@ -875,10 +875,11 @@ pub const OBJECTS: &[Object] = &[
         "Calibration unlock",
         &[Entry::new(0, "Calibration unlock", U32, Rw, Class::Command)],
     ),
-    // What calibration the board carries (issue 30): written by the host
-    // with the calibration (pre-op + unlock), stored and restored with the
-    // application group; the device counts the stores itself (sub 3,
-    // read-only, see `STAMP_COUNT`).
+    // What calibration the board carries (issue 30): sub 1/2 written by the
+    // host with the calibration (pre-op + unlock), stored and restored with
+    // the application group; the device counts the stores itself (sub 3:
+    // read-only, a value the device produces, hence `Measurement`, see
+    // `STAMP_COUNT`).
     rec(
         0x2011,
         "Calibration stamp",
@@ -890,7 +891,7 @@ pub const OBJECTS: &[Object] = &[
             Entry::new(2, "Stored UTC s", U32, Rw, Class::Calibration)
                 .persist()
                 .v7(),
-            Entry::new(3, "Store count", U32, Ro, Class::Calibration)
+            Entry::new(3, "Store count", U32, Ro, Class::Measurement)
                 .persist()
                 .v7(),
         ],
