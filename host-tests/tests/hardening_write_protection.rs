@@ -421,6 +421,9 @@ fn out_of_range_values_for_every_calibration_and_config_object() {
     b.unlock();
     let mut n = 0;
     for (index, e) in calibration_entries().into_iter().chain(config_entries()) {
+        if index == 0x2011 {
+            continue; // the calibration stamp: any UNSIGNED32 is a hash or a time
+        }
         let cases = outside(e);
         assert!(!cases.is_empty(), "{index:#06x}/{} has no limits", e.sub);
         for (v, code) in cases {

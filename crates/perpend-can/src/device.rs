@@ -67,7 +67,8 @@ impl NmtState {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Request {
     /// 0x1010 sub 1/2/3 "save": the group's current values are stored,
-    /// the other persisted objects keep their stored values.
+    /// the other persisted objects keep their stored values; the store
+    /// count 0x2011 sub 3 is stored one higher (sub 1 and 3).
     Store(Group),
     /// 0x1011 sub 1/2/3 "load": the group's defaults are stored (0x2400
     /// excepted, see [`od::restorable`]); they become active at the next
@@ -156,6 +157,10 @@ pub const IMAGE_LEN_V4: usize = 8 + 4 * od::PERSISTENT_V4;
 /// Length of an image of layout 5 (firmware before the thermal time
 /// constant 0x2105): still accepted by [`Device::load_image`].
 pub const IMAGE_LEN_V5: usize = 8 + 4 * od::PERSISTENT_V5;
+
+/// Length of an image of layout 6 (firmware before the calibration stamp
+/// 0x2011): still accepted by [`Device::load_image`] (the stamp stays 0).
+pub const IMAGE_LEN_V6: usize = 8 + 4 * od::PERSISTENT_V6;
 
 /// FNV-1a over (index, sub, type) of the entries persisted by image layout
 /// `layout` ([`od::Entry::since`]): changes when the persisted layout
@@ -418,8 +423,13 @@ impl Core {
 
     /// The value entry `s` (a persisted entry of `index`) has in storage
     /// once `req` is carried out.
+    /// A store of the application group counts itself in the calibration
+    /// stamp ([`od::STAMP_COUNT`]: one more than stored).
     fn staged(&self, req: Request, s: usize, index: u16, e: &od::Entry) -> u32 {
         match req {
+            Request::Store(g) if g.contains(index) && s == od::STAMP_COUNT => {
+                self.boot[s].saturating_add(1)
+            }
             Request::Store(g) if g.contains(index) => self.values[s],
             Request::StoreLss { bit_rate_kbps } if index == 0x2400 => match e.sub {
                 2 => u32::from(bit_rate_kbps),
@@ -1660,8 +1670,10 @@ impl Device {
     /// Completes the pending request: `ok` tells whether the storage
     /// operation succeeded. The SDO confirmation (or abort 0x08000020) goes
     /// to `out`. On success a store makes the current persisted values the
-    /// power-on values; a restore makes the defaults the power-on values
-    /// (applied at the next reset node).
+    /// power-on values (a store of the application group also counts itself
+    /// in 0x2011 sub 3, current value included); a restore makes the
+    /// defaults the power-on values (applied at the next reset node; the
+    /// calibration stamp's default is 0, its count included).
     ///
     /// # Errors
     /// [`Error::NoRequest`] when nothing is pending.
@@ -1671,6 +1683,11 @@ impl Device {
             for (s, index, e) in od::entries() {
                 if e.persist {
                     self.core.boot[s] = self.core.staged(req, s, index, e);
+                }
+            }
+            if let Request::Store(g) = req {
+                if g.contains(0x2011) {
+                    self.core.values[od::STAMP_COUNT] = self.core.boot[od::STAMP_COUNT];
                 }
             }
         }
@@ -1792,6 +1809,7 @@ impl Device {
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
         let layout = match img.len() {
             IMAGE_LEN => od::LAYOUT,
+            IMAGE_LEN_V6 => 6,
             IMAGE_LEN_V5 => 5,
             IMAGE_LEN_V4 => 4,
             IMAGE_LEN_V3 => 3,

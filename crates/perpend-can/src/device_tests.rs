@@ -1375,7 +1375,7 @@ fn layout_5_image_loads_without_lag() {
     let mut old = [0u8; IMAGE_LEN];
     let n = image_as_layout(&img, 5, &mut old);
     assert_eq!(n, IMAGE_LEN_V5);
-    assert_eq!(IMAGE_LEN - IMAGE_LEN_V5, 4);
+    assert_eq!(IMAGE_LEN_V6 - IMAGE_LEN_V5, 4);
     let mut d = Device::new(NODE, &Defaults::nominal());
     d.load_image(&old[..n]).unwrap();
     assert_eq!(d.calibration(2).unwrap().d_ref, 41.0);
@@ -1565,4 +1565,94 @@ fn emcy_beyond_the_table_never_floods() {
     emcys.extend(emcys_of(&b.take()));
     assert_eq!(emcys.iter().filter(|e| e.0 == 0).count(), resets);
     assert_eq!(b.dev.error_register(), 0);
+}
+
+/// The calibration stamp 0x2011: sub 1/2 written like calibration (pre-op
+/// and unlocked), sub 3 read-only; stored with the application group, the
+/// count one higher per store (in the image too); 0x1011 clears all three
+/// at the next reset node.
+#[test]
+fn calibration_stamp_is_written_counted_stored_and_restored() {
+    let mut b = Bus::new();
+    assert_eq!(b.read32(0x2011, 0), 3);
+    assert_eq!(b.write_u32(0x2011, 1, 0xA1B2_C3D4), Err(0x0800_0021));
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_u32(0x2011, 1, 0xA1B2_C3D4).unwrap();
+    b.write_u32(0x2011, 2, 1_795_777_123).unwrap();
+    assert_eq!(b.write_u32(0x2011, 3, 7), Err(0x0601_0002));
+    assert_eq!(b.read32(0x2011, 1), 0xA1B2_C3D4);
+    assert_eq!(b.read32(0x2011, 3), 0);
+    // a communication-group store neither stores nor counts it
+    assert_eq!(b.write_u32(0x1010, 2, od::SAVE_SIGNATURE), Err(0));
+    b.finish(true);
+    assert_eq!(b.read32(0x2011, 3), 0);
+    // stores of the application group (sub 3, then sub 1) count
+    let pos = od::entries()
+        .filter(|(_, _, e)| e.persist)
+        .position(|(_, i, e)| i == 0x2011 && e.sub == 3)
+        .unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    for (n, sub) in [(1, 3), (2, 1)] {
+        assert_eq!(b.write_u32(0x1010, sub, od::SAVE_SIGNATURE), Err(0));
+        // the image to store holds this store already
+        b.dev.persistent_image(&mut img);
+        assert_eq!(img[8 + 4 * pos..12 + 4 * pos], u32::to_le_bytes(n));
+        b.finish(true);
+        assert_eq!(b.read32(0x2011, 3), n);
+    }
+    // a failed store counts nothing
+    assert_eq!(b.write_u32(0x1010, 3, od::SAVE_SIGNATURE), Err(0));
+    b.finish(false);
+    assert_eq!(b.read32(0x2011, 3), 2);
+    // an unsaved change goes at the reset node, the stored stamp comes back
+    b.write_u32(0x2011, 1, 5).unwrap();
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!(
+        [1, 2, 3].map(|s| b.read32(0x2011, s)),
+        [0xA1B2_C3D4, 1_795_777_123, 2]
+    );
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    d.load_image(&img).unwrap();
+    let stamp: Vec<u32> = (1..=3).map(|s| d.core.get(0x2011, s)).collect();
+    assert_eq!(stamp, [0xA1B2_C3D4, 1_795_777_123, 2]);
+    // refused in operational
+    b.nmt(0x01, 0);
+    assert_eq!(b.write_u32(0x2011, 1, 1), Err(0x0800_0022));
+    assert_eq!(b.write_u32(0x2011, 2, 1), Err(0x0800_0022));
+    b.nmt(0x80, 0);
+    // restore of the application group: all 0 from the next reset node
+    assert_eq!(b.write_u32(0x1011, 3, od::LOAD_SIGNATURE), Err(0));
+    b.finish(true);
+    assert_eq!(b.read32(0x2011, 3), 2);
+    b.nmt(0x81, 0);
+    b.poll();
+    assert_eq!([1, 2, 3].map(|s| b.read32(0x2011, s)), [0, 0, 0]);
+}
+
+/// An image written before layout 7 (no 0x2011) loads with a zero stamp;
+/// the next store counts from there.
+#[test]
+fn layout_6_image_loads_with_a_zero_stamp() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2105, 0, 300.0).unwrap();
+    b.write_u32(0x2011, 1, 0xDEAD_BEEF).unwrap();
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = image_as_layout(&img, 6, &mut old);
+    assert_eq!(n, IMAGE_LEN_V6);
+    assert_eq!(IMAGE_LEN - IMAGE_LEN_V6, 3 * 4);
+    let mut b = Bus::new();
+    b.dev.load_image(&old[..n]).unwrap();
+    assert_eq!(b.dev.thermal_tau_s(), 300.0);
+    assert_eq!([1, 2, 3].map(|s| b.read32(0x2011, s)), [0, 0, 0]);
+    assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
+    b.finish(true);
+    assert_eq!(b.read32(0x2011, 3), 1);
+    // a layout-6 signature over a layout-7 length is refused
+    let mut forged = img;
+    forged[0..4].copy_from_slice(&old[0..4]);
+    assert_eq!(b.dev.load_image(&forged), Err(Error::ImageLayout));
 }

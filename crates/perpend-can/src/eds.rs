@@ -25,7 +25,7 @@ use crate::od::{self, Access, DataType, Init, Kind, Limits, Object, Text};
 /// layout, changed by hand together with [`FILE_VERSION`].
 pub const FILE_DATE: &str = "11-27-2026";
 /// `FileVersion` of the EDS: increment when the dictionary changes.
-pub const FILE_VERSION: u32 = 5;
+pub const FILE_VERSION: u32 = 6;
 
 fn access(a: Access) -> &'static str {
     match a {

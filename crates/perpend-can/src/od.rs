@@ -160,8 +160,8 @@ pub struct Entry {
     /// Image layout that first persisted it: 1, 2 (issue 16), 3 (issue 14,
     /// the surface model 0x2310), 4 (issue 16: heartbeat consumer, SYNC
     /// counter, error behaviour, acquisition trigger, RPDO1, capture), 5
-    /// (the linearity tables, 0x2101..0x2104 sub 16..23) or 6 (the head's
-    /// thermal time constant 0x2105).
+    /// (the linearity tables, 0x2101..0x2104 sub 16..23), 6 (the head's
+    /// thermal time constant 0x2105) or 7 (the calibration stamp 0x2011).
     /// Images of an older layout lack it and still load (the entry keeps
     /// its current value).
     pub since: u8,
@@ -220,6 +220,10 @@ impl Entry {
     }
     const fn v6(mut self) -> Self {
         self.since = 6;
+        self
+    }
+    const fn v7(mut self) -> Self {
+        self.since = 7;
         self
     }
 }
@@ -871,6 +875,27 @@ pub const OBJECTS: &[Object] = &[
         "Calibration unlock",
         &[Entry::new(0, "Calibration unlock", U32, Rw, Class::Command)],
     ),
+    // What calibration the board carries (issue 30): sub 1/2 written by the
+    // host with the calibration (pre-op + unlock), stored and restored with
+    // the application group; the device counts the stores itself (sub 3:
+    // read-only, a value the device produces, hence `Measurement`, see
+    // `STAMP_COUNT`).
+    rec(
+        0x2011,
+        "Calibration stamp",
+        &[
+            sub0(3),
+            Entry::new(1, "Record hash", U32, Rw, Class::Calibration)
+                .persist()
+                .v7(),
+            Entry::new(2, "Stored UTC s", U32, Rw, Class::Calibration)
+                .persist()
+                .v7(),
+            Entry::new(3, "Store count", U32, Ro, Class::Measurement)
+                .persist()
+                .v7(),
+        ],
+    ),
     arr(
         0x2012,
         "Error history time s",
@@ -1071,7 +1096,7 @@ const fn count_persist(layout: u8) -> usize {
 /// slots of a [`crate::Device`].
 pub const ENTRIES: usize = count_entries();
 /// The current image layout (see [`Entry::since`]).
-pub const LAYOUT: u8 = 6;
+pub const LAYOUT: u8 = 7;
 /// Number of entries stored by 0x1010.
 pub const PERSISTENT: usize = count_persist(LAYOUT);
 /// Number of entries an image of layout 1 (before issue 16) holds.
@@ -1088,6 +1113,14 @@ pub const PERSISTENT_V4: usize = count_persist(4);
 /// Number of entries an image of layout 5 (before the thermal time
 /// constant 0x2105 of layout 6) holds.
 pub const PERSISTENT_V5: usize = count_persist(5);
+/// Number of entries an image of layout 6 (before the calibration stamp
+/// 0x2011 of layout 7) holds.
+pub const PERSISTENT_V6: usize = count_persist(6);
+
+/// The slot of 0x2011 sub 3, the store count of the calibration stamp:
+/// read-only, persisted, one more in the image of every 0x1010 store of the
+/// application group (sub 1 or 3), 0 after a 0x1011 restore of it.
+pub const STAMP_COUNT: usize = slot_of(0x2011, 3);
 
 /// Number of persisted entries of image layout `layout` (1..=[`LAYOUT`]).
 pub const fn persistent_of(layout: u8) -> usize {
@@ -1317,7 +1350,8 @@ mod tests {
                     && PERSISTENT_V2 < PERSISTENT_V3
                     && PERSISTENT_V3 < PERSISTENT_V4
                     && PERSISTENT_V4 < PERSISTENT_V5
-                    && PERSISTENT_V5 + 1 == PERSISTENT
+                    && PERSISTENT_V5 + 1 == PERSISTENT_V6
+                    && PERSISTENT_V6 + 3 == PERSISTENT
             )
         };
     }
@@ -1332,6 +1366,8 @@ mod tests {
         assert!(find(0x2105, 0).is_ok());
         assert_eq!(find(0x2105, 1), Err(Lookup::NoSub));
         assert_eq!(find(0x2106, 0), Err(Lookup::NoObject));
+        assert!(find(0x2011, 3).is_ok());
+        assert_eq!(find(0x2011, 4), Err(Lookup::NoSub));
     }
 
     #[test]

@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 
 mod support;
 
+use perpend_cli::node::params::record_hash;
 use perpend_core::params::Params;
 use perpend_lab::paramfile::{ParamFile, TransferParams, TRANSFER_CURRENT};
 use support::{failed, ok, text, VirtualBus};
@@ -216,16 +217,33 @@ fn push_reset_pull_round_trip() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("params.json");
     let file = params_file(&p, 4);
+    let info = ok(&b.node(&["info"]));
+    assert!(info.contains("stamp         none stored"), "{info}");
     let out = ok(&b.node(&["push", p.to_str().unwrap()]));
     assert!(out.contains("109 values written"), "{out}");
     assert!(
         out.contains("read back identical after the boot-up"),
         "{out}"
     );
+    // the calibration stamp: the params file's hash, store #1
+    let hash = format!("{:08x}", record_hash(&std::fs::read(&p).unwrap()));
+    assert!(out.contains(&format!("stamp {hash} stored 20")), "{out}");
+    assert!(out.contains("Z, store #1"), "{out}");
+    let info = ok(&b.node(&["info"]));
+    assert!(
+        info.contains(&format!("stamp         record {hash} stored")),
+        "{info}"
+    );
+    assert!(info.contains("(store #1)"), "{info}");
     let back = dir.path().join("back.json");
     ok(&b.node(&["pull", "--out", back.to_str().unwrap()]));
     let got = ParamFile::read(&back).unwrap();
     assert_eq!(got.thermal_tau_s, 725.5);
+    let st = got.calibration_stamp.clone().unwrap();
+    assert_eq!(
+        (st.record_hash.as_str(), st.store_count),
+        (hash.as_str(), 1)
+    );
     let f = |x: f64| x as f32 as f64;
     for (a, g) in file.sensors.iter().zip(&got.sensors) {
         assert_eq!(g.zero_mm, a.zero_mm.map(f));
@@ -239,6 +257,12 @@ fn push_reset_pull_round_trip() {
     let v: serde_json::Value =
         serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
     assert_eq!(v["calibration_unlocked"], false);
+    // stamped again with the pulled file's hash, the count one higher
+    let st = &v["calibration_stamp"];
+    let hash = format!("{:08x}", record_hash(&std::fs::read(&back).unwrap()));
+    assert_eq!(st["record_hash"], hash.as_str(), "{v}");
+    assert_eq!(st["store_count"], 2, "{v}");
+    assert!(st["utc_s"].as_u64().unwrap() > 1_700_000_000, "{v}");
 }
 
 #[test]

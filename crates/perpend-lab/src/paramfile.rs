@@ -36,6 +36,14 @@
 //! 0, no lag, and a file without lag is written without it, so files read
 //! and write as before.
 //!
+//! `calibration_stamp` (top level, optional, written by `perpend node
+//! pull`): the board's calibration stamp 0x2011 when the file was pulled,
+//! `{"record_hash": "a1b2c3d4", "utc": "2026-11-27T10:58:43Z", "utc_s":
+//! 1795777123, "store_count": 3}` (the first 4 bytes of the SHA-256 of the
+//! pushed record, the push's UTC time, the board's store count). It only
+//! says where the values came from: push ignores it (it stamps the board
+//! with the file it pushes), so a pulled file pushes again.
+//!
 //! `linearity_table` (the natural-spline table of
 //! [`perpend_core::ext::LinTable`], knots about `d_ref_mm`) is present only
 //! when a table was fitted; files without it read as before.
@@ -378,6 +386,21 @@ impl SensorParams {
     }
 }
 
+/// The board's calibration stamp (0x2011) as `perpend node pull` found it
+/// (module docs); informational, ignored by push.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationStamp {
+    /// The first 4 bytes of the pushed record's SHA-256, 8 hex digits.
+    pub record_hash: String,
+    /// `utc_s` in ISO 8601 (`2026-11-27T10:58:43Z`).
+    pub utc: String,
+    /// UTC seconds since 1970 of the push.
+    pub utc_s: u32,
+    /// The board's count of calibration stores.
+    pub store_count: u32,
+}
+
 /// The whole parameter file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -399,6 +422,9 @@ pub struct ParamFile {
     pub thermal_tau_s: f64,
     /// Sensors 1..N in order.
     pub sensors: Vec<SensorParams>,
+    /// The board's calibration stamp when pulled (module docs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_stamp: Option<CalibrationStamp>,
 }
 
 impl ParamFile {
@@ -412,6 +438,7 @@ impl ParamFile {
             poses,
             thermal_tau_s: 0.0,
             sensors: Vec::new(),
+            calibration_stamp: None,
         }
     }
 
@@ -441,6 +468,12 @@ impl ParamFile {
             );
         }
         check_tau(self.thermal_tau_s)?;
+        if let Some(st) = &self.calibration_stamp {
+            let h = &st.record_hash;
+            if h.len() != 8 || !h.bytes().all(|b| b.is_ascii_hexdigit()) {
+                bail!("calibration_stamp.record_hash '{h}' is not 8 hex digits");
+            }
+        }
         if self.sensors.is_empty() {
             bail!("no sensors");
         }
@@ -535,6 +568,29 @@ mod tests {
         let text = serde_json::to_string_pretty(&g).unwrap();
         assert!(text.contains("\"thermal_tau_s\": 612.5"), "{text}");
         assert_eq!(ParamFile::parse(&text, "p.json").unwrap(), g);
+    }
+
+    /// The optional calibration stamp: absent by default (files write as
+    /// before), round-trips, a malformed hash is refused.
+    #[test]
+    fn calibration_stamp_is_optional_and_round_trips() {
+        let f = file();
+        assert!(!serde_json::to_string(&f)
+            .unwrap()
+            .contains("calibration_stamp"));
+        let mut g = f.clone();
+        g.calibration_stamp = Some(CalibrationStamp {
+            record_hash: "a1b2c3d4".into(),
+            utc: "2026-11-27T10:58:43Z".into(),
+            utc_s: 1_795_777_123,
+            store_count: 3,
+        });
+        let text = serde_json::to_string_pretty(&g).unwrap();
+        assert!(text.contains("\"record_hash\": \"a1b2c3d4\""), "{text}");
+        assert_eq!(ParamFile::parse(&text, "p.json").unwrap(), g);
+        let bad = text.replace("a1b2c3d4", "a1b2c3d");
+        let e = format!("{:#}", ParamFile::parse(&bad, "p.json").unwrap_err());
+        assert!(e.contains("not 8 hex digits"), "{e}");
     }
 
     /// Out of range, negative or non-finite: refused with the file and the

@@ -20,35 +20,45 @@
 //!    ascending under an active table, so a table whose knots change is
 //!    switched off first (its coefficients zeroed), then the knots and the
 //!    coefficients are written;
-//! 4. store (0x1010 sub 3 "save application parameters" where the firmware
+//! 4. stamp the calibration (0x2011 sub 1 ← the first 4 bytes, big-endian,
+//!    of the SHA-256 of the calibration record's bytes where the caller
+//!    has one ([`push_with_record`]), else of the params file's;
+//!    sub 2 ← UTC seconds now) and read it back; a firmware without the
+//!    object (abort 0x06020000 on the first write) is pushed without a
+//!    stamp, and the report says so;
+//! 5. store (0x1010 sub 3 "save application parameters" where the firmware
 //!    has it, else sub 1 "save all"; answered after the flash write), reset node,
-//!    wait for the boot-up, read everything back again, lock (0x2010 ← 0).
+//!    wait for the boot-up, read everything back again (the stamp
+//!    included, with the board's store count 0x2011 sub 3), lock
+//!    (0x2010 ← 0).
 //!
 //! Nothing is stored before every value was written and verified: a
-//! failure or Ctrl-C before step 4 relocks the board and resets it, so it
+//! failure or Ctrl-C before step 5 relocks the board and resets it, so it
 //! runs its previous stored calibration again, and says so.
 //!
 //! Pull reads the same objects into a params.json (`method` "board",
 //! `model` from the non-zero extension terms, `linearity_table` when a
 //! coefficient is non-zero, `thermal_tau_s` from 0x2105, 0 on firmware
-//! without it) that push and
+//! without it, `calibration_stamp` from 0x2011 when the board has a
+//! non-zero one; push ignores it) that push and
 //! `ParamFile::read` accept; a beam direction the board holds with a
 //! length off 1 by more than 1e-6 is normalised in the file (the board
 //! normalises it too) with a warning.
 
 use std::fmt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::{anyhow, bail, Context as _, Result};
 use perpend_can::config::{CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_VALUES};
 use perpend_can::od::{self, Limits, SAVE_SIGNATURE, UNLOCK_SIGNATURE};
 use perpend_lab::paramfile::{
-    ExtParams, ParamFile, SensorParams, TableParams, TransferParams, TRANSFER_CURRENT,
-    TRANSFER_VOLTAGE,
+    CalibrationStamp, ExtParams, ParamFile, SensorParams, TableParams, TransferParams,
+    TRANSFER_CURRENT, TRANSFER_VOLTAGE,
 };
 use perpend_lab::progress::Progress;
+use sha2::{Digest as _, Sha256};
 
 use super::Node;
 use crate::canopen::NodeState;
@@ -138,6 +148,50 @@ pub struct PushReport {
     pub switched: bool,
     /// Whether the file had transfer functions.
     pub transfer: bool,
+    /// The calibration stamp as read back after the reset (`None`: the
+    /// firmware has no 0x2011).
+    pub stamp: Option<Stamp>,
+}
+
+/// The calibration stamp 0x2011.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Stamp {
+    /// Sub 1: the first 4 bytes (big-endian) of the record's SHA-256.
+    pub record_hash: u32,
+    /// Sub 2: UTC seconds since 1970 of the push.
+    pub utc_s: u32,
+    /// Sub 3: the board's count of calibration stores.
+    pub store_count: u32,
+}
+
+impl Stamp {
+    /// `utc_s` in ISO 8601 (`2026-11-27T10:58:43Z`).
+    pub fn utc(&self) -> String {
+        let t = std::time::UNIX_EPOCH + Duration::from_secs(self.utc_s.into());
+        humantime::format_rfc3339_seconds(t).to_string()
+    }
+
+    /// The stamp as a parameter file holds it.
+    pub fn to_file(&self) -> CalibrationStamp {
+        CalibrationStamp {
+            record_hash: format!("{:08x}", self.record_hash),
+            utc: self.utc(),
+            utc_s: self.utc_s,
+            store_count: self.store_count,
+        }
+    }
+}
+
+impl fmt::Display for Stamp {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "stamp {:08x} stored {}, store #{}",
+            self.record_hash,
+            self.utc(),
+            self.store_count
+        )
+    }
 }
 
 impl fmt::Display for PushReport {
@@ -155,6 +209,15 @@ impl fmt::Display for PushReport {
                 "; the file has no transfer functions, 0x2201.. left as they were"
             }
         )?;
+        match &self.stamp {
+            Some(st) => write!(f, "\n{st}")?,
+            None => write!(
+                f,
+                "\nno calibration stamp: the firmware of {} has no 0x2011 (the calibration \
+                 was stored without one)",
+                self.node
+            )?,
+        }
         if self.switched {
             write!(
                 f,
@@ -300,6 +363,74 @@ fn fit_to_board(node: &mut Node, file: &ParamFile, values: &mut Vec<Value>) -> R
     }
 }
 
+/// The calibration stamp object (record hash, UTC seconds, store count).
+pub const STAMP_INDEX: u16 = 0x2011;
+
+/// The first 4 bytes, big-endian, of the SHA-256 of `bytes`.
+pub fn record_hash(bytes: &[u8]) -> u32 {
+    let d = Sha256::digest(bytes);
+    u32::from_be_bytes([d[0], d[1], d[2], d[3]])
+}
+
+/// [`record_hash`] of a file's bytes.
+fn file_hash(path: &Path) -> Result<u32> {
+    let bytes = std::fs::read(path)
+        .with_context(|| format!("{}: cannot read; nothing was written", path.display()))?;
+    Ok(record_hash(&bytes))
+}
+
+/// UTC seconds since 1970, now (0 before 1970, `u32::MAX` after 2106).
+fn utc_now_s() -> u32 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| u32::try_from(d.as_secs()).unwrap_or(u32::MAX))
+}
+
+/// The stamp's host-written values: sub 1 the record hash, sub 2 the UTC
+/// seconds.
+fn stamp_values(hash: u32, utc_s: u32) -> [Value; 2] {
+    let v = |sub: u8, x: u32, what: &str| Value {
+        index: STAMP_INDEX,
+        sub,
+        bytes: x.to_le_bytes().to_vec(),
+        label: format!("calibration stamp {what}"),
+        shown: x.into(),
+    };
+    [v(1, hash, "record hash"), v(2, utc_s, "UTC seconds")]
+}
+
+/// Writes the stamp and reads it back; `false`: the firmware has no
+/// 0x2011 (abort 0x06020000 on the first write), nothing written.
+fn write_stamp(node: &mut Node, stamp: &[Value], bar: &Progress) -> Result<bool> {
+    for (k, v) in stamp.iter().enumerate() {
+        match node.client.download(node.id, v.index, v.sub, &v.bytes) {
+            Err(e) if k == 0 && e.abort_code() == Some(0x0602_0000) => return Ok(false),
+            r => r.with_context(|| format!("writing the {}", v.label))?,
+        }
+        bar.inc();
+    }
+    verify(node, stamp, bar, "after writing")?;
+    Ok(true)
+}
+
+/// The board's calibration stamp (`None`: its firmware has no 0x2011).
+///
+/// # Errors
+/// Client errors.
+pub fn read_stamp(node: &mut Node) -> Result<Option<Stamp>> {
+    let (c, id) = (&mut node.client, node.id);
+    let record_hash = match c.read_u32(id, STAMP_INDEX, 1) {
+        Ok(h) => h,
+        Err(e) if e.abort_code() == Some(0x0602_0000) => return Ok(None),
+        Err(e) => return Err(e.into()),
+    };
+    Ok(Some(Stamp {
+        record_hash,
+        utc_s: c.read_u32(id, STAMP_INDEX, 2)?,
+        store_count: c.read_u32(id, STAMP_INDEX, 3)?,
+    }))
+}
+
 /// Makes sure the node is pre-operational; returns whether it was switched.
 fn ensure_preop(node: &mut Node, allow: bool) -> Result<bool> {
     let hb = node.heartbeat_ms()?;
@@ -350,6 +481,7 @@ fn verify(node: &mut Node, values: &[Value], bar: &Progress, when: &str) -> Resu
         bar.inc();
         if got != v.bytes {
             let shown = match <[u8; 4]>::try_from(got.as_slice()) {
+                Ok(b) if v.index == STAMP_INDEX => u32::from_le_bytes(b).to_string(),
                 Ok(b) => f32::from_le_bytes(b).to_string(),
                 Err(_) => format!("{got:02x?}"),
             };
@@ -466,12 +598,28 @@ fn abandon(node: &mut Node) -> String {
     }
 }
 
-/// `perpend node push`.
+/// `perpend node push`: [`push_with_record`] stamping the hash of the
+/// parameter file.
+///
+/// # Errors
+/// As [`push_with_record`].
+pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushReport> {
+    push_with_record(node, a, None, cancel)
+}
+
+/// A push whose calibration stamp (0x2011) takes the hash of `record`,
+/// the calibration record written beside the parameter file (`None`: of
+/// the parameter file itself).
 ///
 /// # Errors
 /// Every refusal and failure in a sentence that says what the board is
 /// left with.
-pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushReport> {
+pub fn push_with_record(
+    node: &mut Node,
+    a: &PushArgs,
+    record: Option<&Path>,
+    cancel: &AtomicBool,
+) -> Result<PushReport> {
     let file = ParamFile::read(&a.file)?;
     node.hello()?;
     let n = node.sensors()?;
@@ -485,41 +633,53 @@ pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushRe
         );
     }
     let mut values = plan(&file).with_context(|| a.file.display().to_string())?;
+    let hash = file_hash(record.unwrap_or(&a.file))?;
     fit_to_board(node, &file, &mut values)?;
     let switched = ensure_preop(node, a.preop)?;
     unlock(node, a.preop)?;
-    let bar = Progress::new(3 * values.len() as u64, "push");
-    let changed = match write_phase(node, &values, cancel, &bar) {
+    let stamp = stamp_values(hash, utc_now_s());
+    let bar = Progress::new(3 * (values.len() + stamp.len()) as u64, "push");
+    let (changed, stamped) = match write_phase(node, &values, &stamp, cancel, &bar) {
         Ok(c) => c,
         Err(e) => {
             let left = abandon(node);
             return Err(e.context(left));
         }
     };
+    let n = values.len();
+    if stamped {
+        values.extend(stamp);
+    }
     store_phase(node, &values, &bar)?;
+    let stamp = if stamped { read_stamp(node)? } else { None };
     Ok(PushReport {
         node: node.name(),
-        values: values.len(),
+        values: n,
         changed,
         switched,
         transfer: file.sensors.iter().any(|s| s.transfer.is_some()),
+        stamp,
     })
 }
 
-/// Steps before the store: write, verify, validity, last chance to cancel.
+/// Steps before the store: write, verify, validity, the stamp, last
+/// chance to cancel. Returns the values changed and whether the board
+/// took the stamp.
 fn write_phase(
     node: &mut Node,
     values: &[Value],
+    stamp: &[Value],
     cancel: &AtomicBool,
     bar: &Progress,
-) -> Result<usize> {
+) -> Result<(usize, bool)> {
     let changed = write_all(node, values, cancel, bar)?;
     verify(node, values, bar, "after writing")?;
     check_valid(node)?;
+    let stamped = write_stamp(node, stamp, bar)?;
     if cancel.load(Ordering::SeqCst) {
         bail!("interrupted (Ctrl-C) after every write, before the store");
     }
-    Ok(changed)
+    Ok((changed, stamped))
 }
 
 /// Stores with 0x1010 sub 3 ("save application parameters": calibration
@@ -683,6 +843,9 @@ pub fn pull(node: &mut Node, cancel: &AtomicBool) -> Result<ParamFile> {
         Err(e) if e.abort_code() == Some(0x0602_0000) => 0.0,
         Err(e) => return Err(e.into()),
     };
+    file.calibration_stamp = read_stamp(node)?
+        .filter(|s| (s.record_hash, s.utc_s, s.store_count) != (0, 0, 0))
+        .map(|s| s.to_file());
     file.validate()
         .with_context(|| format!("the calibration of {} as a params.json", node.name()))?;
     Ok(file)

@@ -12,7 +12,7 @@ use perpend_core::geometry::Plane;
 use perpend_core::params::Params;
 use perpend_lab::paramfile::{ParamFile, TableParams, TransferParams, TRANSFER_CURRENT};
 
-use super::{plan, pull, push, PushArgs};
+use super::{plan, pull, push, push_with_record, read_stamp, record_hash, PushArgs};
 use crate::board::node::{BoardConfig, VirtualBoard};
 use crate::board::sim::SimHead;
 use crate::bus::fake::{FakeBus, Peer};
@@ -29,6 +29,8 @@ struct BoardPeer {
     cancel: Arc<AtomicBool>,
     cancel_after: Option<usize>,
     cal_writes: usize,
+    /// Answer 0x2011 like a firmware without it (abort 0x06020000).
+    no_stamp: bool,
 }
 
 impl Peer for BoardPeer {
@@ -41,6 +43,12 @@ impl Peer for BoardPeer {
             }
         }
         self.t += 50;
+        let initiate = matches!(d[0] >> 5, 1 | 2);
+        if self.no_stamp && f.id == 0x600 + NODE as u16 && initiate && d[1..3] == [0x11, 0x20] {
+            let abort = [0x80, d[1], d[2], d[3], 0x00, 0x00, 0x02, 0x06];
+            out.push(Frame::new(0x580 + NODE as u16, &abort));
+            return;
+        }
         self.board
             .lock()
             .unwrap()
@@ -61,6 +69,10 @@ struct Rig {
 }
 
 fn rig(cancel_after: Option<usize>) -> Rig {
+    rig_with(cancel_after, false)
+}
+
+fn rig_with(cancel_after: Option<usize>, no_stamp: bool) -> Rig {
     let plane = Plane::from_abcd(0.02, -0.03, 1.0, -45.0).unwrap();
     let sim = SimHead::new(Params::factory().head.cast(), plane, 0.002, 3).unwrap();
     let cfg = BoardConfig {
@@ -77,6 +89,7 @@ fn rig(cancel_after: Option<usize>) -> Rig {
         cancel: cancel.clone(),
         cancel_after,
         cal_writes: 0,
+        no_stamp,
     };
     // Boot (the first poll sends the boot-up) and take a few samples.
     let mut early = Vec::new();
@@ -353,4 +366,94 @@ fn thermal_tau_push_and_pull() {
         .unwrap()
         .contains("thermal_tau_s"));
     assert_eq!(pipeline_tau(&r), 0.0);
+}
+
+/// The calibration stamp: push writes the params file's hash (or the
+/// record's, with `--record`) and the time, reads it back after the reset
+/// with the board's store count; pull puts it into the file, and the
+/// pulled file pushes again.
+#[test]
+fn push_stamps_the_calibration_and_pull_reads_the_stamp() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut r = rig(None);
+    assert!(pull(&mut r.node, &r.cancel)
+        .unwrap()
+        .calibration_stamp
+        .is_none());
+    let t0 = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs() as u32;
+    let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    let st = rep.stamp.unwrap();
+    assert_eq!(st.record_hash, record_hash(&std::fs::read(&path).unwrap()));
+    assert!((t0..t0 + 60).contains(&st.utc_s), "{st:?}");
+    assert_eq!(st.store_count, 1);
+    let text = rep.to_string();
+    let line = format!("stamp {:08x} stored {}, store #1", st.record_hash, st.utc());
+    assert!(text.contains(&line), "{text}");
+    assert!(
+        st.utc().ends_with('Z') && st.utc().starts_with("20"),
+        "{st}"
+    );
+    // a second push, with a record beside the file
+    let record = dir.path().join("record.json");
+    std::fs::write(&record, b"{\"record\": 1}\n").unwrap();
+    let a = args(path.clone());
+    let st2 = push_with_record(&mut r.node, &a, Some(&record), &r.cancel)
+        .unwrap()
+        .stamp
+        .unwrap();
+    assert_eq!(st2.record_hash, record_hash(b"{\"record\": 1}\n"));
+    assert_ne!(st2.record_hash, st.record_hash);
+    assert_eq!(st2.store_count, 2);
+    assert_eq!(read_stamp(&mut r.node).unwrap(), Some(st2));
+    // pull writes it; push ignores it
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    let fs = back.calibration_stamp.clone().unwrap();
+    assert_eq!(fs, st2.to_file());
+    assert_eq!(fs.record_hash, format!("{:08x}", st2.record_hash));
+    let p2 = dir.path().join("back.json");
+    back.write(&p2).unwrap();
+    assert!(std::fs::read_to_string(&p2)
+        .unwrap()
+        .contains("\"calibration_stamp\""));
+    let rep = push(&mut r.node, &args(p2.clone()), &r.cancel).unwrap();
+    assert_eq!(rep.changed, 0);
+    let st3 = rep.stamp.unwrap();
+    assert_eq!(st3.record_hash, record_hash(&std::fs::read(&p2).unwrap()));
+    assert_eq!(st3.store_count, 3);
+    // a missing record is refused before any write
+    let missing = dir.path().join("missing.json");
+    let e = push_with_record(&mut r.node, &args(path), Some(&missing), &r.cancel).unwrap_err();
+    let e = format!("{e:#}");
+    assert!(
+        e.contains("missing.json: cannot read; nothing was written"),
+        "{e}"
+    );
+    assert_eq!(read_stamp(&mut r.node).unwrap(), Some(st3));
+}
+
+/// A firmware without 0x2011: the push stores the calibration without a
+/// stamp and says so; pull writes no stamp.
+#[test]
+fn a_firmware_without_the_stamp_is_pushed_without_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut r = rig_with(None, true);
+    let rep = push(&mut r.node, &args(path), &r.cancel).unwrap();
+    assert_eq!(rep.stamp, None);
+    assert_eq!(r.board.lock().unwrap().app().stores(), 1);
+    let text = rep.to_string();
+    assert!(
+        text.contains("no calibration stamp: the firmware of node 16")
+            && text.contains("has no 0x2011"),
+        "{text}"
+    );
+    assert_eq!(read_stamp(&mut r.node).unwrap(), None);
+    assert!(pull(&mut r.node, &r.cancel)
+        .unwrap()
+        .calibration_stamp
+        .is_none());
 }
