@@ -185,6 +185,10 @@ pub struct Figures {
     pub limit_deg: f64,
     /// Wall time of the run [s].
     pub seconds: f64,
+    /// Each fresh pose's mean normal error after the calibration [deg].
+    pub after_per_pose_deg: Vec<f64>,
+    /// The 95th percentile of the expected normal error [deg].
+    pub expected_p95_deg: f64,
 }
 
 /// One presented pose: the tracker's plane and, in a simulation, the
@@ -556,20 +560,26 @@ fn verify(
     a: &RunArgs,
     what: &str,
     cancel: &AtomicBool,
-) -> Result<(f64, Vec<Presented>)> {
+) -> Result<Verified> {
     let pdos = angle_pdos(node)?;
     node.client.nmt(node.id, Nmt::Start)?;
     let (mut sum, mut count, mut seen, mut missing) = (0.0, 0usize, Vec::new(), 0);
+    let mut per_pose = Vec::new();
     for (k, pose) in poses.iter().enumerate() {
         check_cancel(cancel, what)?;
         let label = format!("{what}: verification pose {}", k + 1);
         let p = robot.present(&label, pose, cancel)?;
         std::thread::sleep(Duration::from_millis(a.settle_ms));
         let (normals, miss) = board_normals(node, &pdos, a.verify_samples, &label)?;
-        for n in normals {
-            sum += normal_error(&n, &p.tracker.n);
-            count += 1;
+        let errors: Vec<f64> = normals
+            .iter()
+            .map(|n| normal_error(n, &p.tracker.n))
+            .collect();
+        if !errors.is_empty() {
+            per_pose.push(errors.iter().sum::<f64>() / errors.len() as f64);
         }
+        sum += errors.iter().sum::<f64>();
+        count += errors.len();
         missing += miss;
         seen.push(p);
     }
@@ -586,7 +596,21 @@ fn verify(
             count + missing
         );
     }
-    Ok((sum / count as f64, seen))
+    Ok(Verified {
+        mean_deg: sum / count as f64,
+        seen,
+        per_pose_deg: per_pose,
+    })
+}
+
+/// What one verification pass measured.
+struct Verified {
+    /// Mean normal error over every sample [deg].
+    mean_deg: f64,
+    /// The poses as presented.
+    seen: Vec<Presented>,
+    /// Each pose's mean normal error [deg] (poses with a plane).
+    per_pose_deg: Vec<f64>,
 }
 
 /// Captures every planned pose into `poses`; a reset of the node in
@@ -716,7 +740,7 @@ fn calibrate(sensors: &Path, poses: &Path, params: &Path) -> Result<()> {
 /// The calibration's expected normal error [deg RMS] over the captured
 /// poses: the bootstrap of `perpend calibrate` ([`perpend_lab::accuracy`],
 /// the paper's model refitted from the nominal head).
-fn expected_deg(sensors: &Path, poses: &Path, params: &Path) -> Result<f64> {
+fn expected_deg(sensors: &Path, poses: &Path, params: &Path) -> Result<(f64, f64)> {
     use perpend_lab::accuracy::{base_refit, expected_normal_error};
     let nominal = perpend_lab::exchange::read_sensors(sensors)?
         .sensors()
@@ -725,7 +749,7 @@ fn expected_deg(sensors: &Path, poses: &Path, params: &Path) -> Result<f64> {
     let fitted = perpend_lab::paramfile::ParamFile::read(params)?.sensors()?;
     let e = expected_normal_error(&fitted, &table, &base_refit(&nominal), 100, 1)
         .context("the calibration's expected normal error")?;
-    Ok(e.rms_deg)
+    Ok((e.rms_deg, e.p95_deg))
 }
 
 /// How far the push of the new calibration got.
@@ -758,6 +782,10 @@ struct Session<'a> {
     previous: PathBuf,
     /// The before figure, once measured.
     before_deg: Option<f64>,
+    /// The board's serial (0x1018 sub 4) as `0x…`, for the record.
+    serial: String,
+    /// Its software version (0x100A), for the record.
+    firmware: String,
 }
 
 /// What [`Session::restore`] put back, and what it could not.
@@ -776,6 +804,8 @@ impl<'a> Session<'a> {
         let heartbeat_ms = node.heartbeat_ms()?;
         let nmt = node.state(heartbeat_ms)?;
         let residual = node.client.read_f32(node.id, 0x2300, 4)?;
+        let serial = format!("{:#010x}", node.client.read_u32(node.id, 0x1018, 4)?);
+        let firmware = node.client.read_string(node.id, 0x100A, 0)?;
         let previous = args.out.join("previous.json");
         params::pull(&mut node, cancel)
             .and_then(|f| f.write(&previous))
@@ -803,6 +833,8 @@ impl<'a> Session<'a> {
             push: PushStage::NotBegun,
             previous,
             before_deg: None,
+            serial,
+            firmware,
         })
     }
 
@@ -816,9 +848,9 @@ impl<'a> Session<'a> {
             .client
             .download(id, 0x2300, 4, &raised.to_le_bytes())
             .context("raising the residual limit (0x2300 sub 4) for the before pass")?;
-        let (e, _) = verify(&mut self.node, robot, fresh, a, "before", self.cancel)?;
+        let v = verify(&mut self.node, robot, fresh, a, "before", self.cancel)?;
         self.put_back_residual()?;
-        Ok(e)
+        Ok(v.mean_deg)
     }
 
     /// Writes the residual limit found back and reads it back.
@@ -841,6 +873,7 @@ impl<'a> Session<'a> {
         let push = params::PushArgs {
             file: params.to_path_buf(),
             preop: true,
+            record: None,
         };
         let report = params::push(&mut self.node, &push, self.cancel).map_err(|e| {
             // What push says the board is left with is superseded by the
@@ -914,6 +947,7 @@ impl<'a> Session<'a> {
         let push = params::PushArgs {
             file: self.previous.clone(),
             preop: true,
+            record: None,
         };
         match params::push(&mut self.node, &push, &quiet) {
             Ok(_) => {
@@ -1012,10 +1046,11 @@ fn steps(
     println!("cell: before calibration, normal error {before:.4}° (mean)");
     capture_all(s, robot, plan, &poses)?;
     calibrate(&a.sensors, &poses, &params)?;
-    let expected = expected_deg(&a.sensors, &poses, &params)?;
+    let (expected, expected_p95) = expected_deg(&a.sensors, &poses, &params)?;
     check_cancel(s.cancel, "the calibration")?;
     s.push_new(&params)?;
-    let (after, seen) = verify(&mut s.node, robot, &fresh, a, "after", s.cancel)?;
+    let v = verify(&mut s.node, robot, &fresh, a, "after", s.cancel)?;
+    let (after, seen) = (v.mean_deg, v.seen);
     let sigma = pooled_sigma(&poses)?;
     let (head, from) = floor_head(a, &params)?;
     let floor = floor(&head, &seen, sigma, a.verify_samples, a.seed)?;
@@ -1032,6 +1067,8 @@ fn steps(
         expected_deg: expected,
         limit_deg: 1.5 * expected.hypot(floor),
         seconds: started.elapsed().as_secs_f64(),
+        after_per_pose_deg: v.per_pose_deg,
+        expected_p95_deg: expected_p95,
     })
 }
 
@@ -1077,6 +1114,8 @@ pub struct Report {
     pub before_deg: Option<f64>,
     /// The figures of a run that reached its verdict.
     pub figures: Option<Figures>,
+    /// `DIR/record.json`, when the run calibrated.
+    pub record: Option<PathBuf>,
 }
 
 /// Why a calibration is not good enough, if it is not.
@@ -1138,6 +1177,7 @@ fn judge(s: &mut Session<'_>, f: Figures) -> Report {
         problems: r.problems,
         before_deg: Some(f.before_deg),
         figures: Some(f),
+        record: None,
     }
 }
 
@@ -1161,6 +1201,7 @@ fn failed(s: &mut Session<'_>, e: &anyhow::Error) -> Report {
         problems: r.problems,
         before_deg: s.before_deg,
         figures: None,
+        record: None,
     }
 }
 
@@ -1190,10 +1231,92 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
     let mut node = Node::connect(&a.link)?;
     node.hello()?;
     let mut s = Session::begin(node, a, cancel)?;
-    Ok(match steps(&mut s, &mut robot, &plan, started) {
+    let mut report = match steps(&mut s, &mut robot, &plan, started) {
         Ok(f) => judge(&mut s, f),
         Err(e) => failed(&mut s, &e),
-    })
+    };
+    match write_record(a, &s, &report) {
+        Ok(r) => report.record = r,
+        Err(e) => report.problems.push(format!(
+            "the calibration record could not be written: {e:#}"
+        )),
+    }
+    Ok(report)
+}
+
+/// `DIR/record.json` and `DIR/cert.html` of a run that calibrated: the
+/// calibration's record (`params.record.json`, written by `perpend
+/// calibrate`) with the plan among its inputs, the board's serial and
+/// firmware, the board's previous calibration (`previous.json`) as
+/// `previous`, the verification at the fresh poses after the push (when
+/// the run got that far) and what the run did as events. A run that
+/// stopped before it calibrated has nothing to record (cell.json says
+/// why). The certificate is `perpend record cert` at its default
+/// tolerance.
+fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<PathBuf>> {
+    use perpend_lab::record::{self as rec, FileHash, Previous, Record};
+    let params = a.out.join("params.json");
+    if !params.exists() {
+        return Ok(None);
+    }
+    let beside = rec::record_path(&params);
+    let mut r = if beside.exists() {
+        Record::read(&beside)?
+    } else {
+        let file = perpend_lab::paramfile::ParamFile::read(&params)?;
+        Record::new(&[&a.sensors, &a.out.join("poses.csv")], &file)?
+    };
+    r.inputs.push(FileHash::of(&a.plan)?);
+    r = r
+        .with_board(&s.serial, &s.firmware)
+        .with_previous(Previous::of(&s.previous)?);
+    if let Some(f) = &report.figures {
+        r = r.with_verification(fresh_verification(f, a));
+    }
+    r.push_event(&format!(
+        "perpend cell run: {}: {}",
+        report.outcome.word(),
+        report.reason
+    ));
+    for d in &report.restored {
+        r.push_event(&format!("put back: {d}"));
+    }
+    for p in &report.problems {
+        r.push_event(&format!("not put back: {p}"));
+    }
+    let path = a.out.join("record.json");
+    r.write(&path)?;
+    let cert = a.out.join("cert.html");
+    std::fs::write(
+        &cert,
+        crate::record::cert_html(&r, crate::record::TOLERANCE_DEG),
+    )
+    .with_context(|| format!("{}: cannot write", cert.display()))?;
+    Ok(Some(path))
+}
+
+/// The after pass as the record's verification: each fresh pose's mean
+/// normal error, against the calibration's expected error.
+fn fresh_verification(f: &Figures, a: &RunArgs) -> perpend_lab::record::Verification {
+    use perpend_lab::record::{PoseError, Verification, KIND_FRESH};
+    let poses = f
+        .after_per_pose_deg
+        .iter()
+        .enumerate()
+        .map(|(k, e)| PoseError {
+            pose: k as i64 + 1,
+            error_deg: *e,
+        })
+        .collect();
+    let note = format!(
+        "the board's own normal (θ1/θ2 from its TPDO, {} samples a pose, after the push and \
+         reset) against the tracker's plane at {} fresh poses inside the plan's reach (seed \
+         {}); before the calibration {:.4}°, the floor ({} head at the measured reading noise) \
+         {:.4}°",
+        f.verify_samples, f.verify_poses, a.seed, f.before_deg, f.floor_head, f.floor_deg
+    );
+    Verification::from_errors(KIND_FRESH, &note, poses)
+        .with_expected(Some((f.expected_deg, f.expected_p95_deg)))
 }
 
 impl Report {
@@ -1209,6 +1332,8 @@ impl Report {
             o.insert("first_cause".into(), self.first_cause.clone().into());
             o.insert("restored".into(), self.restored.clone().into());
             o.insert("restore_problems".into(), self.problems.clone().into());
+            let rec = self.record.as_ref().map(|p| p.display().to_string());
+            o.insert("record".into(), rec.into());
         }
         v
     }
@@ -1322,6 +1447,13 @@ fn run_and_report(x: &RunArgs) -> Result<()> {
     }
     for d in &report.restored {
         println!("cell: put back: {d}");
+    }
+    if let Some(r) = &report.record {
+        println!(
+            "cell: calibration record {} and certificate {} (perpend record show|cert)",
+            r.display(),
+            r.with_file_name("cert.html").display()
+        );
     }
     println!("cell: {}: {}", report.outcome.word(), report.reason);
     match report.outcome {

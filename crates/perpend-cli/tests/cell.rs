@@ -84,4 +84,62 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     let previous = common::calibration(d, "run/previous.json");
     assert!(!common::same_geometry(&state.sensors, &previous));
     common::as_found(&state, "pre-operational");
+    // The record: inputs hashed, the board's serial and firmware, the
+    // fresh-pose verification after the push (its mean is cell.json's
+    // after figure), the previous calibration, what the run did.
+    let rec_text = std::fs::read_to_string(d.join("run/record.json")).unwrap();
+    let rec: serde_json::Value = serde_json::from_str(&rec_text).unwrap();
+    assert_eq!(rec["schema"], "perpend.record/1");
+    let inputs: Vec<&str> = rec["inputs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|i| i["path"].as_str().unwrap())
+        .collect();
+    for want in ["nominal.csv", "poses.csv", "plan.csv"] {
+        assert!(inputs.iter().any(|p| p.ends_with(want)), "{inputs:?}");
+    }
+    assert!(rec["head_serial"].as_str().unwrap().starts_with("0x"));
+    assert!(rec["firmware"].as_str().unwrap().starts_with("perpend"));
+    let v = &rec["verification"];
+    assert_eq!(v["kind"], "fresh poses");
+    assert_eq!(
+        v["poses"].as_array().unwrap().len(),
+        f["verify_poses"].as_u64().unwrap() as usize
+    );
+    // Per-pose means of equal sample counts: their mean is the overall one.
+    assert!(
+        (v["mean_deg"].as_f64().unwrap() - g("after_deg")).abs() < 1e-9,
+        "{rec_text}"
+    );
+    assert_eq!(v["expected_deg"].as_f64().unwrap(), g("expected_deg"));
+    assert!(
+        rec["previous"]["params_sha256"].as_str().is_some(),
+        "{rec_text}"
+    );
+    let events = rec["events"].as_array().unwrap();
+    assert!(
+        events
+            .iter()
+            .any(|e| e.as_str().unwrap().contains("perpend cell run: kept")),
+        "{rec_text}"
+    );
+    let cert = std::fs::read_to_string(d.join("run/cert.html")).unwrap();
+    assert!(
+        cert.contains(rec["head_serial"].as_str().unwrap()),
+        "cert without the serial"
+    );
+    // The board carries the stamp of the calibration's record.
+    let link = ["node", "--bus", &format!("tcp:{bus}"), "--node-id", "16"];
+    let info: serde_json::Value =
+        serde_json::from_str(&common::ok(&[&link[..], &["info", "--json"]].concat(), d)).unwrap();
+    let stamp = &info["calibration_stamp"];
+    let rec_hash =
+        perpend_lab::record::sha256_hex(&std::fs::read(d.join("run/params.record.json")).unwrap());
+    assert_eq!(
+        stamp["record_hash"].as_str().unwrap(),
+        &rec_hash[..8],
+        "{info}"
+    );
+    assert!(stamp["store_count"].as_u64().unwrap() >= 1);
 }

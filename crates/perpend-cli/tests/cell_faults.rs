@@ -177,6 +177,24 @@ fn an_after_pass_worse_than_the_before_pass_reverts_the_calibration() {
     let state = board_state(d, &bus, "run");
     assert_eq!(state.sensors, calibration(d, "run/previous.json"));
     as_found(&state, "pre-operational");
+    // The record says what happened, and the board's pulled calibration
+    // carries the stamp it had before the run (pushed back with it).
+    let rec: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run/record.json")).unwrap()).unwrap();
+    let events = rec["events"].to_string();
+    assert!(events.contains("perpend cell run: reverted"), "{events}");
+    let prev: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run/previous.json")).unwrap())
+            .unwrap();
+    let now: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run/now.json")).unwrap()).unwrap();
+    // (A board never stamped pulls without `calibration_stamp`: hash 0.)
+    let hash = |v: &serde_json::Value| {
+        let st = &v["calibration_stamp"];
+        let h = st["record_hash"].as_str().unwrap_or("00000000").to_string();
+        (h, st["utc_s"].as_u64().unwrap_or(0))
+    };
+    assert_eq!(hash(&now), hash(&prev), "{now}");
 }
 
 #[test]

@@ -72,6 +72,11 @@ pub struct PushArgs {
     /// for the push (without it, such a board is refused).
     #[arg(long)]
     pub preop: bool,
+    /// The calibration record whose hash stamps the board (0x2011); by
+    /// default the record `perpend calibrate --out` wrote beside the file
+    /// (`params.record.json`), else the file itself.
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
 }
 
 /// Options of `pull`.
@@ -598,13 +603,22 @@ fn abandon(node: &mut Node) -> String {
     }
 }
 
-/// `perpend node push`: [`push_with_record`] stamping the hash of the
-/// parameter file.
+/// `perpend node push`: [`push_with_record`] stamping the hash of
+/// `--record`, else of the record beside the file
+/// ([`perpend_lab::record::record_path`]) when there is one, else of the
+/// file itself. A file `pull` wrote and no record puts its stamp back
+/// (`calibration_stamp`, or none): pushing a board's own calibration back
+/// (the cell run's revert) restores what it carried.
 ///
 /// # Errors
 /// As [`push_with_record`].
 pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushReport> {
-    push_with_record(node, a, None, cancel)
+    let beside = perpend_lab::record::record_path(&a.file);
+    let record = a
+        .record
+        .clone()
+        .or_else(|| beside.exists().then_some(beside));
+    push_with_record(node, a, record.as_deref(), cancel)
 }
 
 /// A push whose calibration stamp (0x2011) takes the hash of `record`,
@@ -633,11 +647,22 @@ pub fn push_with_record(
         );
     }
     let mut values = plan(&file).with_context(|| a.file.display().to_string())?;
-    let hash = file_hash(record.unwrap_or(&a.file))?;
+    // A file `pull` wrote (method "board") and no record: its own stamp
+    // back (none stays none), so pushing a board's calibration back
+    // restores what the board carried.
+    let (hash, utc_s) = match (record, &file.calibration_stamp) {
+        (None, Some(st)) => (
+            u32::from_str_radix(&st.record_hash, 16)
+                .with_context(|| format!("{}: calibration_stamp", a.file.display()))?,
+            st.utc_s,
+        ),
+        (None, None) if file.method == "board" => (0, 0),
+        _ => (file_hash(record.unwrap_or(&a.file))?, utc_now_s()),
+    };
     fit_to_board(node, &file, &mut values)?;
     let switched = ensure_preop(node, a.preop)?;
     unlock(node, a.preop)?;
-    let stamp = stamp_values(hash, utc_now_s());
+    let stamp = stamp_values(hash, utc_s);
     let bar = Progress::new(3 * (values.len() + stamp.len()) as u64, "push");
     let (changed, stamped) = match write_phase(node, &values, &stamp, cancel, &bar) {
         Ok(c) => c,
