@@ -13,33 +13,13 @@ mod common;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{board, ok, Killed, BIN};
+use common::{board, Killed, BIN};
 
 #[test]
 fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let _ = ok(&["cell", "sim-head", "--out", "."], d);
-    let _ = ok(
-        &[
-            "plan",
-            "--sensors",
-            "nominal.csv",
-            "--n",
-            "16",
-            "--tilt-max",
-            "5",
-            "--center-tilt",
-            "17.89,-1.04",
-            "--standoff",
-            "34,37",
-            "--draws",
-            "3",
-            "--out",
-            "plan.csv",
-        ],
-        d,
-    );
+    common::head_and_plan(d, 16);
     let (_board, bus, world) = board(d, "truth.csv", &[]);
     let mut run = Killed(
         Command::new(BIN)
