@@ -225,8 +225,18 @@ fn push_reset_pull_round_trip() {
         out.contains("read back identical after the boot-up"),
         "{out}"
     );
-    // the calibration stamp: the params file's hash, store #1
-    let hash = format!("{:08x}", record_hash(&std::fs::read(&p).unwrap()));
+    // a file without a record gets one beside it (the board's serial, not
+    // verified); the calibration stamp is its hash, store #1
+    let rec_path = dir.path().join("params.record.json");
+    assert!(out.contains("calibration record"), "{out}");
+    let rec: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&rec_path).unwrap()).unwrap();
+    assert!(
+        rec["head_serial"].as_str().unwrap().starts_with("0x"),
+        "{rec}"
+    );
+    assert_eq!(rec["verification"]["kind"], "expected only", "{rec}");
+    let hash = format!("{:08x}", record_hash(&std::fs::read(&rec_path).unwrap()));
     assert!(out.contains(&format!("stamp {hash} stored 20")), "{out}");
     assert!(out.contains("Z, store #1"), "{out}");
     let info = ok(&b.node(&["info"]));

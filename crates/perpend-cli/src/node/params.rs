@@ -614,11 +614,46 @@ fn abandon(node: &mut Node) -> String {
 /// As [`push_with_record`].
 pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushReport> {
     let beside = perpend_lab::record::record_path(&a.file);
-    let record = a
-        .record
-        .clone()
-        .or_else(|| beside.exists().then_some(beside));
+    let record = match (&a.record, beside.exists()) {
+        (Some(r), _) => Some(r.clone()),
+        (None, true) => Some(beside),
+        (None, false) => write_push_record(node, &a.file)?,
+    };
     push_with_record(node, a, record.as_deref(), cancel)
+}
+
+/// A file with no record beside it (written by hand or by another tool)
+/// gets one before it is pushed: the file as its input, the board it goes
+/// to (serial 0x1018 sub 4, software 0x100A), not verified; its hash
+/// stamps the board. A file `pull` wrote gets none (it keeps its own
+/// stamp).
+///
+/// # Errors
+/// The file or the record cannot be read or written; client errors.
+fn write_push_record(node: &mut Node, file: &Path) -> Result<Option<PathBuf>> {
+    use perpend_lab::record::{Record, Verification};
+    let f = ParamFile::read(file)?;
+    if f.method == "board" {
+        return Ok(None);
+    }
+    node.hello()?;
+    let serial = format!("{:#010x}", node.client.read_u32(node.id, 0x1018, 4)?);
+    let firmware = node.client.read_string(node.id, 0x100A, 0)?;
+    let mut r = Record::new(&[file], &f)?
+        .with_board(&serial, &firmware)
+        .with_verification(Verification::expected_only(
+            "pushed by `perpend node push` from a file without a record: not verified",
+        ));
+    r.push_event(&format!(
+        "written for `perpend node push` to {}",
+        node.name()
+    ));
+    let path = r.write_beside(file)?;
+    println!(
+        "push: calibration record {} written (the file had none)",
+        path.display()
+    );
+    Ok(Some(path))
 }
 
 /// A push whose calibration stamp (0x2011) takes the hash of `record`,

@@ -391,7 +391,9 @@ fn push_stamps_the_calibration_and_pull_reads_the_stamp() {
         .as_secs() as u32;
     let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
     let st = rep.stamp.unwrap();
-    assert_eq!(st.record_hash, record_hash(&std::fs::read(&path).unwrap()));
+    // no record beside the file: one is written, and stamps the board
+    let rec = perpend_lab::record::record_path(&path);
+    assert_eq!(st.record_hash, record_hash(&std::fs::read(&rec).unwrap()));
     assert!((t0..t0 + 60).contains(&st.utc_s), "{st:?}");
     assert_eq!(st.store_count, 1);
     let text = rep.to_string();
