@@ -13,9 +13,11 @@ import pathlib
 import queue
 import subprocess
 import threading
+import traceback
 
 import canopen
 import pytest
+from canopen.sdo.exceptions import SdoAbortedError
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 EDS = ROOT / "perpend.eds"
@@ -59,6 +61,31 @@ class RawSdo:
             return None
 
 
+def connect_master(port: int) -> canopen.Network:
+    """A python-canopen master on the slcan-over-TCP port of a board."""
+    network = canopen.Network()
+    network.connect(interface="slcan", channel=f"socket://127.0.0.1:{port}", sleep_after_open=0)
+    return network
+
+
+def abort_code(fn) -> int:
+    """The abort code of the ``SdoAbortedError`` that ``fn`` raises.
+
+    python-canopen (2.4) leaves the aborted transfer's stream half open,
+    referenced from the exception's traceback. When the garbage collector
+    finalises it later, in the middle of another transfer, its ``close()``
+    sends an end segment while the network's send lock is held, and the
+    master stalls (seen: 180 s for a test that takes 2 s, depending on
+    which test ran before). Its frames are cleared here, so it is finalised
+    now, between transfers."""
+    with pytest.raises(SdoAbortedError) as e:
+        fn()
+    code = e.value.code
+    traceback.clear_frames(e.value.__traceback__)
+    del e
+    return code
+
+
 class Board:
     """A running virtual board and a master connected to it."""
 
@@ -87,12 +114,7 @@ class Board:
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
         line = self._first_line()
         self.port = int(line.rsplit(":", 1)[1])
-        self.network = canopen.Network()
-        self.network.connect(
-            interface="slcan",
-            channel=f"socket://127.0.0.1:{self.port}",
-            sleep_after_open=0,
-        )
+        self.network = connect_master(self.port)
 
     def release(self):
         """Disconnects the master: the virtual board serves one client, so
@@ -102,12 +124,7 @@ class Board:
     def reconnect(self):
         """Connects the master again after :meth:`release` (with the node
         added again where the board has a node-id, and a 50 ms LSS window)."""
-        self.network = canopen.Network()
-        self.network.connect(
-            interface="slcan",
-            channel=f"socket://127.0.0.1:{self.port}",
-            sleep_after_open=0,
-        )
+        self.network = connect_master(self.port)
         self.network.lss.RESPONSE_TIMEOUT = 0.05
         if 1 <= self.node_id <= 127:
             self.node = self.network.add_node(self.node_id, str(EDS))

@@ -23,9 +23,8 @@ import time
 
 import canopen
 import pytest
-from canopen.sdo.exceptions import SdoAbortedError
 
-from conftest import EDS, NODE_ID
+from conftest import EDS, NODE_ID, abort_code
 
 UNLOCK = 0x6C616375  # "ucal"
 SAVE = 0x65766173  # "save"
@@ -74,12 +73,6 @@ def dump(board):
         for i, s, _ in entries(od)
         if i not in LIVE
     }
-
-
-def abort_code(fn):
-    with pytest.raises(SdoAbortedError) as e:
-        fn()
-    return e.value.code
 
 
 def raw_abort(resp):

@@ -12,9 +12,8 @@ import warnings
 
 import canopen
 import pytest
-from canopen.sdo.exceptions import SdoAbortedError
 
-from conftest import EDS, NODE_ID, PLANE
+from conftest import EDS, NODE_ID, PLANE, abort_code
 
 UNLOCK = 0x6C616375  # "ucal"
 SAVE = 0x65766173  # "save"
@@ -43,12 +42,6 @@ def expected_thetas(plane=PLANE):
     """Tian eq. 1-3 in the TCS: theta1 = atan2(n_y, -n_z), theta2 = atan2(-n_x, -n_z)."""
     nx, ny, nz = expected_normal(plane)
     return math.degrees(math.atan2(ny, -nz)), math.degrees(math.atan2(-nx, -nz))
-
-
-def abort_code(fn):
-    with pytest.raises(SdoAbortedError) as e:
-        fn()
-    return e.value.code
 
 
 def raw_abort_code(resp):
