@@ -267,7 +267,7 @@ pub fn ci(args: &[String]) -> Result<()> {
         line_starting("blind:"),
     )?;
     if !no_fuzz {
-        let secs = std::env::var("PERPEND_FUZZ_SECONDS").unwrap_or_else(|_| "15".to_string());
+        let secs = std::env::var("PERPEND_FUZZ_SECONDS").unwrap_or_else(|_| "10".to_string());
         r.step(
             "fuzz smoke",
             &mut xtask(&["fuzz", "--seconds", &secs]),
