@@ -57,7 +57,7 @@ use crate::canopen::{Client, ClientError, NodeState};
 /// subcommand (`perpend node --bus B --node-id 5 info` and `perpend node
 /// info --bus B --node-id 5` are the same); `--node-id` may be left out only
 /// by the commands that address the whole bus (`lss`).
-#[derive(clap::Args, Debug)]
+#[derive(clap::Args, Debug, Clone)]
 pub struct LinkArgs {
     /// The CAN bus: `tcp:HOST:PORT` (virtual board), `slcan:/dev/ttyACM0[@BAUD]`
     /// (slcan adapter on a serial port), `socketcan:can0` (Linux SocketCAN).
@@ -75,6 +75,19 @@ pub struct LinkArgs {
     /// (default 50).
     #[arg(long, global = true)]
     pub timeout_ms: Option<u64>,
+}
+
+impl Default for LinkArgs {
+    /// No bus, no node, 1000 kbit/s, the default timeouts (as parsed from
+    /// no option).
+    fn default() -> Self {
+        Self {
+            bus: None,
+            node_id: None,
+            bitrate: 1000,
+            timeout_ms: None,
+        }
+    }
 }
 
 impl LinkArgs {
