@@ -35,6 +35,7 @@
 //! and `info` shows no stamp.
 
 pub mod capture;
+pub mod filetype;
 pub mod info;
 pub mod lss;
 pub mod mapping;
@@ -308,6 +309,10 @@ pub fn run(a: &Args) -> Result<()> {
     // LSS addresses the bus (non-configured nodes have no node-id).
     if let Cmd::Lss(x) = &a.cmd {
         return lss::run(&a.link, x, cancel);
+    }
+    // A file that is not a params.json is named before the bus is opened.
+    if let Cmd::Push(x) = &a.cmd {
+        filetype::check_params(&x.file)?;
     }
     let mut node = Node::connect(&a.link)?;
     match &a.cmd {
