@@ -11,5 +11,6 @@ pub mod cell;
 pub mod demo;
 pub mod eds;
 pub mod node;
+pub mod pipe;
 pub mod record;
 pub mod slcan;

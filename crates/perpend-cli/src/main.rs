@@ -68,6 +68,7 @@ enum Cmd {
 }
 
 fn main() -> std::process::ExitCode {
+    perpend_cli::pipe::install();
     let cli = Cli::parse();
     perpend_lab::progress::set_quiet(cli.quiet);
     let res = match cli.cmd {
@@ -87,6 +88,9 @@ fn main() -> std::process::ExitCode {
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) if perpend_cli::pipe::is_broken_pipe(&e) => {
+            std::process::ExitCode::from(perpend_cli::pipe::EXIT_BROKEN_PIPE)
+        }
         Err(e) => {
             if std::env::args().any(|a| a == "--json") {
                 println!("{}", error_json(&e));
