@@ -13,4 +13,5 @@ pub mod eds;
 pub mod node;
 pub mod pipe;
 pub mod record;
+pub mod schema;
 pub mod slcan;

@@ -102,7 +102,7 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// An error as the JSON object `--json` promises: `{"error", "file", "line"}`
+/// An error as the JSON object `--json` promises: `{"schema", "error", "file", "line"}`
 /// (file and line when a data file is at fault, else null).
 fn error_json(e: &anyhow::Error) -> String {
     let at = e
@@ -113,5 +113,5 @@ fn error_json(e: &anyhow::Error) -> String {
         "file": at.map(|x| x.file.clone()),
         "line": at.and_then(|x| x.line),
     });
-    v.to_string()
+    perpend_cli::schema::tagged(perpend_cli::schema::ERROR, &v)
 }
