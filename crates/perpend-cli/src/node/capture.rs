@@ -150,11 +150,11 @@ pub fn plane_outside(
         Some((k, name)) => format!(
             "the plane looks like {name}: D = {} is {} mm; give it in mm: --plane {},{},{},{}",
             abcd[3],
-            abcd[3] * k,
+            short(abcd[3] * k),
             abcd[0],
             abcd[1],
             abcd[2],
-            abcd[3] * k
+            short(abcd[3] * k)
         ),
         None => "check the plane's units (mm), its frame (TCS) and that the tracker measured \
                  this pose"
@@ -164,6 +164,12 @@ pub fn plane_outside(
         "the plane puts the spots outside the sensors' measuring range: {}; {fix}",
         out.join("; ")
     )))
+}
+
+/// `x` with at most 4 decimals, trailing zeros dropped.
+fn short(x: f64) -> String {
+    let s = format!("{x:.4}");
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
 }
 
 /// Refuses a plane outside the board's sensors' ranges ([`plane_outside`]),
