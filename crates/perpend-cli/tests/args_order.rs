@@ -51,28 +51,19 @@ fn node_push(args: &[&str], order: &str) {
 #[test]
 fn node_options_parse_before_and_after_the_subcommand() {
     let cmd = ["params.json", "--preop"];
-    let before: Vec<&str> = ["node"]
-        .iter()
-        .chain(&LINK)
-        .chain(&["push"])
-        .chain(&cmd)
-        .copied()
-        .collect();
-    node_push(&before, "before");
-    let after: Vec<&str> = ["node", "push"]
-        .iter()
-        .chain(&cmd)
-        .chain(&LINK)
-        .copied()
-        .collect();
-    node_push(&after, "after");
-    let mixed: Vec<&str> = ["node", "--bus", "tcp:127.0.0.1:7", "push", "params.json"]
-        .iter()
-        .chain(&["--node-id", "16", "--preop", "--bitrate", "500"])
-        .chain(&["--timeout-ms", "90"])
-        .copied()
-        .collect();
-    node_push(&mixed, "mixed");
+    node_push(&[&["node"][..], &LINK, &["push"], &cmd].concat(), "before");
+    node_push(&[&["node", "push"][..], &cmd, &LINK].concat(), "after");
+    let mixed = ["node", "--bus", "tcp:127.0.0.1:7", "push", "params.json"];
+    let rest = [
+        "--node-id",
+        "16",
+        "--preop",
+        "--bitrate",
+        "500",
+        "--timeout-ms",
+        "90",
+    ];
+    node_push(&[&mixed[..], &rest].concat(), "mixed");
 }
 
 fn cell_run(args: &[&str], order: &str) {
@@ -101,21 +92,8 @@ fn cell_options_parse_before_and_after_the_subcommand() {
         "--samples",
         "7",
     ];
-    let before: Vec<&str> = ["cell"]
-        .iter()
-        .chain(&LINK)
-        .chain(&["run"])
-        .chain(&run)
-        .copied()
-        .collect();
-    cell_run(&before, "before");
-    let after: Vec<&str> = ["cell", "run"]
-        .iter()
-        .chain(&run)
-        .chain(&LINK)
-        .copied()
-        .collect();
-    cell_run(&after, "after");
+    cell_run(&[&["cell"][..], &LINK, &["run"], &run].concat(), "before");
+    cell_run(&[&["cell", "run"][..], &run, &LINK].concat(), "after");
 }
 
 #[test]
