@@ -22,7 +22,8 @@
 //!   docs/can.md); it stays empty when the board does not have it (older
 //!   firmware: SDO abort; the virtual board: 0x200A at its "unknown" value
 //!   -273.15 °C) in any sample.
-//! * The plane is checked against the board before anything is sampled:
+//! * The plane is checked against the board before anything is sampled
+//!   ([`check_plane`], by `perpend node capture`):
 //!   the reading each sensor would give on it (the board's calibration,
 //!   Chen eq. 7) must lie in the sensor's measuring range (its transfer
 //!   function's `mm at 4 mA / 0 V`..`mm at 20 mA / 10 V`, 0x2201..); a plane
@@ -173,13 +174,15 @@ fn short(x: f64) -> String {
 }
 
 /// Refuses a plane outside the board's sensors' ranges ([`plane_outside`]),
-/// from the board's calibration and transfer functions. A calibration the
+/// from the board's calibration and transfer functions: `perpend node
+/// capture` runs it before [`run`] (a cell run captures the planes of its
+/// plan, in mm by construction, and does not). A calibration the
 /// board cannot give (a bus error, one the file format refuses) is a
 /// warning: the capture that follows reports the bus itself.
 ///
 /// # Errors
 /// The plane refused.
-fn check_plane(node: &mut Node, a: &Args, cancel: &AtomicBool) -> Result<()> {
+pub fn check_plane(node: &mut Node, a: &Args, cancel: &AtomicBool) -> Result<()> {
     let f = match super::params::pull(node, cancel) {
         Ok(f) => f,
         Err(e) => {
@@ -470,7 +473,6 @@ pub fn run(node: &mut Node, a: &Args, cancel: &AtomicBool) -> Result<()> {
     node.hello()?;
     let n = node.sensors()?;
     let existing = inspect(&a.out, n, a.pose)?;
-    check_plane(node, a, cancel)?;
     let acq = acquire(node, n, a.samples, cancel)?;
     let t0 = existing.as_ref().map_or(Some(acq.t_mid), |e| e.t0);
     let t_s = t0.map(|t0| acq.t_mid - t0);

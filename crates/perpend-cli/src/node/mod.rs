@@ -323,7 +323,10 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::Monitor(x) => monitor::run(&mut node, x, cancel),
         Cmd::Push(x) => params::push(&mut node, x, cancel).map(|r| println!("{r}")),
         Cmd::Pull(x) => params::pull_to(&mut node, x, cancel),
-        Cmd::Capture(x) => capture::run(&mut node, x, cancel),
+        Cmd::Capture(x) => {
+            capture::check_plane(&mut node, x, cancel)?;
+            capture::run(&mut node, x, cancel)
+        }
         Cmd::Lss(_) => Ok(()),
         Cmd::Sdo(x) => sdo::run(&mut node, x),
         Cmd::Pdo(x) => pdo::run(&mut node, x),
