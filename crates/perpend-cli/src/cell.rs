@@ -82,9 +82,14 @@ use rand::{Rng, SeedableRng};
 use crate::canopen::{Nmt, NodeState};
 use crate::node::{capture, params, Node};
 
-/// Arguments of `perpend cell`.
+/// Arguments of `perpend cell`. The link's options are global: they may
+/// stand before or after the subcommand (`perpend cell --bus B --node-id 5
+/// run …` and `perpend cell run --bus B --node-id 5 …` are the same).
 #[derive(clap::Args, Debug)]
 pub struct Args {
+    /// The bus and the node (for `run`).
+    #[command(flatten)]
+    pub link: crate::node::LinkArgs,
     /// What to do.
     #[command(subcommand)]
     pub cmd: Cmd,
@@ -100,10 +105,11 @@ pub enum Cmd {
 }
 
 /// Options of `cell run`.
-#[derive(clap::Args, Debug)]
+#[derive(clap::Args, Debug, Clone)]
 pub struct RunArgs {
-    /// The bus and the node.
-    #[command(flatten)]
+    /// The bus and the node: `perpend cell`'s (global) link options, filled
+    /// in by [`run`].
+    #[arg(skip)]
     pub link: crate::node::LinkArgs,
     /// The nominal head (sensors.csv) the calibration starts from.
     #[arg(long)]
@@ -1477,7 +1483,10 @@ fn run_and_report(x: &RunArgs) -> Result<()> {
 pub fn run(a: &Args) -> Result<()> {
     match &a.cmd {
         Cmd::SimHead(x) => sim_head(x),
-        Cmd::Run(x) => run_and_report(x),
+        Cmd::Run(x) => run_and_report(&RunArgs {
+            link: a.link.clone(),
+            ..x.clone()
+        }),
     }
 }
 

@@ -11,5 +11,7 @@ pub mod cell;
 pub mod demo;
 pub mod eds;
 pub mod node;
+pub mod pipe;
 pub mod record;
+pub mod schema;
 pub mod slcan;

@@ -68,6 +68,7 @@ enum Cmd {
 }
 
 fn main() -> std::process::ExitCode {
+    perpend_cli::pipe::install();
     let cli = Cli::parse();
     perpend_lab::progress::set_quiet(cli.quiet);
     let res = match cli.cmd {
@@ -87,6 +88,9 @@ fn main() -> std::process::ExitCode {
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) if perpend_cli::pipe::is_broken_pipe(&e) => {
+            std::process::ExitCode::from(perpend_cli::pipe::EXIT_BROKEN_PIPE)
+        }
         Err(e) => {
             if std::env::args().any(|a| a == "--json") {
                 println!("{}", error_json(&e));
@@ -98,7 +102,7 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// An error as the JSON object `--json` promises: `{"error", "file", "line"}`
+/// An error as the JSON object `--json` promises: `{"schema", "error", "file", "line"}`
 /// (file and line when a data file is at fault, else null).
 fn error_json(e: &anyhow::Error) -> String {
     let at = e
@@ -109,5 +113,5 @@ fn error_json(e: &anyhow::Error) -> String {
         "file": at.map(|x| x.file.clone()),
         "line": at.and_then(|x| x.line),
     });
-    v.to_string()
+    perpend_cli::schema::tagged(perpend_cli::schema::ERROR, &v)
 }

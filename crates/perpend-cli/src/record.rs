@@ -906,7 +906,11 @@ fn run_history(a: &HistoryArgs) -> Result<()> {
             .with_context(|| format!("cannot write {}", p.display()))?;
     }
     if a.json {
-        println!("{}", serde_json::to_string(&h)?);
+        let v = serde_json::to_value(&h)?;
+        println!(
+            "{}",
+            crate::schema::tagged(crate::schema::RECORD_HISTORY, &v)
+        );
     } else {
         print!("{}", history_text(&h));
         if let Some(p) = &a.plot {

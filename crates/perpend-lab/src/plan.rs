@@ -25,6 +25,16 @@
 //! the spread of the fits and the normal error is compared with what the
 //! true head achieves on the same readings (the floor).
 //!
+//! Refusals: the paper's model has `DOF` = 5 parameters per sensor and a
+//! pose gives one reading per sensor, so no plan of fewer than `DOF + 1`
+//! poses (the least-squares fit wants one reading more than its unknowns)
+//! calibrates; the minimum of a reach ([`min_poses`]) is the smallest
+//! count whose D-optimal design every sensor's estimator accepts (full
+//! rank, scaled condition within [`Thresholds::max_condition`], judged by
+//! [`assess`] on the planned poses). `perpend plan` refuses fewer poses,
+//! refuses a plan of which any simulated calibration fails, and warns when
+//! the declared reading noise is not a laser sensor's ([`SIGMA_PLAUSIBLE_MM`]).
+//!
 //! Limits: the design is local (the gradients at the nominal head: a head
 //! whose errors are far larger than the paper's changes them little); it
 //! plans for the paper's model, not for an extension (a thermal or drift
@@ -34,7 +44,7 @@
 
 use anyhow::{anyhow, bail, Result};
 use nalgebra::{SMatrix, Vector3};
-use perpend_core::calib::{fit_sensor_base, LsqConfig};
+use perpend_core::calib::{assess, fit_sensor_base, LsqConfig, Status, Thresholds};
 use perpend_core::ext::Context;
 use perpend_core::geometry::Plane;
 use perpend_core::head::{Head4, Sensor, DOF};
@@ -167,10 +177,15 @@ fn sum(infos: &[Vec<Info>], pick: &[usize], n_sensors: usize, ridge: f64) -> Vec
 /// (module docs).
 ///
 /// # Errors
-/// Fewer reachable poses than asked, or fewer than 3 asked.
+/// Fewer reachable poses than asked, or not more poses than parameters
+/// per sensor ([`min_poses`] gives the count that identifies the head).
 pub fn plan(head: &[Sensor<f64>], reach: &Reach, n: usize) -> Result<Vec<PlannedPose>> {
-    if n < 3 {
-        bail!("{n} poses cannot identify 5 parameters per sensor: plan at least 3 (8 or more in practice)");
+    if n <= DOF {
+        bail!(
+            "{n} poses cannot identify {DOF} parameters per sensor: plan at least {} \
+             (8 or more in practice)",
+            DOF + 1
+        );
     }
     let cands = reach.grid(head);
     let infos: Vec<Vec<Info>> = cands.iter().filter_map(|p| info(head, p)).collect();
@@ -229,6 +244,96 @@ fn exchange(infos: &[Vec<Info>], pick: &mut [usize], ns: usize) {
             break;
         }
     }
+}
+
+/// Reading noise (1σ) [mm] a laser triangulation sensor can declare: from
+/// 0.1 µm (the best confocal sensors) to 0.1 mm (the coarsest
+/// triangulation sensors over a 100 mm range). Outside, the value is most
+/// likely in another unit (10 typed for 10 µm).
+pub const SIGMA_PLAUSIBLE_MM: (f64, f64) = (1e-4, 0.1);
+
+/// The warning for a declared reading noise `sigma_mm` outside
+/// [`SIGMA_PLAUSIBLE_MM`], `source` naming where it was declared.
+pub fn sigma_warning(sigma_mm: f64, source: &str) -> Option<String> {
+    let (lo, hi) = SIGMA_PLAUSIBLE_MM;
+    if (lo..=hi).contains(&sigma_mm) {
+        return None;
+    }
+    let hint = if sigma_mm > hi {
+        format!(
+            "micrometres typed into a millimetre column? {sigma_mm} µm = {} mm",
+            sigma_mm / 1000.0
+        )
+    } else {
+        "metres or a typo?".to_string()
+    };
+    Some(format!(
+        "declared reading noise σ = {sigma_mm} mm ({source}) is not a laser sensor's ({lo}-{hi} mm): \
+         {hint}; the expected figures below assume it"
+    ))
+}
+
+/// The smallest number of poses of `reach` whose D-optimal plan every
+/// sensor of `head` can be calibrated from, and the worst sensor's scaled
+/// condition number there (module docs). Searched from `DOF + 1` up to
+/// `cap` poses.
+///
+/// # Errors
+/// No count up to `cap` (or up to the reachable poses) identifies the head:
+/// the reach is too narrow.
+pub fn min_poses(head: &[Sensor<f64>], reach: &Reach, cap: usize) -> Result<(usize, f64)> {
+    let th = Thresholds::<f64>::default();
+    let reachable = reach.grid(head).len();
+    let mut last = f64::INFINITY;
+    for n in DOF + 1..=cap.min(reachable) {
+        let planes: Vec<Plane<f64>> = plan(head, reach, n)?
+            .iter()
+            .map(PlannedPose::plane)
+            .collect();
+        let table = exact_table(head, &planes);
+        let mut worst = 0.0_f64;
+        let mut ok = true;
+        for (i, s) in head.iter().enumerate() {
+            match assess(s, i, &table, &th) {
+                Ok(d) if d.status != Status::NotIdentifiable => worst = worst.max(d.condition),
+                Ok(d) => {
+                    ok = false;
+                    worst = worst.max(d.condition);
+                }
+                Err(_) => ok = false,
+            }
+        }
+        if ok {
+            return Ok((n, worst));
+        }
+        last = worst;
+    }
+    bail!(
+        "no plan of up to {} poses in ±{}° and {:.1}-{:.1} mm identifies every sensor \
+         (condition {last:.1e}, limit {:.0e}): widen --tilt-max or --standoff",
+        cap.min(reachable),
+        reach.tilt_max_deg,
+        reach.standoff_mm.0,
+        reach.standoff_mm.1,
+        th.max_condition
+    )
+}
+
+/// Noise-free readings of `head` on `planes` (what [`assess`] judges).
+fn exact_table(head: &[Sensor<f64>], planes: &[Plane<f64>]) -> PoseTable {
+    let sim = SimHead {
+        name: "nominal".into(),
+        nominal: head.to_vec(),
+        truth: head.to_vec(),
+        sigma_mm: None,
+        standoff_mm: 0.0,
+    };
+    let mut cfg = SimConfig::paper();
+    cfg.zeta_mm = 0.0;
+    cfg.tracker = None;
+    cfg.dropout = 0.0;
+    cfg.range_mm = None;
+    simulate_on(&sim, &cfg, planes, &mut StdRng::seed_from_u64(0))
 }
 
 /// What a plan is expected to give, from simulated calibrations.
@@ -516,9 +621,14 @@ pub struct Args {
     pub json: bool,
 }
 
+/// Schema of `perpend plan --json` (docs/json.md).
+pub const PLAN_SCHEMA: &str = "perpend.plan/1";
+
 /// `perpend plan --json`.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PlanJson {
+    /// `perpend.plan/<version>`.
+    pub schema: &'static str,
     /// The poses, in the order to visit them.
     pub poses: Vec<PlannedPose>,
     /// Expected figures from simulated calibrations.
@@ -530,12 +640,79 @@ pub struct PlanJson {
 /// Runs `perpend plan`.
 ///
 /// # Errors
-/// Unreadable or malformed head, impossible reach, I/O.
+/// Unreadable or malformed head, impossible reach, fewer poses than the
+/// head needs, a simulated calibration that fails, I/O. Nothing is written
+/// then.
 pub fn run(a: &Args) -> Result<()> {
     let table = crate::exchange::read_sensors(&a.sensors)?;
     let nominal = table
         .sensors()
         .map_err(|e| anyhow!("{}: {e}", a.sensors.display()))?;
+    let reach = reach_of(a)?;
+    let declared = table
+        .rows
+        .iter()
+        .filter_map(|r| r.sigma_mm)
+        .fold(0.0, f64::max);
+    let (zeta, source) = if declared > 0.0 {
+        (declared, format!("sigma_mm of {}", a.sensors.display()))
+    } else {
+        (a.sigma_mm, "--sigma-mm".to_string())
+    };
+    if let Some(w) = sigma_warning(zeta, &source) {
+        eprintln!("warning: {w}");
+    }
+    let (min, cond) = min_poses(&nominal, &reach, MIN_POSES_CAP.max(a.n))?;
+    if a.n < min {
+        bail!(
+            "{} poses cannot calibrate this head: the model has {DOF} parameters per sensor \
+             ({} for {} sensors), one reading per sensor and pose, and the fit needs one reading \
+             more than its unknowns; in this reach the planned design identifies every sensor \
+             from {min} poses (worst condition {cond:.1e}, limit {:.0e}): use --n {min} or more \
+             ({} or more for figures near the floor, `perpend bench plan`)",
+            a.n,
+            DOF * nominal.len(),
+            nominal.len(),
+            Thresholds::<f64>::default().max_condition,
+            min.max(8)
+        );
+    }
+    let poses = plan(&nominal, &reach, a.n)?;
+    let planes: Vec<Plane<f64>> = poses.iter().map(PlannedPose::plane).collect();
+    let (head, cfg, test) = simulation(nominal, &reach, zeta, a.xi_mm);
+    let lsq = LsqConfig::default();
+    let expected = evaluate(&head, &cfg, &planes, &test, a.draws, (1, 2), &lsq)?;
+    if expected.ok < expected.draws || expected.draws == 0 {
+        bail!(
+            "{} of {} simulated calibrations of this plan failed (ζ = {zeta} mm, tracker ξ = {} mm): \
+             the {} poses do not identify the head under this noise (the noise-free minimum \
+             here is {min}); plan more poses (--n) or a wider reach. Nothing written",
+            expected.draws - expected.ok,
+            expected.draws,
+            a.xi_mm,
+            a.n,
+        );
+    }
+    write_csv(&a.out, &poses)?;
+    if a.json {
+        let j = PlanJson {
+            schema: PLAN_SCHEMA,
+            poses,
+            expected,
+            out: a.out.display().to_string(),
+        };
+        println!("{}", serde_json::to_string_pretty(&j)?);
+        return Ok(());
+    }
+    print_report(&poses, &expected, zeta, a, &reach);
+    Ok(())
+}
+
+/// Largest pose count [`min_poses`] tries when `--n` asks for fewer.
+const MIN_POSES_CAP: usize = 40;
+
+/// The reach of `perpend plan`'s arguments.
+fn reach_of(a: &Args) -> Result<Reach> {
     let (&[s0, s1], &[cx, cy]) = (a.standoff.as_slice(), a.center_tilt.as_slice()) else {
         bail!("--standoff takes MIN,MAX and --center-tilt θ1,θ2: two numbers each");
     };
@@ -545,17 +722,22 @@ pub fn run(a: &Args) -> Result<()> {
             "--tilt-max must be in [0, 45) degrees and --standoff MIN,MAX a range with MAX > MIN"
         );
     }
-    let reach = Reach {
+    Ok(Reach {
         center_deg: (cx, cy),
         tilt_max_deg: a.tilt_max,
         standoff_mm: (lo, hi),
-    };
-    let poses = plan(&nominal, &reach, a.n)?;
-    let sigma = table
-        .rows
-        .iter()
-        .filter_map(|r| r.sigma_mm)
-        .fold(0.0, f64::max);
+    })
+}
+
+/// The simulated truth (the nominal head), the noise and the test spread
+/// behind a plan's expected figures.
+fn simulation(
+    nominal: Vec<Sensor<f64>>,
+    reach: &Reach,
+    zeta_mm: f64,
+    xi_mm: f64,
+) -> (SimHead, SimConfig, PoseSpread) {
+    let (lo, hi) = reach.standoff_mm;
     let head = SimHead {
         name: "nominal".into(),
         nominal: nominal.clone(),
@@ -564,41 +746,20 @@ pub fn run(a: &Args) -> Result<()> {
         standoff_mm: 0.5 * (lo + hi),
     };
     let mut cfg = SimConfig::paper();
-    cfg.zeta_mm = if sigma > 0.0 { sigma } else { a.sigma_mm };
+    cfg.zeta_mm = zeta_mm;
     cfg.tracker = Some(crate::sim::Tracker {
-        xi_mm: a.xi_mm,
+        xi_mm,
         ..crate::sim::Tracker::paper()
     });
     let test = PoseSpread {
         center_tilt_x_deg: reach.center_deg.0,
         center_tilt_y_deg: reach.center_deg.1,
-        tilt_x_range_deg: 2.0 * a.tilt_max,
-        tilt_y_range_deg: 2.0 * a.tilt_max,
+        tilt_x_range_deg: 2.0 * reach.tilt_max_deg,
+        tilt_y_range_deg: 2.0 * reach.tilt_max_deg,
         standoff_mm: 0.5 * (lo + hi),
         standoff_range_mm: hi - lo,
     };
-    let planes: Vec<Plane<f64>> = poses.iter().map(PlannedPose::plane).collect();
-    let expected = evaluate(
-        &head,
-        &cfg,
-        &planes,
-        &test,
-        a.draws,
-        (1, 2),
-        &LsqConfig::default(),
-    )?;
-    write_csv(&a.out, &poses)?;
-    if a.json {
-        let j = PlanJson {
-            poses,
-            expected,
-            out: a.out.display().to_string(),
-        };
-        println!("{}", serde_json::to_string_pretty(&j)?);
-        return Ok(());
-    }
-    print_report(&poses, &expected, cfg.zeta_mm, a, &reach);
-    Ok(())
+    (head, cfg, test)
 }
 
 fn write_csv(path: &std::path::Path, poses: &[PlannedPose]) -> Result<()> {
@@ -754,6 +915,52 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("reachable"));
+    }
+
+    /// The minimum is where the estimator starts to accept the planned
+    /// design: its plan calibrates every simulated draw, and the same plan
+    /// without its last pose calibrates none.
+    #[test]
+    fn the_minimum_calibrates_and_one_pose_less_does_not() {
+        let (h, reach) = paper();
+        let (n, cond) = min_poses(&h.nominal, &reach, 40).unwrap();
+        assert!(n > DOF, "minimum {n} not above the {DOF} parameters");
+        assert!(cond <= Thresholds::<f64>::default().max_condition, "{cond}");
+        let planes: Vec<Plane<f64>> = plan(&h.nominal, &reach, n)
+            .unwrap()
+            .iter()
+            .map(PlannedPose::plane)
+            .collect();
+        let (cfg, spread, lsq) = (
+            SimConfig::paper(),
+            PoseSpread::paper(),
+            LsqConfig::default(),
+        );
+        let e = evaluate(&h, &cfg, &planes, &spread, 4, (3, 4), &lsq).unwrap();
+        assert_eq!(e.ok, 4, "the minimum's plan failed a calibration");
+        let fewer = evaluate(&h, &cfg, &planes[..n - 1], &spread, 4, (3, 4), &lsq).unwrap();
+        assert_eq!(
+            fewer.ok,
+            0,
+            "{} poses calibrated: the minimum is not tight",
+            n - 1
+        );
+    }
+
+    #[test]
+    fn a_reach_without_tilt_has_no_minimum() {
+        let (h, mut reach) = paper();
+        reach.tilt_max_deg = 0.0;
+        let e = min_poses(&h.nominal, &reach, 40).unwrap_err().to_string();
+        assert!(e.contains("widen --tilt-max"), "{e}");
+    }
+
+    #[test]
+    fn a_sigma_in_micrometres_is_a_warning_with_the_conversion() {
+        let w = sigma_warning(10.0, "sigma_mm").unwrap();
+        assert!(w.contains("10 µm = 0.01 mm"), "{w}");
+        assert!(sigma_warning(0.01, "sigma_mm").is_none());
+        assert!(sigma_warning(1e-6, "--sigma-mm").is_some());
     }
 
     /// Paired on the same test planes: 12 planned poses calibrate better

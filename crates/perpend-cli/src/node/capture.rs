@@ -22,6 +22,14 @@
 //!   docs/can.md); it stays empty when the board does not have it (older
 //!   firmware: SDO abort; the virtual board: 0x200A at its "unknown" value
 //!   -273.15 °C) in any sample.
+//! * The plane is checked against the board before anything is sampled
+//!   ([`check_plane`], by `perpend node capture`):
+//!   the reading each sensor would give on it (the board's calibration,
+//!   Chen eq. 7) must lie in the sensor's measuring range (its transfer
+//!   function's `mm at 4 mA / 0 V`..`mm at 20 mA / 10 V`, 0x2201..); a plane
+//!   that puts a spot outside (by more than [`RANGE_MARGIN`]) is refused with the sensor, the predicted
+//!   reading and the range, and named as inches or micrometres when `D`
+//!   × 25.4 or × 0.001 would put every spot inside.
 //! * Ctrl-C appends nothing.
 
 use std::collections::HashMap;
@@ -32,6 +40,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::{bail, Context as _, Result};
 use perpend_can::status::{self, SENSOR_VALID};
+use perpend_core::geometry::Plane;
+use perpend_core::head::Sensor;
+use perpend_core::model::distance;
 use perpend_lab::progress::Progress;
 
 use super::{words, Node};
@@ -80,6 +91,122 @@ fn parse_abcd(s: &str) -> Result<[f64; 4]> {
         .collect::<Result<_, _>>()?;
     v.try_into()
         .map_err(|_| anyhow::anyhow!("plane '{s}': expected four numbers A,B,C,D"))
+}
+
+/// Fraction of a sensor's span a predicted spot may lie beyond either end
+/// of its range: the prediction uses the board's calibration, which before
+/// the first calibration is the nominal head, off by tenths of a mm (Chen
+/// Table 2); the board itself flags the samples that do fall outside.
+pub const RANGE_MARGIN: f64 = 0.05;
+
+/// Each sensor's measuring range [mm] (low, high), `None` when unknown.
+pub type Ranges = [Option<(f64, f64)>];
+
+/// Why the plane `abcd` (as given, mm) cannot be captured by `sensors`
+/// with measuring `ranges`: the spots it puts outside (sensor, predicted
+/// reading, range) and, when its `D` scaled by 25.4 or 0.001 fits every
+/// sensor, that it looks like inches or micrometres. `None`: every spot is
+/// in range.
+///
+/// # Errors
+/// `abcd` is not a plane.
+pub fn plane_outside(
+    sensors: &[Sensor<f64>],
+    ranges: &Ranges,
+    abcd: [f64; 4],
+) -> Result<Option<String>> {
+    let misses = |k: f64| -> Result<Vec<String>> {
+        let p = Plane::from_abcd(abcd[0], abcd[1], abcd[2], abcd[3] * k)
+            .map_err(|e| anyhow::anyhow!("plane {abcd:?}: {e}"))?;
+        Ok(sensors
+            .iter()
+            .zip(ranges)
+            .enumerate()
+            .filter_map(|(i, (s, r))| {
+                let (lo, hi) = (*r)?;
+                let m = RANGE_MARGIN * (hi - lo);
+                match distance(s, &p, i) {
+                    Ok(d) if (lo - m..=hi + m).contains(&d) => None,
+                    Ok(d) => Some(format!(
+                        "sensor {} would read {d:.2} mm (range {lo}-{hi} mm)",
+                        i + 1
+                    )),
+                    Err(e) => Some(format!("{e} (range {lo}-{hi} mm)")),
+                }
+            })
+            .collect())
+    };
+    let out = misses(1.0)?;
+    if out.is_empty() {
+        return Ok(None);
+    }
+    let mut unit = None;
+    for (k, name) in [(25.4, "inches"), (0.001, "micrometres")] {
+        if misses(k)?.is_empty() {
+            unit = Some((k, name));
+            break;
+        }
+    }
+    let fix = match unit {
+        Some((k, name)) => format!(
+            "the plane looks like {name}: D = {} is {} mm; give it in mm: --plane {},{},{},{}",
+            abcd[3],
+            short(abcd[3] * k),
+            abcd[0],
+            abcd[1],
+            abcd[2],
+            short(abcd[3] * k)
+        ),
+        None => "check the plane's units (mm), its frame (TCS) and that the tracker measured \
+                 this pose"
+            .to_string(),
+    };
+    Ok(Some(format!(
+        "the plane puts the spots outside the sensors' measuring range: {}; {fix}",
+        out.join("; ")
+    )))
+}
+
+/// `x` with at most 4 decimals, trailing zeros dropped.
+fn short(x: f64) -> String {
+    let s = format!("{x:.4}");
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
+}
+
+/// Refuses a plane outside the board's sensors' ranges ([`plane_outside`]),
+/// from the board's calibration and transfer functions: `perpend node
+/// capture` runs it before [`run`] (a cell run captures the planes of its
+/// plan, in mm by construction, and does not). A calibration the
+/// board cannot give (a bus error, one the file format refuses) is a
+/// warning: the capture that follows reports the bus itself.
+///
+/// # Errors
+/// The plane refused.
+pub fn check_plane(node: &mut Node, a: &Args, cancel: &AtomicBool) -> Result<()> {
+    let f = match super::params::pull(node, cancel) {
+        Ok(f) => f,
+        Err(e) => {
+            eprintln!("warning: the plane is not checked against the sensors' ranges: {e:#}");
+            return Ok(());
+        }
+    };
+    let sensors = f.sensors()?;
+    let ranges: Vec<Option<(f64, f64)>> = f
+        .sensors
+        .iter()
+        .map(|s| {
+            let t = s.transfer.as_ref()?;
+            Some((t.mm_at_low.min(t.mm_at_high), t.mm_at_low.max(t.mm_at_high)))
+        })
+        .collect();
+    if let Some(why) = plane_outside(&sensors, &ranges, parse_abcd(&a.plane)?)? {
+        bail!(
+            "--plane {} on {}: {why}; nothing was appended",
+            a.plane,
+            node.name()
+        );
+    }
+    Ok(())
 }
 
 /// The header a new file gets for `n` sensors.
@@ -387,6 +514,38 @@ pub fn run(node: &mut Node, a: &Args, cancel: &AtomicBool) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    /// A plane 40 mm away fits a 20-80 mm sensor; the same plane in
+    /// inches (and in micrometres) is named as such, with the value in mm;
+    /// a plane far away is refused with the predicted reading.
+    #[test]
+    fn a_plane_outside_the_range_is_named_with_its_unit() {
+        let head = perpend_core::head::Head4::cone(15.0, 0.3, 0.0, 0.0).unwrap();
+        let sensors = head.sensors.to_vec();
+        let ranges = vec![Some((20.0, 80.0)); 4];
+        assert_eq!(
+            plane_outside(&sensors, &ranges, [0.0, 0.0, 1.0, -40.0]).unwrap(),
+            None
+        );
+        let inch = [0.0, 0.0, 1.0, -40.0 / 25.4];
+        let e = plane_outside(&sensors, &ranges, inch).unwrap().unwrap();
+        assert!(e.contains("looks like inches"), "{e}");
+        assert!(e.contains("--plane 0,0,1,-40"), "{e}");
+        assert!(e.contains("(range 20-80 mm)"), "{e}");
+        let um = plane_outside(&sensors, &ranges, [0.0, 0.0, 1.0, -40_000.0])
+            .unwrap()
+            .unwrap();
+        assert!(um.contains("looks like micrometres"), "{um}");
+        let far = plane_outside(&sensors, &ranges, [0.0, 0.0, 1.0, -300.0])
+            .unwrap()
+            .unwrap();
+        assert!(
+            far.contains("sensor 1 would read") && far.contains("check the plane's units"),
+            "{far}"
+        );
+        // unknown ranges are not judged
+        assert_eq!(plane_outside(&sensors, &[None; 4], inch).unwrap(), None);
+    }
 
     #[test]
     fn existing_files_are_checked_before_anything_is_measured() {

@@ -120,7 +120,7 @@ fn read_stamp(node: &mut Node) -> Result<serde_json::Value> {
 pub fn info(node: &mut Node, a: &InfoArgs) -> Result<()> {
     let v = gather(node)?;
     if a.json {
-        println!("{v}");
+        println!("{}", crate::schema::tagged(crate::schema::NODE_INFO, &v));
         return Ok(());
     }
     let s = |k: &str| v[k].as_str().unwrap_or("").to_string();
@@ -299,7 +299,7 @@ pub fn status(node: &mut Node, a: &InfoArgs) -> Result<()> {
             "status_words": words::status_words(st, sensors),
             "error_register": reg, "uptime_s": times.as_ref().map(|t| t.0), "errors": e,
         });
-        println!("{v}");
+        println!("{}", crate::schema::tagged(crate::schema::NODE_STATUS, &v));
         return Ok(());
     }
     println!("{}: status {st:#010x} at sample {sample}", node.name());
@@ -363,10 +363,9 @@ pub fn clear_errors(node: &mut Node, a: &InfoArgs) -> Result<()> {
         );
     }
     if a.json {
-        let v = json!({"schema": "perpend.clear-errors/1", "node_id": id, "cleared": before,
-                       "error_register": reg,
+        let v = json!({"node_id": id, "cleared": before, "error_register": reg,
                        "error_register_words": words::error_register_words(reg)});
-        println!("{v}");
+        println!("{}", crate::schema::tagged(crate::schema::CLEAR_ERRORS, &v));
         return Ok(());
     }
     println!(

@@ -300,7 +300,8 @@ fn scan(c: &mut Client, link: &LinkArgs, a: &ScanArgs, cancel: &AtomicBool) -> R
                 v
             })
             .collect();
-        println!("{}", json!({"bus": bus, "stored": a.store, "nodes": nodes}));
+        let v = json!({"bus": bus, "stored": a.store, "nodes": nodes});
+        println!("{}", crate::schema::tagged(crate::schema::LSS_SCAN, &v));
         return Ok(());
     }
     if found.is_empty() {
@@ -391,7 +392,7 @@ fn inquire(c: &mut Client, link: &LinkArgs, a: &InquireArgs) -> Result<()> {
         let mut v = identity_json(&s.identity);
         v["bus"] = json!(c.bus_name());
         v["node_id"] = json!(configured.then_some(s.node_id));
-        println!("{v}");
+        println!("{}", crate::schema::tagged(crate::schema::LSS_INQUIRE, &v));
         return Ok(());
     }
     println!("{} ({}):", c.bus_name(), s.how);

@@ -35,6 +35,7 @@
 //! and `info` shows no stamp.
 
 pub mod capture;
+pub mod filetype;
 pub mod info;
 pub mod lss;
 pub mod mapping;
@@ -57,7 +58,7 @@ use crate::canopen::{Client, ClientError, NodeState};
 /// subcommand (`perpend node --bus B --node-id 5 info` and `perpend node
 /// info --bus B --node-id 5` are the same); `--node-id` may be left out only
 /// by the commands that address the whole bus (`lss`).
-#[derive(clap::Args, Debug)]
+#[derive(clap::Args, Debug, Clone)]
 pub struct LinkArgs {
     /// The CAN bus: `tcp:HOST:PORT` (virtual board), `slcan:/dev/ttyACM0[@BAUD]`
     /// (slcan adapter on a serial port), `socketcan:can0` (Linux SocketCAN).
@@ -75,6 +76,19 @@ pub struct LinkArgs {
     /// (default 50).
     #[arg(long, global = true)]
     pub timeout_ms: Option<u64>,
+}
+
+impl Default for LinkArgs {
+    /// No bus, no node, 1000 kbit/s, the default timeouts (as parsed from
+    /// no option).
+    fn default() -> Self {
+        Self {
+            bus: None,
+            node_id: None,
+            bitrate: 1000,
+            timeout_ms: None,
+        }
+    }
 }
 
 impl LinkArgs {
@@ -296,6 +310,10 @@ pub fn run(a: &Args) -> Result<()> {
     if let Cmd::Lss(x) = &a.cmd {
         return lss::run(&a.link, x, cancel);
     }
+    // A file that is not a params.json is named before the bus is opened.
+    if let Cmd::Push(x) = &a.cmd {
+        filetype::check_params(&x.file)?;
+    }
     let mut node = Node::connect(&a.link)?;
     match &a.cmd {
         Cmd::Info(x) => info::info(&mut node, x),
@@ -305,7 +323,10 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::Monitor(x) => monitor::run(&mut node, x, cancel),
         Cmd::Push(x) => params::push(&mut node, x, cancel).map(|r| println!("{r}")),
         Cmd::Pull(x) => params::pull_to(&mut node, x, cancel),
-        Cmd::Capture(x) => capture::run(&mut node, x, cancel),
+        Cmd::Capture(x) => {
+            capture::check_plane(&mut node, x, cancel)?;
+            capture::run(&mut node, x, cancel)
+        }
         Cmd::Lss(_) => Ok(()),
         Cmd::Sdo(x) => sdo::run(&mut node, x),
         Cmd::Pdo(x) => pdo::run(&mut node, x),

@@ -340,10 +340,8 @@ pub fn run(node: &mut Node, a: &Args) -> Result<()> {
             node.hello()?;
             let pdos = mapping::read(node)?;
             if *json {
-                println!(
-                    "{}",
-                    json!({"schema": "perpend.pdo/1", "node_id": node.id, "pdos": pdos})
-                );
+                let v = json!({"node_id": node.id, "pdos": pdos});
+                println!("{}", crate::schema::tagged(crate::schema::PDO, &v));
             } else {
                 println!("{}", node.name());
                 for l in mapping::lines(&pdos) {

@@ -462,7 +462,7 @@ fn read(node: &mut Node, eds: &Eds, a: &ReadArgs) -> Result<()> {
         if let Some(Err(why)) = &value {
             v["decode_error"] = json!(why);
         }
-        println!("{v}");
+        println!("{}", crate::schema::tagged(SCHEMA, &v));
         return Ok(());
     }
     match (e, value) {
@@ -573,7 +573,7 @@ fn write(node: &mut Node, eds: &Eds, a: &WriteArgs) -> Result<()> {
                 "value": new_v.as_ref().map(to_json), "raw_hex": new.as_deref().map(hex),
             }),
         );
-        println!("{v}");
+        println!("{}", crate::schema::tagged(SCHEMA, &v));
         return Ok(());
     }
     let u = unit_suffix(&e);
@@ -645,7 +645,7 @@ fn list_eds(eds: &Eds, a: &ListArgs) -> Result<()> {
     if a.json {
         let rows: Vec<_> = entries.iter().map(|e| list_json(e)).collect();
         let v = json!({"schema": SCHEMA, "op": "list", "eds": eds.file, "entries": rows});
-        println!("{v}");
+        println!("{}", crate::schema::tagged(SCHEMA, &v));
         return Ok(());
     }
     // A long listing is often piped into `head` or `grep -m`: a closed

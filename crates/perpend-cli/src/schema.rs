@@ -1,0 +1,73 @@
+//! The `schema` tag of every `--json` output of `perpend` outside the
+//! analysis commands: `"schema": "perpend.<kind>/<version>"`, always the
+//! first key, so that a consumer can dispatch on the first bytes and refuse
+//! a version it does not know. docs/json-node.md lists each shape.
+//!
+//! The version changes when a key is removed or changes meaning; added keys
+//! keep it. serde_json's maps are sorted (no `preserve_order`), so the tag
+//! is written in front of the object by [`tagged`] rather than inserted.
+
+use serde_json::Value;
+
+/// `perpend node info --json`.
+pub const NODE_INFO: &str = "perpend.node-info/1";
+/// `perpend node status --json`.
+pub const NODE_STATUS: &str = "perpend.node-status/1";
+/// `perpend node clear-errors --json`.
+pub const CLEAR_ERRORS: &str = "perpend.clear-errors/1";
+/// `perpend node pdo show --json`.
+pub const PDO: &str = "perpend.pdo/1";
+/// `perpend node lss scan --json`.
+pub const LSS_SCAN: &str = "perpend.lss-scan/1";
+/// `perpend node lss inquire --json`.
+pub const LSS_INQUIRE: &str = "perpend.lss-inquire/1";
+/// `perpend record history --json`.
+pub const RECORD_HISTORY: &str = "perpend.record-history/1";
+/// The error object of any command run with `--json`.
+pub const ERROR: &str = "perpend.error/1";
+
+/// `v` as one line of JSON with `"schema": schema` as its first key (a
+/// `schema` key `v` has is replaced). A value that is not an object is
+/// wrapped as `{"schema": …, "value": v}`.
+pub fn tagged(schema: &str, v: &Value) -> String {
+    let mut out = format!("{{\"schema\":{}", Value::from(schema));
+    match v {
+        Value::Object(m) => {
+            for (k, x) in m.iter().filter(|(k, _)| k.as_str() != "schema") {
+                out.push(',');
+                out.push_str(&Value::from(k.as_str()).to_string());
+                out.push(':');
+                out.push_str(&x.to_string());
+            }
+        }
+        other => {
+            out.push_str(",\"value\":");
+            out.push_str(&other.to_string());
+        }
+    }
+    out.push('}');
+    out
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn the_schema_comes_first_and_the_rest_is_kept() {
+        let v = json!({"a": 1, "schema": "old", "z": {"k": [1, "\"q\""]}});
+        let s = tagged(PDO, &v);
+        assert!(
+            s.starts_with("{\"schema\":\"perpend.pdo/1\",\"a\":1"),
+            "{s}"
+        );
+        let back: Value = serde_json::from_str(&s).unwrap();
+        assert_eq!(back["z"], v["z"]);
+        assert_eq!(back["schema"], PDO);
+        assert_eq!(back.as_object().unwrap().len(), 3);
+        let w: Value = serde_json::from_str(&tagged(ERROR, &json!([1]))).unwrap();
+        assert_eq!(w["value"], json!([1]));
+    }
+}
