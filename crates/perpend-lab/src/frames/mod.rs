@@ -58,6 +58,7 @@
 //! own point noise are not modelled; a four-sensor head for the normal
 //! errors.
 
+pub mod bench;
 pub mod estimate;
 
 pub use estimate::{estimate, identify, FrameFit, FrameIdent, Ident};
