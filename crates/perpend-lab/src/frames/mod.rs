@@ -60,6 +60,7 @@
 
 pub mod bench;
 pub mod estimate;
+pub mod plan;
 
 pub use estimate::{estimate, identify, FrameFit, FrameIdent, Ident};
 
