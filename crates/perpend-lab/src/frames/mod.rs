@@ -61,6 +61,7 @@
 pub mod bench;
 pub mod estimate;
 pub mod plan;
+pub mod report;
 
 pub use estimate::{estimate, identify, FrameFit, FrameIdent, Ident};
 
@@ -140,6 +141,17 @@ impl FramePose {
     /// with the head turned by `joint_rad` about the spindle axis: the
     /// plane turns by `−joint_rad` about TCS z and keeps its standoff.
     pub fn turned(base: &Plane<f64>, joint_rad: f64) -> Self {
+        Self::build(base, joint_rad)
+    }
+
+    /// The pose whose plane in the TCS (after the turn) is `seen`, with the
+    /// last joint at `joint_rad`: the inverse of [`FramePose::turned`].
+    pub fn seen(seen: &Plane<f64>, joint_rad: f64) -> Self {
+        let rz = Rotation3::from_axis_angle(&Vector3::z_axis(), joint_rad);
+        Self::build(&seen.transformed(rz.matrix(), &Vector3::zeros()), joint_rad)
+    }
+
+    fn build(base: &Plane<f64>, joint_rad: f64) -> Self {
         let down = Vector3::new(0.0, 0.0, -1.0);
         let n0 = if base.n.z < 0.0 { base.n } else { -base.n };
         let a = Rotation3::rotation_between(&n0, &down).unwrap_or_else(Rotation3::identity);
