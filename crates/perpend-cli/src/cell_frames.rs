@@ -115,6 +115,124 @@ pub fn corrected(tracker: &Plane<f64>, joint_deg: f64, frames: &Frames) -> Plane
     true_plane(&FramePose::seen(tracker, joint_deg.to_radians()), frames)
 }
 
+/// The simulated robot's last joint during a `--reversal` run: the plan's
+/// joint angles, the one of the pose being presented, and the frame errors
+/// estimated so far (the verification compares with corrected planes).
+#[derive(Debug, Clone, Default)]
+pub struct Turns {
+    joints: HashMap<i64, f64>,
+    current_deg: f64,
+    frames: Frames,
+}
+
+impl Turns {
+    /// The plan's joint angles ([`read_joints`]).
+    pub fn new(joints: HashMap<i64, f64>) -> Self {
+        Self {
+            joints,
+            ..Self::default()
+        }
+    }
+
+    /// Whether the run turns the head (`--reversal`).
+    pub fn active(&self) -> bool {
+        !self.joints.is_empty()
+    }
+
+    /// The plan's joint angles.
+    pub fn joints(&self) -> &HashMap<i64, f64> {
+        &self.joints
+    }
+
+    /// Selects the joint angle of plan pose `pose` (`None`: 0°, the
+    /// verification poses).
+    pub fn select(&mut self, pose: Option<i64>) {
+        self.current_deg = pose
+            .and_then(|k| self.joints.get(&k).copied())
+            .unwrap_or(0.0);
+    }
+
+    /// The world-channel line presenting `seen` (the plane in the TCS after
+    /// the turn): `move BASE J` when turned, else `plane A,B,C,D`.
+    pub fn command(&self, seen: &Plane<f64>) -> String {
+        let abcd = |p: &Plane<f64>| format!("{:.12},{:.12},{:.12},{:.9}", p.n.x, p.n.y, p.n.z, p.d);
+        if self.current_deg == 0.0 {
+            return format!("plane {}\n", abcd(seen));
+        }
+        let rz = nalgebra::Rotation3::from_axis_angle(
+            &nalgebra::Vector3::z_axis(),
+            self.current_deg.to_radians(),
+        );
+        let base = seen.transformed(rz.matrix(), &nalgebra::Vector3::zeros());
+        format!("move {} {}\n", abcd(&base), self.current_deg)
+    }
+
+    /// Sets the estimated frame errors (after the calibration).
+    pub fn set_frames(&mut self, f: Frames) {
+        self.frames = f;
+    }
+
+    /// The tracker's plane corrected by the estimated frame errors.
+    pub fn correct(&self, tracker: &Plane<f64>) -> Plane<f64> {
+        corrected(tracker, self.current_deg, &self.frames)
+    }
+}
+
+/// After the calibration of a `--reversal` run: the joint estimate from
+/// `DIR/poses.csv`, its head written into `DIR/params.json`, the report
+/// printed and written to `DIR/frames.json`, the frame errors handed to
+/// `turns` for the verification.
+///
+/// # Errors
+/// Those of [`estimate_run`] and [`apply_head`], I/O.
+pub fn after_calibration(
+    sensors: &Path,
+    out: &Path,
+    turns: &mut Turns,
+    expected_deg: f64,
+) -> Result<FrameEstimates> {
+    let (fit, summary) = estimate_run(
+        sensors,
+        &out.join("poses.csv"),
+        turns.joints(),
+        expected_deg,
+    )?;
+    apply_head(&out.join("params.json"), &fit)?;
+    for l in perpend_lab::frames::report::lines(&summary) {
+        println!("cell: {l}");
+    }
+    let path = out.join("frames.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
+        .with_context(|| format!("{}: cannot write", path.display()))?;
+    turns.set_frames(fit.frames);
+    Ok(summary)
+}
+
+/// The record of a `--reversal` run: the frame estimates of
+/// `DIR/frames.json` and the parameters the joint estimate left in
+/// `params` (unchanged when the run had no reversal).
+///
+/// # Errors
+/// Unreadable files.
+pub fn into_record(
+    r: perpend_lab::record::Record,
+    out: &Path,
+    params: &Path,
+) -> Result<perpend_lab::record::Record> {
+    let path = out.join("frames.json");
+    if !path.exists() {
+        return Ok(r);
+    }
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    let f: FrameEstimates = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a frame report", path.display()))?;
+    let mut r = r.with_frames(f);
+    r.parameters = perpend_lab::paramfile::ParamFile::read(params)?.sensors;
+    r.output = Some(perpend_lab::record::FileHash::of(params)?);
+    Ok(r)
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {

@@ -13,6 +13,8 @@
 //!                        turned by −J about TCS z
 //! ← ok A',B',C',D'       the turned plane in the (taught) TCS, as the cell
 //!                        computes it from its kinematics
+//! → seen                 (simulation only) the plane the head really sees
+//! ← ok A,B,C,D
 //! ← error: <why>         a bad line; nothing changed
 //! ```
 //!
@@ -136,6 +138,9 @@ fn handle(line: &str, board: &mut VirtualBoard, frames: &Frames) -> String {
 
 /// Applies one line; `Some(plane)` for a `move` (the turned plane).
 fn apply(line: &str, board: &mut VirtualBoard, frames: &Frames) -> Result<Option<Plane<f64>>> {
+    if line == "seen" {
+        return Ok(Some(*board.sim_mut().plane()));
+    }
     if let Some(rest) = line.strip_prefix("plane ") {
         let plane = parse_plane(rest.trim())?;
         board
@@ -144,7 +149,7 @@ fn apply(line: &str, board: &mut VirtualBoard, frames: &Frames) -> Result<Option
         return Ok(None);
     }
     let Some(rest) = line.strip_prefix("move ") else {
-        bail!("'{line}': expected `plane A,B,C,D` or `move A,B,C,D JOINT_DEG`");
+        bail!("'{line}': expected `plane A,B,C,D`, `move A,B,C,D JOINT_DEG` or `seen`");
     };
     let (abcd, joint) = rest
         .trim()
@@ -268,6 +273,7 @@ mod tests {
         let seen = b.sim_mut().plane().n;
         let deg = seen.x.hypot(seen.y).atan2(seen.z.abs()).to_degrees();
         assert!((deg - 0.05).abs() < 1e-9, "{deg}");
+        assert!(handle("seen", &mut b, &tilt).starts_with("ok "));
         assert!(parse_pair("1,2,3").is_err() && parse_pair("a").is_err());
         assert!(frames_of(Pair([2.0, 0.0]), Pair::default(), Pair::default()).is_err());
     }
