@@ -222,8 +222,8 @@ mod tests {
     use perpend_core::geometry::Plane;
     use perpend_core::params::Params;
 
-    #[test]
-    fn lines_move_the_plane_or_are_refused() {
+    /// A factory board looking at z = 30.
+    fn board() -> VirtualBoard {
         let plane = Plane::from_abcd(0.0, 0.0, 1.0, -30.0).unwrap();
         let sim = SimHead::new(Params::factory().head.cast(), plane, 0.0, 1).unwrap();
         let cfg = BoardConfig {
@@ -232,7 +232,12 @@ mod tests {
             calibration: None,
             thermal_tau_s: 0.0,
         };
-        let mut b = VirtualBoard::new(&cfg, sim).unwrap();
+        VirtualBoard::new(&cfg, sim).unwrap()
+    }
+
+    #[test]
+    fn lines_move_the_plane_or_are_refused() {
+        let mut b = board();
         let none = Frames::zeros();
         assert_eq!(handle("plane 0,0,1,-28\n", &mut b, &none), "ok\n");
         assert!((b.sim_mut().plane().d + 28.0).abs() < 1e-12);
@@ -246,15 +251,7 @@ mod tests {
 
     #[test]
     fn move_turns_the_head_and_the_frames_tilt_what_it_sees() {
-        let plane = Plane::from_abcd(0.0, 0.0, 1.0, -30.0).unwrap();
-        let sim = SimHead::new(Params::factory().head.cast(), plane, 0.0, 1).unwrap();
-        let cfg = BoardConfig {
-            node_id: 0x20,
-            head: None,
-            calibration: None,
-            thermal_tau_s: 0.0,
-        };
-        let mut b = VirtualBoard::new(&cfg, sim).unwrap();
+        let mut b = board();
         let none = Frames::zeros();
         // a plane tilted about TCS x, head turned by 180°: tilted the other way
         let r = handle("move 0,-0.1,-1,30 180", &mut b, &none);
