@@ -152,6 +152,12 @@ pub struct RunArgs {
     /// `previous.json` back and fail).
     #[arg(long)]
     pub keep_worse: bool,
+    /// Estimate the cell's frame errors with the head (issue 36,
+    /// docs/frames.md): the plan must turn the head about the spindle axis
+    /// (`perpend plan --reversal 4`); reports each with 1σ and warns when
+    /// one is above the calibration's expected error. `--robot sim:` only.
+    #[arg(long)]
+    pub reversal: bool,
 }
 
 /// Options of `cell sim-head`.
@@ -210,6 +216,7 @@ struct SimRobot {
     stream: BufReader<TcpStream>,
     tracker: Tracker,
     rng: StdRng,
+    turns: crate::cell_frames::Turns,
 }
 
 /// The robot (with its tracker) that presents the datum plane.
@@ -235,7 +242,16 @@ impl Robot {
             stream: BufReader::new(s),
             tracker: Tracker::paper(),
             rng: StdRng::seed_from_u64(seed ^ 0x7472_6163),
+            turns: Default::default(),
         })))
+    }
+
+    /// The last joint of a `--reversal` run (`None` for a manual robot).
+    fn turns(&mut self) -> Option<&mut crate::cell_frames::Turns> {
+        match self {
+            Robot::Sim(sim) => Some(&mut sim.turns).filter(|t| t.active()),
+            Robot::Manual(_) => None,
+        }
     }
 
     /// Presents `pose` (called `label`) and measures it.
@@ -252,19 +268,17 @@ impl Robot {
                     stream,
                     tracker,
                     rng,
+                    turns,
                 } = sim.as_mut();
-                let line = format!("plane {}\n", abcd(&truth));
-                stream.get_mut().write_all(line.as_bytes())?;
-                let mut reply = String::new();
-                stream
-                    .read_line(&mut reply)
-                    .context("the world channel did not answer")?;
-                if reply.trim() != "ok" {
-                    bail!("the world channel refused {label}: {}", reply.trim());
-                }
+                world(stream, &turns.command(&truth), label)?;
+                let seen = match turns.active() {
+                    true => parse_tracker_plane(&world(stream, "seen\n", label)?)
+                        .map_err(|e| anyhow!("the world's plane: {e}"))?,
+                    false => truth,
+                };
                 Ok(Presented {
-                    tracker: tracker.measure(&truth, rng),
-                    truth,
+                    tracker: turns.correct(&tracker.measure(&truth, rng)),
+                    truth: seen,
                 })
             }
             Robot::Manual(lines) => {
@@ -283,6 +297,19 @@ impl Robot {
                 })
             }
         }
+    }
+}
+
+/// Sends `line` to the world channel; the reply after `ok`.
+fn world(stream: &mut BufReader<TcpStream>, line: &str, label: &str) -> Result<String> {
+    stream.get_mut().write_all(line.as_bytes())?;
+    let mut reply = String::new();
+    stream
+        .read_line(&mut reply)
+        .context("the world channel did not answer")?;
+    match reply.trim().strip_prefix("ok") {
+        Some(rest) => Ok(rest.trim().to_string()),
+        None => bail!("the world channel refused {label}: {}", reply.trim()),
     }
 }
 
@@ -633,6 +660,9 @@ fn capture_all(
     }
     for (done, (k, pose)) in plan.iter().enumerate() {
         check_cancel(s.cancel, "the capture")?;
+        if let Some(t) = robot.turns() {
+            t.select(Some(*k));
+        }
         let p = robot
             .present(&format!("pose {k}"), pose, s.cancel)
             .map_err(|e| anyhow!("{e:#} ({})", captured(done, plan.len())))?;
@@ -650,6 +680,9 @@ fn capture_all(
             return Err(reset_error(&s.node, &what));
         }
         res.map_err(|e| anyhow!("capturing pose {k}: {e:#} ({})", captured(done, plan.len())))?;
+    }
+    if let Some(t) = robot.turns() {
+        t.select(None);
     }
     Ok(())
 }
@@ -1053,6 +1086,9 @@ fn steps(
     capture_all(s, robot, plan, &poses)?;
     calibrate(&a.sensors, &poses, &params)?;
     let (expected, expected_p95) = expected_deg(&a.sensors, &poses, &params)?;
+    if let Some(t) = robot.turns() {
+        crate::cell_frames::after_calibration(&a.sensors, &a.out, t, expected)?;
+    }
     check_cancel(s.cancel, "the calibration")?;
     s.push_new(&params)?;
     let v = verify(&mut s.node, robot, &fresh, a, "after", s.cancel)?;
@@ -1234,6 +1270,12 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
         );
     }
     let mut robot = Robot::open(&a.robot, a.seed)?;
+    if a.reversal {
+        let Robot::Sim(sim) = &mut robot else {
+            bail!("--reversal: only with --robot sim:HOST:PORT for now (a manual robot cannot be told the joint angle yet)");
+        };
+        sim.turns = crate::cell_frames::Turns::new(crate::cell_frames::read_joints(&a.plan)?);
+    }
     let mut node = Node::connect(&a.link)?;
     node.hello()?;
     let mut s = Session::begin(node, a, cancel)?;
@@ -1273,6 +1315,7 @@ fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<
         Record::new(&[&a.sensors, &a.out.join("poses.csv")], &file)?
     };
     r.inputs.push(FileHash::of(&a.plan)?);
+    r = crate::cell_frames::into_record(r, &a.out, &params)?;
     r = r
         .with_board(&s.serial, &s.firmware)
         .with_previous(Previous::of(&s.previous)?);

@@ -8,6 +8,7 @@ pub mod board;
 pub mod bus;
 pub mod canopen;
 pub mod cell;
+pub mod cell_frames;
 pub mod demo;
 pub mod eds;
 pub mod node;

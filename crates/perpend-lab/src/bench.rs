@@ -78,6 +78,9 @@ pub enum Bench {
     /// Curved skins (issue 14): micro-plane against the sphere/cylinder
     /// model and the noise floor, and the alignment loop.
     Curvature(crate::curvature::Args),
+    /// Frame errors of the cell (issue 36): normal error with and without
+    /// reversal about the spindle axis, against the floor.
+    Frames(crate::frames::bench::Args),
 }
 
 /// Arguments of `perpend bench accuracy`.
@@ -710,6 +713,7 @@ pub fn run(a: &Args) -> Result<()> {
         Bench::DiagnoseSelf(x) => crate::diagnose::bench::run(x),
         Bench::Plan(x) => crate::plan::run_bench(x),
         Bench::Curvature(x) => crate::curvature::run(x),
+        Bench::Frames(x) => crate::frames::bench::run(x),
     }
 }
 

@@ -15,6 +15,7 @@ pub mod calibrate;
 pub mod curvature;
 pub mod diagnose;
 pub mod exchange;
+pub mod frames;
 pub mod measure;
 pub mod paramfile;
 pub mod plan;

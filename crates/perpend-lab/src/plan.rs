@@ -619,6 +619,13 @@ pub struct Args {
     /// Print the plan and its expected figures as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Joint angles about the spindle axis per pose (1: none; 4: every
+    /// pose also at 90/180/270°), so that a calibration can separate a
+    /// tilted tracker from the head: the CSV gets N·n rows and a joint_deg
+    /// column; the expected figures are those of the n planned poses
+    /// (docs/frames.md).
+    #[arg(long, default_value_t = 1)]
+    pub reversal: usize,
 }
 
 /// Schema of `perpend plan --json` (docs/json.md).
@@ -693,7 +700,10 @@ pub fn run(a: &Args) -> Result<()> {
             a.n,
         );
     }
-    write_csv(&a.out, &poses)?;
+    match a.reversal {
+        1 => write_csv(&a.out, &poses)?,
+        n => crate::frames::plan::write_reversal(&a.out, &poses, n)?,
+    }
     if a.json {
         let j = PlanJson {
             schema: PLAN_SCHEMA,

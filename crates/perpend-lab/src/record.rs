@@ -271,6 +271,10 @@ pub struct Record {
     pub previous: Option<Previous>,
     /// What happened, in order (the cell run appends).
     pub events: Vec<String>,
+    /// The cell's frame errors estimated with the head (`cell run
+    /// --reversal`, issue 36; absent otherwise, so older records read).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames: Option<crate::frames::report::FrameEstimates>,
 }
 
 /// The record path beside a parameter file: `dir/params.json` →
@@ -309,7 +313,14 @@ impl Record {
             verification: Verification::expected_only("not verified"),
             previous: None,
             events: Vec::new(),
+            frames: None,
         })
+    }
+
+    /// The frame errors estimated with the head.
+    pub fn with_frames(mut self, f: crate::frames::report::FrameEstimates) -> Self {
+        self.frames = Some(f);
+        self
     }
 
     /// The board the head was calibrated on.

@@ -42,6 +42,13 @@
 //!   which a simulated robot moves the plane (`plane A,B,C,D` → `ok`, see
 //!   [`world`]); its address is the second stdout line,
 //!   `perpend board: world on HOST:PORT`.
+//! * `--tracker-tilt-deg X,Y`, `--tcp-tilt-deg X,Y`, `--tcp-offset-mm X,Y`
+//!   (need `--world`): frame errors of the simulated cell (issue 36,
+//!   docs/frames.md): the datum plate as the tracker reports it is tilted
+//!   by X about the datum's x and Y about its y against the truth (the tilt
+//!   turns against the head when the world's `move` turns the last joint);
+//!   the true spindle frame is tilted / offset against the taught TCP. The
+//!   head sees every plane of the world channel through them.
 //! * `--temp-c T`: the die temperature the board measures (0x200A, the
 //!   thermal correction, `temp_c` of `perpend node capture`); default none.
 //! * `--noise-mm`: reading noise, 1σ (default 2 µm; 0 makes every sensor
@@ -137,6 +144,19 @@ pub struct Args {
     /// `127.0.0.1:0`.
     #[arg(long)]
     pub world: Option<String>,
+    /// Tracker (base) tilt X,Y [deg] about the datum's x and y: the planes
+    /// of the world channel are seen tilted by it, turning against the
+    /// head with the last joint (issue 36; needs --world).
+    #[arg(long, value_parser = world::parse_pair, default_value = "0,0", allow_hyphen_values = true)]
+    pub tracker_tilt_deg: world::Pair,
+    /// TCP tilt X,Y [deg]: the true spindle frame against the taught one
+    /// (fixed to the flange; needs --world).
+    #[arg(long, value_parser = world::parse_pair, default_value = "0,0", allow_hyphen_values = true)]
+    pub tcp_tilt_deg: world::Pair,
+    /// TCP lateral offset X,Y [mm] of the true spindle frame against the
+    /// taught one (needs --world).
+    #[arg(long, value_parser = world::parse_pair, default_value = "0,0", allow_hyphen_values = true)]
+    pub tcp_offset_mm: world::Pair,
 }
 
 /// Parses a serial number: decimal or `0x` hex `u32`.
@@ -334,9 +354,13 @@ pub fn run(a: &Args) -> Result<()> {
             nodes.join(",")
         ),
     }
+    let frames = world::frames_of(a.tracker_tilt_deg, a.tcp_tilt_deg, a.tcp_offset_mm)?;
+    if a.world.is_none() && frames.amax() > 0.0 {
+        bail!("--tracker-tilt-deg, --tcp-tilt-deg and --tcp-offset-mm act on the planes of the world channel: add --world 127.0.0.1:0");
+    }
     let world = match &a.world {
         Some(w) => {
-            let world = World::bind(w)?;
+            let world = World::bind(w)?.with_frames(frames);
             println!("perpend board: world on {}", world.local_addr()?);
             Some(world)
         }
@@ -374,6 +398,9 @@ mod tests {
             serial: Vec::new(),
             truth: None,
             world: None,
+            tracker_tilt_deg: world::Pair::default(),
+            tcp_tilt_deg: world::Pair::default(),
+            tcp_offset_mm: world::Pair::default(),
         }
     }
 

@@ -1,0 +1,149 @@
+use super::*;
+
+use crate::sim::plane_from_tilts;
+
+const TILT_DEG: f64 = 0.05;
+
+fn level() -> Plane<f64> {
+    plane_from_tilts(0.0, 0.0, 35.0)
+}
+
+#[test]
+fn tracker_tilt_turns_against_the_head() {
+    let f = frames_deg([TILT_DEG, 0.0], [0.0; 2], [0.0; 2]);
+    let at = |deg: f64| true_plane(&FramePose::turned(&level(), deg.to_radians()), &f);
+    let (q0, q180, q90) = (at(0.0), at(180.0), at(90.0));
+    // level plate: the tilt about datum x shows as a tilt about TCS x at 0°,
+    // the opposite one at 180°, a tilt about TCS y at 90°
+    let tilt = |q: &Plane<f64>| angle_deg(&q.n, &Vector3::new(0.0, 0.0, -1.0));
+    for q in [&q0, &q180, &q90] {
+        assert!((tilt(q) - TILT_DEG).abs() < 1e-9, "{q:?}");
+    }
+    assert!((q0.n.y + q180.n.y).abs() < 1e-12 && q0.n.y.abs() > 8e-4);
+    assert!(q90.n.y.abs() < 1e-12 && q90.n.x.abs() > 8e-4);
+    // the pivot (where the spindle axis meets the plate) stays on the plane
+    assert!(q0.signed_distance(&Vector3::new(0.0, 0.0, 35.0)).abs() < 1e-12);
+}
+
+#[test]
+fn tcp_error_is_a_rigid_move_of_the_head_at_every_joint_angle() {
+    // The readings under a TCP error equal those of the head moved by it
+    // without one, whatever the joint does: the head absorbs it exactly.
+    let f = frames_deg([0.0; 2], [0.08, -0.03], [0.4, 0.2]);
+    let head = crate::sim::cone_nominal().unwrap();
+    let c = Rotation3::new(Vector3::new(f[2], f[3], 0.0));
+    let o = Vector3::new(f[4], f[5], 0.0);
+    let moved: Vec<Sensor<f64>> = head
+        .iter()
+        .map(|s| Sensor::new(c * s.zero + o, c * s.dir).unwrap())
+        .collect();
+    let base = [plane_from_tilts(0.1, -0.05, 33.0), level()];
+    let poses = with_reversal(&base, 4);
+    let with = readings(&head, &poses, &f);
+    let rigid = readings(&moved, &poses, &Frames::zeros());
+    let plain = readings(&head, &poses, &Frames::zeros());
+    let mut changed = 0.0f64;
+    for ((a, b), p) in with.iter().zip(&rigid).zip(&plain) {
+        for i in 0..4 {
+            let (a, b, p) = (a[i].unwrap(), b[i].unwrap(), p[i].unwrap());
+            assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+            changed = changed.max((a - p).abs());
+        }
+    }
+    // the error does change the readings (by far more than the noise)
+    assert!(changed > 0.05, "{changed}");
+}
+
+#[test]
+fn tracker_tilt_with_reversal_is_estimated_and_the_head_unbiased() {
+    let f = frames_deg([TILT_DEG, 0.0], [0.0; 2], [0.0; 2]);
+    for seed in 1..=4 {
+        let o = run_scenario(&Scenario::issue(f), seed).unwrap();
+        let est = o.joint.frames[0].to_degrees();
+        assert!((est - TILT_DEG).abs() < 0.005, "seed {seed}: {est}°");
+        assert!(o.joint.ident.frames[0].resolved && o.joint.ident.frames[1].resolved);
+        assert!(
+            o.joint_deg <= 1.2 * o.floor_deg,
+            "seed {seed}: {:.5}° vs floor {:.5}°",
+            o.joint_deg,
+            o.floor_deg
+        );
+        // the head alone cannot follow a tilt that turns against it: its
+        // residual and its normals show the misfit
+        assert!(o.plain.rms_mm > 3.0 * o.joint.rms_mm, "{}", o.plain.rms_mm);
+        assert!(o.plain_deg > 2.0 * o.floor_deg, "{}", o.plain_deg);
+        // head parameters: the common tilt of the beams against the truth
+        // (what a frame tilt would move) is the no-tilt fit's of the same
+        // draw within 10% of the tilt, and the zero points within 5 µm
+        let common = |h: &[Sensor<f64>]| {
+            let mut dz = Vector3::zeros();
+            let mut du = Vector3::zeros();
+            for (a, b) in h.iter().zip(&o.truth) {
+                dz += a.zero - b.zero;
+                du += a.dir - b.dir;
+            }
+            (dz / h.len() as f64, du / h.len() as f64)
+        };
+        let (fz, fu) = common(&o.floor.head);
+        let (jz, ju) = common(&o.joint.head);
+        let (pz, pu) = common(&o.plain.head);
+        assert!((jz - fz).amax() < 0.005, "{jz} vs {fz}");
+        assert!(
+            (ju - fu).amax() < 0.1 * TILT_DEG.to_radians(),
+            "{ju} vs {fu}"
+        );
+        // the head alone is biased (it bends to follow the turning tilt)
+        assert!(
+            (pu - fu).amax() > 0.5 * TILT_DEG.to_radians(),
+            "{pu} vs {fu}"
+        );
+        assert!((pz - fz).amax() > 0.01, "{pz} vs {fz}");
+    }
+}
+
+#[test]
+fn tracker_tilt_without_reversal_is_reported_unresolved() {
+    let f = frames_deg([TILT_DEG, 0.0], [0.0; 2], [0.0; 2]);
+    let mut sc = Scenario::issue(f);
+    sc.angles = 1;
+    let o = run_scenario(&sc, 3).unwrap();
+    let t = o.joint.ident.frames[0];
+    assert!(!t.resolved, "{t:?}");
+    let sigma = t.sigma.unwrap_or(f64::INFINITY);
+    assert!(sigma > 10.0 * RESOLVE_RAD, "{sigma}");
+    assert_eq!(o.joint.sigma[0], None);
+    // and the normals stay off by the tilt: nothing was corrected
+    assert!(o.joint_deg > 0.8 * TILT_DEG, "{}", o.joint_deg);
+}
+
+#[test]
+fn tcp_errors_are_never_identifiable_from_planes() {
+    let f = frames_deg([0.0; 2], [0.05, 0.0], [0.3, 0.0]);
+    let o = run_scenario(&Scenario::issue(f), 2).unwrap();
+    for j in 2..N_FRAME {
+        let fi = o.joint.ident.frames[j];
+        assert!(fi.sigma.is_none() && fi.null_share > 0.1, "{fi:?}");
+    }
+    assert_eq!(o.joint.ident.params - o.joint.ident.rank, 4);
+    // the spindle stays off the taught axis by the TCP tilt
+    assert!((o.joint_deg - 0.05).abs() < 0.01, "{}", o.joint_deg);
+}
+
+#[test]
+fn no_tilt_estimates_within_two_sigma_in_95_percent_of_seeds() {
+    let mut sc = Scenario::issue(Frames::zeros());
+    sc.tests = 1;
+    let (mut inside, mut total) = (0, 0);
+    for seed in 100..300 {
+        let o = run_scenario(&sc, seed).unwrap();
+        for j in 0..2 {
+            let s = o.joint.sigma[j].unwrap();
+            total += 1;
+            if o.joint.frames[j].abs() <= 2.0 * s {
+                inside += 1;
+            }
+        }
+    }
+    let rate = inside as f64 / total as f64;
+    assert!(rate >= 0.95, "{inside}/{total}");
+}
