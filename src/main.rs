@@ -32,8 +32,9 @@
 //!   (< 1 s).
 //! * **LED** LD2 (PA5): see `led_pattern`.
 //!
-//! All work runs in one task (`main`): a `select` over "scan ready", "CAN
-//! frame received" and a 1 ms tick; frames the `App` emits go into the
+//! All work runs in one task (`main`): a `select` over a 1 ms tick, "scan
+//! ready" and "CAN frame received" (in that order, the frames within a
+//! per-tick budget: `perpend_board::busmon`); frames the `App` emits go into the
 //! transmit queue, which is serviced (never awaited) after each event.
 
 #![no_std]
@@ -54,7 +55,6 @@ use embassy_stm32::adc::{
     Adc, AdcChannel, AdcConfig, AnyAdcChannel, Exten, RingBufferedAdc, SampleTime,
 };
 use embassy_stm32::can::config::{NominalBitTiming, TxBufferMode};
-use embassy_stm32::can::enums::BusErrorMode;
 use embassy_stm32::can::{self, CanConfigurator};
 use embassy_stm32::gpio::{Level, Output, Speed};
 use embassy_stm32::peripherals::{ADC1, DMA1_CH1, FDCAN1, IWDG, PA11, PA12, TIM3};
@@ -65,6 +65,7 @@ use embassy_stm32::{bind_interrupts, dma, rcc, Config, Peri};
 use embassy_time::{Duration, Instant, Ticker};
 use perpend_board::app::App;
 use perpend_board::bittiming::{self, FDCAN_KERNEL_HZ};
+use perpend_board::busmon::{BusEvent, BusMonitor, RxBudget};
 use perpend_board::health::{self, LoopTimer};
 use perpend_board::pipeline::Sample;
 use perpend_board::rxfilter::{self, RxSet};
@@ -163,26 +164,6 @@ fn start_can(
     cc.into_normal_mode()
 }
 
-/// Re-programs the FDCAN's nominal bit timing at run time, for LSS
-/// "activate bit timing" (RM0440 §44.3.2: INIT and CCE set, NBTP written,
-/// INIT cleared; frames pending in the transmit buffers are dropped by
-/// CCE, the bus is re-joined after 11 recessive bits). The split driver
-/// halves keep working.
-fn switch_bitrate(b: Bitrate) {
-    let r = embassy_stm32::pac::FDCAN1;
-    r.cccr().modify(|w| w.set_init(true));
-    while !r.cccr().read().init() {}
-    r.cccr().modify(|w| w.set_cce(true));
-    r.nbtp().write_value(embassy_stm32::pac::can::regs::Nbtp(
-        bittiming::for_board(b).nbtp(),
-    ));
-    r.cccr().modify(|w| {
-        w.set_cce(false);
-        w.set_init(false);
-    });
-    while r.cccr().read().init() {}
-}
-
 /// The firmware's state between events.
 struct Fw {
     app: App<SeqStore<EccGuard<flash::BoardFlash>>>,
@@ -199,7 +180,10 @@ struct Fw {
     /// Acquisition locked to SYNC (0x2301 sub 1): TIM3 stopped, one scan
     /// per SYNC.
     locked: bool,
-    bus_off_since: Option<Instant>,
+    /// Bus errors and bus-off from one PSR read per tick.
+    bus: BusMonitor,
+    /// Frames the loop may still take before the next tick.
+    rx_budget: RxBudget,
     samples: u32,
     /// What the acceptance filters are programmed for.
     rx_set: RxSet,
@@ -216,10 +200,6 @@ struct Fw {
     ticks: u32,
     /// The health figures (0x200B) are due.
     health_due: bool,
-    /// Bus errors seen by the receive side (PSR.LEC, e.g. one acknowledge
-    /// error per retransmission when alone on the bus): counted, logged
-    /// with the per-1000-sample line, not one warning each.
-    bus_errors: u32,
 }
 
 /// Microseconds since boot (the App's clock).
@@ -253,7 +233,7 @@ impl Fw {
                 o.rms_mm,
                 now_us() - t_acq,
                 self.txq.stats().dropped,
-                self.bus_errors
+                self.bus.errors()
             );
         }
     }
@@ -310,7 +290,6 @@ impl Fw {
             warn!("CAN receive ring overflow: {} frames lost", lost);
             self.app.rx_overrun();
         }
-        self.bus_errors = can_rx::BUS_ERRORS.load(core::sync::atomic::Ordering::Relaxed);
         self.update_filters();
         self.ticks = self.ticks.wrapping_add(1);
         self.health_due |= self.ticks.is_multiple_of(1000);
@@ -330,26 +309,23 @@ impl Fw {
         // Locked to SYNC, no SYNC means no sample: the controller's
         // business (0x2301 sub 2 counts SYNCs without their sample).
         let acq_alive = self.locked || now - self.last_sample < Duration::from_millis(20);
-        let can_alive = self
-            .bus_off_since
-            .is_none_or(|t| now - t < Duration::from_secs(1));
+        let can_alive = self.bus.bus_off_for_us(now.as_micros()) < 1_000_000;
         if acq_alive && can_alive {
             self.wdg.pet();
         }
     }
 
+    /// The tick's one PSR read: bus errors (PSR.LEC, e.g. one acknowledge
+    /// error per retransmission when alone on the bus: counted, logged with
+    /// the per-1000-sample line) and bus-off.
     fn check_bus_off(&mut self) {
-        match (self.props.bus_error_mode(), self.bus_off_since) {
-            (BusErrorMode::BusOff, None) => {
-                warn!("CAN bus-off");
-                self.bus_off_since = Some(Instant::now());
-            }
-            (BusErrorMode::BusOff, Some(_)) | (_, None) => {}
-            (_, Some(_)) => {
+        match self.bus.tick(&mut can_rx::Psr, now_us()) {
+            BusEvent::BusOff => warn!("CAN bus-off"),
+            BusEvent::Recovered => {
                 info!("CAN bus-off recovered");
-                self.bus_off_since = None;
                 self.app.bus_off_recovered();
             }
+            BusEvent::None => {}
         }
     }
 
@@ -381,8 +357,22 @@ impl Fw {
         // LSS "activate bit timing" (CiA 305): the switch delay has passed.
         let lss = self.app.device_mut().take_bit_rate_switch();
         if let Some(b) = lss.and_then(perpend_can::config::bitrate_of) {
-            switch_bitrate(b);
-            info!("LSS: bit rate now {} bit/s", b.bps());
+            // perpend_board::fdcan: pending frames read back and requeued,
+            // an outstanding cancellation forgotten, FIFO losses counted.
+            let sw = self.can_tx.switch_bitrate(bittiming::for_board(b).nbtp());
+            let n = sw.requeue.len();
+            for f in sw.requeue {
+                self.txq.requeue(f);
+            }
+            if sw.rx_lost > 0 {
+                warn!("LSS switch: {} received frames lost", sw.rx_lost);
+                self.app.rx_overrun();
+            }
+            info!(
+                "LSS: bit rate now {} bit/s ({} frames requeued)",
+                b.bps(),
+                n
+            );
             self.bitrate = b;
         }
         self.txq.service(&mut self.can_tx);
@@ -557,7 +547,7 @@ fn setup() -> Fw {
     let mut fw = Fw {
         app,
         txq: TxQueue::new(),
-        can_tx: FdcanTx::new(tx),
+        can_tx: can_tx::new(tx),
         props,
         ring,
         tim,
@@ -567,7 +557,8 @@ fn setup() -> Fw {
         wdg,
         last_sample: Instant::now(),
         locked: app_locked,
-        bus_off_since: None,
+        bus: BusMonitor::new(),
+        rx_budget: RxBudget::new(),
         samples: 0,
         rx_set,
         rx_lost_seen: 0,
@@ -576,7 +567,6 @@ fn setup() -> Fw {
         loop_timer: LoopTimer::default(),
         ticks: 0,
         health_due: false,
-        bus_errors: 0,
     };
     acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
     fw
@@ -589,16 +579,33 @@ async fn main(_spawner: Spawner) {
     let mut ticker = Ticker::every(Duration::from_millis(1));
     let mut scan = [0u16; SCAN];
     loop {
-        let event = select3(fw.ring.read(&mut scan), can_rx::next(), ticker.next()).await;
+        // perpend_board::busmon::pick: the tick first (IWDG, bus-off), then
+        // a scan, then a frame while the tick's budget allows (a receive
+        // flood cannot starve the tick; select3 polls in this order).
+        let allow = fw.rx_budget.allows();
+        let frame = async {
+            if allow {
+                can_rx::next().await
+            } else {
+                core::future::pending().await
+            }
+        };
+        let event = select3(ticker.next(), fw.ring.read(&mut scan), frame).await;
         let t0 = board::cycles();
         match event {
-            Either3::First(Ok(_)) => fw.on_scan(&scan),
-            Either3::First(Err(_)) => {
+            Either3::First(()) => {
+                fw.rx_budget.on_tick();
+                fw.on_tick();
+            }
+            Either3::Second(Ok(_)) => fw.on_scan(&scan),
+            Either3::Second(Err(_)) => {
                 warn!("ADC DMA overrun: restarting the acquisition");
                 acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
             }
-            Either3::Second(f) => fw.on_frame(&f),
-            Either3::Third(()) => fw.on_tick(),
+            Either3::Third(f) => {
+                fw.rx_budget.on_frame();
+                fw.on_frame(&f);
+            }
         }
         fw.after_event();
         fw.loop_timer.record(t0, board::cycles());
