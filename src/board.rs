@@ -8,12 +8,15 @@
 //! (§7.4.29); DBGMCU_APB1FZR1.DBG_IWDG_STOP freezes the IWDG while the core
 //! is halted (§46.16.4).
 //!
-//! Stack guard: the stack grows down from the end of RAM towards
-//! `_stack_end` (cortex-m-rt: the end of `.bss`/`.uninit`). MPU region 0
+//! Stack guard: the firmware is linked with flip-link, so the stack grows
+//! down from just below `.data`/`.bss` (`_stack_start`) towards the bottom
+//! of RAM (`_stack_end` = 0x20000000, set by flip-link): an overflow can
+//! no longer reach static data. MPU region 0
 //! makes the [`GUARD`] bytes (8 KiB, size-aligned) above `_stack_end`
-//! inaccessible (AP = 000, XN), so an overflow faults (MemManage, then the
-//! IWDG resets the board, reported as a watchdog reset) instead of silently
-//! overwriting static data. The guard is larger than any frame the stack
+//! inaccessible (AP = 000, XN), so an overflow faults at once (MemManage,
+//! then the IWDG resets the board, reported as a watchdog reset) instead of
+//! running below RAM (0x1FFF_xxxx: system memory and option bytes, whose
+//! writes are not guaranteed to fault). The guard is larger than any frame the stack
 //! can hold below the main task's: a 32-byte guard could be stepped over
 //! by a frame with a ~2 KiB buffer (the storage's item buffer), whose
 //! writes then land below the guard without touching it. The largest such

@@ -297,6 +297,7 @@ fn preflight(no_fuzz: bool) -> Result<()> {
         ("toolchain", setup::toolchain),
         ("python", setup::python),
         ("qemu", setup::qemu),
+        ("flip-link", setup::flip_link),
     ];
     if !no_fuzz {
         checks.push(("nightly", setup::nightly));
