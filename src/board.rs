@@ -225,3 +225,28 @@ pub fn enter_bootloader_if_requested() {
     // SAFETY: the system memory holds the ROM bootloader's vector table.
     unsafe { cortex_m::asm::bootload(0x1FFF_0000 as *const u32) }
 }
+
+/// The clocks of the NUCLEO-G474RE (the firmware's and the HIL tests').
+pub fn config() -> embassy_stm32::Config {
+    let mut c = embassy_stm32::Config::default();
+    // NUCLEO-G474RE: 24 MHz crystal (X3). SYSCLK = 24 / 6 * 85 / 2 = 170 MHz.
+    c.rcc.hse = Some(embassy_stm32::rcc::Hse {
+        freq: embassy_stm32::time::Hertz(perpend_board::bittiming::FDCAN_KERNEL_HZ),
+        mode: embassy_stm32::rcc::HseMode::Oscillator,
+    });
+    c.rcc.pll = Some(embassy_stm32::rcc::Pll {
+        source: embassy_stm32::rcc::PllSource::HSE,
+        prediv: embassy_stm32::rcc::PllPreDiv::DIV6,
+        mul: embassy_stm32::rcc::PllMul::MUL85,
+        divp: None,
+        divq: None,
+        divr: Some(embassy_stm32::rcc::PllRDiv::DIV2),
+    });
+    c.rcc.sys = embassy_stm32::rcc::Sysclk::PLL1_R;
+    c.rcc.boost = true;
+    // FDCAN from HSE: the kernel clock of perpend_board::bittiming.
+    c.rcc.mux.fdcansel = embassy_stm32::rcc::mux::Fdcansel::HSE;
+    // ADC from SYSCLK (the driver divides by 4: 42.5 MHz ≤ 60 MHz).
+    c.rcc.mux.adc12sel = embassy_stm32::rcc::mux::Adcsel::SYS;
+    c
+}

@@ -39,6 +39,7 @@ use embassy_stm32::can::{self, CanTx};
 use embassy_stm32::pac;
 use perpend_board::fdcan::FdcanRegs;
 use perpend_can::Frame;
+use perpend_core::params::Bitrate;
 
 /// Words per Tx buffer element in the G4 message RAM (T0, T1, 64 data
 /// bytes).
@@ -161,4 +162,35 @@ impl FdcanRegs for Fdcan1<'_> {
         });
         while r.cccr().read().init() {}
     }
+}
+
+/// The board's FDCAN nominal bit timing for `b` as the driver's type
+/// (`None` only if the table held a value the type cannot).
+pub fn nominal_timing(b: Bitrate) -> Option<can::config::NominalBitTiming> {
+    let t = perpend_board::bittiming::for_board(b);
+    Some(can::config::NominalBitTiming {
+        prescaler: core::num::NonZeroU16::new(t.prescaler)?,
+        seg1: core::num::NonZeroU8::new(u8::try_from(t.seg1).ok()?)?,
+        seg2: core::num::NonZeroU8::new(t.seg2)?,
+        sync_jump_width: core::num::NonZeroU8::new(t.sjw)?,
+    })
+}
+
+/// The board's FDCAN configuration at `b` (the firmware's and the HIL
+/// tests'): explicit bit timing, Tx queue mode (lowest identifier first),
+/// and the global filter that rejects what no acceptance filter takes (set
+/// before the filters).
+pub fn configure(cc: &mut can::CanConfigurator<'_>, b: Bitrate) {
+    match nominal_timing(b) {
+        Some(nbt) => {
+            let c = cc.config().set_nominal_bit_timing(nbt);
+            cc.set_config(c.set_tx_buffer_mode(can::config::TxBufferMode::Priority));
+        }
+        None => cc.set_bitrate(b.bps()),
+    }
+    cc.set_config(crate::can_rx::with_global_filter(cc.config()));
+    defmt::info!(
+        "FDCAN NBTP {=u32:#010x}",
+        perpend_board::bittiming::for_board(b).nbtp()
+    );
 }
