@@ -199,7 +199,7 @@ pub fn ci(args: &[String]) -> Result<()> {
         logs,
         verbose,
         n: 0,
-        total: if no_fuzz { 9 } else { 10 },
+        total: if no_fuzz { 10 } else { 11 },
         passed: 0,
         failed: 0,
     };
@@ -244,6 +244,13 @@ pub fn ci(args: &[String]) -> Result<()> {
         "firmware size",
         &mut xtask(&["size"]),
         line_starting("perpend-fw:"),
+    )?;
+    // Builds and links the on-target test binary (release, as `size`), then
+    // runs the board's logic as compiled for the board on QEMU.
+    r.step(
+        "hil build + QEMU tests",
+        &mut xtask(&["hil", "--qemu"]),
+        line_starting("target tests:"),
     )?;
     r.step(
         "mcu-bench (QEMU)",

@@ -38,14 +38,26 @@ use perpend_core::params::Params;
 /// A test: `Err` names what went wrong.
 type Outcome = Result<(), &'static str>;
 
+/// A test and its name.
+type Test = (&'static str, fn() -> Outcome);
+
 /// Every test, by name.
-const TESTS: &[(&str, fn() -> Outcome)] = &[
+const TESTS: &[Test] = &[
     ("normal_of_tilted_planes_f32", normal_of_tilted_planes_f32),
-    ("fdcan_switch_with_cancel_outstanding", fdcan_switch_with_cancel_outstanding),
+    (
+        "fdcan_switch_with_cancel_outstanding",
+        fdcan_switch_with_cancel_outstanding,
+    ),
     ("txq_priority_through_fdcan", txq_priority_through_fdcan),
     ("rxfilter_default_set", rxfilter_default_set),
-    ("busmon_counts_lec_and_bus_off", busmon_counts_lec_and_bus_off),
-    ("ecc_read_substitutes_double_errors", ecc_read_substitutes_double_errors),
+    (
+        "busmon_counts_lec_and_bus_off",
+        busmon_counts_lec_and_bus_off,
+    ),
+    (
+        "ecc_read_substitutes_double_errors",
+        ecc_read_substitutes_double_errors,
+    ),
     ("storage_cut_at_each_step", storage_cut_at_each_step),
     ("sdo_upload_device_type", sdo_upload_device_type),
     ("emcy_on_sensor_fault", emcy_on_sensor_fault),
@@ -123,7 +135,10 @@ fn normal_of_tilted_planes_f32() -> Outcome {
         check(out.valid(), "pipeline output invalid on a plane in range")?;
         let n = Vector3::new(out.normal[0], out.normal[1], out.normal[2]);
         let angle = n.cross(&plane.n).norm();
-        check(angle <= NORMAL_TOL_RAD, "normal off the plane's by more than 0.05°")?;
+        check(
+            angle <= NORMAL_TOL_RAD,
+            "normal off the plane's by more than 0.05°",
+        )?;
     }
     Ok(())
 }
@@ -142,12 +157,21 @@ fn fdcan_switch_with_cancel_outstanding() -> Outcome {
     tx.regs_mut().hold_cancel = true;
     check(q.push(Frame::new(0x100, &[2])), "queue refused a frame")?;
     q.service(&mut tx);
-    check(tx.is_cancelling(), "no cancellation for a higher-priority frame")?;
+    check(
+        tx.is_cancelling(),
+        "no cancellation for a higher-priority frame",
+    )?;
     tx.regs_mut().rx = 3;
     let sw = tx.switch_bitrate(0x0203_0A03);
-    check(!tx.is_cancelling(), "cancellation outlived the bit-rate switch")?;
+    check(
+        !tx.is_cancelling(),
+        "cancellation outlived the bit-rate switch",
+    )?;
     check(sw.requeue.len() == 3, "pending frames not read back")?;
-    check(sw.rx_lost == 0, "received frames lost although the ring had room")?;
+    check(
+        sw.rx_lost == 0,
+        "received frames lost although the ring had room",
+    )?;
     check(tx.regs_mut().nbtp == 0x0203_0A03, "NBTP not programmed")?;
     for f in sw.requeue {
         q.requeue(f);
@@ -168,7 +192,10 @@ fn txq_priority_through_fdcan() -> Outcome {
         tx.regs_mut().tick();
     }
     let sent = &tx.regs_mut().sent;
-    check(sent.first().map(|f| f.id) == Some(0x080), "EMCY-class frame not first")?;
+    check(
+        sent.first().map(|f| f.id) == Some(0x080),
+        "EMCY-class frame not first",
+    )?;
     check(sent.len() == 4, "not every frame was sent")
 }
 
@@ -188,7 +215,10 @@ fn rxfilter_default_set() -> Outcome {
     check(accepts(&f, 0x620).is_some(), "own SDO rejected")?;
     check(accepts(&f, 0x621).is_none(), "foreign SDO accepted")?;
     check(accepts(&f, 0x7E5).is_some(), "LSS master rejected")?;
-    check(matches!(accepts(&f, 0x620), Some(Fifo::F0 | Fifo::F1)), "no FIFO")
+    check(
+        matches!(accepts(&f, 0x620), Some(Fifo::F0 | Fifo::F1)),
+        "no FIFO",
+    )
 }
 
 /// Issue 33 defect 5: one PSR value per tick counts its LEC once; BO
@@ -197,13 +227,22 @@ fn busmon_counts_lec_and_bus_off() -> Outcome {
     let mut m = BusMonitor::new();
     // LEC 3 (form error), LEC 7 (no change), LEC 0, BO with LEC 5
     let mut ev = [BusEvent::None; 4];
-    for (e, (psr, t)) in ev.iter_mut().zip([(3, 10), (7, 20), (0, 30), (0x80 | 5, 40)]) {
+    for (e, (psr, t)) in ev
+        .iter_mut()
+        .zip([(3, 10), (7, 20), (0, 30), (0x80 | 5, 40)])
+    {
         *e = m.on_psr(psr, t);
     }
-    check(m.errors() == 2, "LEC 3 and 5 counted once each, 7 and 0 not")?;
+    check(
+        m.errors() == 2,
+        "LEC 3 and 5 counted once each, 7 and 0 not",
+    )?;
     check(ev[3] == BusEvent::BusOff, "BO not reported")?;
     check(m.bus_off_for_us(140) == 100, "bus-off time")?;
-    check(m.on_psr(0, 150) == BusEvent::Recovered, "recovery not reported")
+    check(
+        m.on_psr(0, 150) == BusEvent::Recovered,
+        "recovery not reported",
+    )
 }
 
 /// Issue 33 defect 2: a corrected single error and two double errors in
@@ -215,9 +254,15 @@ fn ecc_read_substitutes_double_errors() -> Outcome {
     let mut buf = [0u8; 48];
     let rep = guarded_read(&mut r, 0, &mut buf).map_err(|_| "too many faults")?;
     let fill = perpend_board::storage::ECC_FILL;
-    check(rep.substituted == 2 && rep.first == Some(16), "double errors")?;
+    check(
+        rep.substituted == 2 && rep.first == Some(16),
+        "double errors",
+    )?;
     check(rep.corrected == 1, "single error not counted")?;
-    check(buf[16..24].iter().all(|&b| b == fill), "double word not filled")?;
+    check(
+        buf[16..24].iter().all(|&b| b == fill),
+        "double word not filled",
+    )?;
     check(buf[..8].iter().all(|&b| b != fill), "clean word filled")?;
     check(r.dcache_on, "data cache not restored")
 }
@@ -242,12 +287,18 @@ fn storage_cut_at_each_step() -> Outcome {
         let mut st = host_store(FaultFlash::new());
         save(&mut st, &params_with(0x21)).map_err(|_| "first save")?;
         st.flash_mut().cut_power_after(n);
-        check(save(&mut st, &params_with(0x22)).is_err(), "cut save succeeded")?;
+        check(
+            save(&mut st, &params_with(0x22)).is_err(),
+            "cut save succeeded",
+        )?;
         let mut flash = st.into_flash();
         flash.power_on();
         let (p, boot) = load(&mut host_store(flash));
         check(boot == Boot::Stored, "nothing valid after a cut")?;
-        check(matches!(p.can.node_id, 0x21 | 0x22), "a mix of records loaded")?;
+        check(
+            matches!(p.can.node_id, 0x21 | 0x22),
+            "a mix of records loaded",
+        )?;
     }
     Ok(())
 }
@@ -297,5 +348,8 @@ fn emcy_on_sensor_fault() -> Outcome {
         app.poll(3_000 + k * 1_000, &mut grab);
     }
     let f = emcy.ok_or("no EMCY frame on 0x0A0")?;
-    check(u16::from_le_bytes([f.data[0], f.data[1]]) != 0, "EMCY code 0")
+    check(
+        u16::from_le_bytes([f.data[0], f.data[1]]) != 0,
+        "EMCY code 0",
+    )
 }
