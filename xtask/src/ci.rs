@@ -229,10 +229,15 @@ pub fn ci(args: &[String]) -> Result<()> {
         thumb,
     ];
     r.step("no_std build", &mut cmd(&c, &nostd), nothing)?;
+    // The firmware and the on-target tests (hil/, which includes its
+    // modules).
     let fw_clippy = [
         "clippy",
         "-p",
         "perpend-fw",
+        "-p",
+        "perpend-hil",
+        "--all-targets",
         "--target",
         thumb,
         "--",
