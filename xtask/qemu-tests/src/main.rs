@@ -17,15 +17,19 @@
 #![no_main]
 
 mod fakes;
+/// perpend-board's FDCAN fake, the one its host tests use.
+#[path = "../../../crates/perpend-board/src/fdcan_fake.rs"]
+mod fdcan_fake;
 
 use cortex_m_rt::entry;
 use cortex_m_semihosting::{debug, hprintln};
-use fakes::{FakeEcc, FakeFdcan};
+use fakes::FakeEcc;
+use fdcan_fake::Fake as FakeFdcan;
 use nalgebra::Vector3;
 use perpend_board::app::App;
 use perpend_board::busmon::{BusEvent, BusMonitor};
 use perpend_board::ecc::guarded_read;
-use perpend_board::fdcan::FdcanTx;
+use perpend_board::fdcan::{FdcanRegs, FdcanTx, BUFFERS};
 use perpend_board::pipeline::{Pipeline, Sample};
 use perpend_board::rxfilter::{accepts, filters, Fifo, RxSet};
 use perpend_board::storage::{host_store, load, save, Boot, FaultFlash, ParamStore, StoreError};
@@ -161,7 +165,8 @@ fn fdcan_switch_with_cancel_outstanding() -> Outcome {
         tx.is_cancelling(),
         "no cancellation for a higher-priority frame",
     )?;
-    tx.regs_mut().rx = 3;
+    tx.regs_mut().rx_fifo = 3;
+    tx.regs_mut().ring_room = 8;
     let sw = tx.switch_bitrate(0x0203_0A03);
     check(
         !tx.is_cancelling(),
