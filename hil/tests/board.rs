@@ -113,6 +113,21 @@ fn restricted(on: bool) {
     }
 }
 
+/// FDCAN1 in loopback, restricted: 0x181..0x183 fill the three Tx buffers,
+/// 0x0A0 (more urgent) waits in the queue.
+fn three_pending(p: Peripherals) -> (can_tx::FdcanTx<'static>, TxQueue<8>) {
+    let mut tx = loopback(p, Bitrate::M1);
+    restricted(true);
+    let mut q = TxQueue::<8>::new();
+    for id in [0x181, 0x182, 0x183] {
+        q.push(Frame::new(id, &[2]));
+    }
+    q.service(&mut tx);
+    assert_eq!(pac::FDCAN1.txbrp().read().0 & 0b111, 0b111);
+    q.push(Frame::new(0x0A0, &[3]));
+    (tx, q)
+}
+
 /// The next received frame within 100 ms.
 async fn received() -> Option<Frame> {
     let t = embassy_time::Duration::from_millis(100);
@@ -165,15 +180,7 @@ mod tests {
     /// identifier order.
     #[test]
     async fn fdcan_tx_cancellation(p: Peripherals) {
-        let mut tx = loopback(p, Bitrate::M1);
-        restricted(true);
-        let mut q = TxQueue::<8>::new();
-        for id in [0x181, 0x182, 0x183] {
-            q.push(Frame::new(id, &[2]));
-        }
-        q.service(&mut tx);
-        assert_eq!(pac::FDCAN1.txbrp().read().0 & 0b111, 0b111);
-        q.push(Frame::new(0x0A0, &[3]));
+        let (mut tx, mut q) = three_pending(p);
         for _ in 0..4 {
             q.service(&mut tx);
         }
@@ -193,14 +200,7 @@ mod tests {
     /// holds the new timing and every frame arrives at the new rate.
     #[test]
     async fn fdcan_bitrate_switch_with_cancel_outstanding(p: Peripherals) {
-        let mut tx = loopback(p, Bitrate::M1);
-        restricted(true);
-        let mut q = TxQueue::<8>::new();
-        for id in [0x181, 0x182, 0x183] {
-            q.push(Frame::new(id, &[4]));
-        }
-        q.service(&mut tx);
-        q.push(Frame::new(0x0A0, &[5]));
+        let (mut tx, mut q) = three_pending(p);
         q.service(&mut tx);
         let nbtp = perpend_board::bittiming::for_board(Bitrate::K250).nbtp();
         let sw = tx.switch_bitrate(nbtp);

@@ -32,7 +32,7 @@ use perpend_board::ecc::guarded_read;
 use perpend_board::fdcan::{FdcanRegs, FdcanTx, BUFFERS};
 use perpend_board::pipeline::{Pipeline, Sample};
 use perpend_board::rxfilter::{accepts, filters, Fifo, RxSet};
-use perpend_board::storage::{host_store, load, save, Boot, FaultFlash, ParamStore, StoreError};
+use perpend_board::storage::{host_store, load, save, Boot, FaultFlash, SeqStore};
 use perpend_board::txq::TxQueue;
 use perpend_can::Frame;
 use perpend_core::geometry::Plane;
@@ -308,21 +308,14 @@ fn storage_cut_at_each_step() -> Outcome {
     Ok(())
 }
 
-/// Nothing stored: the App boots the factory defaults (node 0x20).
-struct NoStore;
-
-impl ParamStore for NoStore {
-    fn load(&mut self, _: &mut [u8]) -> Result<Option<usize>, StoreError> {
-        Ok(None)
-    }
-    fn store(&mut self, _: &[u8]) -> Result<(), StoreError> {
-        Ok(())
-    }
+/// An App over an erased host flash: factory defaults, node 0x20.
+fn factory_app() -> App<SeqStore<perpend_board::storage::HostFlash>> {
+    App::new(host_store(FaultFlash::new()))
 }
 
 /// SDO expedited upload of 0x1000 (device type) from node 0x20.
 fn sdo_upload_device_type() -> Outcome {
-    let mut app = App::new(NoStore);
+    let mut app = factory_app();
     app.poll(1_000, &mut |_| {});
     let mut reply = None;
     let req = Frame::new(0x620, &[0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0]);
@@ -339,7 +332,7 @@ fn sdo_upload_device_type() -> Outcome {
 /// A sample with every ADC count 0 (open sensors), operational: an EMCY
 /// frame on 0x0A0 with a non-zero error code.
 fn emcy_on_sensor_fault() -> Outcome {
-    let mut app = App::new(NoStore);
+    let mut app = factory_app();
     let mut emcy = None;
     let mut grab = |f: Frame| {
         if f.id == 0x0A0 {
