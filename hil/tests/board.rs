@@ -274,6 +274,7 @@ mod tests {
             par.can.node_id = id;
             par
         };
+        let mut whole = false;
         for n in 0..64u32 {
             let inner = raw.take().expect("flash driver");
             let store = SeqStore::new(cut::CutFlash::new(EccGuard::new(inner)), flash::STORAGE);
@@ -288,9 +289,14 @@ mod tests {
             assert!(matches!(par.can.node_id, 0x21 | 0x22), "mixed record");
             raw = Some(st.into_flash().into_inner().into_inner());
             if !cut {
+                whole = true;
                 break;
             }
         }
+        assert!(
+            whole,
+            "a store took more than 64 flash operations: not every cut tried"
+        );
     }
 
     /// The ECC path on the part: a guarded read of the storage pages
