@@ -29,10 +29,16 @@
 //! software update event (EGR.UG, §29.4.11) is an update event, which
 //! TIM3's master mode `UPDATE` (CR2.MMS = 010, §29.4.2) puts on TRGO.
 
-use embassy_stm32::adc::RingBufferedAdc;
+use embassy_stm32::adc::{
+    Adc, AdcChannel, AdcConfig, AnyAdcChannel, Exten, RingBufferedAdc, SampleTime,
+};
+use embassy_stm32::dma;
+use embassy_stm32::interrupt::typelevel::{Binding, DMA1_CHANNEL1};
 use embassy_stm32::pac;
-use embassy_stm32::peripherals::{ADC1, TIM3};
+use embassy_stm32::peripherals::{ADC1, DMA1_CH1, TIM3};
 use embassy_stm32::timer::low_level::{RoundTo, Timer};
+use embassy_stm32::Peri;
+use perpend_board::health;
 use perpend_core::params::Acquisition;
 
 /// Channels per scan: four sensors, then the temperature sensor.
@@ -123,4 +129,70 @@ fn set_oversampling(acq: &Acquisition) {
         w.set_ovsr(ratio);
         w.set_ovss(acq.os_shift.min(8));
     });
+}
+
+/// Oversampling gain of the scan's results.
+pub fn scan_gain(acq: &Acquisition) -> f32 {
+    if acq.os_log2 == 0 {
+        1.0
+    } else {
+        health::os_gain(acq.os_log2, acq.os_shift)
+    }
+}
+
+/// ADC1 with the scan of the board (four inputs, the die temperature) on
+/// TIM3's TRGO into a DMA ring; returns the ring and VREF+ measured with
+/// VREFINT [mV] (the firmware's and the HIL tests' set-up).
+pub fn start(
+    adc1: Peri<'static, ADC1>,
+    dma: Peri<'static, DMA1_CH1>,
+    inputs: [AnyAdcChannel<'static, ADC1>; 4],
+    acq: &Acquisition,
+    irq: impl Binding<DMA1_CHANNEL1, dma::InterruptHandler<DMA1_CH1>> + 'static,
+) -> (RingBufferedAdc<'static, ADC1>, Option<f32>) {
+    let mut adc = Adc::new(
+        adc1,
+        AdcConfig {
+            oversampling_ratio: Some(acq.os_log2.clamp(1, 8) - 1),
+            oversampling_shift: Some(acq.os_shift),
+            oversampling_mode: Some((
+                embassy_stm32::pac::adc::vals::Rovsm::CONTINUED,
+                embassy_stm32::pac::adc::vals::Trovs::AUTOMATIC,
+                acq.os_log2 > 0,
+            )),
+            ..AdcConfig::default()
+        },
+    );
+    let temp = adc.enable_temperature();
+    // VREF+ from VREFINT (RM0440 §21.4.34), once at boot: 8 conversions
+    // averaged, at the scan's oversampling (4 µs minimum sampling time).
+    let mut vrefint = adc.enable_vrefint();
+    let sum: u32 = (0..8)
+        .map(|_| u32::from(adc.blocking_read(&mut vrefint, SampleTime::CYCLES247_5)))
+        .sum();
+    let (vcal, _, _) = crate::board::factory_cal();
+    let vref = health::vref_mv(vcal, (sum / 8) as u16, scan_gain(acq));
+    // Sample times of perpend_board::scan (the 0x2300 period check):
+    // SENSOR_SAMPLE_HALF_CYCLES = 95 (47.5), TEMP_SAMPLE_HALF_CYCLES = 495.
+    let st = SampleTime::CYCLES47_5;
+    let [a, b, c, d] = inputs;
+    let seq = [
+        (a, st),
+        (b, st),
+        (c, st),
+        (d, st),
+        (temp.degrade_adc(), SampleTime::CYCLES247_5),
+    ];
+    static mut DMA_BUF: [u16; RING_LEN] = [0; RING_LEN];
+    // SAFETY: the only reference to the buffer, taken once before the loop.
+    let dma_buf: &'static mut [u16; RING_LEN] = unsafe { &mut *core::ptr::addr_of_mut!(DMA_BUF) };
+    let ring = adc.into_ring_buffered(
+        dma,
+        dma_buf,
+        irq,
+        seq.into_iter(),
+        embassy_stm32::triggers::TIM3_TRGO,
+        Exten::RISING_EDGE,
+    );
+    (ring, vref)
 }

@@ -8,15 +8,23 @@
 //! (§7.4.29); DBGMCU_APB1FZR1.DBG_IWDG_STOP freezes the IWDG while the core
 //! is halted (§46.16.4).
 //!
-//! Stack guard: the stack grows down from the end of RAM towards
-//! `_stack_end` (cortex-m-rt: the end of `.bss`/`.uninit`). MPU region 0
-//! makes the 32 bytes above `_stack_end` inaccessible (AP = 000, XN), so an
-//! overflow faults (MemManage, then the IWDG resets the board, reported as
-//! a watchdog reset) instead of silently overwriting static data. The
+//! Stack guard: the firmware is linked with flip-link, so the stack grows
+//! down from just below `.data`/`.bss` (`_stack_start`) towards the bottom
+//! of RAM (`_stack_end` = 0x20000000, set by flip-link): an overflow can
+//! no longer reach static data. MPU region 0
+//! makes the [`GUARD`] bytes (8 KiB, size-aligned) above `_stack_end`
+//! inaccessible (AP = 000, XN), so an overflow faults at once (MemManage,
+//! then the IWDG resets the board, reported as a watchdog reset) instead of
+//! running below RAM (0x1FFF_xxxx: system memory and option bytes, whose
+//! writes are not guaranteed to fault). The guard is larger than any frame the stack
+//! can hold below the main task's: a 32-byte guard could be stepped over
+//! by a frame with a ~2 KiB buffer (the storage's item buffer), whose
+//! writes then land below the guard without touching it. The largest such
+//! frame is `App::store_now` (a copy of the CANopen device, its image and
+//! the item buffer; ≈ 8,000 B in the release build's `sub sp`); a
+//! compile-time check keeps those buffers below [`GUARD`]. The
 //! stack below the boot-time SP is painted ([`health::STACK_PAINT`]); the
-//! high-water mark is published in 0x200B sub 3. flip-link would need
-//! `cargo install flip-link` in every build environment (`cargo xtask
-//! setup` installs nothing with cargo), hence the MPU.
+//! high-water mark is published in 0x200B sub 3.
 
 use core::sync::atomic::{AtomicUsize, Ordering};
 
@@ -30,6 +38,21 @@ const TS_CAL2: *const u16 = 0x1FFF_75CA as *const u16;
 const FLASH_SIZE_KIB: *const u16 = 0x1FFF_75E0 as *const u16;
 /// Flash the storage range needs [KiB] (its end, 0x0808_0000).
 pub const FLASH_NEED_KIB: u16 = 512;
+
+/// Size of the MPU stack guard [bytes] (a power of two, ≥ 32).
+pub const GUARD: usize = 8192;
+/// The buffers of the largest run-time frame (`App::store_now` with
+/// `save_with_tail` inlined): the device copy, its image, the item buffer
+/// and the record.
+const STORE_FRAME_BUFFERS: usize = core::mem::size_of::<perpend_can::Device>()
+    + perpend_can::IMAGE_LEN
+    + perpend_board::storage::MAX_ITEM
+    + core::mem::size_of::<perpend_core::params::Params>();
+const _: () = assert!(GUARD.is_power_of_two() && GUARD >= 32);
+const _: () = assert!(
+    STORE_FRAME_BUFFERS < GUARD,
+    "stack guard smaller than a frame"
+);
 
 extern "C" {
     static mut _stack_end: u32;
@@ -100,14 +123,21 @@ fn stack_bounds() -> (usize, usize) {
 pub fn paint_and_guard_stack() {
     let (bottom, _) = stack_bounds();
     let sp = cortex_m::register::msp::read() as usize;
-    let mut p = (bottom + 31) & !31;
+    let base = guard_base(bottom);
+    let mut p = base + GUARD;
     while p + 4 <= sp.saturating_sub(256) {
         // SAFETY: between the end of the static data and the live stack:
         // unused RAM.
         unsafe { (p as *mut u32).write_volatile(health::STACK_PAINT) };
         p += 4;
     }
-    guard((bottom + 31) & !31);
+    guard(base);
+}
+
+/// The guard's base: `bottom` rounded up to the guard size (an MPU region
+/// is aligned to its size).
+fn guard_base(bottom: usize) -> usize {
+    (bottom + GUARD - 1) & !(GUARD - 1)
 }
 
 /// Lowest stack address found used so far (0: not scanned yet).
@@ -122,7 +152,7 @@ const WINDOW_WORDS: usize = 512;
 /// boot's first scan).
 pub fn stack_used() -> usize {
     let (bottom, top) = stack_bounds();
-    let start = ((bottom + 31) & !31) + 32; // above the guard
+    let start = guard_base(bottom) + GUARD; // above the guard
     let (low, end) = match LOW.load(Ordering::Relaxed) {
         0 => (start, top),
         l => (l.saturating_sub(4 * WINDOW_WORDS).max(start), l),
@@ -135,16 +165,17 @@ pub fn stack_used() -> usize {
     top - mark
 }
 
-/// MPU region 0: 32 bytes at `base` (32-byte aligned), no access, XN;
+/// MPU region 0: [`GUARD`] bytes at `base` (size-aligned), no access, XN;
 /// default map for everything else (PRIVDEFENA); MemManage enabled.
 fn guard(base: usize) {
     // SAFETY: boot time, before any task runs; the region is unused RAM.
     unsafe {
         let p = cortex_m::Peripherals::steal();
         p.MPU.rnr.write(0);
-        p.MPU.rbar.write(base as u32 & !31);
-        // XN (28), AP = 000 (26:24), SIZE = 4 (2^(4+1) = 32 B), ENABLE.
-        p.MPU.rasr.write((1 << 28) | (4 << 1) | 1);
+        p.MPU.rbar.write(base as u32 & !(GUARD as u32 - 1));
+        // XN (28), AP = 000 (26:24), SIZE = log2(GUARD) - 1, ENABLE.
+        let size = GUARD.trailing_zeros() - 1;
+        p.MPU.rasr.write((1 << 28) | (size << 1) | 1);
         // PRIVDEFENA (2) | ENABLE (0)
         p.MPU.ctrl.write((1 << 2) | 1);
         let mut scb = p.SCB;
@@ -193,4 +224,29 @@ pub fn enter_bootloader_if_requested() {
     pac::SYSCFG.memrmp().modify(|w| w.set_mem_mode(1));
     // SAFETY: the system memory holds the ROM bootloader's vector table.
     unsafe { cortex_m::asm::bootload(0x1FFF_0000 as *const u32) }
+}
+
+/// The clocks of the NUCLEO-G474RE (the firmware's and the HIL tests').
+pub fn config() -> embassy_stm32::Config {
+    let mut c = embassy_stm32::Config::default();
+    // NUCLEO-G474RE: 24 MHz crystal (X3). SYSCLK = 24 / 6 * 85 / 2 = 170 MHz.
+    c.rcc.hse = Some(embassy_stm32::rcc::Hse {
+        freq: embassy_stm32::time::Hertz(perpend_board::bittiming::FDCAN_KERNEL_HZ),
+        mode: embassy_stm32::rcc::HseMode::Oscillator,
+    });
+    c.rcc.pll = Some(embassy_stm32::rcc::Pll {
+        source: embassy_stm32::rcc::PllSource::HSE,
+        prediv: embassy_stm32::rcc::PllPreDiv::DIV6,
+        mul: embassy_stm32::rcc::PllMul::MUL85,
+        divp: None,
+        divq: None,
+        divr: Some(embassy_stm32::rcc::PllRDiv::DIV2),
+    });
+    c.rcc.sys = embassy_stm32::rcc::Sysclk::PLL1_R;
+    c.rcc.boost = true;
+    // FDCAN from HSE: the kernel clock of perpend_board::bittiming.
+    c.rcc.mux.fdcansel = embassy_stm32::rcc::mux::Fdcansel::HSE;
+    // ADC from SYSCLK (the driver divides by 4: 42.5 MHz ≤ 60 MHz).
+    c.rcc.mux.adc12sel = embassy_stm32::rcc::mux::Adcsel::SYS;
+    c
 }

@@ -35,6 +35,7 @@ use embassy_stm32::can::{CanRx, Properties};
 use embassy_stm32::interrupt::typelevel::{Handler, FDCAN1_IT0};
 use embedded_can::StandardId;
 use heapless::Deque;
+use perpend_board::busmon::PsrRead;
 use perpend_board::rxfilter::{Fifo, StdFilter, MAX_STD_FILTERS};
 use perpend_can::Frame;
 
@@ -48,8 +49,6 @@ static RING: Mutex<RefCell<Deque<Frame, RX_RING>>> = Mutex::new(RefCell::new(Deq
 static WAKER: Mutex<RefCell<Option<Waker>>> = Mutex::new(RefCell::new(None));
 /// Frames lost because the ring was full.
 pub static LOST: AtomicU32 = AtomicU32::new(0);
-/// Bus errors the receive side reported (PSR.LEC).
-pub static BUS_ERRORS: AtomicU32 = AtomicU32::new(0);
 /// Most frames in the ring at once.
 pub static PEAK: AtomicU32 = AtomicU32::new(0);
 
@@ -58,8 +57,26 @@ pub fn install(rx: CanRx<'static>) {
     cortex_m::interrupt::free(|cs| RX.borrow(cs).replace(Some(rx)));
 }
 
+/// Frames waiting in both receive FIFOs (RXF0S.F0FL + RXF1S.F1FL).
+pub fn fifo_fill() -> u32 {
+    let r = embassy_stm32::pac::FDCAN1;
+    u32::from(r.rxfs(0).read().ffl()) + u32::from(r.rxfs(1).read().ffl())
+}
+
+/// FDCAN1's PSR, read once per tick by `perpend_board::busmon::BusMonitor`
+/// (the only PSR read of the firmware: every read resets PSR.LEC).
+pub struct Psr;
+
+impl PsrRead for Psr {
+    fn read_psr(&mut self) -> u32 {
+        embassy_stm32::pac::FDCAN1.psr().read().0
+    }
+}
+
 /// Moves every frame waiting in the FIFOs into the ring (interrupt
-/// context, or the main loop as a fallback).
+/// context, or the main loop as a fallback). The driver's read is polled
+/// only while a FIFO holds a frame: with both empty it would read PSR
+/// (resetting LEC, which `BusMonitor` counts once per tick).
 pub fn drain() {
     cortex_m::interrupt::free(|cs| {
         let mut rx = RX.borrow(cs).borrow_mut();
@@ -68,6 +85,9 @@ pub fn drain() {
         let mut got = false;
         // At most both FIFOs' worth plus one: never spins.
         for _ in 0..8 {
+            if fifo_fill() == 0 {
+                break;
+            }
             match poll_once(rx.read()) {
                 Poll::Ready(Ok(env)) => {
                     if let Some(f) = from_hal(&env.frame) {
@@ -77,10 +97,7 @@ pub fn drain() {
                         got = true;
                     }
                 }
-                Poll::Ready(Err(_)) => {
-                    BUS_ERRORS.fetch_add(1, Ordering::Relaxed);
-                }
-                Poll::Pending => break,
+                Poll::Ready(Err(_)) | Poll::Pending => break,
             }
         }
         PEAK.fetch_max(ring.len() as u32, Ordering::Relaxed);

@@ -1,5 +1,9 @@
 //! The FDCAN1 transmit side as a [`TxController`] of the board's software
-//! queue ([`perpend_board::txq`]): offering a frame never waits.
+//! queue ([`perpend_board::txq`]): offering a frame never waits. The
+//! decisions (cancellation, displacement, order, the bit-rate switch with a
+//! cancellation outstanding) are `perpend_board::fdcan`'s, tested on the
+//! host against a fake controller; this module is its register access
+//! ([`Fdcan1`]).
 //!
 //! The controller runs in Tx **queue** mode (TXBC.TFQM = 1, RM0440
 //! §44.3.6 "Tx queue"): its three Tx buffers are sent lowest identifier
@@ -33,11 +37,10 @@ use core::task::Poll;
 use embassy_futures::poll_once;
 use embassy_stm32::can::{self, CanTx};
 use embassy_stm32::pac;
-use perpend_board::txq::{TryWrite, TxController};
+use perpend_board::fdcan::FdcanRegs;
 use perpend_can::Frame;
+use perpend_core::params::Bitrate;
 
-/// Tx buffers of the G4 FDCAN (message RAM, RM0440 §44.3.3).
-const BUFFERS: usize = 3;
 /// Words per Tx buffer element in the G4 message RAM (T0, T1, 64 data
 /// bytes).
 const ELEMENT_WORDS: usize = 18;
@@ -64,11 +67,6 @@ pub fn from_hal(f: &can::frame::Frame) -> Option<Frame> {
     Some(out)
 }
 
-/// Whether Tx buffer `k` has a transmission request pending (TXBRP).
-fn pending(k: usize) -> bool {
-    pac::FDCAN1.txbrp().read().trp(k)
-}
-
 /// The frame held by Tx buffer `k`, read back from the message RAM: T0
 /// (ID\[28:18\], RTR bit 29), T1 (DLC\[19:16\]), data words 2 and 3.
 fn buffer_frame(k: usize) -> Frame {
@@ -85,92 +83,114 @@ fn buffer_frame(k: usize) -> Frame {
     Frame::new(id, &data[..len as usize])
 }
 
-/// The FDCAN transmit side (see the module docs).
-pub struct FdcanTx<'d> {
+/// FDCAN1's registers for `perpend_board::fdcan`, and the driver's
+/// transmit half for writing a free buffer.
+pub struct Fdcan1<'d> {
     tx: CanTx<'d>,
-    /// Buffer whose cancellation was requested, and the frame it held.
-    cancelling: Option<(usize, Frame)>,
 }
 
-impl<'d> FdcanTx<'d> {
-    /// Wraps the driver's transmit half.
-    pub fn new(tx: CanTx<'d>) -> Self {
-        Self {
-            tx,
-            cancelling: None,
-        }
-    }
+/// The FDCAN1 transmit side (see the module docs).
+pub type FdcanTx<'d> = perpend_board::fdcan::FdcanTx<Fdcan1<'d>>;
 
-    /// Resolves a requested cancellation: `Err(())` while it runs,
-    /// `Ok(Some((k, frame)))` when buffer `k` was cancelled (free, its
-    /// frame not sent), `Ok(None)` otherwise.
-    fn resolve_cancel(&mut self) -> Result<Option<(usize, Frame)>, ()> {
-        let Some((k, f)) = self.cancelling else {
-            return Ok(None);
-        };
-        if !pac::FDCAN1.txbcf().read().cf(k) {
-            return Err(());
-        }
-        self.cancelling = None;
-        let sent = pac::FDCAN1.txbto().read().to(k);
-        Ok((!sent).then_some((k, f)))
-    }
-
-    /// Requests the cancellation of the lowest-priority pending frame if
-    /// its identifier is above `id` (all buffers are pending).
-    fn request_cancel(&mut self, id: u16) {
-        let worst = (0..BUFFERS)
-            .filter(|&k| pending(k))
-            .map(|k| (k, buffer_frame(k)))
-            .max_by_key(|(_, f)| f.id);
-        if let Some((k, f)) = worst.filter(|(_, f)| f.id > id) {
-            pac::FDCAN1.txbcr().write(|w| w.set_cr(k, true));
-            self.cancelling = Some((k, f));
-        }
-    }
+/// Wraps the driver's transmit half.
+pub fn new(tx: CanTx<'_>) -> FdcanTx<'_> {
+    FdcanTx::new(Fdcan1 { tx })
 }
 
-impl TxController for FdcanTx<'_> {
-    fn try_write(&mut self, f: &Frame) -> TryWrite {
+impl FdcanRegs for Fdcan1<'_> {
+    fn pending(&mut self) -> u32 {
+        pac::FDCAN1.txbrp().read().0
+    }
+    fn cancel_finished(&mut self) -> u32 {
+        pac::FDCAN1.txbcf().read().0
+    }
+    fn transmitted(&mut self) -> u32 {
+        pac::FDCAN1.txbto().read().0
+    }
+    fn queue_full(&mut self) -> bool {
+        pac::FDCAN1.txfqs().read().tfqf()
+    }
+    fn buffer(&mut self, k: usize) -> Frame {
+        buffer_frame(k)
+    }
+    fn request_cancel(&mut self, k: usize) {
+        pac::FDCAN1.txbcr().write(|w| w.set_cr(k, true));
+    }
+    fn add_request(&mut self, k: usize) {
+        pac::FDCAN1.txbar().write(|w| w.set_ar(k, true));
+    }
+    fn write(&mut self, f: &Frame) -> bool {
         let Some(hal) = to_hal(f) else {
             defmt::warn!("frame {=u16:#x} is not a classic CAN frame: not sent", f.id);
-            return TryWrite::Accepted;
+            // Dropped on purpose: taken, so the queue moves on.
+            return true;
         };
-        let Ok(cancelled) = self.resolve_cancel() else {
-            return TryWrite::Full;
-        };
-        let same_id = (0..BUFFERS).any(|k| pending(k) && buffer_frame(k).id == f.id);
-        if same_id {
-            if let Some((k, _)) = cancelled {
-                // The cancelled frame was not sent: request it again (its
-                // buffer is untouched).
-                pac::FDCAN1.txbar().write(|w| w.set_ar(k, true));
-            }
-            return TryWrite::Full;
-        }
-        if pac::FDCAN1.txfqs().read().tfqf() {
-            self.request_cancel(f.id);
-            return TryWrite::Full;
-        }
         // A buffer is free: the driver writes it without waiting or
-        // displacing anything.
+        // displacing anything (its displacement is never reached).
         match poll_once(self.tx.write(&hal)) {
-            Poll::Ready(None) => match cancelled {
-                Some((_, back)) => TryWrite::Displaced(back),
-                None => TryWrite::Accepted,
-            },
-            Poll::Ready(Some(d)) => match from_hal(&d) {
-                Some(d) => TryWrite::Displaced(d),
-                None => TryWrite::Accepted,
-            },
-            Poll::Pending => {
-                // Not reached (a buffer was free); never lose the
-                // cancelled frame.
-                if let Some((k, _)) = cancelled {
-                    pac::FDCAN1.txbar().write(|w| w.set_ar(k, true));
-                }
-                TryWrite::Full
+            Poll::Ready(None) => true,
+            Poll::Ready(Some(d)) => {
+                defmt::warn!(
+                    "frame {=u32:#x} displaced by the driver: lost",
+                    from_hal(&d).map_or(0, |f| u32::from(f.id))
+                );
+                true
             }
+            Poll::Pending => false,
         }
     }
+    fn drain_rx(&mut self) {
+        crate::can_rx::drain();
+    }
+    fn rx_fill(&mut self) -> u32 {
+        crate::can_rx::fifo_fill()
+    }
+    fn enter_init(&mut self) {
+        let r = pac::FDCAN1;
+        r.cccr().modify(|w| w.set_init(true));
+        while !r.cccr().read().init() {}
+    }
+    fn program_nbtp(&mut self, nbtp: u32) {
+        // RM0440 §44.3.2: CCE with INIT set, NBTP, then INIT cleared (the
+        // bus is re-joined after 11 recessive bits).
+        let r = pac::FDCAN1;
+        r.cccr().modify(|w| w.set_cce(true));
+        r.nbtp().write_value(pac::can::regs::Nbtp(nbtp));
+        r.cccr().modify(|w| {
+            w.set_cce(false);
+            w.set_init(false);
+        });
+        while r.cccr().read().init() {}
+    }
+}
+
+/// The board's FDCAN nominal bit timing for `b` as the driver's type
+/// (`None` only if the table held a value the type cannot).
+pub fn nominal_timing(b: Bitrate) -> Option<can::config::NominalBitTiming> {
+    let t = perpend_board::bittiming::for_board(b);
+    Some(can::config::NominalBitTiming {
+        prescaler: core::num::NonZeroU16::new(t.prescaler)?,
+        seg1: core::num::NonZeroU8::new(u8::try_from(t.seg1).ok()?)?,
+        seg2: core::num::NonZeroU8::new(t.seg2)?,
+        sync_jump_width: core::num::NonZeroU8::new(t.sjw)?,
+    })
+}
+
+/// The board's FDCAN configuration at `b` (the firmware's and the HIL
+/// tests'): explicit bit timing, Tx queue mode (lowest identifier first),
+/// and the global filter that rejects what no acceptance filter takes (set
+/// before the filters).
+pub fn configure(cc: &mut can::CanConfigurator<'_>, b: Bitrate) {
+    match nominal_timing(b) {
+        Some(nbt) => {
+            let c = cc.config().set_nominal_bit_timing(nbt);
+            cc.set_config(c.set_tx_buffer_mode(can::config::TxBufferMode::Priority));
+        }
+        None => cc.set_bitrate(b.bps()),
+    }
+    cc.set_config(crate::can_rx::with_global_filter(cc.config()));
+    defmt::info!(
+        "FDCAN NBTP {=u32:#010x}",
+        perpend_board::bittiming::for_board(b).nbtp()
+    );
 }

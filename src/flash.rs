@@ -20,10 +20,17 @@
 //! ECC (RM0440 §5.3.9): reading a double word whose programming was cut
 //! sets FLASH_ECCR.ECCD and raises the NMI. [`NonMaskableInt`] checks that
 //! the failing address is inside [`STORAGE`] (bank 2, BK_ECC = 1), clears
-//! ECCD (write 1) and records the offset; [`BoardFlash::read`] then fails
-//! with [`BoardFlashError::Ecc`], which `perpend_board::storage::EccGuard`
-//! turns into a skipped record. Any other NMI (ECC elsewhere, clock
-//! security) stays fatal: the handler loops and the IWDG resets.
+//! ECCC/ECCD (write 1) and records the offset (up to
+//! `perpend_board::ecc::MAX_FAULTS` per read). [`BoardFlash::read`] runs
+//! `perpend_board::ecc::guarded_read`: ECCC/ECCD cleared before the read
+//! and after each single-bit correction (ECCD is set only when both were
+//! clear, §3.7.7), the data cache off and reset around it (§3.3.2: a re-read
+//! must not come from the cache), each recorded double word substituted
+//! with `ECC_FILL` and counted ([`FlashHealth::take_read_faults`], EMCY
+//! 0x6300). More faults than the log holds fail the read with
+//! [`BoardFlashError::Ecc`], which `perpend_board::storage::EccGuard`
+//! re-reads word by word. Any other NMI (ECC elsewhere, clock security)
+//! stays fatal: the handler loops and the IWDG resets.
 //!
 //! Limits: not run on silicon. ECCR.ADDR_ECC is taken as the byte offset
 //! inside the bank (RM0440 §5.7.8); the handler also requires that a read
@@ -32,6 +39,7 @@
 use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 use embassy_stm32::pac;
+use perpend_board::ecc::{self, EccFlags, EccRegs, MAX_FAULTS};
 use perpend_board::storage::nor_flash::{
     ErrorType, NorFlash, NorFlashError, NorFlashErrorKind, ReadNorFlash,
 };
@@ -48,8 +56,77 @@ const BANK: u32 = 0x4_0000;
 /// A storage read is in progress (the NMI handler excuses ECC errors only
 /// then).
 static READING: AtomicBool = AtomicBool::new(false);
-/// Offset + 1 of the last excused ECC error (0: none).
-static ECC_AT: AtomicU32 = AtomicU32::new(0);
+/// Offsets of the double errors excused during the current read.
+static ECC_LOG: [AtomicU32; MAX_FAULTS] = [const { AtomicU32::new(0) }; MAX_FAULTS];
+/// Number of distinct offsets in [`ECC_LOG`] (`MAX_FAULTS + 1`: more).
+static ECC_N: AtomicU32 = AtomicU32::new(0);
+
+/// Records a double error at `off` once (NMI context).
+fn record_fault(off: u32) {
+    let n = ECC_N.load(Ordering::SeqCst) as usize;
+    if ECC_LOG[..n.min(MAX_FAULTS)]
+        .iter()
+        .any(|a| a.load(Ordering::SeqCst) == off)
+    {
+        return;
+    }
+    if let Some(slot) = ECC_LOG.get(n) {
+        slot.store(off, Ordering::SeqCst);
+    }
+    ECC_N.store((n + 1).min(MAX_FAULTS + 1) as u32, Ordering::SeqCst);
+}
+
+/// The flash controller and the NMI's log for `ecc::guarded_read`.
+struct EccHw;
+
+impl EccRegs for EccHw {
+    fn flags(&mut self) -> EccFlags {
+        let e = pac::FLASH.eccr().read();
+        EccFlags {
+            corrected: e.eccc(),
+            detected: e.eccd(),
+        }
+    }
+    fn clear_flags(&mut self) {
+        // Write 1 to clear; ECCIE and the read-only fields are kept.
+        pac::FLASH.eccr().modify(|w| {
+            w.set_eccc(true);
+            w.set_eccd(true);
+        });
+    }
+    fn dcache_enabled(&mut self) -> bool {
+        pac::FLASH.acr().read().dcen()
+    }
+    fn set_dcache(&mut self, on: bool) {
+        pac::FLASH.acr().modify(|w| w.set_dcen(on));
+    }
+    fn reset_dcache(&mut self) {
+        pac::FLASH.acr().modify(|w| w.set_dcrst(true));
+        pac::FLASH.acr().modify(|w| w.set_dcrst(false));
+    }
+    fn load(&mut self, offset: u32, bytes: &mut [u8]) {
+        READING.store(true, Ordering::SeqCst);
+        for (i, b) in bytes.iter_mut().enumerate() {
+            // SAFETY: inside STORAGE (checked by the caller), readable
+            // flash (an ECC error raises the NMI, handled below, and the
+            // load completes).
+            *b = unsafe { ((BASE + offset + i as u32) as *const u8).read_volatile() };
+        }
+        // A pending NMI of the last load is taken before the flag drops.
+        cortex_m::asm::dsb();
+        cortex_m::asm::isb();
+        READING.store(false, Ordering::SeqCst);
+    }
+    fn take_faults(&mut self) -> Option<heapless::Vec<u32, MAX_FAULTS>> {
+        let n = ECC_N.swap(0, Ordering::SeqCst) as usize;
+        (n <= MAX_FAULTS).then(|| {
+            ECC_LOG[..n]
+                .iter()
+                .map(|a| a.load(Ordering::SeqCst))
+                .collect()
+        })
+    }
+}
 
 /// Errors of [`BoardFlash`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, defmt::Format)]
@@ -87,6 +164,8 @@ pub struct BoardFlash {
     /// operation fails ([`BoardFlashError::Bounds`]) and the board boots
     /// factory defaults without touching the flash.
     enabled: bool,
+    /// Double words substituted since the last `take_read_faults`.
+    faults: u32,
 }
 
 impl BoardFlash {
@@ -96,7 +175,7 @@ impl BoardFlash {
         _flash: embassy_stm32::Peri<'static, embassy_stm32::peripherals::FLASH>,
         enabled: bool,
     ) -> Self {
-        Self { enabled }
+        Self { enabled, faults: 0 }
     }
 
     fn check_on(&self, offset: u32, len: usize, align: u32) -> Result<(), BoardFlashError> {
@@ -179,20 +258,13 @@ impl ReadNorFlash for BoardFlash {
 
     async fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
         self.check_on(offset, bytes.len(), 1)?;
-        ECC_AT.store(0, Ordering::SeqCst);
-        READING.store(true, Ordering::SeqCst);
-        for (i, b) in bytes.iter_mut().enumerate() {
-            // SAFETY: inside STORAGE, readable flash (an ECC error raises
-            // the NMI, handled below, and the load completes).
-            *b = unsafe { ((BASE + offset + i as u32) as *const u8).read_volatile() };
-        }
-        // A pending NMI of the last read is taken before the flag drops.
-        cortex_m::asm::dsb();
-        cortex_m::asm::isb();
-        READING.store(false, Ordering::SeqCst);
-        match ECC_AT.swap(0, Ordering::SeqCst) {
-            0 => Ok(()),
-            at => Err(BoardFlashError::Ecc(at - 1)),
+        match ecc::guarded_read(&mut EccHw, offset, bytes) {
+            Ok(r) => {
+                self.faults = self.faults.saturating_add(r.substituted);
+                Ok(())
+            }
+            // Too many to log: EccGuard reads word by word.
+            Err(_) => Err(BoardFlashError::Ecc(offset & !(WORD as u32 - 1))),
         }
     }
 
@@ -256,6 +328,9 @@ impl NorFlash for BoardFlash {
 }
 
 impl FlashHealth for BoardFlash {
+    fn take_read_faults(&mut self) -> u32 {
+        core::mem::take(&mut self.faults)
+    }
     fn supply_ok(&mut self) -> bool {
         // PWR_SR2.PVDO = 1: VDD below the PVD threshold (RM0440 §6.4.12).
         !pac::PWR.sr2().read().pvdo()
@@ -293,7 +368,7 @@ unsafe fn NonMaskableInt() {
         Some(off) if READING.load(Ordering::SeqCst) => {
             // ECCD is cleared by writing 1 (keep ECCIE, clear ECCC too).
             pac::FLASH.eccr().write_value(eccr);
-            ECC_AT.store(off + 1, Ordering::SeqCst);
+            record_fault(off);
         }
         _ => loop {
             cortex_m::asm::nop();

@@ -32,8 +32,9 @@
 //!   (< 1 s).
 //! * **LED** LD2 (PA5): see `led_pattern`.
 //!
-//! All work runs in one task (`main`): a `select` over "scan ready", "CAN
-//! frame received" and a 1 ms tick; frames the `App` emits go into the
+//! All work runs in one task (`main`): a `select` over a 1 ms tick, "scan
+//! ready" and "CAN frame received" (in that order, the frames within a
+//! per-tick budget: `perpend_board::busmon`); frames the `App` emits go into the
 //! transmit queue, which is serviced (never awaited) after each event.
 
 #![no_std]
@@ -45,26 +46,20 @@ mod can_rx;
 mod can_tx;
 mod flash;
 
-use core::num::{NonZeroU16, NonZeroU8};
-
 use defmt::{info, warn};
 use embassy_executor::Spawner;
 use embassy_futures::select::{select3, Either3};
-use embassy_stm32::adc::{
-    Adc, AdcChannel, AdcConfig, AnyAdcChannel, Exten, RingBufferedAdc, SampleTime,
-};
-use embassy_stm32::can::config::{NominalBitTiming, TxBufferMode};
-use embassy_stm32::can::enums::BusErrorMode;
+use embassy_stm32::adc::{AdcChannel, RingBufferedAdc};
 use embassy_stm32::can::{self, CanConfigurator};
 use embassy_stm32::gpio::{Level, Output, Speed};
 use embassy_stm32::peripherals::{ADC1, DMA1_CH1, FDCAN1, IWDG, PA11, PA12, TIM3};
-use embassy_stm32::time::Hertz;
 use embassy_stm32::timer::low_level::{MasterMode, Timer};
 use embassy_stm32::wdg::IndependentWatchdog;
-use embassy_stm32::{bind_interrupts, dma, rcc, Config, Peri};
+use embassy_stm32::{bind_interrupts, dma, Peri};
 use embassy_time::{Duration, Instant, Ticker};
 use perpend_board::app::App;
-use perpend_board::bittiming::{self, FDCAN_KERNEL_HZ};
+use perpend_board::bittiming;
+use perpend_board::busmon::{BusEvent, BusMonitor, RxBudget};
 use perpend_board::health::{self, LoopTimer};
 use perpend_board::pipeline::Sample;
 use perpend_board::rxfilter::{self, RxSet};
@@ -73,7 +68,7 @@ use perpend_board::txq::{TxQueue, TX_QUEUE_LEN};
 use perpend_core::params::{Acquisition, Bitrate};
 use {defmt_rtt as _, panic_probe as _};
 
-use acq_ctl::{RING_LEN, SCAN};
+use acq_ctl::SCAN;
 use can_tx::FdcanTx;
 
 bind_interrupts!(struct Irqs {
@@ -81,15 +76,6 @@ bind_interrupts!(struct Irqs {
     FDCAN1_IT1 => can::IT1InterruptHandler<FDCAN1>;
     DMA1_CHANNEL1 => dma::InterruptHandler<DMA1_CH1>;
 });
-
-/// Oversampling gain of the scan's results.
-fn scan_gain(acq: &Acquisition) -> f32 {
-    if acq.os_log2 == 0 {
-        1.0
-    } else {
-        health::os_gain(acq.os_log2, acq.os_shift)
-    }
-}
 
 /// LED pattern: on = valid measurement; slow blink (1 Hz) = running without
 /// a valid plane; fast blink (5 Hz) = factory defaults (uncalibrated) or a
@@ -105,42 +91,6 @@ fn led_pattern(status: u32, now_ms: u64) -> bool {
     }
 }
 
-fn config() -> Config {
-    let mut c = Config::default();
-    // NUCLEO-G474RE: 24 MHz crystal (X3). SYSCLK = 24 / 6 * 85 / 2 = 170 MHz.
-    c.rcc.hse = Some(rcc::Hse {
-        freq: Hertz(FDCAN_KERNEL_HZ),
-        mode: rcc::HseMode::Oscillator,
-    });
-    c.rcc.pll = Some(rcc::Pll {
-        source: rcc::PllSource::HSE,
-        prediv: rcc::PllPreDiv::DIV6,
-        mul: rcc::PllMul::MUL85,
-        divp: None,
-        divq: None,
-        divr: Some(rcc::PllRDiv::DIV2),
-    });
-    c.rcc.sys = rcc::Sysclk::PLL1_R;
-    c.rcc.boost = true;
-    // FDCAN from HSE: the kernel clock of perpend_board::bittiming.
-    c.rcc.mux.fdcansel = rcc::mux::Fdcansel::HSE;
-    // ADC from SYSCLK (the driver divides by 4: 42.5 MHz ≤ 60 MHz).
-    c.rcc.mux.adc12sel = rcc::mux::Adcsel::SYS;
-    c
-}
-
-/// The board's FDCAN nominal bit timing for `b` as the driver's type
-/// (`None` only if the table held a value the type cannot).
-fn nominal_timing(b: Bitrate) -> Option<NominalBitTiming> {
-    let t = bittiming::for_board(b);
-    Some(NominalBitTiming {
-        prescaler: NonZeroU16::new(t.prescaler)?,
-        seg1: NonZeroU8::new(u8::try_from(t.seg1).ok()?)?,
-        seg2: NonZeroU8::new(t.seg2)?,
-        sync_jump_width: NonZeroU8::new(t.sjw)?,
-    })
-}
-
 /// FDCAN1 on PA11/PA12, classic CAN at `b` with the explicit bit timing,
 /// Tx queue mode (lowest identifier first).
 fn start_can(
@@ -150,37 +100,8 @@ fn start_can(
     b: Bitrate,
 ) -> can::Can<'static> {
     let mut cc = CanConfigurator::new(fdcan, rx, tx, Irqs);
-    match nominal_timing(b) {
-        Some(nbt) => {
-            let c = cc.config().set_nominal_bit_timing(nbt);
-            cc.set_config(c.set_tx_buffer_mode(TxBufferMode::Priority));
-        }
-        None => cc.set_bitrate(b.bps()),
-    }
-    // Reject what no acceptance filter takes (set before the filters).
-    cc.set_config(can_rx::with_global_filter(cc.config()));
-    info!("FDCAN NBTP {=u32:#010x}", bittiming::for_board(b).nbtp());
+    can_tx::configure(&mut cc, b);
     cc.into_normal_mode()
-}
-
-/// Re-programs the FDCAN's nominal bit timing at run time, for LSS
-/// "activate bit timing" (RM0440 §44.3.2: INIT and CCE set, NBTP written,
-/// INIT cleared; frames pending in the transmit buffers are dropped by
-/// CCE, the bus is re-joined after 11 recessive bits). The split driver
-/// halves keep working.
-fn switch_bitrate(b: Bitrate) {
-    let r = embassy_stm32::pac::FDCAN1;
-    r.cccr().modify(|w| w.set_init(true));
-    while !r.cccr().read().init() {}
-    r.cccr().modify(|w| w.set_cce(true));
-    r.nbtp().write_value(embassy_stm32::pac::can::regs::Nbtp(
-        bittiming::for_board(b).nbtp(),
-    ));
-    r.cccr().modify(|w| {
-        w.set_cce(false);
-        w.set_init(false);
-    });
-    while r.cccr().read().init() {}
 }
 
 /// The firmware's state between events.
@@ -199,7 +120,10 @@ struct Fw {
     /// Acquisition locked to SYNC (0x2301 sub 1): TIM3 stopped, one scan
     /// per SYNC.
     locked: bool,
-    bus_off_since: Option<Instant>,
+    /// Bus errors and bus-off from one PSR read per tick.
+    bus: BusMonitor,
+    /// Frames the loop may still take before the next tick.
+    rx_budget: RxBudget,
     samples: u32,
     /// What the acceptance filters are programmed for.
     rx_set: RxSet,
@@ -216,10 +140,6 @@ struct Fw {
     ticks: u32,
     /// The health figures (0x200B) are due.
     health_due: bool,
-    /// Bus errors seen by the receive side (PSR.LEC, e.g. one acknowledge
-    /// error per retransmission when alone on the bus): counted, logged
-    /// with the per-1000-sample line, not one warning each.
-    bus_errors: u32,
 }
 
 /// Microseconds since boot (the App's clock).
@@ -237,7 +157,7 @@ impl Fw {
         let (c1, c2) = self.ts_cal;
         let s = Sample {
             counts: [c(0), c(1), c(2), c(3)],
-            temp_c: health::die_temp_c(scan[4], scan_gain(&self.acq), vref, c1, c2),
+            temp_c: health::die_temp_c(scan[4], acq_ctl::scan_gain(&self.acq), vref, c1, c2),
             t_s: None,
         };
         let o = self.app.on_sample(&s, t_acq);
@@ -253,7 +173,7 @@ impl Fw {
                 o.rms_mm,
                 now_us() - t_acq,
                 self.txq.stats().dropped,
-                self.bus_errors
+                self.bus.errors()
             );
         }
     }
@@ -310,7 +230,6 @@ impl Fw {
             warn!("CAN receive ring overflow: {} frames lost", lost);
             self.app.rx_overrun();
         }
-        self.bus_errors = can_rx::BUS_ERRORS.load(core::sync::atomic::Ordering::Relaxed);
         self.update_filters();
         self.ticks = self.ticks.wrapping_add(1);
         self.health_due |= self.ticks.is_multiple_of(1000);
@@ -330,26 +249,23 @@ impl Fw {
         // Locked to SYNC, no SYNC means no sample: the controller's
         // business (0x2301 sub 2 counts SYNCs without their sample).
         let acq_alive = self.locked || now - self.last_sample < Duration::from_millis(20);
-        let can_alive = self
-            .bus_off_since
-            .is_none_or(|t| now - t < Duration::from_secs(1));
+        let can_alive = self.bus.bus_off_for_us(now.as_micros()) < 1_000_000;
         if acq_alive && can_alive {
             self.wdg.pet();
         }
     }
 
+    /// The tick's one PSR read: bus errors (PSR.LEC, e.g. one acknowledge
+    /// error per retransmission when alone on the bus: counted, logged with
+    /// the per-1000-sample line) and bus-off.
     fn check_bus_off(&mut self) {
-        match (self.props.bus_error_mode(), self.bus_off_since) {
-            (BusErrorMode::BusOff, None) => {
-                warn!("CAN bus-off");
-                self.bus_off_since = Some(Instant::now());
-            }
-            (BusErrorMode::BusOff, Some(_)) | (_, None) => {}
-            (_, Some(_)) => {
+        match self.bus.tick(&mut can_rx::Psr, now_us()) {
+            BusEvent::BusOff => warn!("CAN bus-off"),
+            BusEvent::Recovered => {
                 info!("CAN bus-off recovered");
-                self.bus_off_since = None;
                 self.app.bus_off_recovered();
             }
+            BusEvent::None => {}
         }
     }
 
@@ -381,8 +297,22 @@ impl Fw {
         // LSS "activate bit timing" (CiA 305): the switch delay has passed.
         let lss = self.app.device_mut().take_bit_rate_switch();
         if let Some(b) = lss.and_then(perpend_can::config::bitrate_of) {
-            switch_bitrate(b);
-            info!("LSS: bit rate now {} bit/s", b.bps());
+            // perpend_board::fdcan: pending frames read back and requeued,
+            // an outstanding cancellation forgotten, FIFO losses counted.
+            let sw = self.can_tx.switch_bitrate(bittiming::for_board(b).nbtp());
+            let n = sw.requeue.len();
+            for f in sw.requeue {
+                self.txq.requeue(f);
+            }
+            if sw.rx_lost > 0 {
+                warn!("LSS switch: {} received frames lost", sw.rx_lost);
+                self.app.rx_overrun();
+            }
+            info!(
+                "LSS: bit rate now {} bit/s ({} frames requeued)",
+                b.bps(),
+                n
+            );
             self.bitrate = b;
         }
         self.txq.service(&mut self.can_tx);
@@ -411,64 +341,11 @@ impl Fw {
 
 /// ADC1 scanning the four `inputs` and the temperature sensor on TIM3's
 /// TRGO into the DMA ring (started by [`acq_ctl::restart`]).
-fn start_adc(
-    adc1: Peri<'static, ADC1>,
-    dma: Peri<'static, DMA1_CH1>,
-    inputs: [AnyAdcChannel<'static, ADC1>; 4],
-    acq: &Acquisition,
-) -> (RingBufferedAdc<'static, ADC1>, Option<f32>) {
-    let mut adc = Adc::new(
-        adc1,
-        AdcConfig {
-            oversampling_ratio: Some(acq.os_log2.clamp(1, 8) - 1),
-            oversampling_shift: Some(acq.os_shift),
-            oversampling_mode: Some((
-                embassy_stm32::pac::adc::vals::Rovsm::CONTINUED,
-                embassy_stm32::pac::adc::vals::Trovs::AUTOMATIC,
-                acq.os_log2 > 0,
-            )),
-            ..AdcConfig::default()
-        },
-    );
-    let temp = adc.enable_temperature();
-    // VREF+ from VREFINT (RM0440 §21.4.34), once at boot: 8 conversions
-    // averaged, at the scan's oversampling (4 µs minimum sampling time).
-    let mut vrefint = adc.enable_vrefint();
-    let sum: u32 = (0..8)
-        .map(|_| u32::from(adc.blocking_read(&mut vrefint, SampleTime::CYCLES247_5)))
-        .sum();
-    let (vcal, _, _) = board::factory_cal();
-    let vref = health::vref_mv(vcal, (sum / 8) as u16, scan_gain(acq));
-    // Sample times of perpend_board::scan (the 0x2300 period check):
-    // SENSOR_SAMPLE_HALF_CYCLES = 95 (47.5), TEMP_SAMPLE_HALF_CYCLES = 495.
-    let st = SampleTime::CYCLES47_5;
-    let [a, b, c, d] = inputs;
-    let seq = [
-        (a, st),
-        (b, st),
-        (c, st),
-        (d, st),
-        (temp.degrade_adc(), SampleTime::CYCLES247_5),
-    ];
-    static mut DMA_BUF: [u16; RING_LEN] = [0; RING_LEN];
-    // SAFETY: the only reference to the buffer, taken once before the loop.
-    let dma_buf: &'static mut [u16; RING_LEN] = unsafe { &mut *core::ptr::addr_of_mut!(DMA_BUF) };
-    let ring = adc.into_ring_buffered(
-        dma,
-        dma_buf,
-        Irqs,
-        seq.into_iter(),
-        embassy_stm32::triggers::TIM3_TRGO,
-        Exten::RISING_EDGE,
-    );
-    (ring, vref)
-}
-
 /// Brings up the peripherals and the application (a plain function, so
 /// that its locals do not take room in the main task's future).
 fn setup() -> Fw {
     board::enter_bootloader_if_requested();
-    let p = embassy_stm32::init(config());
+    let p = embassy_stm32::init(board::config());
     info!("perpend-fw {}", env!("CARGO_PKG_VERSION"));
     let reset = board::take_reset_flags();
     info!(
@@ -544,7 +421,7 @@ fn setup() -> Fw {
         p.PB0.degrade_adc(),
         p.PC1.degrade_adc(),
     ];
-    let (ring, vref_mv) = start_adc(p.ADC1, p.DMA1_CH1, inputs, &acq);
+    let (ring, vref_mv) = acq_ctl::start(p.ADC1, p.DMA1_CH1, inputs, &acq, Irqs);
     match vref_mv {
         Some(v) => info!("VREF+ {} mV (VREFINT), assumed {} mV", v, acq.vref_mv),
         None => warn!("VREFINT implausible: VREF+ taken as {} mV", acq.vref_mv),
@@ -557,7 +434,7 @@ fn setup() -> Fw {
     let mut fw = Fw {
         app,
         txq: TxQueue::new(),
-        can_tx: FdcanTx::new(tx),
+        can_tx: can_tx::new(tx),
         props,
         ring,
         tim,
@@ -567,7 +444,8 @@ fn setup() -> Fw {
         wdg,
         last_sample: Instant::now(),
         locked: app_locked,
-        bus_off_since: None,
+        bus: BusMonitor::new(),
+        rx_budget: RxBudget::new(),
         samples: 0,
         rx_set,
         rx_lost_seen: 0,
@@ -576,7 +454,6 @@ fn setup() -> Fw {
         loop_timer: LoopTimer::default(),
         ticks: 0,
         health_due: false,
-        bus_errors: 0,
     };
     acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
     fw
@@ -589,16 +466,33 @@ async fn main(_spawner: Spawner) {
     let mut ticker = Ticker::every(Duration::from_millis(1));
     let mut scan = [0u16; SCAN];
     loop {
-        let event = select3(fw.ring.read(&mut scan), can_rx::next(), ticker.next()).await;
+        // perpend_board::busmon::pick: the tick first (IWDG, bus-off), then
+        // a scan, then a frame while the tick's budget allows (a receive
+        // flood cannot starve the tick; select3 polls in this order).
+        let allow = fw.rx_budget.allows();
+        let frame = async {
+            if allow {
+                can_rx::next().await
+            } else {
+                core::future::pending().await
+            }
+        };
+        let event = select3(ticker.next(), fw.ring.read(&mut scan), frame).await;
         let t0 = board::cycles();
         match event {
-            Either3::First(Ok(_)) => fw.on_scan(&scan),
-            Either3::First(Err(_)) => {
+            Either3::First(()) => {
+                fw.rx_budget.on_tick();
+                fw.on_tick();
+            }
+            Either3::Second(Ok(_)) => fw.on_scan(&scan),
+            Either3::Second(Err(_)) => {
                 warn!("ADC DMA overrun: restarting the acquisition");
                 acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
             }
-            Either3::Second(f) => fw.on_frame(&f),
-            Either3::Third(()) => fw.on_tick(),
+            Either3::Third(f) => {
+                fw.rx_budget.on_frame();
+                fw.on_frame(&f);
+            }
         }
         fw.after_event();
         fw.loop_timer.record(t0, board::cycles());

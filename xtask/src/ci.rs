@@ -199,7 +199,7 @@ pub fn ci(args: &[String]) -> Result<()> {
         logs,
         verbose,
         n: 0,
-        total: if no_fuzz { 9 } else { 10 },
+        total: if no_fuzz { 10 } else { 11 },
         passed: 0,
         failed: 0,
     };
@@ -229,10 +229,15 @@ pub fn ci(args: &[String]) -> Result<()> {
         thumb,
     ];
     r.step("no_std build", &mut cmd(&c, &nostd), nothing)?;
+    // The firmware and the on-target tests (hil/, which includes its
+    // modules).
     let fw_clippy = [
         "clippy",
         "-p",
         "perpend-fw",
+        "-p",
+        "perpend-hil",
+        "--all-targets",
         "--target",
         thumb,
         "--",
@@ -244,6 +249,13 @@ pub fn ci(args: &[String]) -> Result<()> {
         "firmware size",
         &mut xtask(&["size"]),
         line_starting("perpend-fw:"),
+    )?;
+    // Builds and links the on-target test binary (release, as `size`), then
+    // runs the board's logic as compiled for the board on QEMU.
+    r.step(
+        "hil build + QEMU tests",
+        &mut xtask(&["hil", "--qemu"]),
+        line_starting("target tests:"),
     )?;
     r.step(
         "mcu-bench (QEMU)",
@@ -297,6 +309,7 @@ fn preflight(no_fuzz: bool) -> Result<()> {
         ("toolchain", setup::toolchain),
         ("python", setup::python),
         ("qemu", setup::qemu),
+        ("flip-link", setup::flip_link),
     ];
     if !no_fuzz {
         checks.push(("nightly", setup::nightly));

@@ -10,11 +10,11 @@
 //!   memory size of every loadable segment whose run address is in RAM:
 //!   `.data`, `.bss`, `.uninit`; the stack is what remains). Fails above
 //!   [`FLASH_BUDGET`] / [`RAM_BUDGET`]. Also prints the stack room: the
-//!   RAM region of `memory.x` ([`RAM_REGION`]) minus static RAM minus the
-//!   32-byte MPU guard (`src/board.rs`); the stack actually used is
-//!   measured on the board (painted stack, object 0x200B sub 3), as a
-//!   static worst case needs `-Z emit-stack-sizes` (nightly) and cannot
-//!   bound the interrupt nesting or the async state machines anyway.
+//!   stack (flip-link puts it at the bottom of RAM, `_stack_end` ..
+//!   `_stack_start`) less the 8 KiB MPU guard (`src/board.rs`), the worst
+//!   stack depth by static analysis of the call graph ([`stack`], from
+//!   `llvm-objdump`) against it (fails above it), and where the run-time
+//!   high-water mark is read (painted stack, object 0x200B sub 3).
 //! * `mcu-bench` — builds `xtask/mcu-bench` (its own workspace) for
 //!   thumbv7em-none-eabihf, runs it on QEMU `mps2-an386` (Cortex-M4F) with
 //!   one instruction per translation block and `-d exec,nochain`, and
@@ -51,11 +51,8 @@ use object::{Object, ObjectSymbol};
 pub const FLASH_BUDGET: u64 = 128 * 1024;
 /// Static RAM budget of the firmware [bytes].
 pub const RAM_BUDGET: u64 = 48 * 1024;
-/// RAM region of `memory.x` (SRAM1 + SRAM2) [bytes]: static data from its
-/// start, the stack down from its end.
-pub const RAM_REGION: u64 = 96 * 1024;
-/// The MPU stack guard at the bottom of the stack (`src/board.rs`) [bytes].
-const STACK_GUARD: u64 = 32;
+/// The MPU stack guard at the bottom of the stack (`src/board.rs` `GUARD`) [bytes].
+const STACK_GUARD: u64 = 8192;
 
 const TARGET: &str = "thumbv7em-none-eabihf";
 const FLASH_RANGE: std::ops::Range<u64> = 0x0800_0000..0x0810_0000;
@@ -66,6 +63,9 @@ const BENCH_REPS: u64 = 16;
 type Result<T> = std::result::Result<T, String>;
 
 use super::{cargo, root};
+
+#[path = "stack.rs"]
+pub mod stack;
 
 fn target_dir() -> PathBuf {
     std::env::var_os("CARGO_TARGET_DIR")
@@ -85,12 +85,42 @@ fn run(cmd: &mut Command) -> Result<()> {
     }
 }
 
-/// `cargo xtask fw [extra cargo args]`.
+/// `cargo xtask fw [extra cargo args]` (checks for flip-link, the
+/// firmware's linker, first: installs it when missing).
 pub fn fw(args: &[String]) -> Result<()> {
+    let linker = super::setup::flip_link()?;
+    eprintln!("==> linker: {linker}");
     run(Command::new(cargo())
         .current_dir(root())
         .args(["build", "--release", "--target", TARGET, "-p", "perpend-fw"])
         .args(args))
+}
+
+/// `_stack_start` (top) and `_stack_end` (bottom) of an ELF image.
+pub fn stack_symbols(data: &[u8]) -> Result<(u64, u64)> {
+    let elf = object::File::parse(data).map_err(|e| format!("not an ELF: {e}"))?;
+    let find = |name: &str| {
+        elf.symbols()
+            .find(|s| s.name() == Ok(name))
+            .map(|s| s.address())
+            .ok_or(format!(
+                "the image has no `{name}` symbol (not a cortex-m-rt image?)"
+            ))
+    };
+    Ok((find("_stack_start")?, find("_stack_end")?))
+}
+
+/// The static worst stack depth of the image at `elf` ([`stack`]).
+fn static_depth(elf: &std::path::Path) -> Result<stack::Report> {
+    let out = Command::new("llvm-objdump")
+        .args(["-d", "--no-show-raw-insn", "--demangle"])
+        .arg(elf)
+        .output()
+        .map_err(|e| format!("llvm-objdump: {e} (Debian: apt-get install llvm)"))?;
+    if !out.status.success() {
+        return Err(format!("llvm-objdump failed ({})", out.status));
+    }
+    stack::analyse(&String::from_utf8_lossy(&out.stdout))
 }
 
 /// Flash and static RAM use of an ELF image [bytes].
@@ -132,13 +162,36 @@ pub fn size(args: &[String]) -> Result<()> {
         pct(ram, RAM_BUDGET),
         RAM_BUDGET / 1024
     );
+    let (top, bottom) = stack_symbols(&data)?;
+    let stack = top.saturating_sub(bottom);
     println!(
-        "stack: {} B room (RAM region {} KiB - static - {} B MPU guard); used: measured on the board, object 0x200B sub 3",
-        RAM_REGION.saturating_sub(ram + STACK_GUARD),
-        RAM_REGION / 1024,
-        STACK_GUARD
+        "stack: {stack} B at {bottom:#010x}..{top:#010x} (flip-link: below .data/.bss), {} B usable above the {STACK_GUARD} B MPU guard",
+        stack.saturating_sub(STACK_GUARD)
     );
     let mut over = Vec::new();
+    match static_depth(&elf) {
+        Ok(r) => {
+            let total = r.total();
+            let lower = if r.thread.partial || r.handler.partial {
+                " (at least: indirect calls/recursion not followed)"
+            } else {
+                ""
+            };
+            println!(
+                "worst stack depth (static call graph): {total} B{lower} = thread {} B (deepest frame chain ending in {}) + handler {} B ({}, exception frame included); {:.0}% of the usable stack",
+                r.thread.bytes,
+                r.thread.path.last().map_or("?", String::as_str),
+                r.handler.bytes,
+                r.handler.path.first().map_or("?", String::as_str),
+                pct(total, stack.saturating_sub(STACK_GUARD)),
+            );
+            if total > stack.saturating_sub(STACK_GUARD) {
+                over.push(format!("static stack depth {total} B > usable stack"));
+            }
+        }
+        Err(e) => println!("worst stack depth (static call graph): not measured ({e})"),
+    }
+    println!("stack used at run time: the painted high-water mark, object 0x200B sub 3 (src/board.rs stack_used)");
     if flash > FLASH_BUDGET {
         over.push(format!("flash {flash} B > {FLASH_BUDGET} B"));
     }

@@ -11,6 +11,9 @@
 //! * `fw` — build the release firmware image; `size` — its flash and static
 //!   RAM use against the budget (128 KiB / 48 KiB); `mcu-bench [--json]` —
 //!   instructions per update on an emulated Cortex-M4F (QEMU mps2-an386).
+//! * `hil [--qemu]` — the on-target tests: with a probe, on the board
+//!   (`probe-rs run`; exit 2 = no probe found, 3 = probe-rs not installed);
+//!   `--qemu`, the board's logic on QEMU mps2-an386 (see `hil.rs`).
 //! * `fuzz [--seconds N] [TARGET...]` — run the cargo-fuzz targets of
 //!   `fuzz/` (nightly toolchain; installs `cargo-fuzz` if missing) for N
 //!   seconds each and print executions and coverage per target.
@@ -21,6 +24,7 @@ mod bringup;
 mod cell;
 mod ci;
 mod fw;
+mod hil;
 mod setup;
 
 use std::path::{Path, PathBuf};
@@ -190,7 +194,8 @@ fn main() -> ExitCode {
         Some("fw") => fw::fw(&args[1..]),
         Some("size") => fw::size(&args[1..]),
         Some("mcu-bench") => fw::mcu_bench(&args[1..]),
-        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw|size|mcu-bench [--json]|fuzz [--seconds N] [TARGET...]>".to_string()),
+        Some("hil") => hil::hil(&args[1..]),
+        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw|size|mcu-bench [--json]|hil [--qemu]|fuzz [--seconds N] [TARGET...]>".to_string()),
     };
     match res {
         Ok(()) => ExitCode::SUCCESS,

@@ -8,6 +8,8 @@
 //! * Python ≥ 3.9 with `venv` and `ensurepip` (the peer tests make their
 //!   own virtual environment);
 //! * `qemu-system-arm` (instruction counts on an emulated Cortex-M4F);
+//! * `flip-link` (the firmware's linker, `.cargo/config.toml`), installed
+//!   with `cargo install` at [`FLIP_LINK_VERSION`] when missing;
 //! * a nightly toolchain (the fuzz smoke; skipped only with `--no-fuzz`).
 //!
 //! Debian packages are installed only when missing, only as root, and never
@@ -157,6 +159,52 @@ pub fn qemu() -> Result<String> {
     let out = quiet(Command::new("qemu-system-arm").arg("--version"))?;
     let text = String::from_utf8_lossy(&out.stdout);
     Ok(text.lines().next().unwrap_or("qemu-system-arm").to_string())
+}
+
+/// The flip-link version installed when it is missing (knurling-rs; 0.1.12
+/// also moves `_stack_end` to the bottom of RAM, which cortex-m-rt 0.7.7's
+/// `_stack_start >= _stack_end` check needs).
+pub const FLIP_LINK_VERSION: &str = "0.1.12";
+
+/// The installed flip-link's version, from `cargo install --list`
+/// (`None`: not installed with cargo).
+fn flip_link_installed() -> Option<String> {
+    let out = quiet(Command::new("cargo").args(["install", "--list"])).ok()?;
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .find_map(|l| l.strip_prefix("flip-link v"))
+        .map(|v| v.trim_end_matches(':').to_string())
+}
+
+/// `flip-link`, the firmware's linker: the stack below `.data`/`.bss`, so
+/// an overflow hits the bottom of RAM (and the MPU guard there) instead of
+/// static data. Installed with cargo at [`FLIP_LINK_VERSION`] when it is
+/// not on the PATH.
+pub fn flip_link() -> Result<String> {
+    if !have("flip-link") {
+        quiet(Command::new("cargo").args([
+            "install",
+            "flip-link",
+            "--version",
+            FLIP_LINK_VERSION,
+            "--locked",
+        ]))
+        .map_err(|e| {
+            format!(
+                "flip-link (the firmware's linker) is missing and could not be installed; \
+                 run `cargo install flip-link --version {FLIP_LINK_VERSION} --locked`: {e}"
+            )
+        })?;
+    }
+    if !have("flip-link") {
+        return Err(
+            "flip-link was installed but is not on the PATH: add ~/.cargo/bin to PATH".into(),
+        );
+    }
+    Ok(match flip_link_installed() {
+        Some(v) => format!("flip-link {v}"),
+        None => "flip-link (not installed by cargo)".to_string(),
+    })
 }
 
 /// A nightly toolchain for cargo-fuzz, installed (minimal profile) when

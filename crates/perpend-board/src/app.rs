@@ -83,7 +83,9 @@ use crate::status::{
     sensor_nibble, CONFIG_INVALID, NO_PLANE, SENSOR_OPEN_LOOP, SENSOR_OVERCURRENT, SENSOR_STUCK,
     SENSOR_VALID,
 };
-use crate::storage::{load_with_tail, save_with_tail, Boot, ParamStore, SaveError, StoreError};
+use crate::storage::{
+    load_with_tail, save_with_tail, Boot, ParamStore, Recovery, SaveError, StoreError,
+};
 
 /// Samples without a condition before its EMCY is cleared (100 ms at
 /// 1 kHz).
@@ -299,6 +301,10 @@ pub struct App<S: ParamStore> {
     sync_scan: bool,
     /// A communication error (bus-off) waits for its 0x1029 reaction.
     comm_error: bool,
+    /// A store (0x1010/0x1011) waits for the storage's recovery
+    /// ([`crate::storage::StoreError::Recovering`]): one page erase per
+    /// poll, then the store and its SDO answer.
+    recovering: bool,
     /// Acquisition was locked to SYNC at the last reload.
     locked: bool,
 }
@@ -356,6 +362,7 @@ impl<S: ParamStore> App<S> {
             sync_scan: false,
             comm_error: false,
             locked: false,
+            recovering: false,
         };
         app.reload();
         // Nothing to drain: the events of the boot itself are handled.
@@ -491,6 +498,9 @@ impl<S: ParamStore> App<S> {
             self.dev.communication_error(now_us, out);
         }
         self.dev.poll(now_us, out);
+        if self.recovering {
+            self.recover_step(out);
+        }
         if let Some(t) = self.temp_c.take() {
             self.dev.set_die_temperature(t);
         }
@@ -652,7 +662,9 @@ impl<S: ParamStore> App<S> {
             if let Some(req) = self.dev.pending_request() {
                 let ok = self.store_now(req);
                 // NoRequest cannot happen: a request is pending.
-                let _ = self.dev.finish_request(ok, out);
+                if !self.recovering {
+                    let _ = self.dev.finish_request(ok, out);
+                }
             }
         }
         if ev.contains(Events::RESET_NODE) {
@@ -707,8 +719,30 @@ impl<S: ParamStore> App<S> {
                 self.dev.clear_emcy(EMCY_LOW_SUPPLY);
                 false
             }
+            Err(SaveError::Store(StoreError::Recovering)) => {
+                self.recovering = true;
+                false
+            }
             Err(_) => false,
         }
+    }
+
+    /// One step of the storage's recovery; when it ends, the pending store
+    /// is carried out and answered.
+    fn recover_step(&mut self, out: &mut impl FnMut(Frame)) {
+        let ok = match self.store.recovery_step() {
+            Recovery::Running => return,
+            Recovery::Failed(_) => false,
+            Recovery::Done | Recovery::Idle => {
+                self.recovering = false;
+                match self.dev.pending_request() {
+                    Some(req) => self.store_now(req),
+                    None => return,
+                }
+            }
+        };
+        self.recovering = false;
+        let _ = self.dev.finish_request(ok, out);
     }
 }
 

@@ -1189,3 +1189,38 @@ fn thermal_tau_is_stored_and_an_old_record_boots_without_lag() {
     assert_eq!(b.app.pipeline().params().thermal_tau_s, 450.0);
     assert_eq!(b.app.device().thermal_tau_s(), 450.0);
 }
+
+/// A store that finds the storage corrupted erases it one page per poll
+/// (each poll at most one page erase: the firmware's loop and receive
+/// ring keep going), then stores and answers the SDO.
+#[test]
+fn corrupted_storage_is_recovered_one_page_per_poll() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
+    b.app.store_mut().start_recovery();
+    let mut p = [0x23, 0x10, 0x10, 1, 0, 0, 0, 0];
+    p[4..].copy_from_slice(&SAVE.to_le_bytes());
+    let got = b.send(Frame::new(0x600 + NODE, &p));
+    assert!(got.iter().all(|f| f.id != 0x580 + NODE), "answered early");
+    let mut polls = 0;
+    let answer = loop {
+        let erases = b.app.store_mut().flash_mut().erases();
+        let n = b.sent.len();
+        b.poll();
+        polls += 1;
+        let after = b.app.store_mut().flash_mut().erases();
+        assert!(
+            after - erases <= 1,
+            "{} page erases in one poll",
+            after - erases
+        );
+        if let Some(f) = b.sent[n..].iter().find(|f| f.id == 0x580 + NODE) {
+            break *f;
+        }
+        assert!(polls < 10, "no SDO answer after {polls} polls");
+    };
+    assert_eq!(answer.data[0], 0x60, "store aborted: {answer:?}");
+    assert_eq!(polls, 4);
+    let b = b.reboot();
+    assert_eq!(b.app.boot(), Boot::Stored);
+}

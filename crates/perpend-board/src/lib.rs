@@ -22,6 +22,12 @@
 //!   receive path (FIFOs, interrupt ring) around a flash store;
 //! * [`thermal`] — the head temperature through the thermal time constant
 //!   (0x2105) for the thermal extension;
+//! * [`fdcan`] — the FDCAN transmit-buffer logic and the run-time bit-rate
+//!   switch over a register trait;
+//! * [`busmon`] — bus errors and bus-off from one PSR read per tick, the
+//!   main loop's receive budget and event order;
+//! * [`ecc`] — a storage read that sees every ECC error (flags cleared,
+//!   data cache bypassed, NMI offsets substituted);
 //! * [`scan`] — the ADC scan time and the shortest sample period an
 //!   oversampling ratio allows.
 //!
@@ -32,7 +38,10 @@
 pub mod acq;
 pub mod app;
 pub mod bittiming;
+pub mod busmon;
 pub mod capture;
+pub mod ecc;
+pub mod fdcan;
 pub mod health;
 pub mod pipeline;
 pub mod rxfilter;

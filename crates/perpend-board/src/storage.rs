@@ -124,6 +124,24 @@ pub enum StoreError {
     /// The supply monitor reports a voltage below its threshold: the store
     /// was not started (nothing written).
     LowSupply,
+    /// The storage was found corrupted and is being erased one page per
+    /// [`ParamStore::recovery_step`]; store again once it reports
+    /// [`Recovery::Done`].
+    Recovering,
+}
+
+/// The state of the corrupt-storage recovery ([`ParamStore::recovery_step`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Recovery {
+    /// No recovery is running.
+    Idle,
+    /// One page was erased; more follow.
+    Running,
+    /// The last page was erased: the range is empty, a store can follow.
+    Done,
+    /// A page erase failed; the recovery stopped (the next store that
+    /// finds the range corrupted starts it again).
+    Failed(StoreError),
 }
 
 impl<E> From<sequential_storage::Error<E>> for StoreError {
@@ -161,6 +179,13 @@ pub trait ParamStore {
     /// each read back as [`ECC_FILL`]; 0 for a store without such faults.
     fn take_read_faults(&mut self) -> u32 {
         0
+    }
+
+    /// Runs one bounded step (one page erase) of a running recovery from a
+    /// corrupted range (see [`StoreError::Recovering`]); [`Recovery::Idle`]
+    /// when none runs.
+    fn recovery_step(&mut self) -> Recovery {
+        Recovery::Idle
     }
 }
 
@@ -292,7 +317,7 @@ where
 
 impl<F: FlashHealth> FlashHealth for EccGuard<F> {
     fn take_read_faults(&mut self) -> u32 {
-        core::mem::take(&mut self.faults)
+        core::mem::take(&mut self.faults).saturating_add(self.inner.take_read_faults())
     }
     fn supply_ok(&mut self) -> bool {
         self.inner.supply_ok()
@@ -303,6 +328,8 @@ impl<F: FlashHealth> FlashHealth for EccGuard<F> {
 pub struct SeqStore<F: NorFlash> {
     map: MapStorage<u8, F, Cache<Uncached, Uncached, Uncached, u8>>,
     buf: [u8; BUF_LEN],
+    /// Next page to erase of a running recovery.
+    recovery: Option<u32>,
 }
 
 impl<F: NorFlash> SeqStore<F> {
@@ -322,7 +349,13 @@ impl<F: NorFlash> SeqStore<F> {
         Self {
             map: MapStorage::new(flash, cfg, Cache::new_uncached()),
             buf: [0; BUF_LEN],
+            recovery: None,
         }
+    }
+
+    /// The flash (tests: inspect a fake flash).
+    pub fn flash_mut(&mut self) -> &mut F {
+        self.map.flash()
     }
 
     /// Gives the flash back.
@@ -330,13 +363,46 @@ impl<F: NorFlash> SeqStore<F> {
         self.map.destroy().0
     }
 
-    /// Erases the whole range (used only to recover from
-    /// [`StoreError::Corrupted`] on a store).
+    /// Erases the whole range at once (every step of a recovery in a row;
+    /// the firmware never blocks that long, it runs
+    /// [`ParamStore::recovery_step`] once per tick).
     ///
     /// # Errors
     /// [`StoreError::Flash`].
     pub fn erase_all(&mut self) -> Result<(), StoreError> {
-        block_on(self.map.erase_all()).map_err(StoreError::from)
+        self.start_recovery();
+        loop {
+            match self.step() {
+                Recovery::Running => {}
+                Recovery::Failed(e) => return Err(e),
+                Recovery::Idle | Recovery::Done => return Ok(()),
+            }
+        }
+    }
+
+    /// Starts the page-by-page erase of the whole range (what a store that
+    /// finds the range corrupted does).
+    pub fn start_recovery(&mut self) {
+        self.recovery = Some(self.map.flash_range().start);
+    }
+
+    /// One page erase of a running recovery.
+    fn step(&mut self) -> Recovery {
+        let Some(page) = self.recovery else {
+            return Recovery::Idle;
+        };
+        let end = self.map.flash_range().end;
+        let next = page.saturating_add(PAGE as u32).min(end);
+        if block_on(self.map.flash().erase(page, next)).is_err() {
+            self.recovery = None;
+            return Recovery::Failed(StoreError::Flash);
+        }
+        self.recovery = (next < end).then_some(next);
+        if self.recovery.is_some() {
+            Recovery::Running
+        } else {
+            Recovery::Done
+        }
     }
 }
 
@@ -357,18 +423,26 @@ impl<F: NorFlash + FlashHealth> ParamStore for SeqStore<F> {
         }
     }
 
+    fn recovery_step(&mut self) -> Recovery {
+        self.step()
+    }
+
     fn store(&mut self, record: &[u8]) -> Result<(), StoreError> {
+        if self.recovery.is_some() {
+            return Err(StoreError::Recovering);
+        }
         if !self.map.flash().supply_ok() {
             return Err(StoreError::LowSupply);
         }
         let r = block_on(self.map.store_item(&mut self.buf, &PARAMS_KEY, &record));
         match r.map_err(StoreError::from) {
             // The crate could not repair the range: nothing in it is
-            // readable anyway, so start afresh.
+            // readable anyway, so start afresh, one page per step (four
+            // page erases in a row would block > 100 ms, longer than the
+            // firmware's receive ring covers).
             Err(StoreError::Corrupted) => {
-                self.erase_all()?;
-                block_on(self.map.store_item(&mut self.buf, &PARAMS_KEY, &record))
-                    .map_err(StoreError::from)
+                self.start_recovery();
+                Err(StoreError::Recovering)
             }
             other => other,
         }
@@ -818,6 +892,38 @@ mod tests {
         p.head.sensors[k as usize % 4].zero.x += 0.001 * k as f32;
         p.transfer[1] = Transfer::voltage(0.3, 10.0, 60.0 + k as f32);
         p
+    }
+
+    /// The recovery from a corrupted range erases one page per step (no
+    /// programming), refuses stores while it runs, then the range stores
+    /// again.
+    #[test]
+    fn recovery_is_split_into_single_page_steps() {
+        let mut s = host_store(HostFlash::new());
+        save(&mut s, &params(1)).unwrap();
+        s.start_recovery();
+        assert_eq!(
+            save(&mut s, &params(2)),
+            Err(SaveError::Store(StoreError::Recovering))
+        );
+        let mut steps = 0;
+        loop {
+            let (e0, s0) = (s.flash_mut().erases(), s.flash_mut().steps());
+            let r = s.recovery_step();
+            steps += 1;
+            assert_eq!(s.flash_mut().erases() - e0, 1, "step {steps}");
+            assert_eq!(s.flash_mut().steps() - s0, 1, "step {steps}");
+            match r {
+                Recovery::Running => assert!(steps < 4),
+                Recovery::Done => break,
+                other => assert_eq!(other, Recovery::Done),
+            }
+        }
+        assert_eq!(steps, 4);
+        assert_eq!(s.recovery_step(), Recovery::Idle);
+        assert_eq!(load(&mut s).1, Boot::Missing);
+        save(&mut s, &params(2)).unwrap();
+        assert_eq!(load(&mut s), (params(2), Boot::Stored));
     }
 
     #[test]

@@ -94,9 +94,10 @@ impl<const N: usize> TxQueue<N> {
         self.insert(pos, f)
     }
 
-    /// Puts back a frame the controller displaced: ahead of every queued
-    /// frame with its identifier (they were pushed after it).
-    fn requeue(&mut self, f: Frame) -> bool {
+    /// Puts back a frame the controller displaced or gave back (a bit-rate
+    /// switch): ahead of every queued frame with its identifier (they were
+    /// pushed after it); counted in [`TxStats::displaced`].
+    pub fn requeue(&mut self, f: Frame) -> bool {
         let pos = self.frames.partition_point(|q| q.id < f.id);
         self.stats.displaced = self.stats.displaced.wrapping_add(1);
         self.insert(pos, f)
