@@ -1444,7 +1444,7 @@ fn install_ctrlc() {
 /// Writes cell.json.
 fn write_json(dir: &Path, v: &serde_json::Value) -> Result<PathBuf> {
     let json = dir.join("cell.json");
-    std::fs::write(&json, serde_json::to_string_pretty(v)?)
+    std::fs::write(&json, crate::schema::tagged_pretty(crate::schema::CELL, v))
         .with_context(|| format!("{}: cannot write", json.display()))?;
     Ok(json)
 }

@@ -25,6 +25,8 @@ pub const LSS_INQUIRE: &str = "perpend.lss-inquire/1";
 pub const RECORD_HISTORY: &str = "perpend.record-history/1";
 /// The error object of any command run with `--json`.
 pub const ERROR: &str = "perpend.error/1";
+/// `DIR/cell.json`, the figures and outcome of `perpend cell run`.
+pub const CELL: &str = "perpend.cell/1";
 
 /// `v` as one line of JSON with `"schema": schema` as its first key (a
 /// `schema` key `v` has is replaced). A value that is not an object is
@@ -49,6 +51,28 @@ pub fn tagged(schema: &str, v: &Value) -> String {
     out
 }
 
+/// [`tagged`] for a file a person reads too: the object `v` indented, its
+/// `schema` the first key. A value that is not an object is wrapped as in
+/// [`tagged`].
+pub fn tagged_pretty(schema: &str, v: &Value) -> String {
+    let mut m = match v {
+        Value::Object(m) => m.clone(),
+        other => {
+            let mut m = serde_json::Map::new();
+            m.insert("value".into(), other.clone());
+            m
+        }
+    };
+    m.remove("schema");
+    let head = format!("{{\n  \"schema\": {}", Value::from(schema));
+    if m.is_empty() {
+        return head + "\n}";
+    }
+    let body = serde_json::to_string_pretty(&Value::Object(m)).unwrap_or_default();
+    // `body` is "{\n  …\n}": the schema goes in front of its first key.
+    format!("{head},\n{}", body.get(2..).unwrap_or(""))
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -69,5 +93,16 @@ mod tests {
         assert_eq!(back.as_object().unwrap().len(), 3);
         let w: Value = serde_json::from_str(&tagged(ERROR, &json!([1]))).unwrap();
         assert_eq!(w["value"], json!([1]));
+    }
+
+    #[test]
+    fn the_pretty_form_is_the_same_object_with_the_schema_first() {
+        let v = json!({"b": [1, 2], "schema": "old", "a": {"k": "\"q\""}});
+        let s = tagged_pretty(CELL, &v);
+        assert!(s.starts_with("{\n  \"schema\": \"perpend.cell/1\",\n  \"a\""), "{s}");
+        let back: Value = serde_json::from_str(&s).unwrap();
+        assert_eq!(back, serde_json::from_str::<Value>(&tagged(CELL, &v)).unwrap());
+        let empty: Value = serde_json::from_str(&tagged_pretty(CELL, &json!({}))).unwrap();
+        assert_eq!(empty, json!({"schema": CELL}));
     }
 }
