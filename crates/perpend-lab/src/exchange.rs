@@ -4,7 +4,9 @@
 //!
 //! Both are CSV with a header row; lines starting with `#` are comments
 //! anywhere in the file; columns are found by header name in any order;
-//! unknown columns are ignored; CRLF and LF line ends both work. In
+//! unknown columns are ignored; LF, CRLF and bare CR line ends all work
+//! (line numbers count physical lines whatever the ending, a UTF-8
+//! byte-order mark is dropped). In
 //! `poses.csv` an empty or `NaN` reading is a missing reading (kept as
 //! `None`, never as 0), and the reading columns `d1_mm … dN_mm` may be any
 //! number of sensors.
@@ -224,11 +226,62 @@ fn csv_reader(text: &[u8]) -> csv::Reader<&[u8]> {
 /// The file's text without comment and blank lines, and the original line
 /// number of each remaining line. (The csv crate's record positions point
 /// at the first skipped line before a record, so its line numbers are wrong
-/// after comments or blank lines; with those removed they are exact and
-/// are mapped back here.)
+/// after comments or blank lines, and it counts a CRLF record one line
+/// early; with those lines removed and every line ended by a bare LF they
+/// are exact and are mapped back here.)
+///
+/// Physical lines end at LF, CRLF or a bare CR (old Mac files); a last
+/// line without an ending counts; a UTF-8 byte-order mark is dropped.
 struct Text {
     bytes: Vec<u8>,
     lines: Vec<u64>,
+}
+
+/// The physical lines of `raw` (without their endings).
+fn physical_lines(raw: &[u8]) -> Vec<&[u8]> {
+    let raw = raw.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(raw);
+    let mut out = Vec::new();
+    let mut start = 0;
+    let mut i = 0;
+    while i < raw.len() {
+        match raw[i] {
+            b'\n' => {
+                out.push(&raw[start..i]);
+                start = i + 1;
+            }
+            b'\r' => {
+                out.push(&raw[start..i]);
+                if raw.get(i + 1) == Some(&b'\n') {
+                    i += 1;
+                }
+                start = i + 1;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    if start < raw.len() {
+        out.push(&raw[start..]);
+    }
+    out
+}
+
+/// A JSON text as `serde_json` counts its lines: without a UTF-8
+/// byte-order mark (which it refuses as "expected value at line 1") and
+/// with every bare CR turned into LF (it counts only LF, so an old-Mac
+/// file would be all "line 1"). A raw CR is not allowed inside a JSON
+/// string, so the change alters no valid document. CRLF is left as is.
+pub fn json_text(text: &str) -> std::borrow::Cow<'_, str> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let bytes = text.as_bytes();
+    let bare_cr = bytes
+        .iter()
+        .enumerate()
+        .any(|(i, &b)| b == b'\r' && bytes.get(i + 1) != Some(&b'\n'));
+    if !bare_cr {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    std::borrow::Cow::Owned(text.replace("\r\n", "\n").replace('\r', "\n"))
 }
 
 impl Text {
@@ -238,7 +291,7 @@ impl Text {
             .map_err(|e| err(file, None, format!("cannot read: {e}")))?;
         let mut bytes = Vec::with_capacity(raw.len());
         let mut lines = Vec::new();
-        for (n, line) in raw.split(|&b| b == b'\n').enumerate() {
+        for (n, line) in physical_lines(&raw).into_iter().enumerate() {
             let blank = line.iter().all(|b| b.is_ascii_whitespace());
             if blank || line.first() == Some(&b'#') {
                 continue;
