@@ -604,6 +604,26 @@ fn ekf_sensor_lines(
     }
 }
 
+/// The declared `sigma_mm` of each sensor against its residual RMS (an
+/// upper bound of its noise: a declared value 5× above it is a mistake of
+/// units, [`crate::plausible::sigma_warning`]).
+pub fn sigma_warnings(table: &crate::exchange::SensorTable, file: &ParamFile) -> Vec<String> {
+    table
+        .rows
+        .iter()
+        .zip(&file.sensors)
+        .filter_map(|(row, p)| {
+            crate::plausible::sigma_warning(
+                &format!("sensor {}", row.sensor),
+                row.sigma_mm?,
+                p.residual_rms_mm?,
+                "the calibration's residual RMS",
+                true,
+            )
+        })
+        .collect()
+}
+
 /// Runs `perpend calibrate`: bad poses → the run's model checked against
 /// what the board applies → least squares or the EKF per sensor → report
 /// → parameter file (only when every sensor calibrated).
@@ -616,7 +636,12 @@ pub fn run(a: &Args) -> Result<()> {
     let nominal = table
         .sensors()
         .map_err(|e| anyhow::anyhow!("{}: {e}", a.sensors.display()))?;
+    let (all_poses, left, total) =
+        crate::plausible::check_run(&a.poses.display().to_string(), &table, all_poses)?;
     let mut report = String::new();
+    for l in crate::plausible::left_out_lines(&a.poses.display().to_string(), &left, total) {
+        let _ = writeln!(report, "{l}");
+    }
     let outliers = reject_outliers(a, &nominal, &all_poses, &mut report);
     let poses = crate::diagnose::noise::without(&all_poses, &outliers);
     let method = match a.method {
@@ -665,6 +690,9 @@ pub fn run(a: &Args) -> Result<()> {
             verify,
         ),
         Method::Ekf => calibrate_ekf(a, &nominal, &poses, &mut o)?,
+    }
+    for w in sigma_warnings(&table, &o.file) {
+        let _ = writeln!(o.report, "\nwarning: {w}");
     }
     print!("{}", o.report);
     if !o.failures.is_empty() {

@@ -77,6 +77,11 @@ pub struct SensorRow {
     pub dir: [f64; 3],
     /// Datasheet repeatability 1σ [mm], if given.
     pub sigma_mm: Option<f64>,
+    /// Start of the measuring range [mm] (`range_min_mm`), if given; the
+    /// default is [`crate::plausible::range_of`]'s.
+    pub range_min_mm: Option<f64>,
+    /// End of the measuring range [mm] (`range_max_mm`), if given.
+    pub range_max_mm: Option<f64>,
 }
 
 impl SensorRow {
@@ -127,6 +132,8 @@ impl SensorTable {
                     zero_mm: s.zero.into(),
                     dir: s.dir.into(),
                     sigma_mm,
+                    range_min_mm: None,
+                    range_max_mm: None,
                 })
                 .collect(),
         }
@@ -479,6 +486,46 @@ struct SensorRecord {
     q: f64,
     #[serde(default)]
     sigma_mm: Option<f64>,
+    #[serde(default)]
+    range_min_mm: Option<f64>,
+    #[serde(default)]
+    range_max_mm: Option<f64>,
+}
+
+/// The optional measuring range of a row: finite, non-negative, the end
+/// beyond the start; empty or NaN = not given.
+fn sensor_range(
+    file: &str,
+    line: u64,
+    r: &SensorRecord,
+) -> Result<(Option<f64>, Option<f64>), ExchangeError> {
+    let mut out = [None, None];
+    for (slot, (name, v)) in out.iter_mut().zip([
+        ("range_min_mm", r.range_min_mm),
+        ("range_max_mm", r.range_max_mm),
+    ]) {
+        *slot = match v {
+            Some(x) if x.is_nan() => None,
+            Some(x) if !(x.is_finite() && x >= 0.0) => {
+                return Err(err(
+                    file,
+                    Some(line),
+                    format!("column {name}: must be a non-negative distance [mm], got {x}"),
+                ))
+            }
+            x => x,
+        };
+    }
+    if let [Some(lo), Some(hi)] = out {
+        if hi <= lo {
+            return Err(err(
+                file,
+                Some(line),
+                format!("range_max_mm {hi} is not beyond range_min_mm {lo}: give the sensor's measuring range as start, end [mm]"),
+            ));
+        }
+    }
+    Ok((out[0], out[1]))
 }
 
 /// One row of `sensors.csv` checked: sensor number from 1, finite zero
@@ -523,11 +570,14 @@ fn sensor_row(file: &str, line: u64, r: &SensorRecord) -> Result<SensorRow, Exch
         }
         s => s,
     };
+    let (range_min_mm, range_max_mm) = sensor_range(file, line, r)?;
     Ok(SensorRow {
         sensor: r.sensor as usize,
         zero_mm: zero,
         dir,
         sigma_mm,
+        range_min_mm,
+        range_max_mm,
     })
 }
 
@@ -976,10 +1026,17 @@ pub fn write_sensors<W: Write>(
         writeln!(w, "# {c}")?;
     }
     let with_sigma = table.rows.iter().any(|r| r.sigma_mm.is_some());
+    let with_range = table
+        .rows
+        .iter()
+        .any(|r| r.range_min_mm.is_some() || r.range_max_mm.is_some());
     let mut cw = csv::WriterBuilder::new().from_writer(w);
     let mut head = vec!["sensor", "x_mm", "y_mm", "z_mm", "m", "n", "q"];
     if with_sigma {
         head.push("sigma_mm");
+    }
+    if with_range {
+        head.extend(["range_min_mm", "range_max_mm"]);
     }
     cw.write_record(&head)?;
     for r in &table.rows {
@@ -994,6 +1051,9 @@ pub fn write_sensors<W: Write>(
         ];
         if with_sigma {
             rec.push(opt(r.sigma_mm));
+        }
+        if with_range {
+            rec.extend([opt(r.range_min_mm), opt(r.range_max_mm)]);
         }
         cw.write_record(&rec)?;
     }

@@ -18,6 +18,7 @@ pub mod exchange;
 pub mod measure;
 pub mod paramfile;
 pub mod plan;
+pub mod plausible;
 pub mod progress;
 pub mod record;
 pub mod sim;

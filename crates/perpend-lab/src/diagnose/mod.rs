@@ -585,6 +585,11 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
                 1000.0 * d
             ));
         }
+        for (i, (&d, &e)) in decl.iter().zip(&est.reading_mm).enumerate() {
+            let who = format!("sensor {}", i + 1);
+            let how = "estimated from the run";
+            w.extend(crate::plausible::sigma_warning(&who, d, e, how, true));
+        }
     }
     w
 }
@@ -1221,7 +1226,12 @@ pub fn run(a: &Args) -> Result<()> {
     let settings = Settings::from_args(a)?;
     let table = read_sensors(&a.sensors)?;
     let poses = read_poses(&a.poses, Some(table.len()))?;
-    let d = diagnose(&table, &poses, &settings)?;
+    let file = a.poses.display().to_string();
+    let (poses, left, total) = crate::plausible::check_run(&file, &table, poses)?;
+    let mut d = diagnose(&table, &poses, &settings)?;
+    let mut first = crate::plausible::left_out_lines(&file, &left, total);
+    first.append(&mut d.warnings);
+    d.warnings = first;
     if let Some(dir) = &a.plot {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         plot::write_all(&d, dir)?;
