@@ -175,7 +175,10 @@ fn measure_names_impossible_readings_and_missing_columns() {
     let (left, total) = check_readings("r.csv", &s, &mut t).unwrap();
     assert_eq!(total, 12);
     let l = left[0].to_string();
-    assert!(l.contains("sensor 2, pose 2 (line 3): reading 300 mm outside"), "{l}");
+    assert!(
+        l.contains("sensor 2, pose 2 (line 3): reading 300 mm outside"),
+        "{l}"
+    );
     assert_eq!(t.rows[1].readings[1], None);
     let micro = "pose,d1_mm,d2_mm,d3_mm,d4_mm\n1,41000,41000,41000,41000\n";
     let mut t = parse_readings(micro.as_bytes(), "r.csv", Some(4)).unwrap();
@@ -185,5 +188,8 @@ fn measure_names_impossible_readings_and_missing_columns() {
     assert!(missing_columns(&sensors, &t, "r.csv").is_empty());
     sensors[2].ext.thermal = 1e-3;
     let w = missing_columns(&sensors, &t, "r.csv");
-    assert!(w[0].contains("thermal correction") && w[0].contains("temp_c"), "{w:?}");
+    assert!(
+        w[0].contains("thermal correction") && w[0].contains("temp_c"),
+        "{w:?}"
+    );
 }

@@ -1246,7 +1246,10 @@ pub fn run(a: &Args) -> Result<()> {
     if a.json {
         println!("{}", serde_json::to_string(&d.json())?);
     } else {
-        print!("{}", report::text(&d, &a.sensors, &a.poses, &settings));
+        print!(
+            "{}",
+            report::text(&d, (&a.sensors, &a.poses), a.out.as_deref(), &settings)
+        );
         if let Some(dir) = &a.plot {
             println!("\nplots written to {}", dir.display());
         }
