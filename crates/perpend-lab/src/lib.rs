@@ -21,4 +21,5 @@ pub mod plan;
 pub mod plausible;
 pub mod progress;
 pub mod record;
+pub mod schema;
 pub mod sim;

@@ -356,7 +356,7 @@ pub fn lag_temperatures(table: &ReadingTable, tau_s: f64, file: &str) -> Result<
 }
 
 /// The schema of `perpend measure --json` (docs/json.md).
-pub const SCHEMA: &str = "perpend.measure/1";
+pub const SCHEMA: &str = crate::schema::MEASURE;
 
 /// Warnings for a head whose corrections need a column the readings lack:
 /// a thermal coefficient without `temp_c`, a drift without `t_s` (the
@@ -396,6 +396,24 @@ pub fn missing_columns(sensors: &[Sensor<f64>], table: &ReadingTable, file: &str
 /// Malformed files (with file and line), a head of an unsupported size, a
 /// file of which no row can be measured.
 pub fn run(a: &Args) -> Result<()> {
+    run_to(a, &mut std::io::stdout().lock())
+}
+
+/// What `measure` computed: the rows, the head's label, the file's name
+/// and the warnings about the file.
+struct Computed {
+    rows: Vec<RowOut>,
+    label: String,
+    file: String,
+    warnings: Vec<String>,
+}
+
+/// Reads the head and the readings, checks them ([`crate::plausible`],
+/// [`missing_columns`]), lags the temperatures, measures every row.
+///
+/// # Errors
+/// As [`run`].
+fn compute(a: &Args) -> Result<Computed> {
     let mut tau_s = 0.0;
     let (sensors, mut label, nominal) = head(a, &mut tau_s)?;
     let mut table = read_readings(&a.poses, Some(sensors.len()))?;
@@ -410,8 +428,7 @@ pub fn run(a: &Args) -> Result<()> {
         label += &format!("; thermal lag τ = {tau_s} s");
     }
     let rows = measure_table(&sensors, &table, &a.surface.0, a.method.into())?;
-    let measured = rows.iter().filter(|r| r.measured.is_some()).count();
-    if measured == 0 {
+    if !rows.iter().any(|r| r.measured.is_some()) {
         let first = rows
             .first()
             .and_then(|r| r.error.clone())
@@ -423,21 +440,41 @@ pub fn run(a: &Args) -> Result<()> {
         }
         .into());
     }
+    Ok(Computed {
+        rows,
+        label,
+        file,
+        warnings,
+    })
+}
+
+/// Runs `perpend measure`, writing the report (or the JSON) to `out`;
+/// warnings go to stderr with the text report, into the JSON with `--json`.
+///
+/// # Errors
+/// As [`run`]; I/O errors of `out`.
+pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
+    let Computed {
+        rows,
+        label,
+        file,
+        warnings,
+    } = compute(a)?;
+    let measured = rows.iter().filter(|r| r.measured.is_some()).count();
     if a.json {
         let method = format!("{:?}", a.method).to_lowercase();
         let v = serde_json::json!({
-            "schema": SCHEMA,
             "file": file, "head": label, "surface": a.surface.to_string(),
             "method": method, "rows": rows, "measured": measured,
             "skipped": rows.len() - measured, "warnings": warnings,
         });
-        println!("{v}");
+        writeln!(out, "{}", crate::schema::to_json(SCHEMA, &v)?)?;
         return Ok(());
     }
     for w in &warnings {
         eprintln!("warning: {w}");
     }
-    print!("{}", report(a, &label, &rows));
+    write!(out, "{}", report(a, &label, &rows))?;
     for r in rows.iter().filter(|r| r.error.is_some()) {
         eprintln!(
             "warning: {file}, line {}: pose {} skipped: {}",

@@ -1223,6 +1223,14 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
 /// Malformed input (file, line, problem), missing reading noise, a pose set
 /// that cannot identify the paper's model, I/O errors of the plots.
 pub fn run(a: &Args) -> Result<()> {
+    run_to(a, &mut std::io::stdout().lock())
+}
+
+/// Runs `perpend diagnose`, writing the report (or the JSON) to `out`.
+///
+/// # Errors
+/// As [`run`]; I/O errors of `out`.
+pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
     let settings = Settings::from_args(a)?;
     let table = read_sensors(&a.sensors)?;
     let poses = read_poses(&a.poses, Some(table.len()))?;
@@ -1244,24 +1252,30 @@ pub fn run(a: &Args) -> Result<()> {
         record = Some(write_record(a, &d, &file, previous, out)?);
     }
     if a.json {
-        println!("{}", serde_json::to_string(&d.json())?);
+        writeln!(
+            out,
+            "{}",
+            crate::schema::to_json(crate::schema::DIAGNOSE, &d.json())?
+        )?;
     } else {
-        print!(
+        write!(
+            out,
             "{}",
             report::text(&d, (&a.sensors, &a.poses), a.out.as_deref(), &settings)
-        );
+        )?;
         if let Some(dir) = &a.plot {
-            println!("\nplots written to {}", dir.display());
+            writeln!(out, "\nplots written to {}", dir.display())?;
         }
-        if let Some(out) = &a.out {
-            println!(
+        if let Some(path) = &a.out {
+            writeln!(
+                out,
                 "parameters ({} model) written to {}",
                 d.ext_model.name(),
-                out.display()
-            );
+                path.display()
+            )?;
         }
         if let Some(r) = &record {
-            println!("calibration record written to {}", r.display());
+            writeln!(out, "calibration record written to {}", r.display())?;
         }
     }
     Ok(())
