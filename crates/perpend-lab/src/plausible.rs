@@ -136,22 +136,34 @@ pub fn left_out_lines(file: &str, left: &[LeftOut], total: usize) -> Vec<String>
     v
 }
 
-/// Empties the readings outside their sensor's range; returns them and the
-/// number of readings seen. `rows` yields (pose, line, readings).
+/// What [`leave_out`] found: the readings left out, the readings seen, and
+/// the most valid readings any row keeps.
+struct Sorted {
+    left: Vec<LeftOut>,
+    total: usize,
+    most_kept: usize,
+}
+
+/// Empties the readings outside their sensor's range (`sensors`' ranges,
+/// [`range_of`]); `rows` yields (pose, line, readings).
 fn leave_out<'a>(
-    ranges: &[Range],
+    sensors: &SensorTable,
     rows: impl Iterator<Item = (i64, u64, &'a mut Vec<Option<f64>>)>,
-) -> (Vec<LeftOut>, usize) {
-    let mut left = Vec::new();
-    let mut total = 0;
+) -> Sorted {
+    let ranges: Vec<Range> = sensors.rows.iter().map(range_of).collect();
+    let mut out = Sorted {
+        left: Vec::new(),
+        total: 0,
+        most_kept: 0,
+    };
     for (pose, line, readings) in rows {
         for (i, slot) in readings.iter_mut().enumerate() {
             let (Some(v), Some(range)) = (*slot, ranges.get(i)) else {
                 continue;
             };
-            total += 1;
+            out.total += 1;
             if v < range.min_mm || v > range.max_mm {
-                left.push(LeftOut {
+                out.left.push(LeftOut {
                     sensor: i + 1,
                     pose,
                     line,
@@ -161,8 +173,9 @@ fn leave_out<'a>(
                 *slot = None;
             }
         }
+        out.most_kept = out.most_kept.max(readings.iter().flatten().count());
     }
-    (left, total)
+    out
 }
 
 fn refuse(file: &str, problem: String) -> ExchangeError {
@@ -173,15 +186,11 @@ fn refuse(file: &str, problem: String) -> ExchangeError {
     }
 }
 
-/// Refuses a run with more than half of its readings out of range, or
-/// without a pose of three readings left; `micro` says whether the
-/// readings ÷ 1000 would be in range.
-fn enough_left(
-    file: &str,
-    left: &[LeftOut],
-    total: usize,
-    rows: impl Iterator<Item = usize>,
-) -> Result<(), ExchangeError> {
+/// Refuses a run with more than half of its readings out of range (named
+/// micrometres when most of them ÷ 1000 would be in range), or without a
+/// pose of three readings left.
+fn enough_left(file: &str, s: &Sorted) -> Result<(), ExchangeError> {
+    let (left, total) = (&s.left, s.total);
     if left.len() * 2 > total {
         let micro = left
             .iter()
@@ -203,8 +212,7 @@ fn enough_left(
             ),
         ));
     }
-    let mut rows = rows;
-    if !rows.any(|valid| valid >= 3) {
+    if s.most_kept < 3 {
         return Err(refuse(
             file,
             "no pose keeps three readings inside the sensors' ranges: a normal needs three".into(),
@@ -215,6 +223,7 @@ fn enough_left(
 
 /// Checks a calibration run read from `file` against the nominal head:
 /// units ([`check_units`]), then readings out of range are left out.
+/// Returns the run, what was left out and the number of readings.
 ///
 /// # Errors
 /// Readings or planes in other units; more than half of the readings out
@@ -225,24 +234,14 @@ pub fn check_run(
     mut poses: PoseTable,
 ) -> Result<(PoseTable, Vec<LeftOut>, usize), ExchangeError> {
     check_units(file, sensors, &poses)?;
-    let ranges: Vec<Range> = sensors.rows.iter().map(range_of).collect();
-    let (left, total) = leave_out(
-        &ranges,
-        poses
-            .rows
-            .iter_mut()
-            .map(|r| (r.pose, r.line, &mut r.readings)),
-    );
-    let valid = poses
-        .rows
-        .iter()
-        .map(|r| r.readings.iter().flatten().count());
-    enough_left(file, &left, total, valid)?;
-    Ok((poses, left, total))
+    let rows = poses.rows.iter_mut();
+    let s = leave_out(sensors, rows.map(|r| (r.pose, r.line, &mut r.readings)));
+    enough_left(file, &s)?;
+    Ok((poses, s.left, s.total))
 }
 
 /// Checks a readings file (no planes) against the head's ranges: readings
-/// out of range are left out.
+/// out of range are left out. Returns them and the number of readings.
 ///
 /// # Errors
 /// More than half of the readings out of range (micrometres named when
@@ -252,20 +251,10 @@ pub fn check_readings(
     sensors: &SensorTable,
     table: &mut ReadingTable,
 ) -> Result<(Vec<LeftOut>, usize), ExchangeError> {
-    let ranges: Vec<Range> = sensors.rows.iter().map(range_of).collect();
-    let (left, total) = leave_out(
-        &ranges,
-        table
-            .rows
-            .iter_mut()
-            .map(|r| (r.pose, r.line, &mut r.readings)),
-    );
-    let valid = table
-        .rows
-        .iter()
-        .map(|r| r.readings.iter().flatten().count());
-    enough_left(file, &left, total, valid)?;
-    Ok((left, total))
+    let rows = table.rows.iter_mut();
+    let s = leave_out(sensors, rows.map(|r| (r.pose, r.line, &mut r.readings)));
+    enough_left(file, &s)?;
+    Ok((s.left, s.total))
 }
 
 /// Units a column may have been written in, as the factor to millimetres.
