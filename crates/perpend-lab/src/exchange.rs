@@ -20,6 +20,10 @@
 //! readings is kept (it calibrates the sensors that read; wherever a normal
 //! is computed from it, it is skipped).
 //!
+//! `sensors.csv` may give each sensor's measuring range (`range_min_mm`,
+//! `range_max_mm`, mm, optional): the plausibility checks of
+//! [`crate::plausible`] use it (or their default) once the files are read.
+//!
 //! A readings file ([`parse_readings`], what `perpend measure` reads) has
 //! the columns of `poses.csv` without the plane: `pose`, `d1_mm … dN_mm`,
 //! optionally `t_s` and `temp_c`; plane columns, when present, are ignored.

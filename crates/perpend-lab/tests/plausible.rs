@@ -193,3 +193,20 @@ fn measure_names_impossible_readings_and_missing_columns() {
         "{w:?}"
     );
 }
+
+/// The range columns are read, written back, and decide the range.
+#[test]
+fn range_columns_round_trip_and_decide() {
+    use perpend_lab::exchange::{parse_sensors, write_sensors};
+    use perpend_lab::plausible::range_of;
+    let text = "sensor,x_mm,y_mm,z_mm,m,n,q,range_min_mm,range_max_mm\n1,50,0,0,-0.5,0,0.866,20,70\n2,0,50,0,0,-0.5,0.866,,\n";
+    let t = parse_sensors(text.as_bytes(), "s.csv").unwrap();
+    let mut out = Vec::new();
+    write_sensors(&mut out, &t, &[]).unwrap();
+    let back = parse_sensors(out.as_slice(), "s.csv").unwrap();
+    assert_eq!(back, t);
+    let r = range_of(&t.rows[0]);
+    assert_eq!((r.min_mm, r.max_mm, r.given), (20.0, 70.0, true));
+    let r = range_of(&t.rows[1]);
+    assert!(!r.given && (r.max_mm - 200.0).abs() < 0.5, "{r:?}");
+}
