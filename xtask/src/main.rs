@@ -85,6 +85,24 @@ const FUZZ_TARGETS: &[&str] = &[
     "eds",
 ];
 
+/// The reader targets, which start from the corpus of bad files of
+/// `host-tests/corpus/readers/` (each a case with the message it must give,
+/// `crates/perpend-lab/tests/corpus_readers.rs`).
+const READER_TARGETS: &[&str] = &["exchange_csv", "param_json", "host_inputs"];
+
+/// The corpus directories of target `t`: its own (`fuzz/corpus/<t>`, where
+/// libFuzzer writes what it finds; created if absent), then, for a reader,
+/// the seed files of `host-tests/corpus/readers/` (read only).
+fn corpus_dirs(t: &str) -> Result<Vec<PathBuf>> {
+    let own = root().join("fuzz").join("corpus").join(t);
+    std::fs::create_dir_all(&own).map_err(|e| format!("cannot create {}: {e}", own.display()))?;
+    let mut dirs = vec![own];
+    if READER_TARGETS.contains(&t) {
+        dirs.push(root().join("host-tests").join("corpus").join("readers"));
+    }
+    Ok(dirs)
+}
+
 fn fuzz(args: &[String]) -> Result<()> {
     let mut seconds = 60u64;
     let mut targets: Vec<String> = Vec::new();
@@ -129,6 +147,7 @@ fn fuzz(args: &[String]) -> Result<()> {
     for t in &targets {
         let max = format!("-max_total_time={seconds}");
         eprintln!("\n==> fuzz {t} for {seconds} s");
+        let dirs = corpus_dirs(t)?;
         let out = Command::new("rustup")
             .args([
                 "run",
@@ -139,9 +158,9 @@ fn fuzz(args: &[String]) -> Result<()> {
                 "--fuzz-dir",
                 "fuzz",
                 t,
-                "--",
-                &max,
             ])
+            .args(&dirs)
+            .args(["--", &max])
             .current_dir(root())
             .output()
             .map_err(|e| format!("cannot start cargo fuzz: {e}"))?;

@@ -426,7 +426,10 @@ fn run_accuracy(a: &AccuracyArgs) -> Result<()> {
     );
     if a.json {
         let v = serde_json::json!({ "before": b, "ekf": e, "lsq": l, "floor": f });
-        println!("{v}");
+        println!(
+            "{}",
+            crate::schema::to_json(crate::schema::BENCH_ACCURACY, &v)?
+        );
         if !errs.ekf_diverged.is_empty() {
             eprintln!("note: {diverged}");
         }
@@ -537,7 +540,10 @@ pub fn speed(runs: usize) -> Result<SpeedReport> {
 fn run_speed(a: &SpeedArgs) -> Result<()> {
     let r = speed(a.runs)?;
     if a.json {
-        println!("{}", serde_json::to_string(&r)?);
+        println!(
+            "{}",
+            crate::schema::to_json(crate::schema::BENCH_SPEED, &r)?
+        );
     } else {
         println!(
             "calibration of {} sensors from {} poses, median of {} runs{}:",

@@ -312,32 +312,52 @@ pub fn ekf_params(
     p
 }
 
+/// The beam direction's correction as two tilts [mrad] in the nominal
+/// beam's tangent basis ([`perpend_core::geometry::tangent_basis`]: α
+/// around the cone, β towards or away from the axis, the units `plan`
+/// prints), with their 1σ from the components' 1σ `sd` (no covariance).
+fn tilts_mrad(nominal: &Vector3<f64>, fitted: &Vector3<f64>, sd: [f64; 3]) -> [(f64, f64); 2] {
+    let u = nominal.normalize();
+    let f = fitted.normalize();
+    let (e1, e2) = perpend_core::geometry::tangent_basis(&u);
+    let sigma = |e: &Vector3<f64>| (0..3).map(|j| (e[j] * sd[j]).powi(2)).sum::<f64>().sqrt();
+    [
+        (1000.0 * f.dot(&e1), 1000.0 * sigma(&e1)),
+        (1000.0 * f.dot(&e2), 1000.0 * sigma(&e2)),
+    ]
+}
+
 fn fmt_sensor_table(
     out: &mut String,
     nominal: &Sensor<f64>,
     fitted: &Sensor<f64>,
     sigma: ([f64; 3], [f64; 3]),
 ) {
+    let [(a, sa), (b, sb)] = tilts_mrad(&nominal.dir, &fitted.dir, sigma.1);
     let rows = [
         ("x", "mm", nominal.zero.x, fitted.zero.x, sigma.0[0]),
         ("y", "mm", nominal.zero.y, fitted.zero.y, sigma.0[1]),
         ("z", "mm", nominal.zero.z, fitted.zero.z, sigma.0[2]),
-        ("m", "-", nominal.dir.x, fitted.dir.x, sigma.1[0]),
-        ("n", "-", nominal.dir.y, fitted.dir.y, sigma.1[1]),
-        ("q", "-", nominal.dir.z, fitted.dir.z, sigma.1[2]),
+        ("α", "mrad", 0.0, a, sa),
+        ("β", "mrad", 0.0, b, sb),
     ];
     let _ = writeln!(
         out,
-        "            nominal    calibrated    correction        1σ"
+        "              nominal    calibrated    correction        1σ"
     );
     for (name, unit, n, f, s) in rows {
         let _ = writeln!(
             out,
-            "  {:<6}  {n:>10.4}  {f:>12.6}  {:>+12.6}  {s:>9.6}",
+            "  {:<8}  {n:>10.4}  {f:>12.6}  {:>+12.6}  {s:>9.6}",
             format!("{name} [{unit}]"),
             f - n
         );
     }
+    let _ = writeln!(
+        out,
+        "  (α, β: tilts of the beam direction around the cone and towards the axis, {:.3} mrad in all; the components m, n, q are in the parameter file)",
+        1000.0 * angle_deg(&nominal.dir, &fitted.dir).to_radians()
+    );
 }
 
 /// The same rejection as `perpend diagnose`: poses that disagree with the
@@ -423,7 +443,7 @@ fn calibrate_lsq(
             Err(e) => {
                 let _ = writeln!(o.report, "sensor {}: FAILED", i + 1);
                 let _ = writeln!(o.report, "  {e}");
-                o.failures.push(format!("sensor {}: {e}", i + 1));
+                o.failures.push(with_sensor(i, &e.to_string()));
             }
         }
     }
@@ -432,6 +452,17 @@ fn calibrate_lsq(
         if verify {
             o.heldout = heldout_errors(model, nominal, &poses, &mut o.report);
         }
+    }
+}
+
+/// `why` prefixed by "sensor N: " unless it already names the sensor so
+/// (the identifiability diagnostic does): never "sensor 2: sensor 2:".
+pub fn with_sensor(i: usize, why: &str) -> String {
+    let name = format!("sensor {}: ", i + 1);
+    if why.starts_with(&name) {
+        why.to_string()
+    } else {
+        name + why
     }
 }
 
@@ -554,7 +585,7 @@ fn calibrate_ekf(
             }
             Err(e) => {
                 let _ = writeln!(o.report, "sensor {}: FAILED: {e}", i + 1);
-                o.failures.push(format!("sensor {}: {e}", i + 1));
+                o.failures.push(with_sensor(i, &e.to_string()));
             }
         }
     }
@@ -604,6 +635,26 @@ fn ekf_sensor_lines(
     }
 }
 
+/// The declared `sigma_mm` of each sensor against its residual RMS (an
+/// upper bound of its noise: a declared value 5× above it is a mistake of
+/// units, [`crate::plausible::sigma_warning`]).
+pub fn sigma_warnings(table: &crate::exchange::SensorTable, file: &ParamFile) -> Vec<String> {
+    table
+        .rows
+        .iter()
+        .zip(&file.sensors)
+        .filter_map(|(row, p)| {
+            crate::plausible::sigma_warning(
+                &format!("sensor {}", row.sensor),
+                row.sigma_mm?,
+                p.residual_rms_mm?,
+                "the calibration's residual RMS",
+                true,
+            )
+        })
+        .collect()
+}
+
 /// Runs `perpend calibrate`: bad poses → the run's model checked against
 /// what the board applies → least squares or the EKF per sensor → report
 /// → parameter file (only when every sensor calibrated).
@@ -616,7 +667,12 @@ pub fn run(a: &Args) -> Result<()> {
     let nominal = table
         .sensors()
         .map_err(|e| anyhow::anyhow!("{}: {e}", a.sensors.display()))?;
+    let (all_poses, left, total) =
+        crate::plausible::check_run(&a.poses.display().to_string(), &table, all_poses)?;
     let mut report = String::new();
+    for l in crate::plausible::left_out_lines(&a.poses.display().to_string(), &left, total) {
+        let _ = writeln!(report, "{l}");
+    }
     let outliers = reject_outliers(a, &nominal, &all_poses, &mut report);
     let poses = crate::diagnose::noise::without(&all_poses, &outliers);
     let method = match a.method {
@@ -665,6 +721,9 @@ pub fn run(a: &Args) -> Result<()> {
             verify,
         ),
         Method::Ekf => calibrate_ekf(a, &nominal, &poses, &mut o)?,
+    }
+    for w in sigma_warnings(&table, &o.file) {
+        let _ = writeln!(o.report, "\nwarning: {w}");
     }
     print!("{}", o.report);
     if !o.failures.is_empty() {
@@ -770,4 +829,24 @@ fn expected_accuracy(
 /// Angle [deg] between two unit vectors, accurate near 0.
 pub fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
     a.cross(b).norm().atan2(a.dot(b)).to_degrees()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A beam tilted by 2 mrad along e1 and −1 mrad along e2 prints as
+    /// α = 2, β = −1 mrad; the 1σ of a component along e1 carries over.
+    #[test]
+    fn beam_corrections_are_tilts_in_mrad() {
+        let u = Vector3::new(-0.5, 0.0, 0.866).normalize();
+        let (e1, e2) = perpend_core::geometry::tangent_basis(&u);
+        let f = u + 0.002 * e1 - 0.001 * e2;
+        let [(a, _), (b, _)] = tilts_mrad(&u, &f, [0.0; 3]);
+        assert!((a - 2.0).abs() < 1e-2 && (b + 1.0).abs() < 1e-2, "{a} {b}");
+        let [(_, sa), _] = tilts_mrad(&u, &u, [0.001, 0.001, 0.001]);
+        assert!((sa - 1.0).abs() < 1e-9, "{sa}");
+        assert_eq!(with_sensor(1, "sensor 2: weak"), "sensor 2: weak");
+        assert_eq!(with_sensor(1, "weak"), "sensor 2: weak");
+    }
 }

@@ -479,7 +479,10 @@ pub fn run(a: &Args) -> Result<()> {
             "axis_err_deg": a.axis_err_deg, "aligned_deg": ALIGNED_DEG, "max_moves": MAX_MOVES,
         });
         let v = serde_json::json!({ "config": config, "rows": rows, "alignment": align });
-        println!("{v}");
+        println!(
+            "{}",
+            crate::schema::to_json(crate::schema::BENCH_CURVATURE, &v)?
+        );
         return Ok(());
     }
     print_tables(a, &rows, &align);

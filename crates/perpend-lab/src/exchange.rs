@@ -4,7 +4,9 @@
 //!
 //! Both are CSV with a header row; lines starting with `#` are comments
 //! anywhere in the file; columns are found by header name in any order;
-//! unknown columns are ignored; CRLF and LF line ends both work. In
+//! unknown columns are ignored; LF, CRLF and bare CR line ends all work
+//! (line numbers count physical lines whatever the ending, a UTF-8
+//! byte-order mark is dropped). In
 //! `poses.csv` an empty or `NaN` reading is a missing reading (kept as
 //! `None`, never as 0), and the reading columns `d1_mm … dN_mm` may be any
 //! number of sensors.
@@ -17,6 +19,10 @@
 //! order (they are sorted by pose); a pose with fewer than three valid
 //! readings is kept (it calibrates the sensors that read; wherever a normal
 //! is computed from it, it is skipped).
+//!
+//! `sensors.csv` may give each sensor's measuring range (`range_min_mm`,
+//! `range_max_mm`, mm, optional): the plausibility checks of
+//! [`crate::plausible`] use it (or their default) once the files are read.
 //!
 //! A readings file ([`parse_readings`], what `perpend measure` reads) has
 //! the columns of `poses.csv` without the plane: `pose`, `d1_mm … dN_mm`,
@@ -75,6 +81,11 @@ pub struct SensorRow {
     pub dir: [f64; 3],
     /// Datasheet repeatability 1σ [mm], if given.
     pub sigma_mm: Option<f64>,
+    /// Start of the measuring range [mm] (`range_min_mm`), if given; the
+    /// default is [`crate::plausible::range_of`]'s.
+    pub range_min_mm: Option<f64>,
+    /// End of the measuring range [mm] (`range_max_mm`), if given.
+    pub range_max_mm: Option<f64>,
 }
 
 impl SensorRow {
@@ -125,6 +136,8 @@ impl SensorTable {
                     zero_mm: s.zero.into(),
                     dir: s.dir.into(),
                     sigma_mm,
+                    range_min_mm: None,
+                    range_max_mm: None,
                 })
                 .collect(),
         }
@@ -224,11 +237,62 @@ fn csv_reader(text: &[u8]) -> csv::Reader<&[u8]> {
 /// The file's text without comment and blank lines, and the original line
 /// number of each remaining line. (The csv crate's record positions point
 /// at the first skipped line before a record, so its line numbers are wrong
-/// after comments or blank lines; with those removed they are exact and
-/// are mapped back here.)
+/// after comments or blank lines, and it counts a CRLF record one line
+/// early; with those lines removed and every line ended by a bare LF they
+/// are exact and are mapped back here.)
+///
+/// Physical lines end at LF, CRLF or a bare CR (old Mac files); a last
+/// line without an ending counts; a UTF-8 byte-order mark is dropped.
 struct Text {
     bytes: Vec<u8>,
     lines: Vec<u64>,
+}
+
+/// The physical lines of `raw` (without their endings).
+fn physical_lines(raw: &[u8]) -> Vec<&[u8]> {
+    let raw = raw.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(raw);
+    let mut out = Vec::new();
+    let mut start = 0;
+    let mut i = 0;
+    while i < raw.len() {
+        match raw[i] {
+            b'\n' => {
+                out.push(&raw[start..i]);
+                start = i + 1;
+            }
+            b'\r' => {
+                out.push(&raw[start..i]);
+                if raw.get(i + 1) == Some(&b'\n') {
+                    i += 1;
+                }
+                start = i + 1;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    if start < raw.len() {
+        out.push(&raw[start..]);
+    }
+    out
+}
+
+/// A JSON text as `serde_json` counts its lines: without a UTF-8
+/// byte-order mark (which it refuses as "expected value at line 1") and
+/// with every bare CR turned into LF (it counts only LF, so an old-Mac
+/// file would be all "line 1"). A raw CR is not allowed inside a JSON
+/// string, so the change alters no valid document. CRLF is left as is.
+pub fn json_text(text: &str) -> std::borrow::Cow<'_, str> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let bytes = text.as_bytes();
+    let bare_cr = bytes
+        .iter()
+        .enumerate()
+        .any(|(i, &b)| b == b'\r' && bytes.get(i + 1) != Some(&b'\n'));
+    if !bare_cr {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    std::borrow::Cow::Owned(text.replace("\r\n", "\n").replace('\r', "\n"))
 }
 
 impl Text {
@@ -238,7 +302,7 @@ impl Text {
             .map_err(|e| err(file, None, format!("cannot read: {e}")))?;
         let mut bytes = Vec::with_capacity(raw.len());
         let mut lines = Vec::new();
-        for (n, line) in raw.split(|&b| b == b'\n').enumerate() {
+        for (n, line) in physical_lines(&raw).into_iter().enumerate() {
             let blank = line.iter().all(|b| b.is_ascii_whitespace());
             if blank || line.first() == Some(&b'#') {
                 continue;
@@ -426,6 +490,46 @@ struct SensorRecord {
     q: f64,
     #[serde(default)]
     sigma_mm: Option<f64>,
+    #[serde(default)]
+    range_min_mm: Option<f64>,
+    #[serde(default)]
+    range_max_mm: Option<f64>,
+}
+
+/// The optional measuring range of a row: finite, non-negative, the end
+/// beyond the start; empty or NaN = not given.
+fn sensor_range(
+    file: &str,
+    line: u64,
+    r: &SensorRecord,
+) -> Result<(Option<f64>, Option<f64>), ExchangeError> {
+    let mut out = [None, None];
+    for (slot, (name, v)) in out.iter_mut().zip([
+        ("range_min_mm", r.range_min_mm),
+        ("range_max_mm", r.range_max_mm),
+    ]) {
+        *slot = match v {
+            Some(x) if x.is_nan() => None,
+            Some(x) if !(x.is_finite() && x >= 0.0) => {
+                return Err(err(
+                    file,
+                    Some(line),
+                    format!("column {name}: must be a non-negative distance [mm], got {x}"),
+                ))
+            }
+            x => x,
+        };
+    }
+    if let [Some(lo), Some(hi)] = out {
+        if hi <= lo {
+            return Err(err(
+                file,
+                Some(line),
+                format!("range_max_mm {hi} is not beyond range_min_mm {lo}: give the sensor's measuring range as start, end [mm]"),
+            ));
+        }
+    }
+    Ok((out[0], out[1]))
 }
 
 /// One row of `sensors.csv` checked: sensor number from 1, finite zero
@@ -470,11 +574,14 @@ fn sensor_row(file: &str, line: u64, r: &SensorRecord) -> Result<SensorRow, Exch
         }
         s => s,
     };
+    let (range_min_mm, range_max_mm) = sensor_range(file, line, r)?;
     Ok(SensorRow {
         sensor: r.sensor as usize,
         zero_mm: zero,
         dir,
         sigma_mm,
+        range_min_mm,
+        range_max_mm,
     })
 }
 
@@ -923,10 +1030,17 @@ pub fn write_sensors<W: Write>(
         writeln!(w, "# {c}")?;
     }
     let with_sigma = table.rows.iter().any(|r| r.sigma_mm.is_some());
+    let with_range = table
+        .rows
+        .iter()
+        .any(|r| r.range_min_mm.is_some() || r.range_max_mm.is_some());
     let mut cw = csv::WriterBuilder::new().from_writer(w);
     let mut head = vec!["sensor", "x_mm", "y_mm", "z_mm", "m", "n", "q"];
     if with_sigma {
         head.push("sigma_mm");
+    }
+    if with_range {
+        head.extend(["range_min_mm", "range_max_mm"]);
     }
     cw.write_record(&head)?;
     for r in &table.rows {
@@ -941,6 +1055,9 @@ pub fn write_sensors<W: Write>(
         ];
         if with_sigma {
             rec.push(opt(r.sigma_mm));
+        }
+        if with_range {
+            rec.extend([opt(r.range_min_mm), opt(r.range_max_mm)]);
         }
         cw.write_record(&rec)?;
     }

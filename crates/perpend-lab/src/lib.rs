@@ -19,6 +19,8 @@ pub mod frames;
 pub mod measure;
 pub mod paramfile;
 pub mod plan;
+pub mod plausible;
 pub mod progress;
 pub mod record;
+pub mod schema;
 pub mod sim;

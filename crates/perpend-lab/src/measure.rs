@@ -36,7 +36,9 @@ use perpend_core::normal::Method;
 use perpend_core::surface::{measure, Shape, SurfaceMeasurement};
 use serde::Serialize;
 
-use crate::exchange::{read_readings, read_sensors, ExchangeError, ReadingRow, ReadingTable};
+use crate::exchange::{
+    read_readings, read_sensors, ExchangeError, ReadingRow, ReadingTable, SensorTable,
+};
 use crate::paramfile::ParamFile;
 
 /// The nominal shape of the surface, as given on the command line:
@@ -278,13 +280,13 @@ pub fn measure_table(
 /// The head: the calibration when given (its sensor count must match
 /// sensors.csv), else the nominal head; and its label. `tau_s` receives
 /// the file's thermal time constant (left as it is without --params).
-fn head(a: &Args, tau_s: &mut f64) -> Result<(Vec<Sensor<f64>>, String)> {
+fn head(a: &Args, tau_s: &mut f64) -> Result<(Vec<Sensor<f64>>, String, SensorTable)> {
     let table = read_sensors(&a.sensors)?;
     let Some(p) = &a.params else {
         let nominal = table
             .sensors()
             .map_err(|e| anyhow!("{}: {e}", a.sensors.display()))?;
-        return Ok((nominal, "nominal (sensors.csv, uncalibrated)".into()));
+        return Ok((nominal, "nominal (sensors.csv, uncalibrated)".into(), table));
     };
     let f = ParamFile::read(p)?;
     *tau_s = f.thermal_tau_s;
@@ -301,6 +303,7 @@ fn head(a: &Args, tau_s: &mut f64) -> Result<(Vec<Sensor<f64>>, String)> {
     Ok((
         sensors,
         format!("{} ({}, {})", p.display(), f.method, f.model),
+        table,
     ))
 }
 
@@ -352,16 +355,72 @@ pub fn lag_temperatures(table: &ReadingTable, tau_s: f64, file: &str) -> Result<
     Ok(out)
 }
 
+/// The schema of `perpend measure --json` (docs/json.md).
+pub const SCHEMA: &str = crate::schema::MEASURE;
+
+/// Warnings for a head whose corrections need a column the readings lack:
+/// a thermal coefficient without `temp_c`, a drift without `t_s` (the
+/// correction is then silently not applied to those rows).
+pub fn missing_columns(sensors: &[Sensor<f64>], table: &ReadingTable, file: &str) -> Vec<String> {
+    let mut w = Vec::new();
+    let needs = |f: fn(&Sensor<f64>) -> bool| sensors.iter().any(f);
+    let lacking = |f: fn(&ReadingRow) -> bool| table.rows.iter().filter(|r| f(r)).count();
+    let checks: [(bool, usize, &str, &str); 2] = [
+        (
+            needs(|s| s.ext.thermal != 0.0),
+            lacking(|r| r.temp_c.is_none()),
+            "temp_c",
+            "a thermal correction",
+        ),
+        (
+            needs(|s| s.ext.drift != 0.0),
+            lacking(|r| r.t_s.is_none()),
+            "t_s",
+            "a drift correction",
+        ),
+    ];
+    for (needed, rows, col, what) in checks {
+        if needed && rows > 0 {
+            w.push(format!(
+                "{file}: the head has {what} but {rows} of {} rows have no {col}: those rows are measured without it; add the {col} column",
+                table.rows.len()
+            ));
+        }
+    }
+    w
+}
+
 /// Runs `perpend measure`.
 ///
 /// # Errors
 /// Malformed files (with file and line), a head of an unsupported size, a
 /// file of which no row can be measured.
 pub fn run(a: &Args) -> Result<()> {
+    run_to(a, &mut std::io::stdout().lock())
+}
+
+/// What `measure` computed: the rows, the head's label, the file's name
+/// and the warnings about the file.
+struct Computed {
+    rows: Vec<RowOut>,
+    label: String,
+    file: String,
+    warnings: Vec<String>,
+}
+
+/// Reads the head and the readings, checks them ([`crate::plausible`],
+/// [`missing_columns`]), lags the temperatures, measures every row.
+///
+/// # Errors
+/// As [`run`].
+fn compute(a: &Args) -> Result<Computed> {
     let mut tau_s = 0.0;
-    let (sensors, mut label) = head(a, &mut tau_s)?;
+    let (sensors, mut label, nominal) = head(a, &mut tau_s)?;
     let mut table = read_readings(&a.poses, Some(sensors.len()))?;
     let file = a.poses.display().to_string();
+    let (left, total) = crate::plausible::check_readings(&file, &nominal, &mut table)?;
+    let mut warnings = crate::plausible::left_out_lines(&file, &left, total);
+    warnings.extend(missing_columns(&sensors, &table, &file));
     // The lag only matters through a thermal coefficient: without one a
     // τ asks nothing of the file (no t_s / temp_c needed).
     if tau_s > 0.0 && sensors.iter().any(|s| s.ext.thermal != 0.0) {
@@ -369,8 +428,7 @@ pub fn run(a: &Args) -> Result<()> {
         label += &format!("; thermal lag τ = {tau_s} s");
     }
     let rows = measure_table(&sensors, &table, &a.surface.0, a.method.into())?;
-    let measured = rows.iter().filter(|r| r.measured.is_some()).count();
-    if measured == 0 {
+    if !rows.iter().any(|r| r.measured.is_some()) {
         let first = rows
             .first()
             .and_then(|r| r.error.clone())
@@ -382,17 +440,41 @@ pub fn run(a: &Args) -> Result<()> {
         }
         .into());
     }
+    Ok(Computed {
+        rows,
+        label,
+        file,
+        warnings,
+    })
+}
+
+/// Runs `perpend measure`, writing the report (or the JSON) to `out`;
+/// warnings go to stderr with the text report, into the JSON with `--json`.
+///
+/// # Errors
+/// As [`run`]; I/O errors of `out`.
+pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
+    let Computed {
+        rows,
+        label,
+        file,
+        warnings,
+    } = compute(a)?;
+    let measured = rows.iter().filter(|r| r.measured.is_some()).count();
     if a.json {
         let method = format!("{:?}", a.method).to_lowercase();
         let v = serde_json::json!({
             "file": file, "head": label, "surface": a.surface.to_string(),
             "method": method, "rows": rows, "measured": measured,
-            "skipped": rows.len() - measured,
+            "skipped": rows.len() - measured, "warnings": warnings,
         });
-        println!("{v}");
+        writeln!(out, "{}", crate::schema::to_json(SCHEMA, &v)?)?;
         return Ok(());
     }
-    print!("{}", report(a, &label, &rows));
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
+    write!(out, "{}", report(a, &label, &rows))?;
     for r in rows.iter().filter(|r| r.error.is_some()) {
         eprintln!(
             "warning: {file}, line {}: pose {} skipped: {}",
@@ -675,7 +757,7 @@ mod tests {
             json: false,
         };
         let mut tau = 0.0;
-        let (s, label) = super::head(&a, &mut tau).unwrap();
+        let (s, label, _) = super::head(&a, &mut tau).unwrap();
         assert_eq!(tau, 60.0);
         assert!(label.contains("params.json"));
         let table = read_readings(&poses, Some(4)).unwrap();

@@ -494,10 +494,12 @@ impl ParamFile {
     /// Parses and validates a parameter file; `name` labels errors.
     ///
     /// # Errors
-    /// Syntax/type errors with line and column, or validation errors.
+    /// Syntax/type errors with line and column (physical lines whatever
+    /// the line ending, see [`crate::exchange::json_text`]), or validation
+    /// errors.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
-        let f: ParamFile =
-            serde_json::from_str(text).with_context(|| format!("{name}: malformed"))?;
+        let f: ParamFile = serde_json::from_str(&crate::exchange::json_text(text))
+            .with_context(|| format!("{name}: malformed"))?;
         f.validate().with_context(|| format!("{name}: invalid"))?;
         Ok(f)
     }

@@ -393,7 +393,7 @@ impl Record {
     /// Syntax (with line and column), unknown or missing fields, wrong
     /// schema.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
-        let r: Self = serde_json::from_str(text).map_err(|e| {
+        let r: Self = serde_json::from_str(&crate::exchange::json_text(text)).map_err(|e| {
             anyhow::anyhow!(
                 "{name}: line {}, column {}: {e} (a calibration record, {SCHEMA}: docs/record.md)",
                 e.line(),

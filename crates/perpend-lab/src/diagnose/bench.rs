@@ -571,7 +571,10 @@ pub fn run(a: &Args) -> Result<()> {
     }
     let s = summarise(&recs, a);
     if a.json {
-        println!("{}", serde_json::to_string(&s)?);
+        println!(
+            "{}",
+            crate::schema::to_json(crate::schema::BENCH_DIAGNOSE_SELF, &s)?
+        );
         return Ok(());
     }
     println!(

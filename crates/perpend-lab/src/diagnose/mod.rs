@@ -585,6 +585,11 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
                 1000.0 * d
             ));
         }
+        for (i, (&d, &e)) in decl.iter().zip(&est.reading_mm).enumerate() {
+            let who = format!("sensor {}", i + 1);
+            let how = "estimated from the run";
+            w.extend(crate::plausible::sigma_warning(&who, d, e, how, true));
+        }
     }
     w
 }
@@ -1218,10 +1223,23 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
 /// Malformed input (file, line, problem), missing reading noise, a pose set
 /// that cannot identify the paper's model, I/O errors of the plots.
 pub fn run(a: &Args) -> Result<()> {
+    run_to(a, &mut std::io::stdout().lock())
+}
+
+/// Runs `perpend diagnose`, writing the report (or the JSON) to `out`.
+///
+/// # Errors
+/// As [`run`]; I/O errors of `out`.
+pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
     let settings = Settings::from_args(a)?;
     let table = read_sensors(&a.sensors)?;
     let poses = read_poses(&a.poses, Some(table.len()))?;
-    let d = diagnose(&table, &poses, &settings)?;
+    let file = a.poses.display().to_string();
+    let (poses, left, total) = crate::plausible::check_run(&file, &table, poses)?;
+    let mut d = diagnose(&table, &poses, &settings)?;
+    let mut first = crate::plausible::left_out_lines(&file, &left, total);
+    first.append(&mut d.warnings);
+    d.warnings = first;
     if let Some(dir) = &a.plot {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         plot::write_all(&d, dir)?;
@@ -1234,21 +1252,30 @@ pub fn run(a: &Args) -> Result<()> {
         record = Some(write_record(a, &d, &file, previous, out)?);
     }
     if a.json {
-        println!("{}", serde_json::to_string(&d.json())?);
+        writeln!(
+            out,
+            "{}",
+            crate::schema::to_json(crate::schema::DIAGNOSE, &d.json())?
+        )?;
     } else {
-        print!("{}", report::text(&d, &a.sensors, &a.poses, &settings));
+        write!(
+            out,
+            "{}",
+            report::text(&d, (&a.sensors, &a.poses), a.out.as_deref(), &settings)
+        )?;
         if let Some(dir) = &a.plot {
-            println!("\nplots written to {}", dir.display());
+            writeln!(out, "\nplots written to {}", dir.display())?;
         }
-        if let Some(out) = &a.out {
-            println!(
+        if let Some(path) = &a.out {
+            writeln!(
+                out,
                 "parameters ({} model) written to {}",
                 d.ext_model.name(),
-                out.display()
-            );
+                path.display()
+            )?;
         }
         if let Some(r) = &record {
-            println!("calibration record written to {}", r.display());
+            writeln!(out, "calibration record written to {}", r.display())?;
         }
     }
     Ok(())

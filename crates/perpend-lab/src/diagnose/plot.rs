@@ -128,36 +128,42 @@ fn scatter_panel(
     Ok(())
 }
 
-/// A legend strip above the panels (outside every data area).
+/// Height [px] of the legend strip above the residual panels: three lines,
+/// one per item, so that the legend fits a single column of panels (560 px
+/// wide) whatever the verdict's length.
+const LEGEND_H: u32 = 62;
+
+/// A legend strip above the panels (outside every data area): one item a
+/// line.
 fn legend_strip(
     area: &DrawingArea<SVGBackend<'_>, plotters::coord::Shift>,
     text: &str,
 ) -> Result<()> {
     let e = |e: DrawingAreaErrorKind<std::io::Error>| anyhow!("plot: {e}");
+    let font = ("sans-serif", 13);
     area.draw(&Rectangle::new(
-        [(10, 8), (34, 20)],
+        [(10, 6), (34, 18)],
         RGBColor(200, 200, 200).mix(0.5).filled(),
     ))
     .map_err(e)?;
     area.draw(&Text::new(
         "expected reading noise ±1σ (estimated from the run)",
-        (40, 8),
-        ("sans-serif", 13),
+        (40, 6),
+        font,
     ))
     .map_err(e)?;
     area.draw(&PathElement::new(
-        vec![(360, 14), (384, 14)],
+        vec![(10, 30), (34, 30)],
         BLACK.mix(0.7).stroke_width(1),
     ))
     .map_err(e)?;
     area.draw(&Text::new(
         "simulated held-out RMS floor (±)",
-        (390, 8),
-        ("sans-serif", 13),
+        (40, 24),
+        font,
     ))
     .map_err(e)?;
-    area.draw(&Text::new(text, (620, 8), ("sans-serif", 13)))
-        .map_err(e)?;
+    area.draw(&Text::new(text, (10, 42), font)).map_err(e)?;
     Ok(())
 }
 
@@ -192,9 +198,10 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
     let yr = range(all.map(|p| p.1));
     let ns = before.len().max(1);
     let cols = if after.is_some() { 2 } else { 1 };
-    let root = SVGBackend::new(path, (560 * cols as u32, 30 + 260 * ns as u32)).into_drawing_area();
+    let size = (560 * cols as u32, LEGEND_H + 260 * ns as u32);
+    let root = SVGBackend::new(path, size).into_drawing_area();
     root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
-    let (top, body) = root.split_vertically(30);
+    let (top, body) = root.split_vertically(LEGEND_H);
     let verdict = if names.is_empty() {
         d.effect.name().to_string()
     } else {

@@ -182,14 +182,20 @@ fn pct(a: f64, b: f64) -> String {
 
 /// The readable report: the run and its noise, what the simulation gets
 /// wrong, the candidates, the verdict, the fitted coefficients, the gain
-/// on held-out poses.
-pub fn text(d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) -> String {
+/// on held-out poses. `out`: where `--out` stored the parameters, if it
+/// did (the report then says so instead of suggesting it).
+pub fn text(
+    d: &Diagnosis,
+    (sensors, poses): (&Path, &Path),
+    out: Option<&Path>,
+    s: &Settings,
+) -> String {
     let mut o = String::new();
     run_section(&mut o, d, sensors, poses, s);
     checks_section(&mut o, d);
     candidates_section(&mut o, d, s);
     verdict_section(&mut o, d);
-    coefficients_section(&mut o, d, sensors, poses);
+    coefficients_section(&mut o, d, (sensors, poses), out);
     gain_section(&mut o, d);
     o
 }
@@ -388,7 +394,12 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
 }
 
 /// The named model's coefficients, fitted on all poses.
-fn coefficients_section(o: &mut String, d: &Diagnosis, sensors: &Path, poses: &Path) {
+fn coefficients_section(
+    o: &mut String,
+    d: &Diagnosis,
+    (sensors, poses): (&Path, &Path),
+    out: Option<&Path>,
+) {
     if let Some((e, fits)) = &d.refit {
         let _ = writeln!(
             o,
@@ -410,13 +421,19 @@ fn coefficients_section(o: &mut String, d: &Diagnosis, sensors: &Path, poses: &P
                 1000.0 * f.rms
             );
         }
-        if d.effect != Effect::Unexplained {
-            let _ = writeln!(
-                o,
-                "  store them: perpend diagnose --sensors {} --poses {} --out params.json (parameter JSON with the extension)",
-                sensors.display(),
-                poses.display()
-            );
+        match out {
+            _ if d.effect == Effect::Unexplained => {}
+            Some(p) => {
+                let _ = writeln!(o, "  stored in {} (--out)", p.display());
+            }
+            None => {
+                let _ = writeln!(
+                    o,
+                    "  store them: perpend diagnose --sensors {} --poses {} --out params.json (parameter JSON with the extension)",
+                    sensors.display(),
+                    poses.display()
+                );
+            }
         }
     }
 }

@@ -504,7 +504,7 @@ pub fn run(a: &Args) -> Result<()> {
             std::fs::write(&p.out, &md)
                 .with_context(|| format!("cannot write {}", p.out.display()))?;
             if p.json {
-                println!("{}", serde_json::to_string(&st)?);
+                println!("{}", crate::schema::to_json(crate::schema::STUDY, &st)?);
             } else {
                 print!("{md}");
                 println!("\nwrote {}", p.out.display());
