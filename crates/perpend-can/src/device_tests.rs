@@ -1006,7 +1006,7 @@ fn arb_frame() -> impl Strategy<Value = Frame> {
 }
 
 /// Whether `resp` is a well-formed server response to `req`.
-fn valid_response(req: &[u8; 8], resp: &Frame) -> bool {
+fn valid_response(req: &[u8; 8], resp: &Frame, in_block: bool) -> bool {
     if resp.len != 8 {
         return false;
     }
@@ -1015,7 +1015,12 @@ fn valid_response(req: &[u8; 8], resp: &Frame) -> bool {
         let code = u32::from_le_bytes([resp.data[4], resp.data[5], resp.data[6], resp.data[7]]);
         return SdoAbort::from_code(code).is_some();
     }
+    if in_block {
+        // A segment's sub-block acknowledgement, or the end's confirmation.
+        return (r == 0xA2 && resp.data[2] >= 1 && resp.data[2] <= 127) || r == 0xA1;
+    }
     match req[0] >> 5 {
+        6 => r == 0xA4 && resp.data[1..4] == req[1..4] && resp.data[4] == 127,
         1 => r == 0x60 && resp.data[1..4] == req[1..4],
         2 => (r & 0xE0) == 0x40 && resp.data[1..4] == req[1..4],
         0 => (r & 0xEF) == 0x20 && (r & 0x10) == (req[0] & 0x10),
@@ -1051,6 +1056,7 @@ proptest! {
             let node = b.dev.node_id() as u16;
             let state = b.dev.nmt_state();
             let deferred_before = b.dev.pending_request().is_some();
+            let in_block = b.dev.sdo.in_block();
             let out = b.send(f);
             let sdo_out: Vec<&Frame> = out.iter().filter(|o| o.id == 0x580 + node).collect();
             if f.id == 0x600 + node && f.len <= 8 && !f.rtr
@@ -1062,13 +1068,16 @@ proptest! {
                     // malformed requests are answered with an abort
                     req[0] = if f.len == 0 { 0xFF } else { req[0] };
                 }
-                let client_abort = f.len > 0 && req[0] >> 5 == 4;
+                let client_abort = f.len > 0 && (req[0] >> 5 == 4) && (!in_block || req[0] == 0x80);
                 let deferred_now = !deferred_before && b.dev.pending_request().is_some();
                 if client_abort || deferred_now {
                     prop_assert!(sdo_out.is_empty());
+                } else if in_block && f.len == 8 && sdo_out.is_empty() {
+                    // A segment inside a sub-block: answered at its end.
                 } else {
                     prop_assert_eq!(sdo_out.len(), 1, "request {:02x?}", req);
-                    prop_assert!(valid_response(&req, sdo_out[0]), "{:02x?} -> {:02x?}", req, sdo_out[0].data);
+                    let in_block = in_block && f.len == 8;
+                    prop_assert!(valid_response(&req, sdo_out[0], in_block), "{:02x?} -> {:02x?}", req, sdo_out[0].data);
                 }
             } else {
                 prop_assert!(sdo_out.is_empty());
@@ -1090,7 +1099,9 @@ proptest! {
         b.dev.persistent_image(&mut img);
         let mut fresh = Device::new(NODE, &Defaults::nominal());
         prop_assert_eq!(fresh.load_image(&img), Ok(()));
-        // Everything reads back over SDO as held (in pre-operational).
+        // Everything reads back over SDO as held (in pre-operational), a
+        // block download left open ended by a client abort first.
+        b.sdo([0x80, 0, 0, 0, 0, 0, 0, 0]);
         b.nmt(0x80, 0);
         if b.dev.nmt_state() == NmtState::PreOperational {
             let entries: Vec<_> = od::entries().collect();

@@ -187,6 +187,10 @@ pub mod frame;
 pub mod lss;
 pub mod od;
 pub mod sdo;
+#[cfg(feature = "sdo-block")]
+pub mod sdo_block;
+#[cfg(all(test, feature = "sdo-block"))]
+mod sdo_block_tests;
 pub mod status;
 
 pub use config::{
