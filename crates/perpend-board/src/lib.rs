@@ -22,6 +22,8 @@
 //!   receive path (FIFOs, interrupt ring) around a flash store;
 //! * [`thermal`] — the head temperature through the thermal time constant
 //!   (0x2105) for the thermal extension;
+//! * [`program`] — CiA 302-3 program download (0x1F50/0x1F51/0x1F56/
+//!   0x1F57) into a program store (a RAM fake on the host);
 //! * [`scan`] — the ADC scan time and the shortest sample period an
 //!   oversampling ratio allows.
 //!
@@ -35,6 +37,7 @@ pub mod bittiming;
 pub mod capture;
 pub mod health;
 pub mod pipeline;
+pub mod program;
 pub mod rxfilter;
 pub mod scan;
 pub mod status;
