@@ -1745,6 +1745,11 @@ impl Device {
         }
     }
 
+    /// Whether an SDO block download is in progress.
+    pub fn sdo_in_block(&self) -> bool {
+        self.sdo.in_block()
+    }
+
     /// Sets what 0x1F56 sub 1 (application software identification) and
     /// 0x1F57 sub 1 (flash status, [`od::FLASH_OK`] and the other CiA
     /// 302-3 codes) read.
