@@ -265,19 +265,19 @@ fn image(n: usize) -> Vec<u8> {
     (0..n).map(|i| (i * 13 + 5) as u8).collect()
 }
 
+/// A block download of `data` to 0x1F50 sub 1: the progress reports.
+fn send_program(c: &mut Client, data: &[u8]) -> Result<Vec<usize>, ClientError> {
+    let mut seen = Vec::new();
+    let t = Duration::from_millis(200);
+    c.download_block(NODE, (0x1F50, 1), data, t, &mut |n| seen.push(n))?;
+    Ok(seen)
+}
+
 #[test]
 fn block_download_of_a_program_with_progress() {
     let (mut c, program) = program_client(0, false);
     let data = image(3 * 889 + 10);
-    let mut seen = Vec::new();
-    c.download_block(
-        NODE,
-        (0x1F50, 1),
-        &data,
-        Duration::from_millis(200),
-        &mut |n| seen.push(n),
-    )
-    .unwrap();
+    let seen = send_program(&mut c, &data).unwrap();
     assert_eq!(*program.lock().unwrap(), data);
     assert_eq!(seen, [889, 2 * 889, 3 * 889, data.len()]);
 }
@@ -287,15 +287,7 @@ fn block_download_resends_a_lost_segment() {
     // Frame 1 is the initiate: frame 11 is segment 10 of the first sub-block.
     let (mut c, program) = program_client(11, false);
     let data = image(2000);
-    let mut seen = Vec::new();
-    c.download_block(
-        NODE,
-        (0x1F50, 1),
-        &data,
-        Duration::from_millis(200),
-        &mut |n| seen.push(n),
-    )
-    .unwrap();
+    let seen = send_program(&mut c, &data).unwrap();
     assert_eq!(*program.lock().unwrap(), data);
     assert_eq!(seen[0], 9 * 7, "acknowledged up to segment 9");
 }
@@ -304,14 +296,7 @@ fn block_download_resends_a_lost_segment() {
 fn block_download_falls_back_to_segmented() {
     let (mut c, program) = program_client(0, true);
     let data = image(100);
-    c.download_block(
-        NODE,
-        (0x1F50, 1),
-        &data,
-        Duration::from_millis(200),
-        &mut |_| {},
-    )
-    .unwrap();
+    send_program(&mut c, &data).unwrap();
     assert_eq!(*program.lock().unwrap(), data);
 }
 
@@ -320,25 +305,9 @@ fn block_download_errors_in_words() {
     let (mut c, _) = program_client(0, false);
     // Operational: the board refuses program download.
     c.nmt(NODE, Nmt::Start).unwrap();
-    let e = c
-        .download_block(
-            NODE,
-            (0x1F50, 1),
-            &image(10),
-            Duration::from_millis(200),
-            &mut |_| {},
-        )
-        .unwrap_err();
+    let e = send_program(&mut c, &image(10)).unwrap_err();
     assert_eq!(e.abort_code(), Some(0x0800_0022), "{e}");
-    let e = c
-        .download_block(
-            NODE,
-            (0x1F50, 1),
-            &[],
-            Duration::from_millis(200),
-            &mut |_| {},
-        )
-        .unwrap_err();
+    let e = send_program(&mut c, &[]).unwrap_err();
     assert!(e.to_string().contains("at least 1 byte"), "{e}");
     // A server whose block size is out of range: the client aborts.
     let peer = FnPeer(|f: &Frame, out: &mut Vec<Frame>| {
@@ -351,14 +320,6 @@ fn block_download_errors_in_words() {
     });
     let mut c = Client::new(Box::new(FakeBus::new(peer)));
     c.timeout = Duration::from_millis(50);
-    let e = c
-        .download_block(
-            NODE,
-            (0x1F50, 1),
-            &image(10),
-            Duration::from_millis(50),
-            &mut |_| {},
-        )
-        .unwrap_err();
+    let e = send_program(&mut c, &image(10)).unwrap_err();
     assert!(e.to_string().contains("invalid block size 0"), "{e}");
 }
