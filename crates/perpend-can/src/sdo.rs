@@ -502,18 +502,16 @@ impl SdoServer {
         }
         let n = 7 - ((req[0] >> 1) & 7) as usize;
         let last = req[0] & 0x01 != 0;
-        if declared.is_some_and(|d| offset + len + n > d) {
-            // More data than the client itself declared.
-            self.reset();
-            return Some(abort_payload(index, sub, SdoAbort::Length));
-        }
         let room = if domain { BUF_LEN } else { MAX_DOWNLOAD };
-        let Some(dst) = self.buf.get_mut(len..len + n).filter(|_| len + n <= room) else {
-            // Undeclared size, already longer than any writable object.
+        if let Err(a) = self.append(
+            len,
+            &req[1..1 + n],
+            room,
+            declared.map(|d| d.saturating_sub(offset)),
+        ) {
             self.reset();
-            return Some(abort_payload(index, sub, SdoAbort::TooLong));
-        };
-        dst.copy_from_slice(&req[1..1 + n]);
+            return Some(abort_payload(index, sub, a));
+        }
         len += n;
         let resp = [0x20 | (req[0] & 0x10), 0, 0, 0, 0, 0, 0, 0];
         if last && declared.is_some_and(|d| d != offset + len) {
@@ -523,17 +521,20 @@ impl SdoServer {
         // A DOMAIN part goes out when the buffer cannot take another
         // segment, and at the end.
         let flush = domain && (last || len + 7 > BUF_LEN);
-        let next = Transfer::Download {
-            index,
-            sub,
-            len: if flush { 0 } else { len },
-            offset: if flush { offset + len } else { offset },
-            domain,
-            declared,
-            toggle: !toggle,
-            deadline: now_us.saturating_add(self.timeout_us),
+        let next = if last {
+            Transfer::Idle
+        } else {
+            Transfer::Download {
+                index,
+                sub,
+                len: if flush { 0 } else { len },
+                offset: if flush { offset + len } else { offset },
+                domain,
+                declared,
+                toggle: !toggle,
+                deadline: now_us.saturating_add(self.timeout_us),
+            }
         };
-        let next = if last { Transfer::Idle } else { next };
         let data = self.buf.get(..len).unwrap_or(&[]);
         let r = if flush {
             od.write_part(index, sub, offset as u32, data, last)
@@ -543,6 +544,31 @@ impl SdoServer {
             Ok(Written::Done)
         };
         self.conclude(r, index, sub, resp, next)
+    }
+
+    /// Appends a segment's `data` to the `len` bytes in the buffer:
+    /// 0x06070010 past `declared` (what the client declared, less what
+    /// already went to the dictionary), 0x06070012 past `room`.
+    fn append(
+        &mut self,
+        len: usize,
+        data: &[u8],
+        room: usize,
+        declared: Option<usize>,
+    ) -> Result<(), SdoAbort> {
+        let end = len + data.len();
+        if declared.is_some_and(|d| end > d) {
+            // More data than the client itself declared.
+            return Err(SdoAbort::Length);
+        }
+        // Undeclared size, already longer than any writable object.
+        let dst = self
+            .buf
+            .get_mut(len..end)
+            .filter(|_| end <= room)
+            .ok_or(SdoAbort::TooLong)?;
+        dst.copy_from_slice(data);
+        Ok(())
     }
 
     fn initiate_upload<D: Dictionary>(

@@ -348,6 +348,18 @@ impl Client {
                 break;
             }
         }
+        self.end_block(&ctx, data, crc_on, timeout)
+    }
+
+    /// The end of a block download: unused bytes of the last segment and
+    /// the CRC (0 when the server computes none); the server's `A1`.
+    fn end_block(
+        &mut self,
+        ctx: &Ctx,
+        data: &[u8],
+        crc_on: bool,
+        timeout: Duration,
+    ) -> Result<(), ClientError> {
         let n = ((7 - data.len() % 7) % 7) as u8;
         let crc = if crc_on {
             perpend_can::sdo_block::crc16_ccitt(data, 0)
@@ -355,9 +367,9 @@ impl Client {
             0
         };
         let c = crc.to_le_bytes();
-        let resp = self.exchange(&ctx, [0xC1 | n << 2, c[0], c[1], 0, 0, 0, 0, 0], timeout)?;
+        let resp = self.exchange(ctx, [0xC1 | n << 2, c[0], c[1], 0, 0, 0, 0, 0], timeout)?;
         if resp[0] != 0xA1 {
-            self.send_abort(&ctx, ABORT_COMMAND);
+            self.send_abort(ctx, ABORT_COMMAND);
             return Err(ctx.protocol(&format!("unexpected block end answer {:#04x}", resp[0])));
         }
         Ok(())
