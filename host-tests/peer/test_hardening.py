@@ -66,12 +66,13 @@ def entries(od):
 
 
 def dump(board):
-    """Every entry of the dictionary read over SDO (measurements excluded)."""
+    """Every readable entry of the dictionary read over SDO (measurements
+    excluded; 0x1F50 program data is write-only)."""
     od = board.node.object_dictionary
     return {
         (i, s): bytes(board.node.sdo.upload(i, s))
-        for i, s, _ in entries(od)
-        if i not in LIVE
+        for i, s, v in entries(od)
+        if i not in LIVE and v.readable
     }
 
 

@@ -307,6 +307,9 @@ pub struct App<S: ParamStore> {
     recovering: bool,
     /// Acquisition was locked to SYNC at the last reload.
     locked: bool,
+    /// CiA 302-3 program download (`program.rs`).
+    program: crate::program::BoardProgram,
+    program_state: crate::program::ProgramState,
 }
 
 impl<S: ParamStore> App<S> {
@@ -363,7 +366,10 @@ impl<S: ParamStore> App<S> {
             comm_error: false,
             locked: false,
             recovering: false,
+            program: crate::program::board_program(),
+            program_state: crate::program::ProgramState::default(),
         };
+        crate::program::publish(&app.program_state, &mut app.dev);
         app.reload();
         // Nothing to drain: the events of the boot itself are handled.
         app.dev.take_events();
@@ -660,7 +666,9 @@ impl<S: ParamStore> App<S> {
         }
         if ev.contains(Events::REQUEST) {
             if let Some(req) = self.dev.pending_request() {
-                let ok = self.store_now(req);
+                let (store, state) = (&mut self.program, &mut self.program_state);
+                let ok = crate::program::serve(store, state, &mut self.dev, req)
+                    .unwrap_or_else(|| self.store_now(req));
                 // NoRequest cannot happen: a request is pending.
                 if !self.recovering {
                     let _ = self.dev.finish_request(ok, out);
@@ -668,6 +676,7 @@ impl<S: ParamStore> App<S> {
             }
         }
         if ev.contains(Events::RESET_NODE) {
+            crate::program::publish(&self.program_state, &mut self.dev);
             // The stored record's settings without an object (ADC
             // reference, detectors, signal spans) apply from now on too.
             self.extra = self.next_extra;

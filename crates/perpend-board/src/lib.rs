@@ -28,6 +28,8 @@
 //!   main loop's receive budget and event order;
 //! * [`ecc`] — a storage read that sees every ECC error (flags cleared,
 //!   data cache bypassed, NMI offsets substituted);
+//! * [`program`] — CiA 302-3 program download (0x1F50/0x1F51/0x1F56/
+//!   0x1F57) into a program store (a RAM fake on the host);
 //! * [`scan`] — the ADC scan time and the shortest sample period an
 //!   oversampling ratio allows.
 //!
@@ -44,6 +46,7 @@ pub mod ecc;
 pub mod fdcan;
 pub mod health;
 pub mod pipeline;
+pub mod program;
 pub mod rxfilter;
 pub mod scan;
 pub mod status;

@@ -82,6 +82,22 @@ pub enum Request {
         /// The configured bit rate \[kbit/s\].
         bit_rate_kbps: u16,
     },
+    /// 0x1F50 sub 1 (CiA 302-3 program data): `len` bytes of the program
+    /// at byte `offset` ([`Device::program_part`]), parts in order from
+    /// offset 0; `last`: the download is complete (its size and, by block
+    /// transfer, its CRC checked). The application writes them to its
+    /// program store; a refusal aborts the download with 0x08000020.
+    ProgramData {
+        /// Byte offset of the part in the program.
+        offset: u32,
+        /// Bytes in the part.
+        len: u16,
+        /// The last part.
+        last: bool,
+    },
+    /// 0x1F51 sub 1 program control ([`od::PROGRAM_STOP`], start, reset,
+    /// clear); reads back once carried out.
+    ProgramControl(u8),
 }
 
 /// Things that happened since the application last called
@@ -881,7 +897,7 @@ impl Core {
 
     /// Write rules common to SDO downloads and segmented-download checks.
     fn write_allowed(&self, index: u16, e: &od::Entry) -> Result<(), SdoAbort> {
-        if e.access != Access::Rw {
+        if !matches!(e.access, Access::Rw | Access::Wo) {
             return Err(SdoAbort::ReadOnly);
         }
         match e.class {
@@ -893,8 +909,9 @@ impl Core {
                     return Err(SdoAbort::Locked);
                 }
             }
+            // Program download and control (CiA 302-3): pre-operational.
             Class::Config | Class::Command
-                if (e.class == Class::Config || index == 0x2010)
+                if (e.class == Class::Config || matches!(index, 0x2010 | 0x1F50 | 0x1F51))
                     && self.state != NmtState::PreOperational =>
             {
                 return Err(SdoAbort::State);
@@ -928,6 +945,14 @@ impl Core {
                     return Err(SdoAbort::Store);
                 }
                 self.request = Some(req);
+                self.event(Events::REQUEST);
+                Ok(Some(Written::Deferred))
+            }
+            0x1F51 => {
+                if self.request.is_some() {
+                    return Err(SdoAbort::Store);
+                }
+                self.request = Some(Request::ProgramControl(v as u8));
                 self.event(Events::REQUEST);
                 Ok(Some(Written::Deferred))
             }
@@ -1157,6 +1182,9 @@ impl Dictionary for Core {
             Lookup::NoObject => SdoAbort::NoObject,
             Lookup::NoSub => SdoAbort::NoSub,
         })?;
+        if e.access == Access::Wo {
+            return Err(SdoAbort::WriteOnly);
+        }
         Ok(match e.init {
             Init::Text(t) => Value::Str(self.text(t).as_bytes()),
             _ => Value::Num(self.values[s].to_le_bytes(), e.ty.size()),
@@ -1168,13 +1196,38 @@ impl Dictionary for Core {
             Lookup::NoObject => SdoAbort::NoObject,
             Lookup::NoSub => SdoAbort::NoSub,
         })?;
-        if e.access != Access::Rw {
+        if !matches!(e.access, Access::Rw | Access::Wo) {
             return Err(SdoAbort::ReadOnly);
         }
-        if let Some(a) = len.and_then(|l| crate::sdo::length_abort(e.ty.size(), l)) {
-            return Err(a);
+        let size = e.ty.size();
+        if let Some(a) = len.and_then(|l| crate::sdo::length_abort(size, l)) {
+            if e.ty != DataType::Domain {
+                return Err(a);
+            }
         }
         self.write_allowed(index, e)
+    }
+
+    fn domain(&self, index: u16, sub: u8) -> bool {
+        od::find(index, sub).is_ok_and(|(_, e)| e.ty == DataType::Domain)
+    }
+
+    fn write_part(
+        &mut self,
+        index: u16,
+        sub: u8,
+        offset: u32,
+        data: &[u8],
+        last: bool,
+    ) -> Result<Written, SdoAbort> {
+        self.check_write(index, sub, None)?;
+        if self.request.is_some() {
+            return Err(SdoAbort::Store);
+        }
+        let len = u16::try_from(data.len()).map_err(|_| SdoAbort::TooLong)?;
+        self.request = Some(Request::ProgramData { offset, len, last });
+        self.event(Events::REQUEST);
+        Ok(Written::Deferred)
     }
 
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<Written, SdoAbort> {
@@ -1682,6 +1735,29 @@ impl Device {
         self.core.request
     }
 
+    /// The data of a pending [`Request::ProgramData`] (empty otherwise):
+    /// they stay in the SDO server's buffer until
+    /// [`Device::finish_request`].
+    pub fn program_part(&self) -> &[u8] {
+        match self.core.request {
+            Some(Request::ProgramData { len, .. }) => self.sdo.part(usize::from(len)),
+            _ => &[],
+        }
+    }
+
+    /// Whether an SDO block download is in progress.
+    pub fn sdo_in_block(&self) -> bool {
+        self.sdo.in_block()
+    }
+
+    /// Sets what 0x1F56 sub 1 (application software identification) and
+    /// 0x1F57 sub 1 (flash status, [`od::FLASH_OK`] and the other CiA
+    /// 302-3 codes) read.
+    pub fn set_program_status(&mut self, identification: u32, flash_status: u32) {
+        self.core.set(0x1F56, 1, identification);
+        self.core.set(0x1F57, 1, flash_status);
+    }
+
     /// Completes the pending request: `ok` tells whether the storage
     /// operation succeeded. The SDO confirmation (or abort 0x08000020) goes
     /// to `out`. On success a store makes the current persisted values the
@@ -1705,6 +1781,9 @@ impl Device {
                     self.core.values[od::STAMP_COUNT] = self.core.boot[od::STAMP_COUNT];
                 }
             }
+        }
+        if let (Request::ProgramControl(v), true) = (req, ok) {
+            self.core.set(0x1F51, 1, u32::from(v));
         }
         if let Request::StoreLss { .. } = req {
             out(Frame::new(crate::lss::SLAVE_ID, &lss_glue::store_done(ok)));

@@ -1006,7 +1006,7 @@ fn arb_frame() -> impl Strategy<Value = Frame> {
 }
 
 /// Whether `resp` is a well-formed server response to `req`.
-fn valid_response(req: &[u8; 8], resp: &Frame) -> bool {
+fn valid_response(req: &[u8; 8], resp: &Frame, in_block: bool) -> bool {
     if resp.len != 8 {
         return false;
     }
@@ -1015,7 +1015,12 @@ fn valid_response(req: &[u8; 8], resp: &Frame) -> bool {
         let code = u32::from_le_bytes([resp.data[4], resp.data[5], resp.data[6], resp.data[7]]);
         return SdoAbort::from_code(code).is_some();
     }
+    if in_block {
+        // A segment's sub-block acknowledgement, or the end's confirmation.
+        return (r == 0xA2 && resp.data[2] >= 1 && resp.data[2] <= 127) || r == 0xA1;
+    }
     match req[0] >> 5 {
+        6 => r == 0xA4 && resp.data[1..4] == req[1..4] && resp.data[4] == 127,
         1 => r == 0x60 && resp.data[1..4] == req[1..4],
         2 => (r & 0xE0) == 0x40 && resp.data[1..4] == req[1..4],
         0 => (r & 0xEF) == 0x20 && (r & 0x10) == (req[0] & 0x10),
@@ -1051,6 +1056,7 @@ proptest! {
             let node = b.dev.node_id() as u16;
             let state = b.dev.nmt_state();
             let deferred_before = b.dev.pending_request().is_some();
+            let in_block = b.dev.sdo.in_block();
             let out = b.send(f);
             let sdo_out: Vec<&Frame> = out.iter().filter(|o| o.id == 0x580 + node).collect();
             if f.id == 0x600 + node && f.len <= 8 && !f.rtr
@@ -1062,13 +1068,16 @@ proptest! {
                     // malformed requests are answered with an abort
                     req[0] = if f.len == 0 { 0xFF } else { req[0] };
                 }
-                let client_abort = f.len > 0 && req[0] >> 5 == 4;
+                let client_abort = f.len > 0 && (req[0] >> 5 == 4) && (!in_block || req[0] == 0x80);
                 let deferred_now = !deferred_before && b.dev.pending_request().is_some();
                 if client_abort || deferred_now {
                     prop_assert!(sdo_out.is_empty());
+                } else if in_block && f.len == 8 && sdo_out.is_empty() {
+                    // A segment inside a sub-block: answered at its end.
                 } else {
                     prop_assert_eq!(sdo_out.len(), 1, "request {:02x?}", req);
-                    prop_assert!(valid_response(&req, sdo_out[0]), "{:02x?} -> {:02x?}", req, sdo_out[0].data);
+                    let in_block = in_block && f.len == 8;
+                    prop_assert!(valid_response(&req, sdo_out[0], in_block), "{:02x?} -> {:02x?}", req, sdo_out[0].data);
                 }
             } else {
                 prop_assert!(sdo_out.is_empty());
@@ -1090,7 +1099,9 @@ proptest! {
         b.dev.persistent_image(&mut img);
         let mut fresh = Device::new(NODE, &Defaults::nominal());
         prop_assert_eq!(fresh.load_image(&img), Ok(()));
-        // Everything reads back over SDO as held (in pre-operational).
+        // Everything reads back over SDO as held (in pre-operational), a
+        // block download left open ended by a client abort first.
+        b.sdo([0x80, 0, 0, 0, 0, 0, 0, 0]);
         b.nmt(0x80, 0);
         if b.dev.nmt_state() == NmtState::PreOperational {
             let entries: Vec<_> = od::entries().collect();
@@ -1098,6 +1109,7 @@ proptest! {
                 let got = b.upload(index, e.sub);
                 match e.ty {
                     od::DataType::VisibleString => prop_assert!(got.is_ok()),
+                    od::DataType::Domain => prop_assert_eq!(got, Err(0x0601_0001)),
                     _ => {
                         let mut want = b.dev.core.values[s].to_le_bytes().to_vec();
                         want.truncate(e.ty.size());
@@ -1128,7 +1140,7 @@ proptest! {
             if r.is_err() {
                 prop_assert_eq!(before, b.dev.core.values, "{:#06x}/{}", index, e.sub);
                 prop_assert_eq!(unlocked, b.dev.calibration_unlocked());
-            } else if e.ty != od::DataType::VisibleString && index != 0x1010 && index != 0x1011 && index != 0x2010 {
+            } else if !matches!(e.ty, od::DataType::VisibleString | od::DataType::Domain) && index != 0x1010 && index != 0x1011 && index != 0x2010 {
                 // the accepted value is what was written
                 let mut want = [0u8; 4];
                 want[..e.ty.size()].copy_from_slice(&bytes[..e.ty.size()]);
@@ -1655,4 +1667,51 @@ fn layout_6_image_loads_with_a_zero_stamp() {
     let mut forged = img;
     forged[0..4].copy_from_slice(&old[0..4]);
     assert_eq!(b.dev.load_image(&forged), Err(Error::ImageLayout));
+}
+
+/// CiA 302-3 program download through the device: 0x1F50 by block
+/// download reaches the application as parts, 0x1F51 as a request,
+/// 0x1F56/0x1F57 read what the application set; pre-operational only.
+#[cfg(feature = "sdo-block")]
+#[test]
+fn program_download_objects() {
+    let mut b = Bus::new();
+    let data: Vec<u8> = (0..20u8).map(|i| i * 7 + 1).collect();
+    let crc = crate::sdo_block::crc16_ccitt(&data, 0).to_le_bytes();
+    let r = b.sdo([0xC6, 0x50, 0x1F, 1, 20, 0, 0, 0]).unwrap();
+    assert_eq!(r[..5], [0xA4, 0x50, 0x1F, 1, 127]);
+    for (k, chunk) in data.chunks(7).enumerate() {
+        let mut f = [0u8; 8];
+        f[0] = (k + 1) as u8 | if k == 2 { 0x80 } else { 0 };
+        f[1..1 + chunk.len()].copy_from_slice(chunk);
+        let r = b.sdo(f);
+        assert_eq!(r.is_some(), k == 2, "answered at the last segment");
+    }
+    // 21 bytes sent, 1 unused: the part goes to the application.
+    assert_eq!(b.sdo([0xC5, crc[0], crc[1], 0, 0, 0, 0, 0]), None);
+    let want = Request::ProgramData {
+        offset: 0,
+        len: 20,
+        last: true,
+    };
+    assert_eq!(b.dev.pending_request(), Some(want));
+    assert_eq!(b.dev.program_part(), &data[..]);
+    let out = b.finish(true);
+    assert_eq!(out[0].data[0], 0xA1);
+    assert!(b.dev.program_part().is_empty());
+    // Program control: carried out by the application, then reads back.
+    assert_eq!(b.download(0x1F51, 1, &[1]), Err(0));
+    assert_eq!(b.dev.pending_request(), Some(Request::ProgramControl(1)));
+    b.finish(true);
+    assert_eq!(b.read32(0x1F51, 1), 1);
+    assert_eq!(b.download(0x1F51, 1, &[4]), Err(0x0609_0031));
+    // Identification and flash status as the application set them.
+    b.dev.set_program_status(0x1234_5678, od::FLASH_NO_PROGRAM);
+    assert_eq!(b.read32(0x1F56, 1), 0x1234_5678);
+    assert_eq!(b.read32(0x1F57, 1), 2);
+    assert_eq!(b.upload(0x1F50, 1), Err(0x0601_0001));
+    // Operational: refused.
+    b.nmt(0x01, 0);
+    let r = b.sdo([0xC6, 0x50, 0x1F, 1, 20, 0, 0, 0]).unwrap();
+    assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 0x0800_0022);
 }

@@ -32,6 +32,7 @@ fn access(a: Access) -> &'static str {
         Access::Const => "const",
         Access::Ro => "ro",
         Access::Rw => "rw",
+        Access::Wo => "wo",
     }
 }
 
@@ -113,7 +114,11 @@ fn write_entry(w: &mut impl Write, d: &Defaults, section: &str, e: &od::Entry) -
     writeln!(w, "ObjectType=0x7")?;
     writeln!(w, "DataType=0x{:04X}", e.ty.code())?;
     writeln!(w, "AccessType={}", access(e.access))?;
-    writeln!(w, "DefaultValue={}", init_value(d, e))?;
+    if e.ty == od::DataType::Domain {
+        // A DOMAIN has no default value (CiA 306: the entry is left out).
+    } else {
+        writeln!(w, "DefaultValue={}", init_value(d, e))?;
+    }
     writeln!(w, "PDOMapping={}", u8::from(e.pdo))?;
     match e.limits {
         Limits::Range(lo, hi) | Limits::PowerOfTwo(lo, hi) => {

@@ -102,11 +102,17 @@
 //!   pre-operational, 0x05 operational, 0x04 stopped.
 //! * **SDO server** on 0x600+id → 0x580+id, pre-operational and operational
 //!   only: expedited and segmented upload/download, toggle check, server
-//!   timeout (`Defaults::sdo_timeout_us`, abort 0x05040000), block transfer
+//!   timeout (`Defaults::sdo_timeout_us`, abort 0x05040000), block
+//!   download with CRC (feature `sdo-block`, module `sdo_block`); block upload
 //!   refused (0x05040001). See [`sdo`] for the codes. Order of checks:
 //!   object (0x06020000) → sub-index (0x06090011) → access (0x06010002) →
 //!   length (0x06070012 too long, 0x06070013 too short) → state (0x08000022) → lock (0x08000021) → value
 //!   (0x06090030/31/32, PDO mapping 0x06040041/42/43).
+//! * **Program download** (CiA 302-3, pre-operational): 0x1F50 sub 1
+//!   program data (DOMAIN, write-only, streamed to the application as
+//!   [`Request::ProgramData`] parts, data in [`Device::program_part`]),
+//!   0x1F51 program control ([`Request::ProgramControl`]), 0x1F56
+//!   identification and 0x1F57 flash status ([`Device::set_program_status`]).
 //! * **SYNC** (COB-ID 0x80) in operational: TPDOs with transmission type
 //!   1..240 are sent every n-th SYNC, type 0 at the SYNC after the mapped
 //!   data changed.
@@ -187,6 +193,10 @@ pub mod frame;
 pub mod lss;
 pub mod od;
 pub mod sdo;
+#[cfg(feature = "sdo-block")]
+pub mod sdo_block;
+#[cfg(all(test, feature = "sdo-block"))]
+mod sdo_block_tests;
 pub mod status;
 
 pub use config::{

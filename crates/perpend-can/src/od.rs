@@ -7,8 +7,9 @@
 //! The table is the single source of truth: the SDO server, the PDO mapper,
 //! the persistence image and the EDS generator all read it.
 //!
-//! Limits: data types UNSIGNED8/16/32, REAL32 and VISIBLE_STRING only; no
-//! DOMAIN objects; at most 8 bytes of writable data per entry.
+//! Limits: data types UNSIGNED8/16/32, REAL32, VISIBLE_STRING and one
+//! DOMAIN (0x1F50 program data, streamed to the application, never held
+//! here); at most 8 bytes of other writable data per entry.
 
 /// CANopen data types used by the dictionary (CiA 301 table 44 codes).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -23,6 +24,9 @@ pub enum DataType {
     Real32,
     /// VISIBLE_STRING (0x0009), read-only constants here.
     VisibleString,
+    /// DOMAIN (0x000F): write-only stream (0x1F50), see
+    /// [`crate::sdo::Dictionary::write_part`].
+    Domain,
 }
 
 impl DataType {
@@ -34,17 +38,18 @@ impl DataType {
             DataType::U32 => 0x0007,
             DataType::Real32 => 0x0008,
             DataType::VisibleString => 0x0009,
+            DataType::Domain => 0x000F,
         }
     }
 
-    /// Size in bytes of a numeric value (0 for strings, whose size is their
-    /// length).
+    /// Size in bytes of a numeric value (0 for strings and domains, whose
+    /// size is their length).
     pub const fn size(self) -> usize {
         match self {
             DataType::U8 => 1,
             DataType::U16 => 2,
             DataType::U32 | DataType::Real32 => 4,
-            DataType::VisibleString => 0,
+            DataType::VisibleString | DataType::Domain => 0,
         }
     }
 
@@ -59,6 +64,8 @@ impl DataType {
 pub enum Access {
     /// Constant, never changes (`const`).
     Const,
+    /// Write-only (`wo`): the DOMAIN 0x1F50.
+    Wo,
     /// Read-only; may change by the device itself (`ro`).
     Ro,
     /// Read-write (`rw`), subject to the entry's [`Class`] rule.
@@ -263,8 +270,8 @@ pub struct Object {
     pub subs: &'static [Entry],
 }
 
-use Access::{Const, Ro, Rw};
-use DataType::{Real32, VisibleString, U16, U32, U8};
+use Access::{Const, Ro, Rw, Wo};
+use DataType::{Domain, Real32, VisibleString, U16, U32, U8};
 
 const fn var(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
     Object {
@@ -395,6 +402,39 @@ pub const TRIGGER_TIMER: u8 = 0;
 /// 0x2301 sub 1: one scan per SYNC; the synchronous TPDOs of that SYNC
 /// carry its sample.
 pub const TRIGGER_SYNC: u8 = 1;
+/// 0x1F51 program control (CiA 302-3): stop the program.
+pub const PROGRAM_STOP: u8 = 0;
+/// 0x1F51 program control: start the program.
+pub const PROGRAM_START: u8 = 1;
+/// 0x1F51 program control: reset the program.
+pub const PROGRAM_RESET: u8 = 2;
+/// 0x1F51 program control: clear the program (erase its area).
+pub const PROGRAM_CLEAR: u8 = 3;
+/// 0x1F57 flash status (CiA 302-3): bit 0, an operation in progress.
+pub const FLASH_BUSY: u32 = 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): no error.
+pub const FLASH_OK: u32 = 0;
+/// 0x1F57 flash status bits 1..7 (value << 1): no valid program.
+pub const FLASH_NO_PROGRAM: u32 = 1 << 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): data format unknown.
+pub const FLASH_FORMAT_UNKNOWN: u32 = 2 << 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): data format error or CRC
+/// error.
+pub const FLASH_FORMAT_ERROR: u32 = 3 << 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): flash not cleared before
+/// writing.
+pub const FLASH_NOT_CLEARED: u32 = 4 << 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): flash write error.
+pub const FLASH_WRITE_ERROR: u32 = 5 << 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): general address error
+/// (the program does not fit).
+pub const FLASH_ADDRESS_ERROR: u32 = 6 << 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): flash secured (writing
+/// forbidden now).
+pub const FLASH_SECURED: u32 = 7 << 1;
+/// 0x1F57 flash status bits 1..7 (value << 1): unspecified error.
+pub const FLASH_UNSPECIFIED: u32 = 63 << 1;
+
 /// 0x2500 command: nothing (the value reads back after a command ran).
 pub const CMD_NONE: u8 = 0;
 /// 0x2500 command: average the next 0x2501 valid samples into 0x2502.
@@ -762,6 +802,39 @@ pub const OBJECTS: &[Object] = &[
         0x1A03,
         "TPDO4 mapping parameter",
         tpdo_map!(2, [mapping(0x2001, 3, 32), mapping(0x2006, 0, 32), 0, 0]),
+    ),
+    arr(
+        0x1F50,
+        "Program data",
+        &[
+            sub0(1),
+            Entry::new(1, "Program number 1", Domain, Wo, Class::Command),
+        ],
+    ),
+    arr(
+        0x1F51,
+        "Program control",
+        &[
+            sub0(1),
+            Entry::new(1, "Program number 1", U8, Rw, Class::Command)
+                .limits(Limits::Range(PROGRAM_STOP as u32, PROGRAM_CLEAR as u32)),
+        ],
+    ),
+    arr(
+        0x1F56,
+        "Program software identification",
+        &[
+            sub0(1),
+            Entry::new(1, "Program number 1", U32, Ro, Class::Measurement),
+        ],
+    ),
+    arr(
+        0x1F57,
+        "Flash status identification",
+        &[
+            sub0(1),
+            Entry::new(1, "Program number 1", U32, Ro, Class::Measurement),
+        ],
     ),
     arr(
         0x2001,

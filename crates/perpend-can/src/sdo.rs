@@ -10,8 +10,20 @@
 //! (0x1010 store, 0x1011 restore) is answered when the application reports
 //! the outcome ([`crate::Device::finish_request`]).
 //!
-//! Limits: block transfer is not implemented (abort 0x05040001); segmented
-//! downloads carry at most 8 bytes (no writable object is larger).
+//! Block download with CRC (CiA 301 §7.2.4.3.10-16) is in
+//! [`crate::sdo_block`] (feature `sdo-block`, which sizes the transfer
+//! buffer for a whole sub-block of 127 segments, 889 bytes); without it a
+//! block request is refused with 0x05040001 and a client falls back to
+//! segmented transfer.
+//!
+//! DOMAIN objects ([`Dictionary::domain`], e.g. 0x1F50 program data) are
+//! streamed: the data go to [`Dictionary::write_part`] in parts of up to
+//! [`BUF_LEN`] bytes (each sub-block, or each buffer-full of segments), each
+//! at its byte offset; the last part says so.
+//!
+//! Limits: block upload is not implemented (abort 0x05040001; CiA 301 lets
+//! the client use a segmented upload instead); segmented downloads of a
+//! non-DOMAIN object carry at most 8 bytes (no writable object is larger).
 
 /// CiA 301 SDO abort codes the server produces.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -22,8 +34,16 @@ pub enum SdoAbort {
     Timeout,
     /// 0x05040001 client/server command specifier not valid or unknown.
     Command,
+    /// 0x05040002 invalid block size (block mode only).
+    BlockSize,
+    /// 0x05040003 invalid sequence number (block mode only).
+    SeqNo,
+    /// 0x05040004 CRC error (block mode only).
+    Crc,
     /// 0x06010000 unsupported access to an object.
     Unsupported,
+    /// 0x06010001 attempt to read a write-only object.
+    WriteOnly,
     /// 0x06010002 attempt to write a read-only object.
     ReadOnly,
     /// 0x06020000 object does not exist in the object dictionary.
@@ -72,7 +92,11 @@ impl SdoAbort {
             SdoAbort::Toggle => 0x0503_0000,
             SdoAbort::Timeout => 0x0504_0000,
             SdoAbort::Command => 0x0504_0001,
+            SdoAbort::BlockSize => 0x0504_0002,
+            SdoAbort::SeqNo => 0x0504_0003,
+            SdoAbort::Crc => 0x0504_0004,
             SdoAbort::Unsupported => 0x0601_0000,
+            SdoAbort::WriteOnly => 0x0601_0001,
             SdoAbort::ReadOnly => 0x0601_0002,
             SdoAbort::NoObject => 0x0602_0000,
             SdoAbort::NotMappable => 0x0604_0041,
@@ -93,11 +117,15 @@ impl SdoAbort {
     }
 
     /// Every code, for tests and documentation.
-    pub const ALL: [SdoAbort; 20] = [
+    pub const ALL: [SdoAbort; 24] = [
         SdoAbort::Toggle,
         SdoAbort::Timeout,
         SdoAbort::Command,
+        SdoAbort::BlockSize,
+        SdoAbort::SeqNo,
+        SdoAbort::Crc,
         SdoAbort::Unsupported,
+        SdoAbort::WriteOnly,
         SdoAbort::ReadOnly,
         SdoAbort::NoObject,
         SdoAbort::NotMappable,
@@ -158,6 +186,29 @@ pub trait Dictionary {
     /// # Errors
     /// The abort to send; the dictionary is unchanged.
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<Written, SdoAbort>;
+    /// Whether `(index, sub)` is a DOMAIN, written in parts by
+    /// [`Dictionary::write_part`] instead of [`Dictionary::write`].
+    fn domain(&self, _index: u16, _sub: u8) -> bool {
+        false
+    }
+    /// Writes one part of a DOMAIN download: `data` at byte `offset` of the
+    /// object (parts come in order, without gaps, the first at offset 0);
+    /// `last` closes the download. A download that ends otherwise (abort,
+    /// timeout, CRC error) simply never sends its last part: the next one
+    /// starts again at offset 0.
+    ///
+    /// # Errors
+    /// The abort to send; the transfer ends.
+    fn write_part(
+        &mut self,
+        _index: u16,
+        _sub: u8,
+        _offset: u32,
+        _data: &[u8],
+        _last: bool,
+    ) -> Result<Written, SdoAbort> {
+        Err(SdoAbort::Unsupported)
+    }
 }
 
 /// The abort for writing `got` bytes to an object of `size` bytes:
@@ -172,11 +223,22 @@ pub const fn length_abort(size: usize, got: usize) -> Option<SdoAbort> {
     }
 }
 
-/// Largest segmented download accepted \[bytes\].
+/// Largest segmented download of a non-DOMAIN object accepted \[bytes\].
 pub const MAX_DOWNLOAD: usize = 8;
 
+/// Bytes of the server's transfer buffer: one whole sub-block of 127
+/// segments of 7 bytes with the feature `sdo-block`, else one 7-byte
+/// segment (DOMAIN parts are then a segment each) or an 8-byte value.
+#[cfg(feature = "sdo-block")]
+pub const BUF_LEN: usize = crate::sdo_block::BLOCK_BYTES;
+/// Bytes of the server's transfer buffer: one whole sub-block of 127
+/// segments of 7 bytes with the feature `sdo-block`, else one 7-byte
+/// segment (DOMAIN parts are then a segment each) or an 8-byte value.
+#[cfg(not(feature = "sdo-block"))]
+pub const BUF_LEN: usize = MAX_DOWNLOAD;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Transfer {
+pub(crate) enum Transfer {
     Idle,
     Upload {
         index: u16,
@@ -186,15 +248,21 @@ enum Transfer {
         toggle: bool,
         deadline: u64,
     },
+    /// Segmented download: `len` bytes in the buffer, `offset` bytes
+    /// already handed to the dictionary (DOMAIN only).
     Download {
         index: u16,
         sub: u8,
-        buf: [u8; MAX_DOWNLOAD],
         len: usize,
+        offset: usize,
+        domain: bool,
         declared: Option<usize>,
         toggle: bool,
         deadline: u64,
     },
+    /// Block download (`sdo_block.rs`).
+    #[cfg(feature = "sdo-block")]
+    BlockDown(crate::sdo_block::BlockDown),
     /// A write handed to the application; `resp` is the confirmation to
     /// send on success.
     Deferred {
@@ -205,19 +273,25 @@ enum Transfer {
 }
 
 /// The SDO server state (one server, default SDO channel).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct SdoServer {
-    transfer: Transfer,
-    timeout_us: u64,
+    pub(crate) transfer: Transfer,
+    /// What continues once a deferred DOMAIN part is confirmed.
+    pub(crate) resume: Transfer,
+    pub(crate) timeout_us: u64,
+    /// The time of the last request or timeout check \[µs\].
+    pub(crate) now_us: u64,
+    /// Data of the download in progress (segments, or a sub-block).
+    pub(crate) buf: [u8; BUF_LEN],
 }
 
-fn abort_payload(index: u16, sub: u8, a: SdoAbort) -> [u8; 8] {
+pub(crate) fn abort_payload(index: u16, sub: u8, a: SdoAbort) -> [u8; 8] {
     let i = index.to_le_bytes();
     let c = a.code().to_le_bytes();
     [0x80, i[0], i[1], sub, c[0], c[1], c[2], c[3]]
 }
 
-fn addr_payload(cmd: u8, index: u16, sub: u8) -> [u8; 8] {
+pub(crate) fn addr_payload(cmd: u8, index: u16, sub: u8) -> [u8; 8] {
     let i = index.to_le_bytes();
     [cmd, i[0], i[1], sub, 0, 0, 0, 0]
 }
@@ -227,8 +301,18 @@ impl SdoServer {
     pub const fn new(timeout_us: u64) -> Self {
         Self {
             transfer: Transfer::Idle,
+            resume: Transfer::Idle,
             timeout_us,
+            now_us: 0,
+            buf: [0; BUF_LEN],
         }
+    }
+
+    /// The data of the DOMAIN part last handed to the application
+    /// ([`Dictionary::write_part`] answered [`Written::Deferred`]): the
+    /// first `len` bytes of the transfer buffer.
+    pub fn part(&self, len: usize) -> &[u8] {
+        self.buf.get(..len).unwrap_or(&[])
     }
 
     /// Whether a segmented transfer or a deferred write is in progress.
@@ -236,26 +320,43 @@ impl SdoServer {
         self.transfer != Transfer::Idle
     }
 
+    /// Whether a block download is in progress (its segments are answered
+    /// per sub-block, not one by one).
+    pub fn in_block(&self) -> bool {
+        #[cfg(feature = "sdo-block")]
+        if let Transfer::BlockDown(_) = self.transfer {
+            return true;
+        }
+        false
+    }
+
     /// Forgets any transfer in progress (NMT reset, stop).
     pub fn reset(&mut self) {
         self.transfer = Transfer::Idle;
+        self.resume = Transfer::Idle;
     }
 
     /// Handles one request payload (`req`, the received frame's bytes;
     /// shorter than 8 means a malformed request) and returns the response
-    /// payload, or `None` for a client abort.
+    /// payload, or `None` for a client abort, a block segment that needs no
+    /// answer yet, or a part handed to the application.
     pub fn handle<D: Dictionary>(
         &mut self,
         od: &mut D,
         req: &[u8],
         now_us: u64,
     ) -> Option<[u8; 8]> {
+        self.now_us = now_us;
         let cmd = req.first().copied().unwrap_or(0xFF);
+        #[cfg(feature = "sdo-block")]
+        if let Some(r) = self.block_route(od, req, now_us) {
+            return r;
+        }
         let ccs = cmd >> 5;
         if ccs == 4 {
             // Client abort: unconfirmed; a deferred write stays with the
             // application (it cannot be recalled) but is not confirmed.
-            self.transfer = Transfer::Idle;
+            self.reset();
             return None;
         }
         let index = u16::from_le_bytes([
@@ -264,7 +365,7 @@ impl SdoServer {
         ]);
         let sub = req.get(3).copied().unwrap_or(0);
         if req.len() < 8 {
-            self.transfer = Transfer::Idle;
+            self.reset();
             return Some(abort_payload(index, sub, SdoAbort::Command));
         }
         if let Transfer::Deferred { index, sub, .. } = self.transfer {
@@ -278,33 +379,40 @@ impl SdoServer {
             2 => Some(self.initiate_upload(od, index, sub, now_us)),
             0 => self.download_segment(od, &data, now_us),
             3 => Some(self.upload_segment(&data, now_us)),
+            #[cfg(feature = "sdo-block")]
+            6 => self.block_request(od, &data, index, sub, now_us),
             _ => {
-                self.transfer = Transfer::Idle;
+                self.reset();
                 Some(abort_payload(index, sub, SdoAbort::Command))
             }
         }
     }
 
-    fn finish_write<D: Dictionary>(
+    /// Ends a write step with the dictionary's answer `r`: on success
+    /// `resp` is sent and the server goes on with `next`; a deferred write
+    /// waits for [`SdoServer::complete`] (which sends `resp` and goes on
+    /// with `next`); an error aborts the transfer.
+    pub(crate) fn conclude(
         &mut self,
-        od: &mut D,
+        r: Result<Written, SdoAbort>,
         index: u16,
         sub: u8,
-        data: &[u8],
         resp: [u8; 8],
+        next: Transfer,
     ) -> Option<[u8; 8]> {
-        match od.write(index, sub, data) {
+        match r {
             Ok(Written::Done) => {
-                self.transfer = Transfer::Idle;
+                self.transfer = next;
                 Some(resp)
             }
             Ok(Written::Deferred) => {
                 // Nothing to send yet: `complete` answers.
                 self.transfer = Transfer::Deferred { index, sub, resp };
+                self.resume = next;
                 None
             }
             Err(a) => {
-                self.transfer = Transfer::Idle;
+                self.reset();
                 Some(abort_payload(index, sub, a))
             }
         }
@@ -318,12 +426,15 @@ impl SdoServer {
         sub: u8,
         now_us: u64,
     ) -> Option<[u8; 8]> {
-        self.transfer = Transfer::Idle;
+        self.reset();
         let expedited = req[0] & 0x02 != 0;
         let sized = req[0] & 0x01 != 0;
+        let domain = od.domain(index, sub);
         if expedited {
             let len = if sized {
                 4 - ((req[0] >> 2) & 3) as usize
+            } else if domain {
+                4
             } else {
                 // Size not indicated: as many bytes as the object holds
                 // (CiA 301: "d contains unspecified number of bytes").
@@ -334,7 +445,14 @@ impl SdoServer {
                 }
             };
             let resp = addr_payload(0x60, index, sub);
-            return self.finish_write(od, index, sub, &req[4..4 + len], resp);
+            let data = &req[4..4 + len];
+            let r = if domain {
+                od.check_write(index, sub, Some(len))
+                    .and_then(|()| od.write_part(index, sub, 0, data, true))
+            } else {
+                od.write(index, sub, data)
+            };
+            return self.conclude(r, index, sub, resp, Transfer::Idle);
         }
         let declared = if sized {
             Some(u32::from_le_bytes([req[4], req[5], req[6], req[7]]) as usize)
@@ -347,8 +465,9 @@ impl SdoServer {
         self.transfer = Transfer::Download {
             index,
             sub,
-            buf: [0; MAX_DOWNLOAD],
             len: 0,
+            offset: 0,
+            domain,
             declared,
             toggle: false,
             deadline: now_us.saturating_add(self.timeout_us),
@@ -365,53 +484,91 @@ impl SdoServer {
         let Transfer::Download {
             index,
             sub,
-            mut buf,
             mut len,
+            offset,
+            domain,
             declared,
             toggle,
             ..
         } = self.transfer
         else {
-            self.transfer = Transfer::Idle;
+            self.reset();
             return Some(abort_payload(0, 0, SdoAbort::Command));
         };
         let t = req[0] & 0x10 != 0;
         if t != toggle {
-            self.transfer = Transfer::Idle;
+            self.reset();
             return Some(abort_payload(index, sub, SdoAbort::Toggle));
         }
         let n = 7 - ((req[0] >> 1) & 7) as usize;
         let last = req[0] & 0x01 != 0;
-        if declared.is_some_and(|d| len + n > d) {
-            // More data than the client itself declared.
-            self.transfer = Transfer::Idle;
-            return Some(abort_payload(index, sub, SdoAbort::Length));
+        let room = if domain { BUF_LEN } else { MAX_DOWNLOAD };
+        if let Err(a) = self.append(
+            len,
+            &req[1..1 + n],
+            room,
+            declared.map(|d| d.saturating_sub(offset)),
+        ) {
+            self.reset();
+            return Some(abort_payload(index, sub, a));
         }
-        if len + n > MAX_DOWNLOAD {
-            // Undeclared size, already longer than any writable object.
-            self.transfer = Transfer::Idle;
-            return Some(abort_payload(index, sub, SdoAbort::TooLong));
-        }
-        buf[len..len + n].copy_from_slice(&req[1..1 + n]);
         len += n;
         let resp = [0x20 | (req[0] & 0x10), 0, 0, 0, 0, 0, 0, 0];
-        if !last {
-            self.transfer = Transfer::Download {
+        if last && declared.is_some_and(|d| d != offset + len) {
+            self.reset();
+            return Some(abort_payload(index, sub, SdoAbort::Length));
+        }
+        // A DOMAIN part goes out when the buffer cannot take another
+        // segment, and at the end.
+        let flush = domain && (last || len + 7 > BUF_LEN);
+        let next = if last {
+            Transfer::Idle
+        } else {
+            Transfer::Download {
                 index,
                 sub,
-                buf,
-                len,
+                len: if flush { 0 } else { len },
+                offset: if flush { offset + len } else { offset },
+                domain,
                 declared,
                 toggle: !toggle,
                 deadline: now_us.saturating_add(self.timeout_us),
-            };
-            return Some(resp);
+            }
+        };
+        let data = self.buf.get(..len).unwrap_or(&[]);
+        let r = if flush {
+            od.write_part(index, sub, offset as u32, data, last)
+        } else if last {
+            od.write(index, sub, data)
+        } else {
+            Ok(Written::Done)
+        };
+        self.conclude(r, index, sub, resp, next)
+    }
+
+    /// Appends a segment's `data` to the `len` bytes in the buffer:
+    /// 0x06070010 past `declared` (what the client declared, less what
+    /// already went to the dictionary), 0x06070012 past `room`.
+    fn append(
+        &mut self,
+        len: usize,
+        data: &[u8],
+        room: usize,
+        declared: Option<usize>,
+    ) -> Result<(), SdoAbort> {
+        let end = len + data.len();
+        if declared.is_some_and(|d| end > d) {
+            // More data than the client itself declared.
+            return Err(SdoAbort::Length);
         }
-        if declared.is_some_and(|d| d != len) {
-            self.transfer = Transfer::Idle;
-            return Some(abort_payload(index, sub, SdoAbort::Length));
-        }
-        self.finish_write(od, index, sub, &buf[..len], resp)
+        // Undeclared size, already longer than any writable object.
+        let dst = self
+            .buf
+            .get_mut(len..end)
+            .filter(|_| end <= room)
+            .ok_or(SdoAbort::TooLong)?;
+        dst.copy_from_slice(data);
+        Ok(())
     }
 
     fn initiate_upload<D: Dictionary>(
@@ -500,20 +657,43 @@ impl SdoServer {
 
     /// Completes a deferred write: the confirmation, or the abort `err`.
     /// `None` when nothing was deferred (or the client aborted meanwhile).
+    /// A confirmed DOMAIN part lets the download go on (its timeouts count
+    /// again from the last request or poll).
     pub fn complete(&mut self, err: Option<SdoAbort>) -> Option<[u8; 8]> {
         let Transfer::Deferred { index, sub, resp } = self.transfer else {
             return None;
         };
+        let next = core::mem::replace(&mut self.resume, Transfer::Idle);
         self.transfer = Transfer::Idle;
         Some(match err {
-            None => resp,
+            None => {
+                self.transfer = self.rearm(next);
+                resp
+            }
             Some(a) => abort_payload(index, sub, a),
         })
     }
 
+    /// `t` with its timeouts counted from now.
+    fn rearm(&self, mut t: Transfer) -> Transfer {
+        let at = self.now_us.saturating_add(self.timeout_us);
+        match &mut t {
+            Transfer::Upload { deadline, .. } | Transfer::Download { deadline, .. } => {
+                *deadline = at;
+            }
+            #[cfg(feature = "sdo-block")]
+            Transfer::BlockDown(b) => b.rearm(self.now_us, self.timeout_us),
+            Transfer::Idle | Transfer::Deferred { .. } => {}
+        }
+        t
+    }
+
     /// The abort to send if a segmented transfer has timed out at `now_us`
-    /// (the transfer is then dropped).
+    /// (the transfer is then dropped); in a block download also the
+    /// acknowledgement that a stalled sub-block is due
+    /// ([`crate::sdo_block`]).
     pub fn check_timeout(&mut self, now_us: u64) -> Option<[u8; 8]> {
+        self.now_us = now_us;
         let (index, sub, deadline) = match self.transfer {
             Transfer::Upload {
                 index,
@@ -527,10 +707,12 @@ impl SdoServer {
                 deadline,
                 ..
             } => (index, sub, deadline),
+            #[cfg(feature = "sdo-block")]
+            Transfer::BlockDown(b) => return self.block_timeout(b, now_us),
             _ => return None,
         };
         if now_us >= deadline {
-            self.transfer = Transfer::Idle;
+            self.reset();
             Some(abort_payload(index, sub, SdoAbort::Timeout))
         } else {
             None
@@ -642,9 +824,9 @@ mod tests {
             .handle(&mut od, &[0x2B, 0x01, 0x20, 0, 1, 0, 0, 0], 0)
             .unwrap();
         assert_eq!(abort_code(&r), Some(0x0601_0002));
-        // block transfer and short frames
+        // block upload (not implemented) and short frames
         let r = s
-            .handle(&mut od, &[0xC0, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .handle(&mut od, &[0xA4, 0x00, 0x20, 0, 127, 0, 0, 0], 0)
             .unwrap();
         assert_eq!(abort_code(&r), Some(0x0504_0001));
         let r = s.handle(&mut od, &[0x40, 0x00, 0x20], 0).unwrap();

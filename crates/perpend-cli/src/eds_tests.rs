@@ -12,6 +12,7 @@ fn ty_of(t: od::DataType) -> Type {
         od::DataType::U32 => Type::U32,
         od::DataType::Real32 => Type::Real32,
         od::DataType::VisibleString => Type::VisibleString,
+        od::DataType::Domain => Type::Domain,
     }
 }
 
@@ -20,6 +21,7 @@ fn access_of(a: od::Access) -> Access {
         od::Access::Const => Access::Const,
         od::Access::Ro => Access::Ro,
         od::Access::Rw => Access::Rw,
+        od::Access::Wo => Access::Wo,
     }
 }
 

@@ -9,7 +9,12 @@ pub fn describe(code: u32) -> &'static str {
              master using the same SDO channel?)"
         }
         0x0504_0000 => "the SDO transfer timed out on the board's side",
-        0x0504_0001 => "the board does not know this SDO command (block transfer is not supported)",
+        0x0504_0001 => {
+            "the board does not know this SDO command (a firmware without block transfer?)"
+        }
+        0x0504_0002 => "the SDO block size is invalid",
+        0x0504_0003 => "an SDO block segment's sequence number is invalid",
+        0x0504_0004 => "the CRC of the SDO block download does not match: the data were damaged",
         0x0504_0005 => "the board ran out of memory",
         0x0601_0000 => "this access to the object is not supported",
         0x0601_0001 => "the object is write-only",

@@ -196,3 +196,130 @@ fn late_answers_for_another_object_are_refused() {
     let e = c.read_u32(NODE, 0x1018, 1).unwrap_err().to_string();
     assert!(e.contains("the answer is for 0x1000 sub 0"), "{e}");
 }
+
+/// The device serving CiA 302-3 program data into `program`, losing the
+/// client's `drop`-th frame (counted from 1; 0: none) and refusing block
+/// transfer when `no_block` (an older firmware).
+struct ProgramPeer {
+    inner: DevicePeer,
+    program: std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
+    drop: usize,
+    seen: usize,
+    no_block: bool,
+}
+
+impl Peer for ProgramPeer {
+    fn frame(&mut self, f: &Frame, out: &mut Vec<Frame>) {
+        self.seen += 1;
+        if self.seen == self.drop {
+            return;
+        }
+        if self.no_block && f.data[0] & 0xE0 == 0xC0 && !self.inner.dev.sdo_in_block() {
+            out.push(Frame::new(
+                0x590,
+                &[0x80, f.data[1], f.data[2], f.data[3], 1, 0, 4, 5],
+            ));
+            return;
+        }
+        self.inner.frame(f, out);
+        if let Some(perpend_can::Request::ProgramData { .. }) = self.inner.dev.pending_request() {
+            let part = self.inner.dev.program_part().to_vec();
+            self.program.lock().unwrap().extend_from_slice(&part);
+            self.inner
+                .dev
+                .finish_request(true, &mut |o| out.push(o))
+                .unwrap();
+        }
+    }
+    fn idle(&mut self, out: &mut Vec<Frame>) {
+        self.inner.idle(out);
+    }
+}
+
+fn program_client(
+    drop: usize,
+    no_block: bool,
+) -> (Client, std::sync::Arc<std::sync::Mutex<Vec<u8>>>) {
+    let program = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let mut inner = DevicePeer {
+        dev: Device::new(NODE, &Defaults::nominal()),
+        t: 0,
+    };
+    let mut boot = Vec::new();
+    inner.idle(&mut boot);
+    let peer = ProgramPeer {
+        inner,
+        program: program.clone(),
+        drop,
+        seen: 0,
+        no_block,
+    };
+    let mut bus = FakeBus::new(peer);
+    bus.inbox.extend(boot);
+    let mut c = Client::new(Box::new(bus));
+    c.timeout = Duration::from_millis(100);
+    (c, program)
+}
+
+fn image(n: usize) -> Vec<u8> {
+    (0..n).map(|i| (i * 13 + 5) as u8).collect()
+}
+
+/// A block download of `data` to 0x1F50 sub 1: the progress reports.
+fn send_program(c: &mut Client, data: &[u8]) -> Result<Vec<usize>, ClientError> {
+    let mut seen = Vec::new();
+    let t = Duration::from_millis(200);
+    c.download_block(NODE, (0x1F50, 1), data, t, &mut |n| seen.push(n))?;
+    Ok(seen)
+}
+
+#[test]
+fn block_download_of_a_program_with_progress() {
+    let (mut c, program) = program_client(0, false);
+    let data = image(3 * 889 + 10);
+    let seen = send_program(&mut c, &data).unwrap();
+    assert_eq!(*program.lock().unwrap(), data);
+    assert_eq!(seen, [889, 2 * 889, 3 * 889, data.len()]);
+}
+
+#[test]
+fn block_download_resends_a_lost_segment() {
+    // Frame 1 is the initiate: frame 11 is segment 10 of the first sub-block.
+    let (mut c, program) = program_client(11, false);
+    let data = image(2000);
+    let seen = send_program(&mut c, &data).unwrap();
+    assert_eq!(*program.lock().unwrap(), data);
+    assert_eq!(seen[0], 9 * 7, "acknowledged up to segment 9");
+}
+
+#[test]
+fn block_download_falls_back_to_segmented() {
+    let (mut c, program) = program_client(0, true);
+    let data = image(100);
+    send_program(&mut c, &data).unwrap();
+    assert_eq!(*program.lock().unwrap(), data);
+}
+
+#[test]
+fn block_download_errors_in_words() {
+    let (mut c, _) = program_client(0, false);
+    // Operational: the board refuses program download.
+    c.nmt(NODE, Nmt::Start).unwrap();
+    let e = send_program(&mut c, &image(10)).unwrap_err();
+    assert_eq!(e.abort_code(), Some(0x0800_0022), "{e}");
+    let e = send_program(&mut c, &[]).unwrap_err();
+    assert!(e.to_string().contains("at least 1 byte"), "{e}");
+    // A server whose block size is out of range: the client aborts.
+    let peer = FnPeer(|f: &Frame, out: &mut Vec<Frame>| {
+        if f.data[0] == 0xC6 {
+            out.push(Frame::new(
+                0x590,
+                &[0xA4, f.data[1], f.data[2], f.data[3], 0, 0, 0, 0],
+            ));
+        }
+    });
+    let mut c = Client::new(Box::new(FakeBus::new(peer)));
+    c.timeout = Duration::from_millis(50);
+    let e = send_program(&mut c, &image(10)).unwrap_err();
+    assert!(e.to_string().contains("invalid block size 0"), "{e}");
+}
