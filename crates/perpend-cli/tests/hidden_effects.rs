@@ -51,8 +51,17 @@ fn diagnose_json(dir: &Path) -> (DiagnoseJson, serde_json::Value) {
     );
     let text = String::from_utf8(out.stdout).unwrap();
     let v: serde_json::Value = serde_json::from_str(text.trim()).unwrap();
-    // `DiagnoseJson` denies unknown fields: the object has exactly the keys.
-    let d: DiagnoseJson = serde_json::from_value(v.clone()).unwrap();
+    assert!(
+        text.starts_with("{\"schema\":\"perpend.diagnose/1\","),
+        "{text}"
+    );
+    // `DiagnoseJson` denies unknown fields: beside its schema tag, the
+    // object has exactly the keys.
+    let mut body = v.clone();
+    if let Some(m) = body.as_object_mut() {
+        m.remove("schema");
+    }
+    let d: DiagnoseJson = serde_json::from_value(body).unwrap();
     (d, v)
 }
 
