@@ -19,9 +19,9 @@ use perpend_board::storage::{host_store, HostFlash};
 
 use super::node::HostApp;
 
-/// Bytes of the virtual board's DFU partition: the largest image
-/// (planned layout, docs/firmware.md).
-pub const DFU_BYTES: usize = 232 * 1024;
+/// The largest image the virtual board takes \[bytes\]: the planned ACTIVE
+/// partition (docs/firmware.md; the DFU partition is one page larger).
+pub const DFU_BYTES: usize = 220 * 1024;
 /// How long a new image that never confirms itself hangs before the
 /// watchdog resets the board \[µs\].
 pub const WATCHDOG_US: u64 = 500_000;
