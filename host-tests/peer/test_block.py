@@ -1,14 +1,18 @@
 """SDO block download (CiA 301 §7.2.4.3.10) against the virtual board with
-python-canopen's block transfer client: a program image through 0x1F50
-(CiA 302-3 program data), checked by 0x1F56 (identification: CRC-16-CCITT
-in bits 0..15, length in KiB in bits 16..31 with the board's RAM program
-store) and 0x1F57 (flash status), started with 0x1F51; block upload is not
+python-canopen's block transfer client: a signed program image
+(crates/perpend-board/src/image.rs: payload, identity trailer, embassy-boot's
+ed25519 signature of the SHA-512, signed here with keys/test-only.sk)
+through 0x1F50 (CiA 302-3 program data), checked by 0x1F57 (flash status),
+started with 0x1F51; unsigned images are refused; block upload is not
 implemented and is refused with 0x05040001, and the same object reads by
 segmented upload.
 """
 
-import binascii
+import hashlib
+import pathlib
 import struct
+
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 import canopen
 import pytest
@@ -19,14 +23,23 @@ IDENT = 0x1F56
 FLASH_STATUS = 0x1F57
 
 
-def image(n: int) -> bytes:
+PRODUCT = 0x50455250  # 0x1018 sub 2 of the virtual board
+TEST_KEY = pathlib.Path(__file__).resolve().parents[2] / "keys" / "test-only.sk"
+FLASH_FORMAT_UNKNOWN = 2 << 1
+FLASH_WRONG_PRODUCT = 64 << 1
+
+
+def payload(n: int) -> bytes:
     return bytes((i * 13 + 5) & 0xFF for i in range(n))
 
 
-def identification(data: bytes) -> int:
-    # binascii.crc_hqx is CRC-16-CCITT with polynomial 0x1021, like the
-    # block transfer's CRC.
-    return ((len(data) + 1023) // 1024) << 16 | binascii.crc_hqx(data, 0)
+def image(n: int, product: int = PRODUCT, version: int = 0x010200) -> bytes:
+    """A signed image of an n-byte payload (the format of image.rs)."""
+    body = payload(n)
+    digest = hashlib.sha256(body).digest()
+    signed = body + b"PPIM" + struct.pack("<III", product, version, n) + digest
+    key = Ed25519PrivateKey.from_private_bytes(TEST_KEY.read_bytes())
+    return signed + key.sign(hashlib.sha512(signed).digest())
 
 
 def block_download(node, data: bytes):
@@ -40,7 +53,6 @@ def test_program_image_by_block_download(board, size):
     data = image(size)
     block_download(board.node, data)
     sdo = board.node.sdo
-    assert sdo[IDENT][1].raw == identification(data)
     assert sdo[FLASH_STATUS][1].raw == 0
     sdo[PROGRAM_CONTROL][1].raw = 1
     assert sdo[PROGRAM_CONTROL][1].raw == 1
@@ -50,7 +62,19 @@ def test_segmented_download_still_works(board):
     data = image(1500)
     with board.node.sdo.open(PROGRAM_DATA, 1, "wb", size=len(data)) as f:
         f.write(data)
-    assert board.node.sdo[IDENT][1].raw == identification(data)
+    assert board.node.sdo[FLASH_STATUS][1].raw == 0
+
+
+def test_unsigned_or_foreign_images_are_refused(board):
+    sdo = board.node.sdo
+    for data, status in [(payload(1500), FLASH_FORMAT_UNKNOWN),
+                         (image(1500, product=PRODUCT + 1), FLASH_WRONG_PRODUCT)]:
+        with pytest.raises(canopen.SdoAbortedError) as e:
+            block_download(board.node, data)
+        assert e.value.code == 0x08000020
+        assert sdo[FLASH_STATUS][1].raw == status
+        with pytest.raises(canopen.SdoAbortedError):
+            sdo[PROGRAM_CONTROL][1].raw = 1
 
 
 def test_program_download_refused_in_operational(board):
@@ -67,8 +91,9 @@ def test_start_without_program_and_clear(board):
         sdo[PROGRAM_CONTROL][1].raw = 1
     assert e.value.code == 0x08000020
     block_download(board.node, image(3000))
+    ident = sdo[IDENT][1].raw
     sdo[PROGRAM_CONTROL][1].raw = 3  # clear
-    assert sdo[IDENT][1].raw == 0
+    assert sdo[IDENT][1].raw == ident  # the active image, untouched
     assert sdo[FLASH_STATUS][1].raw == 2
 
 

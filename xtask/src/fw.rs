@@ -2,7 +2,8 @@
 //! `cargo xtask mcu-bench [--json]`.
 //!
 //! * `fw` — builds the release image
-//!   (`cargo build --release --target thumbv7em-none-eabihf -p perpend-fw`).
+//!   (`cargo build --release --target thumbv7em-none-eabihf -p perpend-fw`);
+//!   `fw --sign KEY` also writes the signed image (`sign.rs`).
 //! * `size` — builds it (unless `--no-build`), reads the ELF's program
 //!   headers and prints the flash use (the file size of every loadable
 //!   segment whose load address is in flash: vector table, code, read-only
@@ -85,15 +86,33 @@ fn run(cmd: &mut Command) -> Result<()> {
     }
 }
 
-/// `cargo xtask fw [extra cargo args]` (checks for flip-link, the
-/// firmware's linker, first: installs it when missing).
+/// `cargo xtask fw [--sign KEY] [extra cargo args]` (checks for flip-link,
+/// the firmware's linker, first: installs it when missing); with `--sign`,
+/// also the signed image for the field update (`sign.rs`).
 pub fn fw(args: &[String]) -> Result<()> {
     let linker = super::setup::flip_link()?;
     eprintln!("==> linker: {linker}");
+    let (key, rest) = match args.iter().position(|a| a == "--sign") {
+        Some(i) => {
+            let key = args
+                .get(i + 1)
+                .ok_or("--sign needs a key file: --sign KEY")?;
+            let rest = [&args[..i], &args[i + 2..]].concat();
+            (Some(PathBuf::from(key)), rest)
+        }
+        None => (None, args.to_vec()),
+    };
     run(Command::new(cargo())
         .current_dir(root())
         .args(["build", "--release", "--target", TARGET, "-p", "perpend-fw"])
-        .args(args))
+        .args(&rest))?;
+    match key {
+        Some(key) => {
+            let elf = target_dir().join(TARGET).join("release").join("perpend-fw");
+            crate::sign::sign_elf(&elf, &key).map(|_| ())
+        }
+        None => Ok(()),
+    }
 }
 
 /// `_stack_start` (top) and `_stack_end` (bottom) of an ELF image.

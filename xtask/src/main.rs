@@ -8,7 +8,8 @@
 //!   board whose true head has the paper's errors (`perpend cell run`).
 //! * `bring-up --bus BUS --node-id N | --virtual` — the bus side of
 //!   docs/bring-up.md against a board or a virtual board.
-//! * `fw` — build the release firmware image; `size` — its flash and static
+//! * `fw [--sign KEY]` — build the release firmware image (and its signed
+//!   field-update image); `keygen OUT` — a new ed25519 key pair; `size` — its flash and static
 //!   RAM use against the budget (128 KiB / 48 KiB); `mcu-bench [--json]` —
 //!   instructions per update on an emulated Cortex-M4F (QEMU mps2-an386).
 //! * `hil [--qemu]` — the on-target tests: with a probe, on the board
@@ -26,6 +27,7 @@ mod ci;
 mod fw;
 mod hil;
 mod setup;
+mod sign;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
@@ -211,10 +213,11 @@ fn main() -> ExitCode {
         Some("bring-up") => bringup::bring_up(&args[1..]),
         Some("fuzz") => fuzz(&args[1..]),
         Some("fw") => fw::fw(&args[1..]),
+        Some("keygen") => sign::keygen(&args[1..]),
         Some("size") => fw::size(&args[1..]),
         Some("mcu-bench") => fw::mcu_bench(&args[1..]),
         Some("hil") => hil::hil(&args[1..]),
-        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw|size|mcu-bench [--json]|hil [--qemu]|fuzz [--seconds N] [TARGET...]>".to_string()),
+        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw [--sign KEY]|keygen OUT|size|mcu-bench [--json]|hil [--qemu]|fuzz [--seconds N] [TARGET...]>".to_string()),
     };
     match res {
         Ok(()) => ExitCode::SUCCESS,

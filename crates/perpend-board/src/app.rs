@@ -369,6 +369,7 @@ impl<S: ParamStore> App<S> {
             program: crate::program::board_program(),
             program_state: crate::program::ProgramState::default(),
         };
+        app.program_state = crate::program::ProgramState::of(&app.program);
         crate::program::publish(&app.program_state, &mut app.dev);
         app.reload();
         // Nothing to drain: the events of the boot itself are handled.
@@ -425,6 +426,19 @@ impl<S: ParamStore> App<S> {
     /// The CANopen device.
     pub fn device(&self) -> &Device {
         &self.dev
+    }
+
+    /// The program store (the virtual board: reset, `mark_booted`).
+    pub fn program_mut(&mut self) -> &mut crate::program::BoardProgram {
+        &mut self.program
+    }
+
+    /// Replaces the program store (the virtual board's flash fake) and
+    /// publishes its active image in 0x1F56.
+    pub fn set_program(&mut self, program: crate::program::BoardProgram) {
+        self.program = program;
+        self.program_state = crate::program::ProgramState::of(&self.program);
+        crate::program::publish(&self.program_state, &mut self.dev);
     }
 
     /// The CANopen device, mutable (tests, diagnostics).

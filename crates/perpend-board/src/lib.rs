@@ -30,6 +30,8 @@
 //!   data cache bypassed, NMI offsets substituted);
 //! * [`program`] — CiA 302-3 program download (0x1F50/0x1F51/0x1F56/
 //!   0x1F57) into a program store (a RAM fake on the host);
+//! * [`image`] — signed firmware images: embassy-boot's ed25519 signature
+//!   plus an identity trailer (product code, version, SHA-256);
 //! * [`scan`] — the ADC scan time and the shortest sample period an
 //!   oversampling ratio allows.
 //!
@@ -45,6 +47,7 @@ pub mod capture;
 pub mod ecc;
 pub mod fdcan;
 pub mod health;
+pub mod image;
 pub mod pipeline;
 pub mod program;
 pub mod rxfilter;

@@ -76,6 +76,7 @@
 pub mod node;
 pub mod server;
 pub mod sim;
+pub mod update;
 pub mod world;
 
 use std::io::Write as _;
@@ -124,7 +125,9 @@ pub struct Args {
     /// stuck, noisy), `bus:noack:SECONDS` (nothing the board sends is
     /// acknowledged for the first SECONDS), `bus:drop:IDX:N` (the client's
     /// connection is closed at its N-th SDO request to object IDX) or
-    /// `bus:reset:IDX:N` (the board resets after answering it); repeatable.
+    /// `bus:reset:IDX:N` (the board resets after answering it), or
+    /// `update:no-confirm` (an image from `perpend node update` hangs at
+    /// start: the board rolls back to the old one); repeatable.
     #[arg(long)]
     pub fault: Vec<FaultArg>,
     /// Seed of the noise generator.
@@ -195,6 +198,8 @@ pub enum FaultArg {
     Sensor(Fault),
     /// `bus:noack:SECONDS`: no acknowledge for the first SECONDS.
     BusNoAck(f64),
+    /// `update:no-confirm`: a new image hangs at start (rollback).
+    UpdateNoConfirm,
     /// `bus:drop:IDX:N` or `bus:reset:IDX:N`: the server's link faults.
     Link(server::LinkFault),
 }
@@ -202,6 +207,9 @@ pub enum FaultArg {
 impl FromStr for FaultArg {
     type Err = anyhow::Error;
     fn from_str(s: &str) -> Result<Self> {
+        if s == "update:no-confirm" {
+            return Ok(FaultArg::UpdateNoConfirm);
+        }
         let Some(rest) = s.strip_prefix("bus:") else {
             return Ok(FaultArg::Sensor(s.parse()?));
         };
@@ -313,10 +321,12 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
     }
     sim.set_temp_c(a.temp_c);
     let mut noack_us = None;
+    let mut confirms = true;
     for f in &a.fault {
         match *f {
             FaultArg::Sensor(f) => sim.set_fault(f.sensor, Some(f.kind)),
             FaultArg::BusNoAck(t) => noack_us = Some((t * 1e6) as u64),
+            FaultArg::UpdateNoConfirm => confirms = false,
             FaultArg::Link(_) => {}
         }
     }
@@ -330,6 +340,7 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
     let serial = first.map_or_else(|| node::serial_for_seed(a.seed), |s| s.serial);
     let mut board = VirtualBoard::with_serial(&cfg, sim, serial)?;
     board.set_bus_noack(noack_us);
+    board.set_update_confirms(confirms);
     Ok(board)
 }
 

@@ -30,6 +30,7 @@
 use anyhow::{anyhow, Result};
 use perpend_board::app::{defaults_for, App};
 use perpend_board::pipeline::{Output, Sample};
+use perpend_board::program::{BootState, ProgramStore};
 use perpend_board::storage::{host_store, save_with_tail, HostFlash, SeqStore};
 use perpend_board::txq::{TryWrite, TxController, TxQueue, TX_QUEUE_LEN};
 use perpend_can::lss::UNCONFIGURED;
@@ -157,6 +158,13 @@ pub struct VirtualBoard {
     can: VirtualCan,
     /// The bit rate its controller runs at \[kbit/s\].
     kbps: u16,
+    /// Serial number (0x1018 sub 4), kept over a restart.
+    serial: u32,
+    /// A new image confirms itself (`--fault update:no-confirm`: no).
+    confirms: bool,
+    /// A new image hangs until then (board time \[µs\]), then the
+    /// watchdog resets the board ([`super::update`]).
+    hung_until: Option<u64>,
 }
 
 impl VirtualBoard {
@@ -183,7 +191,9 @@ impl VirtualBoard {
             save_with_tail(&mut store, &p, &img)
                 .map_err(|e| anyhow!("writing the start-up record: {e:?}"))?;
         }
-        let app = App::with_serial(store, serial);
+        let mut app = App::with_serial(store, serial);
+        let product = app.device().defaults().identity.product_code;
+        app.set_program(super::update::factory_program(product));
         let kbps = (app.can_config().bitrate.bps() / 1000) as u16;
         Ok(Self {
             app,
@@ -191,6 +201,9 @@ impl VirtualBoard {
             txq: TxQueue::new(),
             can: VirtualCan::default(),
             kbps,
+            serial,
+            confirms: true,
+            hung_until: None,
         })
     }
 
@@ -232,23 +245,74 @@ impl VirtualBoard {
         self.can.noack_until_us = until_us;
     }
 
+    /// Whether a new image confirms itself after an update (`false`: it
+    /// hangs at start and the bootloader rolls back).
+    pub fn set_update_confirms(&mut self, confirms: bool) {
+        self.confirms = confirms;
+    }
+
     /// Handles a frame received from the bus at `now_us`; frames put on
     /// the bus go to `out`.
     pub fn handle(&mut self, f: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
+        if self.hung(now_us) {
+            return;
+        }
         let q = &mut self.txq;
         self.app.handle(f, now_us, &mut |o| {
             q.push(o);
         });
         self.transmit(now_us, out);
+        self.after_update(now_us);
     }
 
     /// Runs the timers at `now_us`; frames put on the bus go to `out`.
     pub fn poll(&mut self, now_us: u64, out: &mut impl FnMut(Frame)) {
+        if self.hung(now_us) {
+            return;
+        }
         let q = &mut self.txq;
         self.app.poll(now_us, &mut |o| {
             q.push(o);
         });
         self.transmit(now_us, out);
+        self.after_update(now_us);
+    }
+
+    /// A hung new image: `true` until the watchdog resets the board.
+    fn hung(&mut self, now_us: u64) -> bool {
+        match self.hung_until {
+            Some(t) if now_us < t => true,
+            Some(_) => {
+                self.hung_until = None;
+                self.restart();
+                false
+            }
+            None => false,
+        }
+    }
+
+    /// After 0x1F51 "start": the restart into the new image; a new image
+    /// that came up confirms itself (or hangs, see [`Self::set_update_confirms`]).
+    fn after_update(&mut self, now_us: u64) {
+        match self.app.program_mut().boot {
+            BootState::SwapPending => {
+                self.restart();
+                if !self.confirms {
+                    self.hung_until = Some(now_us + super::update::WATCHDOG_US);
+                }
+            }
+            BootState::Trial if self.confirms => {
+                // Nothing to report: RamProgram::mark_booted cannot fail.
+                let _ = self.app.program_mut().mark_booted();
+            }
+            _ => {}
+        }
+    }
+
+    /// A reset of the board (bootloader, then the application again).
+    fn restart(&mut self) {
+        super::update::reboot(&mut self.app, self.serial);
+        self.txq = TxQueue::new();
     }
 
     /// Moves the queue through the controller onto the bus as far as the

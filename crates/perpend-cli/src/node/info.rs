@@ -61,6 +61,7 @@ fn gather(node: &mut Node) -> Result<serde_json::Value> {
     let name = c.read_string(id, 0x1008, 0)?;
     let hw = c.read_string(id, 0x1009, 0)?;
     let sw = c.read_string(id, 0x100A, 0)?;
+    let active = c.read_u32(id, 0x1F56, 1).ok();
     let ident: Vec<u32> = (1..=4)
         .map(|s| c.read_u32(id, 0x1018, s))
         .collect::<Result<_, _>>()?;
@@ -83,7 +84,7 @@ fn gather(node: &mut Node) -> Result<serde_json::Value> {
     Ok(json!({
         "node_id": id, "bus": node.client.bus_name(),
         "device_type": device_type, "device_name": name,
-        "hardware_version": hw, "software_version": sw,
+        "hardware_version": hw, "software_version": sw, "active_image": active,
         "vendor_id": ident[0], "product_code": ident[1],
         "revision": ident[2], "serial": ident[3],
         "heartbeat_ms": hb, "nmt_state": state_text(state, hb),
@@ -142,6 +143,13 @@ pub fn info(node: &mut Node, a: &InfoArgs) -> Result<()> {
         rev & 0xFFFF
     );
     println!("  serial        {:#010x}", u("serial"));
+    let image = v["active_image"]
+        .as_u64()
+        .map(|i| super::update::version_words(i as u32));
+    println!(
+        "  active image  {} (0x1F56)",
+        image.as_deref().unwrap_or("not reported")
+    );
     println!(
         "  NMT state     {} (heartbeat every {} ms)",
         s("nmt_state"),

@@ -19,6 +19,7 @@
 //!   sdo write IDX SUB VALUE [--force] [--json]   checked, then read back
 //!   sdo list [IDX] [--json]         the EDS's entries (no bus needed)
 //!   pdo show|map N OBJ… [--type T] [--event-ms MS] [--inhibit-ms MS] [--store]|off N|on N
+//!   update FILE                     signed image (cargo xtask fw --sign) onto the board
 //! ```
 //!
 //! BUS is `tcp:HOST:PORT` (the virtual board), `slcan:/dev/ttyACM0[@BAUD]`
@@ -43,6 +44,7 @@ pub mod monitor;
 pub mod params;
 pub mod pdo;
 pub mod sdo;
+pub mod update;
 pub mod words;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -173,6 +175,8 @@ pub enum Cmd {
     Sdo(sdo::Args),
     /// Show the PDOs in words; map objects into a TPDO, set its timing, switch it off or on.
     Pdo(pdo::Args),
+    /// Put a signed firmware image on the board (CiA 302-3), check it after the restart.
+    Update(update::Args),
 }
 
 /// Set by Ctrl-C; long operations look at it between steps.
@@ -330,5 +334,6 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::Lss(_) => Ok(()),
         Cmd::Sdo(x) => sdo::run(&mut node, x),
         Cmd::Pdo(x) => pdo::run(&mut node, x),
+        Cmd::Update(x) => update::run(&mut node, x),
     }
 }

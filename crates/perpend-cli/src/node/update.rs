@@ -1,0 +1,210 @@
+//! `perpend node update FILE`: a signed image (`cargo xtask fw --sign`)
+//! onto a board over CANopen, CiA 302-3 program download.
+//!
+//! Steps, each stopping at its first failure with the cause: the file is a
+//! signed image (`perpend_board::image` trailer) for this board's product
+//! code (0x1018 sub 2); the board is pre-operational (heartbeat); 0x1F56
+//! (the active image) is read; the image goes to 0x1F50 sub 1 by SDO block
+//! download with CRC (progress on stderr); the board verifies the signature
+//! itself when the last byte arrives (a refusal: 0x1F57 in words); 0x1F51
+//! sub 1 = 1 (start) lets the bootloader swap it in at the restart; the
+//! boot-up message is awaited, and 0x1F56 read again must be the new
+//! image's, otherwise the board has rolled back (the new image did not
+//! confirm itself). Old and new version are printed.
+//!
+//! Nothing here can brick the board: until "start" only the DFU partition
+//! is written, and an image that does not come up is rolled back by the
+//! bootloader. Limits: one program (0x1F50 sub 1); no resume of an
+//! interrupted download (it starts again from byte 0).
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use perpend_board::image::{Identity, SIGNATURE_LEN, TRAILER_LEN};
+use perpend_board::program::{FLASH_BAD_SIGNATURE, FLASH_WRONG_PRODUCT};
+use perpend_can::od;
+
+use super::Node;
+use crate::canopen::NodeState;
+
+/// How long the board may take for the last answer of the download (it
+/// verifies the signature then) and to restart after "start".
+const VERIFY_TIMEOUT: Duration = Duration::from_secs(5);
+const RESTART_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Arguments of `perpend node update`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The signed image (`cargo xtask fw --sign KEY` writes
+    /// `target/thumbv7em-none-eabihf/release/perpend-fw.signed.bin`).
+    pub file: PathBuf,
+}
+
+/// `major.minor.patch (#xx)` of a 0x1F56 identification.
+pub fn version_words(ident: u32) -> String {
+    if ident == 0 {
+        return "none (0x1F56 = 0)".into();
+    }
+    let v = ident & 0x00FF_FFFF;
+    format!(
+        "{}.{}.{} (image {:02x})",
+        v >> 16,
+        (v >> 8) & 0xFF,
+        v & 0xFF,
+        ident >> 24
+    )
+}
+
+/// 0x1F57 in words.
+pub fn flash_words(status: u32) -> &'static str {
+    match status {
+        od::FLASH_OK => "image verified",
+        od::FLASH_BUSY => "download in progress",
+        od::FLASH_NO_PROGRAM => "no valid program downloaded",
+        od::FLASH_FORMAT_UNKNOWN => "not a signed image, or cut short (no trailer)",
+        od::FLASH_FORMAT_ERROR => "image truncated or corrupted (length or hash)",
+        od::FLASH_WRITE_ERROR => "writing the update partition failed",
+        od::FLASH_ADDRESS_ERROR => "the image is larger than the update partition",
+        od::FLASH_SECURED => "the board takes no download now",
+        FLASH_WRONG_PRODUCT => "the image is for another product",
+        FLASH_BAD_SIGNATURE => "the signature does not verify against the board's key",
+        _ => "unknown flash status",
+    }
+}
+
+/// The identity trailer of a signed image file.
+fn file_identity(img: &[u8], file: &str) -> Result<Identity> {
+    let end = img.len().saturating_sub(SIGNATURE_LEN);
+    let t = img
+        .get(end.saturating_sub(TRAILER_LEN)..end)
+        .and_then(|t| <&[u8; TRAILER_LEN]>::try_from(t).ok());
+    match t.map(Identity::from_bytes) {
+        Some(Ok(id)) if id.payload_len as usize + TRAILER_LEN + SIGNATURE_LEN == img.len() => {
+            Ok(id)
+        }
+        _ => bail!(
+            "{file} is not a signed image (no identity trailer, or cut short): sign the \
+             firmware with `cargo xtask fw --sign KEY` and pass the .signed.bin it writes"
+        ),
+    }
+}
+
+/// Checks the board is pre-operational (by its heartbeat).
+fn check_preop(node: &mut Node) -> Result<()> {
+    let hb = node.heartbeat_ms()?;
+    if let Some(s @ (NodeState::Operational | NodeState::Stopped)) = node.state(hb)? {
+        bail!(
+            "{} is {s}: a firmware update needs it pre-operational (the robot controller may be \
+             using it). Nothing was written; switch it with `perpend node … nmt preop` when \
+             the machine allows",
+            node.name()
+        );
+    }
+    Ok(())
+}
+
+/// Progress on stderr: a rewritten line on a terminal, a line per 10 %
+/// otherwise.
+fn progress(total: usize) -> impl FnMut(usize) {
+    let tty = std::io::stderr().is_terminal();
+    let mut last = usize::MAX;
+    move |n| {
+        let pct = n * 100 / total.max(1);
+        if tty {
+            eprint!("\rdownloading: {n}/{total} B ({pct} %)");
+        } else if pct / 10 != last {
+            eprintln!("downloading: {n}/{total} B ({pct} %)");
+        }
+        last = pct / 10;
+    }
+}
+
+/// The download's failure in words, with 0x1F57 when the board answers.
+fn download_failed(node: &mut Node, e: crate::canopen::ClientError) -> anyhow::Error {
+    let status = node.client.read_u32(node.id, 0x1F57, 1).ok();
+    let name = node.name();
+    match status {
+        Some(s) if s != od::FLASH_BUSY && s != od::FLASH_OK => anyhow::anyhow!(
+            "{name} refused the image: {} (0x1F57 = {s:#x}). It keeps running its present \
+             image",
+            flash_words(s)
+        ),
+        _ => anyhow::anyhow!(
+            "the download to {name} failed: {e}. The board keeps running its present image; \
+             run the update again"
+        ),
+    }
+}
+
+/// `perpend node update FILE`.
+///
+/// # Errors
+/// The first cause of a failure, in a sentence; the board keeps running
+/// its image.
+pub fn run(node: &mut Node, a: &Args) -> Result<()> {
+    let file = a.file.display().to_string();
+    let img = std::fs::read(&a.file).with_context(|| format!("cannot read {file}"))?;
+    let want = file_identity(&img, &file)?;
+    node.hello()?;
+    check_preop(node)?;
+    let id = node.id;
+    let product = node.client.read_u32(id, 0x1018, 2)?;
+    if want.product != product {
+        bail!(
+            "{file} is for product {:#010x}, {} is product {product:#010x}: nothing was written",
+            want.product,
+            node.name()
+        );
+    }
+    let old = node.client.read_u32(id, 0x1F56, 1)?;
+    eprintln!("{}: running {}", node.name(), version_words(old));
+    let data = (0x1F50, 1);
+    let r = node
+        .client
+        .download_block(id, data, &img, VERIFY_TIMEOUT, &mut progress(img.len()));
+    if std::io::stderr().is_terminal() {
+        eprintln!();
+    }
+    r.map_err(|e| download_failed(node, e))?;
+    start_and_check(node, old, want.identification())
+}
+
+/// 0x1F51 start, the restart, and the check of 0x1F56 after it.
+fn start_and_check(node: &mut Node, old: u32, new: u32) -> Result<()> {
+    let id = node.id;
+    if let Err(e) = node.client.download(id, 0x1F51, 1, &[od::PROGRAM_START]) {
+        return Err(download_failed(node, e));
+    }
+    node.client
+        .wait_bootup(id, RESTART_TIMEOUT)
+        .map_err(|e| anyhow::anyhow!("{e}: the board did not restart after \"start\""))?;
+    let now = node.client.read_u32(id, 0x1F56, 1)?;
+    if now == new {
+        println!(
+            "{}: updated from {} to {}",
+            node.name(),
+            version_words(old),
+            version_words(now)
+        );
+        return Ok(());
+    }
+    if now == old {
+        bail!(
+            "{}: the new image {} did not confirm itself and the bootloader rolled back: it \
+             runs {} again. Check the new firmware (it must come up completely and mark \
+             itself booted)",
+            node.name(),
+            version_words(new),
+            version_words(old)
+        );
+    }
+    bail!(
+        "{}: after the restart it runs {}, neither the old {} nor the new {}",
+        node.name(),
+        version_words(now),
+        version_words(old),
+        version_words(new)
+    )
+}

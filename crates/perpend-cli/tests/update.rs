@@ -1,0 +1,154 @@
+//! `perpend node update` end to end against the virtual board (slcan over
+//! TCP on loopback; its flash fake is `perpend_board::program::RamProgram`
+//! trusting the test key): a signed image goes on and `node info` shows
+//! it, the calibration stays; and the faults of issue 34 the host can
+//! show — the client lost mid-download, a wrong signature, an image for
+//! another board, an image larger than the update partition, a new image
+//! that does not confirm itself — each leave the board on its old image.
+#![allow(clippy::unwrap_used, clippy::panic)]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+mod support;
+
+use perpend_board::image::{sign, version, TEST_SEED};
+use perpend_cli::board::update::DFU_BYTES;
+use support::{failed, ok, VirtualBus};
+
+const NODE: &str = "16";
+/// The virtual board's product code (0x1018 sub 2).
+const PRODUCT: u32 = 0x5045_5250;
+
+fn node(vb: &VirtualBus, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .args(["--quiet", "node", "--bus", &vb.bus, "--node-id", NODE])
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn board(extra: &[&str]) -> VirtualBus {
+    VirtualBus::start(&[&["--node-id", NODE], extra].concat())
+}
+
+/// A signed image file of `n` payload bytes.
+fn image_file(name: &str, n: usize, product: u32, ver: u32, seed: &[u8; 32]) -> PathBuf {
+    let payload: Vec<u8> = (0..n).map(|i| (i * 7 + 3) as u8).collect();
+    let path = std::env::temp_dir().join(format!("perpend-update-{}-{name}", std::process::id()));
+    std::fs::write(&path, sign(&payload, product, ver, seed)).unwrap();
+    path
+}
+
+/// The active image line of `node info`.
+fn active(vb: &VirtualBus) -> String {
+    let out = ok(&node(vb, &["info"]));
+    let line = out.lines().find(|l| l.contains("active image")).unwrap();
+    line.to_string()
+}
+
+fn update(vb: &VirtualBus, file: &Path) -> Output {
+    node(vb, &["update", file.to_str().unwrap()])
+}
+
+#[test]
+fn a_signed_image_goes_on_and_the_calibration_stays() {
+    let vb = board(&[]);
+    let before = active(&vb);
+    assert!(before.contains("0.1.0"), "{before}");
+    let pull = |f: &str| {
+        let p = std::env::temp_dir().join(format!("perpend-update-{}-{f}", std::process::id()));
+        ok(&node(&vb, &["pull", "--out", p.to_str().unwrap()]));
+        std::fs::read_to_string(p).unwrap()
+    };
+    let cal = pull("before.json");
+    let file = image_file("good", 20_000, PRODUCT, version(9, 8, 7), &TEST_SEED);
+    let out = ok(&update(&vb, &file));
+    assert!(out.contains("updated from 0.1.0"), "{out}");
+    assert!(out.contains("to 9.8.7"), "{out}");
+    assert!(active(&vb).contains("9.8.7"));
+    assert_eq!(
+        pull("after.json"),
+        cal,
+        "the calibration survives the update"
+    );
+}
+
+/// Expects `file` refused with a sentence containing `why`, the board
+/// still on its old image.
+fn refused(vb: &VirtualBus, file: &Path, why: &str) {
+    let before = active(vb);
+    let err = failed(&update(vb, file));
+    assert!(err.contains(why), "{err}");
+    assert_eq!(active(vb), before, "the active image is untouched");
+}
+
+#[test]
+fn a_wrong_signature_is_refused_by_the_board() {
+    let vb = board(&[]);
+    let stranger = image_file("stranger", 3000, PRODUCT, version(2, 0, 0), &[5u8; 32]);
+    refused(&vb, &stranger, "signature does not verify");
+    let file = image_file("flipped", 3000, PRODUCT, version(2, 0, 0), &TEST_SEED);
+    let mut bytes = std::fs::read(&file).unwrap();
+    bytes[100] ^= 1;
+    std::fs::write(&file, bytes).unwrap();
+    refused(&vb, &file, "keeps running its present image");
+    // Unsigned: refused before anything is sent.
+    let raw = std::env::temp_dir().join(format!("perpend-update-{}-raw", std::process::id()));
+    std::fs::write(&raw, [0u8; 500]).unwrap();
+    refused(&vb, &raw, "is not a signed image");
+}
+
+#[test]
+fn an_image_for_another_board_is_refused() {
+    let vb = board(&[]);
+    let file = image_file("other", 3000, PRODUCT + 1, version(2, 0, 0), &TEST_SEED);
+    refused(&vb, &file, "nothing was written");
+}
+
+#[test]
+fn an_image_larger_than_the_partition_is_refused() {
+    let vb = board(&[]);
+    let file = image_file("huge", DFU_BYTES, PRODUCT, version(2, 0, 0), &TEST_SEED);
+    refused(&vb, &file, "larger than the update partition");
+}
+
+#[test]
+fn a_new_image_that_does_not_confirm_is_rolled_back() {
+    let vb = board(&["--fault", "update:no-confirm"]);
+    let file = image_file("hangs", 5000, PRODUCT, version(3, 0, 0), &TEST_SEED);
+    refused(&vb, &file, "rolled back");
+}
+
+#[test]
+fn losing_the_client_mid_download_leaves_the_old_image() {
+    let vb = board(&[]);
+    let before = active(&vb);
+    let file = image_file("big", 200_000, PRODUCT, version(4, 0, 0), &TEST_SEED);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .args(["--quiet", "node", "--bus", &vb.bus, "--node-id", NODE])
+        .args(["update", file.to_str().unwrap()])
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let err = BufReader::new(child.stderr.take().unwrap());
+    let t = Instant::now();
+    for line in err.lines() {
+        let line = line.unwrap();
+        if line.starts_with("downloading:") && !line.contains("(0 %)") {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(20), "no progress");
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    // The board's SDO server times out the broken transfer (0x1F5x: 1 s).
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(active(&vb), before, "still the old image");
+    let again = image_file("again", 2000, PRODUCT, version(4, 0, 1), &TEST_SEED);
+    let out = ok(&update(&vb, &again));
+    assert!(out.contains("to 4.0.1"), "{out}");
+}
