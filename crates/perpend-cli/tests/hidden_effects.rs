@@ -160,7 +160,7 @@ fn hidden_effects_are_named_from_the_files_alone() {
             continue;
         }
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 11, "{keys:?}");
+        assert_eq!(keys.len(), 12, "{keys:?}"); // the eleven and `schema`
         assert!(d.folds >= 5, "seed {seed}: {} folds", d.folds);
         assert!(
             d.outlier_poses.is_empty(),
