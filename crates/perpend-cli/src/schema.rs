@@ -99,9 +99,15 @@ mod tests {
     fn the_pretty_form_is_the_same_object_with_the_schema_first() {
         let v = json!({"b": [1, 2], "schema": "old", "a": {"k": "\"q\""}});
         let s = tagged_pretty(CELL, &v);
-        assert!(s.starts_with("{\n  \"schema\": \"perpend.cell/1\",\n  \"a\""), "{s}");
+        assert!(
+            s.starts_with("{\n  \"schema\": \"perpend.cell/1\",\n  \"a\""),
+            "{s}"
+        );
         let back: Value = serde_json::from_str(&s).unwrap();
-        assert_eq!(back, serde_json::from_str::<Value>(&tagged(CELL, &v)).unwrap());
+        assert_eq!(
+            back,
+            serde_json::from_str::<Value>(&tagged(CELL, &v)).unwrap()
+        );
         let empty: Value = serde_json::from_str(&tagged_pretty(CELL, &json!({}))).unwrap();
         assert_eq!(empty, json!({"schema": CELL}));
     }

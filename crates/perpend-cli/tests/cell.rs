@@ -48,7 +48,10 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     }
     assert!(status.success(), "{err}");
     let text = std::fs::read_to_string(d.join("run/cell.json")).unwrap();
-    assert!(text.starts_with("{\n  \"schema\": \"perpend.cell/1\","), "{text}");
+    assert!(
+        text.starts_with("{\n  \"schema\": \"perpend.cell/1\","),
+        "{text}"
+    );
     let f: serde_json::Value = serde_json::from_str(&text).unwrap();
     let g = |k: &str| f[k].as_f64().unwrap();
     // The paper's orientation (Chen Table 1 plane): about 1.3-1.7° before.
