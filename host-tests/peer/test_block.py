@@ -48,14 +48,26 @@ def block_download(node, data: bytes):
         f.write(data)
 
 
+def identification(n: int, version: int = 0x010200) -> int:
+    """0x1F56 of the image of an n-byte payload: SHA-256 byte 0 in bits
+    24..31, version in bits 0..23 (image.rs)."""
+    return (hashlib.sha256(payload(n)).digest()[0] << 24) | (version & 0xFFFFFF)
+
+
 @pytest.mark.parametrize("size", [1, 889, 889 * 3 + 5, 20000])
 def test_program_image_by_block_download(board, size):
     data = image(size)
     block_download(board.node, data)
     sdo = board.node.sdo
     assert sdo[FLASH_STATUS][1].raw == 0
+    old = sdo[IDENT][1].raw
+    assert old != identification(size)
+    # start: the board restarts into the new image (a boot-up message),
+    # which then identifies itself in 0x1F56
+    booted = board.bootup_queue()
     sdo[PROGRAM_CONTROL][1].raw = 1
-    assert sdo[PROGRAM_CONTROL][1].raw == 1
+    booted.get(timeout=5.0)
+    assert sdo[IDENT][1].raw == identification(size)
 
 
 def test_segmented_download_still_works(board):
