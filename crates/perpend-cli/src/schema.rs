@@ -32,23 +32,18 @@ pub const CELL: &str = "perpend.cell/1";
 /// `schema` key `v` has is replaced). A value that is not an object is
 /// wrapped as `{"schema": …, "value": v}`.
 pub fn tagged(schema: &str, v: &Value) -> String {
-    let mut out = format!("{{\"schema\":{}", Value::from(schema));
-    match v {
-        Value::Object(m) => {
-            for (k, x) in m.iter().filter(|(k, _)| k.as_str() != "schema") {
-                out.push(',');
-                out.push_str(&Value::from(k.as_str()).to_string());
-                out.push(':');
-                out.push_str(&x.to_string());
-            }
+    let without;
+    let body = match v {
+        Value::Object(m) if m.contains_key("schema") => {
+            let mut m = m.clone();
+            m.remove("schema");
+            without = Value::Object(m);
+            &without
         }
-        other => {
-            out.push_str(",\"value\":");
-            out.push_str(&other.to_string());
-        }
-    }
-    out.push('}');
-    out
+        other => other,
+    };
+    // Serialising a `Value` cannot fail.
+    perpend_lab::schema::to_json(schema, body).unwrap_or_default()
 }
 
 /// [`tagged`] for a file a person reads too: the object `v` indented, its
