@@ -49,8 +49,35 @@ fn active(vb: &VirtualBus) -> String {
     line.to_string()
 }
 
+/// A fresh path for an update record.
+fn record_path() -> PathBuf {
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    let p = std::env::temp_dir().join(format!("perpend-update-{}-rec{n}.json", std::process::id()));
+    let _ = std::fs::remove_file(&p);
+    p
+}
+
+/// `node update FILE --record R`; the record read back, when written.
+fn update_rec(vb: &VirtualBus, file: &Path) -> (Output, Option<serde_json::Value>) {
+    let rec = record_path();
+    let out = node(
+        vb,
+        &[
+            "update",
+            file.to_str().unwrap(),
+            "--record",
+            rec.to_str().unwrap(),
+        ],
+    );
+    let json = std::fs::read_to_string(&rec)
+        .ok()
+        .map(|t| serde_json::from_str(&t).unwrap());
+    (out, json)
+}
+
 fn update(vb: &VirtualBus, file: &Path) -> Output {
-    node(vb, &["update", file.to_str().unwrap()])
+    update_rec(vb, file).0
 }
 
 #[test]
@@ -65,7 +92,30 @@ fn a_signed_image_goes_on_and_the_calibration_stays() {
     };
     let cal = pull("before.json");
     let file = image_file("good", 20_000, PRODUCT, version(9, 8, 7), &TEST_SEED);
-    let out = ok(&update(&vb, &file));
+    let (out, rec) = update_rec(&vb, &file);
+    let out = ok(&out);
+    let rec = rec.expect("an update record");
+    assert_eq!(rec["schema"], "perpend.update/1");
+    assert_eq!(rec["outcome"], "updated");
+    assert_eq!(rec["cause"], serde_json::Value::Null);
+    let bytes = std::fs::read(&file).unwrap();
+    assert_eq!(rec["image"]["bytes"], bytes.len());
+    assert_eq!(
+        rec["image"]["sha256"],
+        perpend_lab::record::sha256_hex(&bytes)
+    );
+    assert_eq!(rec["image"]["version"], "9.8.7");
+    assert!(
+        rec["active_before"].as_str().unwrap().starts_with("0.1.0"),
+        "{rec}"
+    );
+    assert!(
+        rec["active_after"].as_str().unwrap().starts_with("9.8.7"),
+        "{rec}"
+    );
+    let serial = rec["board"]["serial"].as_str().unwrap();
+    assert!(serial.starts_with("0x") && serial.len() == 10, "{serial}");
+    assert_eq!(rec["steps"].as_array().unwrap().len(), 4, "{rec}");
     assert!(out.contains("updated from 0.1.0"), "{out}");
     assert!(out.contains("to 9.8.7"), "{out}");
     assert!(active(&vb).contains("9.8.7"));
@@ -78,18 +128,32 @@ fn a_signed_image_goes_on_and_the_calibration_stays() {
 
 /// Expects `file` refused with a sentence containing `why`, the board
 /// still on its old image.
-fn refused(vb: &VirtualBus, file: &Path, why: &str) {
+/// The record, when one is written, names `outcome` and the same cause.
+fn refused(vb: &VirtualBus, file: &Path, why: &str) -> Option<serde_json::Value> {
     let before = active(vb);
-    let err = failed(&update(vb, file));
+    let (out, rec) = update_rec(vb, file);
+    let err = failed(&out);
     assert!(err.contains(why), "{err}");
     assert_eq!(active(vb), before, "the active image is untouched");
+    if let Some(r) = &rec {
+        assert!(r["cause"].as_str().unwrap().contains(why), "{r}");
+    }
+    rec
+}
+
+fn outcome(rec: Option<serde_json::Value>) -> String {
+    rec.expect("an update record")["outcome"]
+        .as_str()
+        .unwrap()
+        .to_string()
 }
 
 #[test]
 fn a_wrong_signature_is_refused_by_the_board() {
     let vb = board(&[]);
     let stranger = image_file("stranger", 3000, PRODUCT, version(2, 0, 0), &[5u8; 32]);
-    refused(&vb, &stranger, "signature does not verify");
+    let rec = refused(&vb, &stranger, "signature does not verify");
+    assert_eq!(outcome(rec), "refused");
     let file = image_file("flipped", 3000, PRODUCT, version(2, 0, 0), &TEST_SEED);
     let mut bytes = std::fs::read(&file).unwrap();
     bytes[100] ^= 1;
@@ -98,14 +162,16 @@ fn a_wrong_signature_is_refused_by_the_board() {
     // Unsigned: refused before anything is sent.
     let raw = std::env::temp_dir().join(format!("perpend-update-{}-raw", std::process::id()));
     std::fs::write(&raw, [0u8; 500]).unwrap();
-    refused(&vb, &raw, "is not a signed image");
+    let rec = refused(&vb, &raw, "is not a signed image");
+    assert!(rec.is_none(), "nothing reached the board: no record");
 }
 
 #[test]
 fn an_image_for_another_board_is_refused() {
     let vb = board(&[]);
     let file = image_file("other", 3000, PRODUCT + 1, version(2, 0, 0), &TEST_SEED);
-    refused(&vb, &file, "nothing was written");
+    let rec = refused(&vb, &file, "nothing was written");
+    assert_eq!(outcome(rec), "refused");
 }
 
 #[test]
@@ -119,7 +185,8 @@ fn an_image_larger_than_the_partition_is_refused() {
 fn a_new_image_that_does_not_confirm_is_rolled_back() {
     let vb = board(&["--fault", "update:no-confirm"]);
     let file = image_file("hangs", 5000, PRODUCT, version(3, 0, 0), &TEST_SEED);
-    refused(&vb, &file, "rolled back");
+    let rec = refused(&vb, &file, "rolled back");
+    assert_eq!(outcome(rec), "rolled back");
 }
 
 #[test]
@@ -130,6 +197,7 @@ fn losing_the_client_mid_download_leaves_the_old_image() {
     let mut child = Command::new(env!("CARGO_BIN_EXE_perpend"))
         .args(["--quiet", "node", "--bus", &vb.bus, "--node-id", NODE])
         .args(["update", file.to_str().unwrap()])
+        .args(["--record", record_path().to_str().unwrap()])
         .stderr(Stdio::piped())
         .stdout(Stdio::null())
         .spawn()

@@ -45,6 +45,7 @@ pub mod params;
 pub mod pdo;
 pub mod sdo;
 pub mod update;
+pub mod update_record;
 pub mod words;
 
 use std::sync::atomic::{AtomicBool, Ordering};

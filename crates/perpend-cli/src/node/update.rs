@@ -12,6 +12,10 @@
 //! image's, otherwise the board has rolled back (the new image did not
 //! confirm itself). Old and new version are printed.
 //!
+//! Every attempt that reached the board leaves an update record
+//! (`update_record.rs`, `perpend.update/1`): `--record FILE`, by default
+//! `update-SERIAL-TIME.json` in the current directory.
+//!
 //! Nothing here can brick the board: until "start" only the DFU partition
 //! is written, and an image that does not come up is rolled back by the
 //! bootloader. Limits: one program (0x1F50 sub 1); no resume of an
@@ -26,6 +30,7 @@ use perpend_board::image::{Identity, SIGNATURE_LEN, TRAILER_LEN};
 use perpend_board::program::{FLASH_BAD_SIGNATURE, FLASH_WRONG_PRODUCT};
 use perpend_can::od;
 
+use super::update_record::{Board, UpdateRecord};
 use super::Node;
 use crate::canopen::NodeState;
 
@@ -40,6 +45,11 @@ pub struct Args {
     /// The signed image (`cargo xtask fw --sign KEY` writes
     /// `target/thumbv7em-none-eabihf/release/perpend-fw.signed.bin`).
     pub file: PathBuf,
+    /// Where to write the update record (`perpend.update/1`); default
+    /// `update-SERIAL-TIME.json` in the current directory. Never
+    /// overwritten.
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
 }
 
 /// `major.minor.patch (#xx)` of a 0x1F56 identification.
@@ -121,16 +131,24 @@ fn progress(total: usize) -> impl FnMut(usize) {
     }
 }
 
-/// The download's failure in words, with 0x1F57 when the board answers.
-fn download_failed(node: &mut Node, e: crate::canopen::ClientError) -> anyhow::Error {
+/// The download's failure in words, with 0x1F57 when the board answers
+/// (then a refusal in `rec`).
+fn download_failed(
+    node: &mut Node,
+    e: crate::canopen::ClientError,
+    rec: &mut UpdateRecord,
+) -> anyhow::Error {
     let status = node.client.read_u32(node.id, 0x1F57, 1).ok();
     let name = node.name();
     match status {
-        Some(s) if s != od::FLASH_BUSY && s != od::FLASH_OK => anyhow::anyhow!(
-            "{name} refused the image: {} (0x1F57 = {s:#x}). It keeps running its present \
+        Some(s) if s != od::FLASH_BUSY && s != od::FLASH_OK => {
+            rec.fails_as("refused");
+            anyhow::anyhow!(
+                "{name} refused the image: {} (0x1F57 = {s:#x}). It keeps running its present \
              image",
-            flash_words(s)
-        ),
+                flash_words(s)
+            )
+        }
         _ => anyhow::anyhow!(
             "the download to {name} failed: {e}. The board keeps running its present image; \
              run the update again"
@@ -142,15 +160,55 @@ fn download_failed(node: &mut Node, e: crate::canopen::ClientError) -> anyhow::E
 ///
 /// # Errors
 /// The first cause of a failure, in a sentence; the board keeps running
-/// its image.
+/// its image. A record that cannot be written is an error too (after the
+/// update's own outcome is printed).
 pub fn run(node: &mut Node, a: &Args) -> Result<()> {
     let file = a.file.display().to_string();
     let img = std::fs::read(&a.file).with_context(|| format!("cannot read {file}"))?;
     let want = file_identity(&img, &file)?;
     node.hello()?;
-    check_preop(node)?;
     let id = node.id;
     let product = node.client.read_u32(id, 0x1018, 2)?;
+    let board = Board {
+        bus: node.client.bus_name().to_string(),
+        node_id: id,
+        serial: format!("{:#010x}", node.client.read_u32(id, 0x1018, 4)?),
+        product: format!("{product:#010x}"),
+        firmware_before: node.client.read_string(id, 0x100A, 0)?,
+    };
+    let mut rec = UpdateRecord::begin(board, &a.file, &img, &want);
+    let r = update(node, &img, &want, product, &mut rec);
+    let flash = node.client.read_u32(id, 0x1F57, 1).ok();
+    rec.finish(&r, flash);
+    let path = a.record.clone().unwrap_or_else(|| rec.default_name());
+    match (rec.write(&path), r) {
+        (Ok(()), r) => {
+            eprintln!("update record: {}", path.display());
+            r
+        }
+        (Err(w), Ok(())) => Err(w.context(format!(
+            "{}: updated, but the record was not written",
+            node.name()
+        ))),
+        (Err(w), Err(e)) => {
+            eprintln!("perpend node update: the record was not written either: {w:#}");
+            Err(e)
+        }
+    }
+}
+
+/// The steps after the board is identified, each noted in `rec`.
+fn update(
+    node: &mut Node,
+    img: &[u8],
+    want: &Identity,
+    product: u32,
+    rec: &mut UpdateRecord,
+) -> Result<()> {
+    let file = rec.image.path.clone();
+    rec.fails_as("refused");
+    check_preop(node)?;
+    let id = node.id;
     if want.product != product {
         bail!(
             "{file} is for product {:#010x}, {} is product {product:#010x}: nothing was written",
@@ -159,28 +217,40 @@ pub fn run(node: &mut Node, a: &Args) -> Result<()> {
         );
     }
     let old = node.client.read_u32(id, 0x1F56, 1)?;
+    rec.before(old);
+    rec.step(format!("pre-operational, running {}", version_words(old)));
     eprintln!("{}: running {}", node.name(), version_words(old));
     let data = (0x1F50, 1);
+    rec.fails_as("failed");
     let r = node
         .client
-        .download_block(id, data, &img, VERIFY_TIMEOUT, &mut progress(img.len()));
+        .download_block(id, data, img, VERIFY_TIMEOUT, &mut progress(img.len()));
     if std::io::stderr().is_terminal() {
         eprintln!();
     }
-    r.map_err(|e| download_failed(node, e))?;
-    start_and_check(node, old, want.identification())
+    if let Err(e) = r {
+        return Err(download_failed(node, e, rec));
+    }
+    rec.step(format!(
+        "{} B downloaded to 0x1F50 sub 1, verified by the board",
+        img.len()
+    ));
+    start_and_check(node, old, want.identification(), rec)
 }
 
 /// 0x1F51 start, the restart, and the check of 0x1F56 after it.
-fn start_and_check(node: &mut Node, old: u32, new: u32) -> Result<()> {
+fn start_and_check(node: &mut Node, old: u32, new: u32, rec: &mut UpdateRecord) -> Result<()> {
     let id = node.id;
     if let Err(e) = node.client.download(id, 0x1F51, 1, &[od::PROGRAM_START]) {
-        return Err(download_failed(node, e));
+        return Err(download_failed(node, e, rec));
     }
+    rec.step("0x1F51 sub 1 = start");
     node.client
         .wait_bootup(id, RESTART_TIMEOUT)
         .map_err(|e| anyhow::anyhow!("{e}: the board did not restart after \"start\""))?;
+    rec.step("boot-up received");
     let now = node.client.read_u32(id, 0x1F56, 1)?;
+    rec.after(now);
     if now == new {
         println!(
             "{}: updated from {} to {}",
@@ -191,6 +261,7 @@ fn start_and_check(node: &mut Node, old: u32, new: u32) -> Result<()> {
         return Ok(());
     }
     if now == old {
+        rec.fails_as("rolled back");
         bail!(
             "{}: the new image {} did not confirm itself and the bootloader rolled back: it \
              runs {} again. Check the new firmware (it must come up completely and mark \
