@@ -306,7 +306,7 @@ pub fn ci(args: &[String]) -> Result<()> {
         &mut cmd(&c, &["clippy", "--all-targets", "--", "-D", "warnings"]),
         nothing,
     )?;
-    r.step("host tests", &mut cmd(&c, &["test"]), tests_done)?;
+    r.step("host tests", &mut xtask(&["test"]), tests_done)?;
     // The `perpend` binary is built now: the peer tests run alongside the
     // firmware steps (see the module header).
     let peer = r.start(

@@ -2,6 +2,8 @@
 //!
 //! * `ci [--no-fuzz] [--verbose]` — everything CI checks, in order (the
 //!   README's test command), after the prerequisite checks of `setup`.
+//! * `test [--jobs N]` — the host tests (`cargo test`), N test binaries
+//!   at a time (see `testrun.rs`); CI's "host tests" step.
 //! * `setup [--no-fuzz]` — check and install the prerequisites only.
 //! * `demo` — build and run `perpend demo`.
 //! * `cell-demo` — the cell calibration end to end against a virtual
@@ -28,6 +30,7 @@ mod fw;
 mod hil;
 mod setup;
 mod sign;
+mod testrun;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
@@ -145,51 +148,24 @@ fn fuzz(args: &[String]) -> Result<()> {
             "fuzz",
         ],
     )?;
+    // Two targets at a time: each libFuzzer run is one process on one core.
     let mut summary = Vec::new();
-    for t in &targets {
-        let max = format!("-max_total_time={seconds}");
-        eprintln!("\n==> fuzz {t} for {seconds} s");
-        let dirs = corpus_dirs(t)?;
-        let out = Command::new("rustup")
-            .args([
-                "run",
-                "nightly",
-                "cargo",
-                "fuzz",
-                "run",
-                "--fuzz-dir",
-                "fuzz",
-                t,
-            ])
-            .args(&dirs)
-            .args(["--", &max])
-            .current_dir(root())
-            .output()
-            .map_err(|e| format!("cannot start cargo fuzz: {e}"))?;
-        let log = String::from_utf8_lossy(&out.stderr);
-        let done = log
-            .lines()
-            .rev()
-            .find(|l| l.starts_with("Done "))
-            .unwrap_or("")
-            .to_string();
-        let cov = log
-            .lines()
-            .rev()
-            .find(|l| l.starts_with('#') && l.contains("cov:"))
-            .and_then(|l| l.split_whitespace().skip_while(|w| *w != "cov:").nth(1))
-            .unwrap_or("?")
-            .to_string();
-        if !out.status.success() {
-            eprintln!("{log}");
-            let crashed = log.contains("==ERROR: libFuzzer") || log.contains("deadly signal");
-            return Err(if crashed {
-                format!("fuzz target {t} found a crash (artifact under fuzz/artifacts/{t}/)")
-            } else {
-                format!("fuzz target {t} did not run (build or start failed, see above)")
-            });
+    for pair in targets.chunks(2) {
+        let done: Vec<Result<String>> = std::thread::scope(|s| {
+            let runs: Vec<_> = pair
+                .iter()
+                .map(|t| s.spawn(move || fuzz_one(t, seconds)))
+                .collect();
+            runs.into_iter()
+                .map(|h| {
+                    h.join()
+                        .unwrap_or_else(|_| Err("a fuzz thread panicked".into()))
+                })
+                .collect()
+        });
+        for d in done {
+            summary.push(d?);
         }
-        summary.push(format!("{t:>14}: {done}, coverage {cov} edges, 0 crashes"));
     }
     eprintln!("\nfuzz summary ({seconds} s per target):");
     for s in summary {
@@ -203,10 +179,58 @@ fn demo() -> Result<()> {
     run(&c, &["run", "--quiet", "-p", "perpend-cli", "--", "demo"])
 }
 
+/// One fuzz target for `seconds`: its summary line, or why it failed.
+fn fuzz_one(t: &str, seconds: u64) -> Result<String> {
+    let max = format!("-max_total_time={seconds}");
+    eprintln!("==> fuzz {t} for {seconds} s");
+    let dirs = corpus_dirs(t)?;
+    let out = Command::new("rustup")
+        .args([
+            "run",
+            "nightly",
+            "cargo",
+            "fuzz",
+            "run",
+            "--fuzz-dir",
+            "fuzz",
+            t,
+        ])
+        .args(&dirs)
+        .args(["--", &max])
+        .current_dir(root())
+        .output()
+        .map_err(|e| format!("cannot start cargo fuzz: {e}"))?;
+    let log = String::from_utf8_lossy(&out.stderr);
+    let done = log
+        .lines()
+        .rev()
+        .find(|l| l.starts_with("Done "))
+        .unwrap_or("")
+        .to_string();
+    let cov = log
+        .lines()
+        .rev()
+        .find(|l| l.starts_with('#') && l.contains("cov:"))
+        .and_then(|l| l.split_whitespace().skip_while(|w| *w != "cov:").nth(1))
+        .unwrap_or("?")
+        .to_string();
+    if !out.status.success() {
+        eprintln!("{log}");
+        let crashed = log.contains("==ERROR: libFuzzer") || log.contains("deadly signal");
+        return Err(if crashed {
+            format!("fuzz target {t} found a crash (artifact under fuzz/artifacts/{t}/)")
+        } else {
+            format!("fuzz target {t} did not run (build or start failed, see above)")
+        });
+    }
+    Ok(format!("{t:>14}: {done}, coverage {cov} edges, 0 crashes"))
+}
+
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let res = match args.first().map(String::as_str) {
         Some("ci") => ci::ci(&args[1..]),
+        Some("test") => testrun::test(&args[1..]),
         Some("setup") => ci::setup_only(&args[1..]),
         Some("demo") => demo(),
         Some("cell-demo") => cell::cell_demo(),
@@ -217,7 +241,7 @@ fn main() -> ExitCode {
         Some("size") => fw::size(&args[1..]),
         Some("mcu-bench") => fw::mcu_bench(&args[1..]),
         Some("hil") => hil::hil(&args[1..]),
-        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw [--sign KEY]|keygen OUT|size|mcu-bench [--json]|hil [--qemu]|fuzz [--seconds N] [TARGET...]>".to_string()),
+        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|test [--jobs N]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw [--sign KEY]|keygen OUT|size|mcu-bench [--json]|hil [--qemu]|fuzz [--seconds N] [TARGET...]>".to_string()),
     };
     match res {
         Ok(()) => ExitCode::SUCCESS,
