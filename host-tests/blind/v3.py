@@ -31,7 +31,8 @@ These runs are NOT in the reduced grid CI checks: the diagnosis of this
 round fails them (docs/diagnosis.md, "Blind grid v3"). Run them with
 `host-tests/blind/run.sh --v3` or `score.py --v3 --perpend BIN`. Seeds
 from 3000000 (the default) are for tuning; report from another
-`--seed-base`. Only the standard library is used.
+`--seed-base`. test_v3.py checks gen.py's additions. Only the standard
+library is used.
 """
 
 import argparse
