@@ -36,9 +36,30 @@ singles nor the diagnosis's candidates have):
 Temperatures are monotonic (a warm-up, no swing), so thermal and drift are
 time-like and may only be told apart when the lag bends the relation.
 
+The v3 block (`score.py --v3`, v3.py: the cases of issue 35), with
+`normal_cost` in the case: truth.json then carries what the effects cost
+the calibrated normal (`normal_err_deg` over `normal_floor_deg`: the
+paper's model's held-out RMS normal error, against the true planes, on the
+readings as written and on the same readings with the true effects
+removed, same folds), the effects' drawn parameters and `temp_time_r`:
+
+| effect / case key | reading error added (mm), or what                        |
+|-------------------|-------------------------------------------------------------|
+| incidence_spot    | k * tan(gamma)^2 * cos(phi - psi_i): the spot's stretch, projected on the receiver's azimuth psi_i about the beam (phi: the surface tilt's azimuth); capped at 1 mm over the run |
+| gain2             | gain (above) on two of the four sensors                     |
+| drift_linear      | A_i * t / t_end                                             |
+| thermal_tied      | k_i * (T_head - T_head(0)): the reading tied to the logged head temperature, no lag |
+| hysteresis        | -h_i * sign(d - d_prev): the reading lags the sensor's last move (d_prev: its distance at the pose before); h_i = size x 0.6-1.4, not rescaled |
+| warmup: plateau   | head temperature T0 + dT tanh(t / tau), tau 0.10-0.15 of the run (plateau from 30-45 % of it) |
+| warmup: ramp      | the same, tau 1.0-1.5 runs: the run ends on the rise (|r(T, t)| > 0.98) |
+| reversal: N       | poses // N planned poses, each at the last joint's angles 0, 360/N, ... deg (`perpend plan --reversal N`); poses.csv gains joint_deg and base_pose, plan.csv is written |
+| tracker_tilt_deg  | [ex, ey]: the tracker reports every plane turned by -eps about the plate's x and y axes (pivot on the spindle axis), so it turns against the head with the joint; truth.json gains `true_planes` |
+
 Usage: gen.py CASE.json OUTDIR   (CASE: the parameters of one run, see
-`draw_case` in score.py) writes OUTDIR/sensors.csv, OUTDIR/poses.csv and
-OUTDIR/truth.json (the hidden truth; the tool under test never reads it).
+`make_case` in score.py and `make_v3_case` in v3.py) writes
+OUTDIR/sensors.csv, OUTDIR/poses.csv (and OUTDIR/plan.csv with `reversal`)
+and OUTDIR/truth.json (the hidden truth; the tool under test never reads
+it).
 Only the standard library is used.
 """
 
@@ -203,7 +224,7 @@ def tracker_fit(plane, rng, xi, points, patch, centre):
 def effect_error(kind, par, i, ctx):
     """Reading error [mm] of sensor i (0-based) for one effect."""
     d = ctx["d"][i]
-    if kind == "gain":
+    if kind in ("gain", "gain2"):
         return par["g"][i] * (d - ctx["d_lo"][i])
     if kind == "linearity_s":
         x = (d - ctx["mid"][i]) / ctx["half"][i]
@@ -235,6 +256,39 @@ def effect_error(kind, par, i, ctx):
         return par["A"][i] * (1.0 - math.exp(-ctx["t"] / par["tau"]))
     if kind == "ripple":
         return par["A"] * math.sin(2 * math.pi * d / par["lam"] + par["ph"][i])
+    return v3_error(kind, par, i, ctx)
+
+
+def spot_form(n, u, psi):
+    """The shape of a triangulation spot's centroid bias on a surface of
+    normal `n` seen along beam `u`: the spot stretches as tan^2 of the
+    incidence angle, and its centroid moves with the stretch's projection
+    on the receiver's azimuth `psi` about the beam (in a frame fixed to
+    the beam): tan(gamma)^2 * cos(phi - psi), phi the azimuth of the
+    surface's tilt about the beam. Neither 1/cos - 1 nor symmetric."""
+    t1 = unit(cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    t2 = cross(u, t1)
+    c = abs(dot(n, u))
+    s1, s2 = dot(n, t1), dot(n, t2)
+    tan2 = (s1 * s1 + s2 * s2) / max(1e-12, c * c)
+    return tan2 * math.cos(math.atan2(s2, s1) - psi)
+
+
+def v3_error(kind, par, i, ctx):
+    """Reading error [mm] of sensor i for the effects of the v3 block
+    (`score.py --v3`, the cases of issue 35)."""
+    d = ctx["d"][i]
+    if kind == "incidence_spot":
+        return par["k"] * spot_form(ctx["n"], ctx["u"][i], par["psi"][i])
+    if kind == "drift_linear":
+        return par["A"][i] * ctx["t"] / ctx["t_end"]
+    if kind == "thermal_tied":
+        return par["k"][i] * (ctx["T_head"] - ctx["T_head0"])
+    if kind == "hysteresis":
+        # the reading lags behind the move: low after a move outwards
+        prev = ctx["d_prev"]
+        sign = par["first"][i] if prev is None else (1.0 if d >= prev[i] else -1.0)
+        return -par["h"][i] * sign
     raise ValueError(kind)
 
 
@@ -278,6 +332,19 @@ def draw_effect(kind, rng, size_mm, span_mm):
     if kind == "ripple":
         return {"A": size_mm, "lam": rng.uniform(0.8, 2.0),
                 "ph": [rng.uniform(0, 2 * math.pi) for _ in range(4)]}
+    if kind == "gain2":
+        which = rng.sample(range(4), 2)
+        return {"g": [a / span_mm if i in which else 0.0 for i, a in enumerate(per_sensor())]}
+    if kind == "incidence_spot":
+        return {"k": None, "size": size_mm, "psi": [rng.uniform(0, 2 * math.pi) for _ in range(4)]}
+    if kind == "drift_linear":
+        return {"A": per_sensor()}
+    if kind == "thermal_tied":
+        return {"k": None, "size": size_mm, "signs": per_sensor()}
+    if kind == "hysteresis":
+        # not rescaled: h is the size asked for (x0.6-1.4 per sensor)
+        return {"h": [size_mm * rng.uniform(0.6, 1.4) for _ in range(4)],
+                "first": [rng.choice([-1.0, 1.0]) for _ in range(4)]}
     raise ValueError(kind)
 
 
@@ -292,6 +359,9 @@ PHYSICAL = {
     "thermal": 0.020,        # <= 20 um/C
     "drift": 0.10,           # settling amplitude <= 100 um
     "ripple": 0.03,          # <= 30 um
+    # the v3 spot bias: up to 1 mm over the run (a shiny or rough surface
+    # at 20-40 deg of incidence; an effect the geometry absorbs mostly)
+    "incidence_spot": 1.0,
 }
 
 
@@ -301,8 +371,10 @@ def physical_cap(kind, par, span, gammas, temps):
     def cap(value, limit):
         return limit / value if value > 1e-15 else float("inf")
 
-    if kind == "gain":
+    if kind in ("gain", "gain2"):
         return cap(max(abs(g) for g in par["g"]), PHYSICAL["gain"])
+    if kind == "incidence_spot":
+        return cap(abs(par["k"]) * par["range"], PHYSICAL["incidence_spot"])
     if kind.startswith("linearity"):
         return cap(max(abs(a) for a in par["A"]), PHYSICAL["linearity"] * span)
     if kind.startswith("incidence"):
@@ -314,9 +386,9 @@ def physical_cap(kind, par, span, gammas, temps):
     if kind == "crosstalk_sq":
         # the carry-over's share at the largest step
         return cap(par["c"] * par["step_max"], PHYSICAL["crosstalk"])
-    if kind in ("thermal_lag", "thermal_lag2"):
+    if kind in ("thermal_lag", "thermal_lag2", "thermal_tied"):
         return cap(max(abs(k) for k in par["k"]), PHYSICAL["thermal"])
-    if kind == "drift_settle":
+    if kind in ("drift_settle", "drift_linear"):
         return cap(max(abs(a) for a in par["A"]), PHYSICAL["drift"])
     if kind == "ripple":
         return cap(abs(par["A"]), PHYSICAL["ripple"])
@@ -413,33 +485,46 @@ def refit_residuals(e, u, planes, target):
     return [t - beam_distance(e2, u2, pl) for t, pl in zip(target, planes)]
 
 
-def oracle_heldout(head, planes, target, skip, rng):
-    """The floor on these very draws, held out as the diagnosis holds out:
-    readings with the true effects removed (`target`), every sensor's zero
-    point and direction fitted on k-1 folds of the poses (those in `skip`,
-    the blunders, left out) and each held-out reading predicted. What a
-    calibration that knew the effects exactly would achieve on this run.
-    k follows the diagnosis's documented convention: 10 folds below 100
-    poses (at most half the poses, at least 5), 5 from 100 on. Returns
-    the held-out residual of every pose and sensor (None for `skip` and
-    for missing readings)."""
+def heldout_fit(head, planes, target, skip, rng):
+    """Every sensor's zero point and direction fitted by k-fold
+    cross-validation by pose to the readings `target` of `planes` (the
+    poses in `skip`, the blunders, left out). k follows the diagnosis's
+    documented convention: 10 folds below 100 poses (at most half the
+    poses, at least 5), 5 from 100 on; the folds are drawn from `rng`.
+    Returns (fold of each kept pose, the fitted head of each fold)."""
     keep = [j for j in range(len(planes)) if j not in skip]
     k = max(5, min(10, len(keep) // 2)) if len(keep) < 100 else 5
     order = keep[:]
     rng.shuffle(order)
     fold = {j: n % k for n, j in enumerate(order)}
-    out = [[None] * len(head) for _ in planes]
+    heads = []
     for f in range(k):
         train = [j for j in keep if fold[j] != f]
-        test = [j for j in keep if fold[j] == f]
+        fitted = []
         for i, (e, u) in enumerate(head):
             tr = [j for j in train if target[j][i] is not None]
-            e2, u2 = refit(e, u, [planes[j] for j in tr], [target[j][i] for j in tr],
-                           damped=True)
-            for j in test:
-                if target[j][i] is not None:
-                    out[j][i] = target[j][i] - beam_distance(e2, u2, planes[j])
-    return out
+            fitted.append(refit(e, u, [planes[j] for j in tr], [target[j][i] for j in tr],
+                                damped=True))
+        heads.append(fitted)
+    return fold, heads
+
+
+def oracle_heldout(head, planes, target, skip, rng, fit=None):
+    """The floor on these very draws, held out as the diagnosis holds out:
+    readings with the true effects removed (`target`), every sensor's zero
+    point and direction fitted on k-1 folds of the poses (`heldout_fit`)
+    and each held-out reading predicted. What a calibration that knew the
+    effects exactly would achieve on this run. Returns the held-out
+    residual of every pose and sensor (None for `skip` and for missing
+    readings) and the fit (`fit`, when given, is used instead of
+    fitting again)."""
+    fold, heads = fit if fit is not None else heldout_fit(head, planes, target, skip, rng)
+    out = [[None] * len(head) for _ in planes]
+    for j, f in fold.items():
+        for i, (e2, u2) in enumerate(heads[f]):
+            if target[j][i] is not None:
+                out[j][i] = target[j][i] - beam_distance(e2, u2, planes[j])
+    return out, (fold, heads)
 
 
 def visible_rms(head, planes, true_d, errs):
@@ -490,15 +575,18 @@ def generate(case):
     xi = 0.02 * case.get("tracker_factor", 1.0)
 
     # poses: tilt about x and y, standoff along the axis
-    planes, times = [], []
+    planes, times, frame = [], [], None
     t = 0.0
-    for _ in range(n_poses):
+    if case.get("reversal"):
+        planes, times, frame = reversal_poses(case, rng, g["standoff"], spread, std_range)
+    for _ in range(0 if frame else n_poses):
         ax, ay = rng.uniform(-spread, spread), rng.uniform(-spread, spread)
         n = tilt([0.0, 0.0, -1.0], ax, ay)
         s = g["standoff"] + rng.uniform(-std_range / 2, std_range / 2)
         planes.append(plane_through(n, [0.0, 0.0, s]))
         t += rng.uniform(20.0, 45.0)
         times.append(t)
+    n_poses = len(planes)
     t_end = times[-1]
     # head temperature: warm-up (monotonic), logged with 0.05 C noise
     T0 = rng.uniform(20.0, 23.0)
@@ -519,6 +607,8 @@ def generate(case):
         head_T.append(th)
         sensor_T.append(ts)
         sensor_T2.append(ts2)
+    if case.get("warmup"):
+        head_T, dT = warmup(case, times)
 
     true_d = [[beam_distance(e, u, p) for (e, u) in truth] for p in planes]
     gam = [[math.acos(min(1.0, abs(dot(p[0], u)))) for (_, u) in truth] for p in planes]
@@ -531,7 +621,9 @@ def generate(case):
     def context(k):
         return {"d": true_d[k], "d_lo": d_lo, "mid": mid, "half": half, "gamma": gam[k],
                 "t": times[k], "t_sensor": sensor_T[k], "t_sensor2": sensor_T2[k],
-                "T0": sensor_T[0]}
+                "T0": sensor_T[0], "n": planes[k][0], "u": [u for _, u in truth],
+                "t_end": t_end, "T_head": head_T[k], "T_head0": head_T[0],
+                "d_prev": true_d[k - 1] if k else None}
 
     effects, visible = [], []
     for kind, size in case["effects"]:
@@ -552,6 +644,7 @@ def generate(case):
             lagged = sensor_T if kind == "thermal_lag" else sensor_T2
             rise = max(1e-9, lagged[-1] - lagged[0])
             par["k"] = [s / rise for s in par["signs"]]
+        v3_setup(kind, par, size, rng, [context(k) for k in range(n_poses)])
         effects.append((kind, par))
 
     # Scale every effect so that what the paper's model cannot absorb (the
@@ -564,6 +657,8 @@ def generate(case):
         vis = visible_rms(truth, planes, true_d, errs)
         want = case["effects"][j][1]
         f = want / vis if vis > 1e-12 else 0.0
+        if kind == "hysteresis":
+            f = 1.0  # sized by h itself
         # ... within what real sensors and heads show (PHYSICAL): an effect
         # the geometry absorbs almost whole stays small and barely visible.
         f = min(f, physical_cap(kind, par, span, [g for r in gam for g in r], sensor_T))
@@ -593,7 +688,9 @@ def generate(case):
                 reads.append(true_d[k][i] + err + reading_noise(case, rng, sig_i[i], true_d[k][i],
                                                                 d_lo[i], d_hi[i]))
         centre = [0.0, 0.0, -p[1] / p[0][2]]
-        meas = tracker_fit(p, rng, xi, 20, 150.0, centre)
+        # with a tracker tilt, the tracker measures the plane it reports
+        meas = tracker_fit(reported(p, frame["eps_tcs"][k]) if frame else p, rng, xi, 20, 150.0,
+                           centre)
         if k in blunders:
             meas = (meas[0], meas[1] + 0.4 * rng.choice([-1, 1]))
         # the readings less the true effects, for the floor on these draws
@@ -601,17 +698,165 @@ def generate(case):
                       for i in range(4)])
         rows.append({"pose": k + 1, "plane": meas, "reads": reads, "sds": sds,
                      "t": times[k], "T": head_T[k] + rng.gauss(0, 0.05)})
+        if frame:
+            rows[-1].update({"joint": frame["joint_deg"][k], "base": frame["base_pose"][k]})
     spatter = damage(case, rows, clean, blunders)
-    oracle = oracle_heldout(truth, [r["plane"] for r in rows], clean, blunders | spatter,
-                            random.Random(case["seed"] + 11))
-    return nominal, rows, {"effects": [[k, s] for k, s in case["effects"]],
-                           "visible_rms_mm": visible,
-                           "crosstalk_order": [p.get("order") for _, p in effects if "order" in p],
-                           "blunder_poses": sorted(b + 1 for b in blunders),
-                           "spatter_poses": sorted(k + 1 for k in spatter),
-                           "oracle_heldout_mm": oracle,
-                           "sigma_mm": sig_i, "tracker_xi_mm": xi,
-                           "temp_rise_c": dT, "run_s": t_end}
+    oracle, fit = oracle_heldout(truth, [r["plane"] for r in rows], clean, blunders | spatter,
+                                 random.Random(case["seed"] + 11))
+    extra = {}
+    if case.get("normal_cost"):
+        extra = normal_cost(truth, planes, rows, clean, blunders | spatter, fit, case["seed"])
+        extra["effect_par"] = [[kind, par] for kind, par in effects]
+        extra["temp_time_r"] = correlation(times, head_T)
+    if frame:
+        extra["tracker_tilt_deg"] = case.get("tracker_tilt_deg", [0.0, 0.0])
+        extra["true_planes"] = [[list(n), d] for n, d in planes]
+    hidden = {"effects": [[k, s] for k, s in case["effects"]],
+              "visible_rms_mm": visible,
+              "crosstalk_order": [p.get("order") for _, p in effects if "order" in p],
+              "blunder_poses": sorted(b + 1 for b in blunders),
+              "spatter_poses": sorted(k + 1 for k in spatter),
+              "oracle_heldout_mm": oracle,
+              "sigma_mm": sig_i, "tracker_xi_mm": xi,
+              "temp_rise_c": dT, "run_s": t_end}
+    hidden.update(extra)
+    return nominal, rows, hidden
+
+
+def rot_z(v, t):
+    c, s = math.cos(t), math.sin(t)
+    return [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]]
+
+
+def rotate(v, w):
+    """v turned by the rotation vector w (Rodrigues' formula)."""
+    a = norm(w)
+    if a < 1e-15:
+        return v[:]
+    k = scale(w, 1.0 / a)
+    return add(add(scale(v, math.cos(a)), scale(cross(k, v), math.sin(a))),
+               scale(k, dot(k, v) * (1.0 - math.cos(a))))
+
+
+def reversal_poses(case, rng, standoff, spread, std_range):
+    """Poses of a reversal run (`case["reversal"]` = N joint angles):
+    `poses // N` planned tilts and standoffs, each visited at the last
+    joint's angles 0, 360/N, ... deg in turn. The head turns by theta about
+    its spindle axis (+z), the datum plate does not: in the head's frame
+    the plate's normal turns by -theta. A tracker tilt eps (rad, about the
+    plate frame's x and y, `case["tracker_tilt_deg"]`) is a rotation fixed
+    to the plate; in the head's frame at a pose it is the vector M eps,
+    M = Rz(-theta) Ry(ay) Rx(ax) the head-from-plate rotation of that pose,
+    so it turns against the head when the joint turns. Returns the true
+    planes, the times and the frame data of every pose."""
+    n_turn = int(case["reversal"])
+    eps = [math.radians(x) for x in case.get("tracker_tilt_deg", [0.0, 0.0])] + [0.0]
+    planes, times, joints, bases, eps_tcs = [], [], [], [], []
+    t = 0.0
+    for b in range(case["poses"] // n_turn):
+        ax, ay = rng.uniform(-spread, spread), rng.uniform(-spread, spread)
+        s = standoff + rng.uniform(-std_range / 2, std_range / 2)
+        for j in range(n_turn):
+            theta = 2 * math.pi * j / n_turn
+            n = unit(rot_z(rot_y(rot_x([0.0, 0.0, -1.0], ax), ay), -theta))
+            planes.append(plane_through(n, [0.0, 0.0, s]))
+            eps_tcs.append(rot_z(rot_y(rot_x(eps, ax), ay), -theta))
+            joints.append(math.degrees(theta))
+            bases.append(b + 1)
+            t += rng.uniform(20.0, 45.0)
+            times.append(t)
+    return planes, times, {"joint_deg": joints, "base_pose": bases, "eps_tcs": eps_tcs}
+
+
+def reported(plane, eps_tcs):
+    """The plane as a tilted tracker reports it: the true one turned by
+    -eps_tcs about the point where the spindle axis meets it."""
+    n, d = plane
+    pivot = [0.0, 0.0, -d / n[2]]
+    return plane_through(unit(rotate(n, scale(eps_tcs, -1.0))), pivot)
+
+
+def warmup(case, times):
+    """The head temperature of a v3 warm-up run (`case["warmup"]`), drawn
+    from its own stream: T0 + dT * tanh(t / tau), a heater that brings the
+    head to a plateau (not the first-order curve the diagnosis's lag
+    assumes). "plateau": tau = 0.10-0.15 of the run, the plateau (99.5 %)
+    reached by 30-45 % of it, so that a time-linear drift and the
+    temperature part ways; "ramp": tau = 1.0-1.5 runs, the run ends on the
+    rise and the temperature follows the time (|r| > 0.98). Returns the
+    temperatures and the rise dT."""
+    wr = random.Random(case["seed"] + 17)
+    t0 = wr.uniform(20.0, 23.0)
+    dt = wr.uniform(4.0, 9.0)
+    frac = {"plateau": (0.10, 0.15), "ramp": (1.0, 1.5)}[case["warmup"]]
+    tau = wr.uniform(*frac) * times[-1]
+    return [t0 + dt * math.tanh(t / tau) for t in times], dt
+
+
+def v3_setup(kind, par, size, rng, ctxs):
+    """Scales a v3 effect's drawn shape to `size` before the visible
+    rescaling of `generate` (as the catalogue's incidence and thermal are)."""
+    if kind == "incidence_spot":
+        vals = [spot_form(c["n"], c["u"][i], par["psi"][i]) for c in ctxs for i in range(4)]
+        par["range"] = max(1e-9, max(vals) - min(vals))
+        par["k"] = size / par["range"] * rng.choice([-1, 1])
+    if kind == "thermal_tied":
+        rise = max(1e-9, abs(ctxs[-1]["T_head"] - ctxs[0]["T_head"]))
+        par["k"] = [s / rise for s in par["signs"]]
+
+
+def correlation(xs, ys):
+    """Pearson's r of two equal-length lists."""
+    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+    sxy = sum((x - mx) * (y - my) for x, y in zip(xs, ys))
+    sxx = sum((x - mx) ** 2 for x in xs)
+    syy = sum((y - my) ** 2 for y in ys)
+    return sxy / math.sqrt(max(1e-300, sxx * syy))
+
+
+def plane_normal(head, reads):
+    """The unit normal (z component negative, towards the head) of the
+    least-squares plane z = a x + b y + c through the spots e_i + r_i u_i
+    of the readings that are there (None when fewer than 3)."""
+    pts = [add(e, scale(u, r)) for (e, u), r in zip(head, reads) if r is not None]
+    if len(pts) < 3:
+        return None
+    rows = [[p[0], p[1], 1.0] for p in pts]
+    ata = [[sum(r[a] * r[b] for r in rows) for b in range(3)] for a in range(3)]
+    atz = [sum(r[a] * p[2] for r, p in zip(rows, pts)) for a in range(3)]
+    sol = solve(ata, atz)
+    return None if sol is None else unit([sol[0], sol[1], -1.0])
+
+
+def heldout_normal_deg(fit, true_planes, reads):
+    """Angle [deg] between each held-out pose's normal (from its readings
+    `reads` and the head of the fold that left it out) and the true
+    plane's normal."""
+    fold, heads = fit
+    out = []
+    for j, f in sorted(fold.items()):
+        n = plane_normal(heads[f], reads[j])
+        if n is not None:
+            out.append(math.degrees(math.acos(min(1.0, abs(dot(n, true_planes[j][0]))))))
+    return out
+
+
+def normal_cost(head, true_planes, rows, clean, skip, fit_clean, seed):
+    """What the effects cost the calibrated normal on this run: the RMS
+    held-out normal error of the paper's model fitted to the readings as
+    written (effects in), over the same with the true effects removed (the
+    same-draw floor in normal error: the same noise, planes and folds)."""
+    meas = [r["plane"] for r in rows]
+    reads = [r["reads"] for r in rows]
+    fit = heldout_fit(head, meas, reads, skip, random.Random(seed + 11))
+
+    def rms(xs):
+        return math.sqrt(sum(x * x for x in xs) / max(1, len(xs)))
+
+    eff = rms(heldout_normal_deg(fit, true_planes, reads))
+    floor = rms(heldout_normal_deg(fit_clean, true_planes, clean))
+    return {"normal_err_deg": eff, "normal_floor_deg": floor,
+            "normal_cost": eff / floor if floor > 0 else float("inf")}
 
 
 def write(case, out):
@@ -637,6 +882,8 @@ def write(case, out):
         cols = ["pose", "a", "b", "c", "d_mm", "d1_mm", "d2_mm", "d3_mm", "d4_mm", "t_s", "temp_c"]
         if case.get("n_samples"):
             cols += ["s1_mm", "s2_mm", "s3_mm", "s4_mm", "n_samples"]
+        if case.get("reversal"):
+            cols += ["joint_deg", "base_pose"]
         f.write(",".join(cols) + "\n")
         for j in order:
             r = rows[j]
@@ -646,10 +893,25 @@ def write(case, out):
             vals += ["%.1f" % r["t"], "%.3f" % r["T"]]
             if case.get("n_samples"):
                 vals += ["%.6f" % x for x in r["sds"]] + [str(case["n_samples"])]
+            if case.get("reversal"):
+                vals += ["%.3f" % r["joint"], str(r["base"])]
             f.write(",".join(vals) + "\n")
+    if case.get("reversal"):
+        write_plan(rows, os.path.join(out, "plan.csv"))
     truth["case"] = case
     with open(os.path.join(out, "truth.json"), "w") as f:
         json.dump(truth, f, indent=1)
+
+
+def write_plan(rows, path):
+    """The joint angle of every pose, as `perpend plan --reversal` names
+    its columns (pose, joint_deg, base_pose), for `perpend cell run
+    --reversal --plan`."""
+    with open(path, "w") as f:
+        f.write("# written by host-tests/blind/gen.py: the joint angle of every pose\n")
+        f.write("pose,joint_deg,base_pose\n")
+        for r in rows:
+            f.write("%d,%.3f,%d\n" % (r["pose"], r["joint"], r["base"]))
 
 
 if __name__ == "__main__":
