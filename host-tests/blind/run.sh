@@ -13,9 +13,11 @@
 # directly, since `perpend bench diagnose` has no option for it. It is not
 # part of CI; the diagnosis of this round misses its goals (docs/diagnosis.md,
 # "Blind grid v3"), so --check exits 1 there.
+# Every mode first runs the generator's own checks (test_v3.py, 2 s).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
+(cd "$here" && "${PYTHON:-python3}" -m unittest -q test_v3)
 (cd "$root" && cargo build --quiet -p perpend-cli --bin perpend)
 target="${CARGO_TARGET_DIR:-$root/target}"
 case "$target" in /*) ;; *) target="$root/$target" ;; esac
