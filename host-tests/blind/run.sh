@@ -13,7 +13,8 @@
 # directly, since `perpend bench diagnose` has no option for it. It is not
 # part of CI; the diagnosis of this round misses its goals (docs/diagnosis.md,
 # "Blind grid v3"), so --check exits 1 there.
-# Every mode first runs the generator's own checks (test_v3.py, 2 s).
+# Every mode first runs the generator's own checks (test_v3.py, 2 s); the
+# default (CI) mode also the frame-error check (frames_check.py).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
@@ -28,5 +29,8 @@ fi
 if [ "${1:-}" = "--full" ]; then
     exec "$target/debug/perpend" bench diagnose --blind "$here" "$@"
 fi
+# The tracker-tilt estimate of `perpend frames` on gen.py's reversal runs
+# (frames_check.py: 10 tilted + 10 tilt-free runs per regime, ~10 s).
+"${PYTHON:-python3}" "$here/frames_check.py" "$target/debug/perpend" --runs 10
 case " $* " in *" --check "*) exec "$target/debug/perpend" bench diagnose --blind "$here" "$@" ;; esac
 exec "$target/debug/perpend" bench diagnose --blind "$here" --check "$@"

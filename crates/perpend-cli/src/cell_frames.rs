@@ -22,6 +22,59 @@ use perpend_core::geometry::Plane;
 use perpend_lab::frames::report::{summarise, FrameEstimates};
 use perpend_lab::frames::{estimate, true_plane, FrameFit, FramePose, Frames};
 
+/// Arguments of `perpend frames`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The nominal head (sensors.csv).
+    #[arg(long)]
+    pub sensors: std::path::PathBuf,
+    /// The run: the tracker's planes and the readings (poses.csv).
+    #[arg(long)]
+    pub poses: std::path::PathBuf,
+    /// The plan with the joint angle of every pose (`perpend plan
+    /// --reversal N`: columns pose, joint_deg).
+    #[arg(long)]
+    pub plan: std::path::PathBuf,
+    /// The calibration's expected normal error [deg] (`perpend calibrate`
+    /// prints it); a significant frame error larger than it is a warning.
+    /// Without it only the unresolved tracker tilt is warned about.
+    #[arg(long)]
+    pub expected_deg: Option<f64>,
+    /// One JSON object (`perpend.frames/1`) instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `perpend frames`: the joint estimate of a reversal run from its files,
+/// offline (what `cell run --reversal` does after its capture).
+///
+/// # Errors
+/// Those of [`read_joints`] and [`estimate_run`].
+pub fn run(a: &Args) -> Result<()> {
+    let joints = read_joints(&a.plan)?;
+    let expected = a.expected_deg.unwrap_or(f64::INFINITY);
+    let (fit, summary) = estimate_run(&a.sensors, &a.poses, &joints, expected)?;
+    if a.json {
+        let mut v = serde_json::to_value(&summary)?;
+        v["residual_rms_mm"] = serde_json::json!(fit.rms_mm);
+        println!(
+            "{}",
+            crate::schema::tagged_pretty(crate::schema::FRAMES, &v)
+        );
+        return Ok(());
+    }
+    for l in perpend_lab::frames::report::lines(&summary) {
+        println!("{l}");
+    }
+    println!("residual RMS of the joint fit: {:.4} mm", fit.rms_mm);
+    if a.expected_deg.is_none() {
+        println!(
+            "(no --expected-deg: significant frame errors are not weighed against the calibration)"
+        );
+    }
+    Ok(())
+}
+
 /// The joint angle [deg] of every pose of `plan` (column `joint_deg` of
 /// `perpend plan --reversal`), by pose number.
 ///

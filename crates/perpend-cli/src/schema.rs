@@ -27,6 +27,8 @@ pub const RECORD_HISTORY: &str = "perpend.record-history/1";
 pub const ERROR: &str = "perpend.error/1";
 /// `DIR/cell.json`, the figures and outcome of `perpend cell run`.
 pub const CELL: &str = "perpend.cell/1";
+/// `perpend frames --json`: the frame errors of a reversal run.
+pub const FRAMES: &str = "perpend.frames/1";
 
 /// `v` as one line of JSON with `"schema": schema` as its first key (a
 /// `schema` key `v` has is replaced). A value that is not an object is

@@ -76,7 +76,7 @@ pub fn summarise(fit: &FrameFit, joints: &[f64], expected_deg: f64) -> FrameEsti
             }
         })
         .collect();
-    let warnings = warnings(&errors, expected_deg);
+    let warnings = warnings(&errors, expected_deg, angles.len() > 1, joints.len());
     FrameEstimates {
         joint_angles_deg: angles,
         rank: fit.ident.rank,
@@ -87,7 +87,15 @@ pub fn summarise(fit: &FrameFit, joints: &[f64], expected_deg: f64) -> FrameEsti
     }
 }
 
-fn warnings(errors: &[FrameEstimate], expected_deg: f64) -> Vec<String> {
+/// The warnings of `errors`; `turned`: the run used more than one joint
+/// angle (then an unresolved tilt needs more poses or less noise, not a
+/// turn), `poses`: how many.
+pub(crate) fn warnings(
+    errors: &[FrameEstimate],
+    expected_deg: f64,
+    turned: bool,
+    poses: usize,
+) -> Vec<String> {
     let mut w = Vec::new();
     for e in errors.iter().take(2) {
         let deg = e.value.map_or(0.0, |v| (v * 1e-6).to_degrees());
@@ -99,7 +107,9 @@ fn warnings(errors: &[FrameEstimate], expected_deg: f64) -> Vec<String> {
                 e.sigma.unwrap_or(0.0)
             ));
         }
-        if !e.resolved {
+        if !e.resolved && turned {
+            w.push(unresolved_turned(e, poses));
+        } else if !e.resolved {
             w.push(format!(
                 "{} is not resolved by these poses (1σ {}): a tracker tilt would be absorbed by the head: turn the head about the spindle axis (perpend plan --reversal 4)",
                 e.name,
@@ -108,6 +118,25 @@ fn warnings(errors: &[FrameEstimate], expected_deg: f64) -> Vec<String> {
         }
     }
     w
+}
+
+/// An unresolved tracker tilt of a run that did turn the head: 1σ falls as
+/// noise/√poses, so the poses it would take at this noise.
+fn unresolved_turned(e: &FrameEstimate, poses: usize) -> String {
+    let limit = super::RESOLVE_RAD * 1e6;
+    match e.sigma {
+        Some(s) => {
+            let need = (poses as f64 * (s / limit).powi(2)).ceil();
+            format!(
+                "{} is not resolved although the head turned (1σ {s:.0} µrad, resolved below {limit:.0}): the noise of readings and tracker is too large for {poses} poses: about {need:.0} poses at this noise, or a quieter tracker; a tilt of that size is absorbed by the head meanwhile",
+                e.name
+            )
+        }
+        None => format!(
+            "{} is not identifiable from these poses although the head turned: turn it to at least 3 angles spread over 180° or more (perpend plan --reversal 4)",
+            e.name
+        ),
+    }
 }
 
 /// What no plane reading can tell (printed under every frame report).

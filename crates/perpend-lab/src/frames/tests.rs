@@ -147,3 +147,24 @@ fn no_tilt_estimates_within_two_sigma_in_95_percent_of_seeds() {
     let rate = inside as f64 / total as f64;
     assert!(rate >= 0.95, "{inside}/{total}");
 }
+
+/// An unresolved tracker tilt: "turn the head" when it did not turn, the
+/// poses it would take when it did (1σ 90 µrad over 48 poses against the
+/// 30 µrad limit: 48 · 9 = 432).
+#[test]
+fn unresolved_tilt_advice_depends_on_whether_the_head_turned() {
+    let e = report::FrameEstimate {
+        name: "tracker tilt x".into(),
+        unit: "µrad".into(),
+        value: None,
+        sigma: Some(90.0),
+        resolved: false,
+        significant: false,
+    };
+    let errors = [e.clone(), e];
+    let still = report::warnings(&errors, 0.01, false, 48);
+    assert!(still[0].contains("perpend plan --reversal 4"), "{still:?}");
+    let turned = report::warnings(&errors, 0.01, true, 48);
+    assert!(turned[0].contains("about 432 poses"), "{turned:?}");
+    assert!(!turned[0].contains("--reversal"), "{turned:?}");
+}
