@@ -46,6 +46,7 @@ pub mod blind;
 pub mod candidates;
 pub mod cv;
 pub mod expect;
+pub mod folds;
 pub mod lags;
 pub mod moments;
 pub mod noise;
@@ -68,8 +69,9 @@ use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
 use crate::sim::Tracker;
 use candidates::{available, Effect, Refs, SensorFit};
-use cv::{normal_errors, Folds};
+use cv::normal_errors;
 use expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
+pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
 use noise::{NoiseEstimate, Outlier};
 use select::{decide, Decision, Rule};
 
@@ -839,49 +841,6 @@ fn retimed(
 /// Runs below this many poses take [`SMALL_RUN_DRAWS`] effect-free draws
 /// instead of [`DRAWS`].
 pub const SMALL_RUN: usize = 50;
-/// Folds of the cross-validation below [`LARGE_RUN`] poses (at most half
-/// the poses, at least [`MIN_FOLDS`]).
-pub const FOLDS: usize = 10;
-/// Fewest folds [`folds_for`] chooses, and the folds from [`LARGE_RUN`]
-/// poses on.
-pub const MIN_FOLDS: usize = 5;
-/// Runs from this many poses on take [`MIN_FOLDS`] folds.
-pub const LARGE_RUN: usize = 100;
-
-/// The number of folds for a run of `n` poses: `requested`, or below 100
-/// poses 10 (each fit trains on 90 % of the poses; at most `n/2` folds, at
-/// least 5), from 100 poses on 5 (each fit trains on at least 80 poses).
-///
-/// Why 10 and not 5: a held-out figure estimates the error of the model
-/// fitted to *all* poses, and a fit on 80 % of them overstates it most for
-/// the most flexible candidates (4-8 parameters per sensor), most where the
-/// readings are sparse. The runs of a wide spread have isolated extreme
-/// readings; when a 5-fold split holds two of them out together, the
-/// linearity table is extrapolated over an end it never saw. On the blind
-/// ±15° sine of seed 501830 (`host-tests/blind/score.py`, 60 poses) the
-/// table's held-out RMS was 1.33×, 1.08×, 1.04×, 1.13×, 1.13× the same-draw
-/// floor with 5 folds on fold seeds 1, 3-6 (seed 2 named the cubic at
-/// 1.34×); with 10 folds 1.06-1.07× on seeds 1-4 against that 5-fold
-/// floor, and 1.10× against the 10-fold floor the grid now grades by
-/// (fold seed 1). On small runs 10
-/// folds also keep a candidate's own estimation noise from eating what it
-/// gains (the 30-pose gain beside a lagged thermal or a settling drift:
-/// paired z 2.6-2.9 against a threshold of 2.9 with 5 folds, 2.4-3.3 with
-/// 10; seeds 706407, 502035, 706324). From 100 poses on 10 folds bought
-/// nothing measurable on the blind grid's 120-pose regime (false positives
-/// 0/100, 17/17 singles, 3/3 pairs, worst 1.04× the floor with either) and
-/// cost the 120-pose speed case (the table's knot and ridge choice
-/// cross-validates in every re-simulation) 2.8-3.0 → 6.1-6.6 s on one
-/// core, over the 5 s goal. The effect-free re-simulations use the same
-/// folds, so every decision stays calibrated.
-pub fn folds_for(n: usize, requested: Option<usize>) -> usize {
-    requested.unwrap_or(if n < LARGE_RUN {
-        FOLDS.min(n / 2).max(MIN_FOLDS)
-    } else {
-        MIN_FOLDS
-    })
-}
-
 /// Monte-Carlo draws of the expectation from [`SMALL_RUN`] poses on.
 pub const DRAWS: usize = 8;
 /// Monte-Carlo draws of the expectation below [`SMALL_RUN`] poses.
@@ -1206,7 +1165,7 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
             .map_err(|why| anyhow!("not stored: {why}"))?;
         let mut p = candidates::params_of(i, &fit, s);
         // Drift is removed from the estimate, never extrapolated.
-        p.fold_drift(crate::calibrate::run_end_s(&d.poses));
+        p.fold_drift(lags::run_end_s(&d.poses));
         f.sensors.push(p);
     }
     // The sensor bodies' lag, for the board to lag its temperature alike.
