@@ -46,188 +46,38 @@ pub mod blind;
 pub mod candidates;
 pub mod cv;
 pub mod expect;
+pub mod fits;
 pub mod folds;
 pub mod lags;
+pub mod load;
 pub mod moments;
 pub mod noise;
 pub mod plot;
 pub mod report;
 pub mod scenario;
 pub mod select;
+pub mod settings;
 pub mod stats;
 pub mod study;
-
-use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Context as _, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
-use perpend_core::normal::Method;
 use serde::{Deserialize, Serialize};
 
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
-use crate::sim::Tracker;
-use candidates::{available, Effect, Refs, SensorFit};
+use candidates::{Effect, Refs, SensorFit};
 use cv::normal_errors;
 use expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
+use fits::{fit_measured, implausible_fits};
 pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
+pub(crate) use load::reading_span;
+pub use load::{available_models, declared_sigma};
+use load::{load, Loaded};
 use noise::{NoiseEstimate, Outlier};
-use select::{decide, Decision, Rule};
-
-/// Which micro-plane normal the held-out normal error uses.
-#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
-pub enum NormalMethod {
-    /// Total least-squares plane (any number of sensors; the board's default).
-    Lsq,
-    /// Chen eq. 18-19 (averaged cross products; four sensors in order).
-    Chen,
-}
-
-impl NormalMethod {
-    /// The core's method.
-    pub fn method(self) -> Method {
-        match self {
-            NormalMethod::Lsq => Method::LeastSquares,
-            NormalMethod::Chen => Method::Chen,
-        }
-    }
-}
-
-/// Arguments of `perpend diagnose`.
-#[derive(clap::Args, Debug, Clone)]
-pub struct Args {
-    /// The nominal head (sensors.csv).
-    #[arg(long)]
-    pub sensors: PathBuf,
-    /// The calibration run (poses.csv).
-    #[arg(long)]
-    pub poses: PathBuf,
-    /// Datasheet reading noise 1σ [mm] (overrides the sigma_mm column).
-    #[arg(long)]
-    pub sigma_mm: Option<f64>,
-    /// Print one JSON object instead of the report.
-    #[arg(long)]
-    pub json: bool,
-    /// Write SVG plots into this directory.
-    #[arg(long)]
-    pub plot: Option<PathBuf>,
-    /// Write the calibration of the named model (all poses; the paper's
-    /// model for none / unexplained) as parameter JSON here, extension
-    /// coefficients included.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-    /// Tracker point noise ξ (1σ per coordinate) [mm]; 0: planes exact.
-    #[arg(long, default_value_t = 0.02)]
-    pub xi_mm: f64,
-    /// Tracker points per plane fit.
-    #[arg(long, default_value_t = 20)]
-    pub tracker_points: usize,
-    /// Side of the square patch the tracker points cover [mm].
-    #[arg(long, default_value_t = 150.0)]
-    pub tracker_patch_mm: f64,
-    /// Folds of the cross-validation (split by pose); default: 10 below 100
-    /// poses (at most half the poses, at least 5), else 5 (see [`folds_for`]).
-    #[arg(long)]
-    pub folds: Option<usize>,
-    /// Monte-Carlo draws of the simulated expectation; default: 8, or 16
-    /// on runs of fewer than 50 poses (see [`draws_for`]).
-    #[arg(long)]
-    pub draws: Option<usize>,
-    /// Seed of the folds and the draws.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Family-wise level of naming an effect that is not there.
-    #[arg(long, default_value_t = 0.01)]
-    pub alpha: f64,
-    /// Normal computation for the held-out normal error.
-    #[arg(long, value_enum, default_value_t = NormalMethod::Lsq)]
-    pub normal: NormalMethod,
-}
-
-/// Settings of a diagnosis (what [`Args`] carries besides the files).
-#[derive(Debug, Clone)]
-pub struct Settings {
-    /// Reading noise override [mm].
-    pub sigma_mm: Option<f64>,
-    /// Tracker model (`None`: exact planes).
-    pub tracker: Option<Tracker>,
-    /// Folds (`None`: [`folds_for`] the run's pose count).
-    pub folds: Option<usize>,
-    /// Monte-Carlo draws (`None`: [`draws_for`] the run's pose count).
-    pub draws: Option<usize>,
-    /// Seed.
-    pub seed: u64,
-    /// Selection thresholds.
-    pub rule: Rule,
-    /// Normal method.
-    pub method: Method,
-    /// Solver settings.
-    pub lsq: LsqConfig<f64>,
-}
-
-impl Default for Settings {
-    fn default() -> Self {
-        Self {
-            sigma_mm: None,
-            tracker: Some(Tracker::paper()),
-            folds: None,
-            draws: None,
-            seed: 1,
-            rule: Rule::default(),
-            method: Method::LeastSquares,
-            lsq: LsqConfig::default(),
-        }
-    }
-}
-
-impl Settings {
-    /// From the command line.
-    ///
-    /// # Errors
-    /// Out-of-range values.
-    pub fn from_args(a: &Args) -> Result<Self> {
-        for (v, name) in [
-            (a.xi_mm, "--xi-mm"),
-            (a.tracker_patch_mm, "--tracker-patch-mm"),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                bail!("{name} must be a non-negative number, got {v}");
-            }
-        }
-        if let Some(s) = a.sigma_mm {
-            if !(s.is_finite() && s > 0.0) {
-                bail!("--sigma-mm must be a positive number, got {s}");
-            }
-        }
-        if a.folds.is_some_and(|k| k < 2) {
-            bail!("--folds must be at least 2");
-        }
-        if a.draws.is_some_and(|d| d < 3) {
-            bail!("--draws must be at least 3 (the spread of the expectation needs them)");
-        }
-        if !(a.alpha > 0.0 && a.alpha < 0.5) {
-            bail!("--alpha must be in (0, 0.5), got {}", a.alpha);
-        }
-        Ok(Self {
-            sigma_mm: a.sigma_mm,
-            tracker: (a.xi_mm > 0.0 && a.tracker_points >= 3).then_some(Tracker {
-                xi_mm: a.xi_mm,
-                points: a.tracker_points,
-                patch_mm: a.tracker_patch_mm,
-            }),
-            folds: a.folds,
-            draws: a.draws,
-            seed: a.seed,
-            rule: Rule {
-                alpha: a.alpha,
-                ..Rule::default()
-            },
-            method: a.normal.method(),
-            lsq: LsqConfig::default(),
-        })
-    }
-}
+use select::{decide, Decision};
+pub use settings::{draws_for, Args, NormalMethod, Settings, DRAWS, SMALL_RUN, SMALL_RUN_DRAWS};
 
 /// Held-out performance of a model.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -501,69 +351,9 @@ impl Diagnosis {
     }
 }
 
-/// The declared reading noise of each sensor: the override or the
-/// `sigma_mm` column; `None` when neither gives a positive value for every
-/// sensor (the diagnosis then relies on its own estimate alone).
-pub fn declared_sigma(sensors: &SensorTable, sigma_mm: Option<f64>) -> Option<Vec<f64>> {
-    if let Some(s) = sigma_mm {
-        return Some(vec![s; sensors.len()]);
-    }
-    sensors
-        .rows
-        .iter()
-        .map(|r| r.sigma_mm.filter(|s| *s > 0.0))
-        .collect()
-}
-
 fn mean_opt(v: &[Option<f64>]) -> Option<f64> {
     let x: Vec<f64> = v.iter().flatten().copied().collect();
     (!x.is_empty()).then(|| stats::mean(&x))
-}
-
-/// The paper's model and every candidate the run has the inputs for.
-pub fn available_models(poses: &PoseTable) -> Vec<Effect> {
-    std::iter::once(Effect::None)
-        .chain(
-            Effect::CATALOG
-                .into_iter()
-                .filter(|e| available(*e, poses).is_ok()),
-        )
-        .collect()
-}
-
-/// The largest `|d − d_ref|` of the run [mm] (for the plausibility bounds).
-pub(crate) fn reading_span(poses: &PoseTable, refs: &Refs) -> f64 {
-    poses
-        .rows
-        .iter()
-        .flat_map(|r| {
-            r.readings
-                .iter()
-                .enumerate()
-                .filter_map(|(i, d)| Some((d.as_ref()? - refs.d_ref.get(i)?).abs()))
-        })
-        .fold(0.0, f64::max)
-}
-
-/// Candidates whose fit on all poses leaves the physical bounds.
-fn implausible_fits(
-    nominal: &[Sensor<f64>],
-    poses: &PoseTable,
-    refs: &Refs,
-    models: &[Effect],
-    lsq: &LsqConfig<f64>,
-) -> Vec<(Effect, String)> {
-    let span = reading_span(poses, refs);
-    models
-        .iter()
-        .filter(|e| **e != Effect::None)
-        .filter_map(|&e| {
-            let fits = candidates::fit_all(nominal, poses, refs, e, lsq).ok()?;
-            candidates::plausible(e, &fits, span)
-                .err()
-                .map(|why| (e, why))
-        })
-        .collect()
 }
 
 /// Warnings about the noise: excess white noise over the declared value.
@@ -822,142 +612,6 @@ fn settle(
     }
     let decision = decide(measured, &expected, nominal.len(), &s.rule, implausible);
     Ok((estimate, noise, expected, decision))
-}
-
-/// The run without `outliers`, re-timed with the time constants chosen on
-/// it ([`lags`]; the lag filters every pose's temperature, the outliers'
-/// included).
-fn retimed(
-    nominal: &[Sensor<f64>],
-    all: &PoseTable,
-    outliers: &[Outlier],
-    lsq: &LsqConfig<f64>,
-) -> (PoseTable, lags::Lags) {
-    let kept = noise::without(all, outliers);
-    let lags = lags::select(nominal, &kept, &[Effect::Thermal, Effect::Drift], lsq);
-    (noise::without(&lags::apply(all, &lags), outliers), lags)
-}
-
-/// Runs below this many poses take [`SMALL_RUN_DRAWS`] effect-free draws
-/// instead of [`DRAWS`].
-pub const SMALL_RUN: usize = 50;
-/// Monte-Carlo draws of the expectation from [`SMALL_RUN`] poses on.
-pub const DRAWS: usize = 8;
-/// Monte-Carlo draws of the expectation below [`SMALL_RUN`] poses.
-pub const SMALL_RUN_DRAWS: usize = 16;
-
-/// The number of effect-free re-simulations of a run of `n` poses:
-/// `requested`, else [`SMALL_RUN_DRAWS`] below [`SMALL_RUN`] poses and
-/// [`DRAWS`] from there on.
-///
-/// Why more on small runs: each candidate's threshold is its null's mean
-/// plus `z*` times the null's spread over the draws, and with 8 draws
-/// that spread is itself uncertain by about a quarter. On 30-pose runs the
-/// candidates' null spreads are wide, and the scatter of their estimate
-/// costs power: on effect-free runs of tracker ×3 at 30 poses the thermal
-/// candidate's rank threshold ranged from 3.0 to 5.4 between runs, and a
-/// lagged thermal (seed 900391 of `host-tests/blind/score.py --combined`,
-/// paired z 3.3, rank z 4.0) stayed under thresholds of 3.6 and 5.7 with 8
-/// draws and was named with 16 (as `drift`: on a warm-up either is the
-/// same time-like pattern). A draw costs in proportion to the pose
-/// count, so 16 draws of 30 poses cost what 8 of 60 do.
-pub fn draws_for(n: usize, requested: Option<usize>) -> usize {
-    requested.unwrap_or(if n < SMALL_RUN {
-        SMALL_RUN_DRAWS
-    } else {
-        DRAWS
-    })
-}
-
-/// The run as the diagnosis sees it (stage "load → bad poses"): the
-/// nominal head, the poses kept (re-timed), the folds and the models the
-/// run's columns allow.
-struct Loaded {
-    nominal: Vec<Sensor<f64>>,
-    outliers: Vec<Outlier>,
-    poses: PoseTable,
-    lags: lags::Lags,
-    refs: Refs,
-    folds: Folds,
-    /// The paper's model first, then every candidate the run allows.
-    models: Vec<Effect>,
-    /// Candidates not tested and why.
-    skipped: Skipped,
-}
-
-/// Models left out of the diagnosis, each with why.
-type Skipped = Vec<(Effect, String)>;
-
-/// Reads the head, rejects the bad poses ([`noise::reject`]), re-times the
-/// rest ([`retimed`]), chooses the folds ([`folds_for`]) and the
-/// candidates the run's columns allow ([`available`]).
-///
-/// # Errors
-/// A head that does not match the poses' reading columns, too few poses
-/// for the folds.
-fn load(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> Result<Loaded> {
-    let nominal = sensors
-        .sensors()
-        .map_err(|e| anyhow!("nominal head: {e}"))?;
-    if all_poses.n_sensors != nominal.len() {
-        bail!(
-            "the poses have {} reading columns, the head {} sensors",
-            all_poses.n_sensors,
-            nominal.len()
-        );
-    }
-    let outliers = noise::reject(&nominal, all_poses, &s.lsq, &available_models(all_poses));
-    let (poses, lags) = retimed(&nominal, all_poses, &outliers, &s.lsq);
-    let n = poses.rows.len();
-    let k = folds_for(n, s.folds);
-    if n < 2 * k {
-        bail!(
-            "{n} poses are too few for {k}-fold cross-validation (need at least {})",
-            2 * k
-        );
-    }
-    let mut models = vec![Effect::None];
-    let mut skipped = Vec::new();
-    for e in Effect::CATALOG {
-        match available(e, &poses) {
-            Ok(()) => models.push(e),
-            Err(why) => skipped.push((e, why)),
-        }
-    }
-    Ok(Loaded {
-        nominal,
-        outliers,
-        refs: Refs::of(&poses),
-        folds: Folds::new(n, k, s.seed),
-        poses,
-        lags,
-        models,
-        skipped,
-    })
-}
-
-/// Stage "nominal fit → candidates": every model cross-validated on the
-/// measured run ([`analyse`]); returns the analysis, the models that could
-/// be fitted, and those that could not with why.
-///
-/// # Errors
-/// The paper's model cannot be cross-validated.
-fn fit_measured(poses: &PoseTable, plan: &Plan) -> Result<(Analysis, Vec<Effect>, Skipped)> {
-    let measured = analyse(poses, plan, true).map_err(|e| anyhow!("{e}"))?;
-    match measured.cv.first() {
-        Some((_, Ok(_))) => {}
-        Some((_, Err(e))) => bail!("the paper's model cannot be cross-validated: {e}"),
-        None => bail!("no model"),
-    }
-    let mut fitted = Vec::new();
-    let mut failed = Vec::new();
-    for (e, r) in &measured.cv {
-        match r {
-            Ok(_) => fitted.push(*e),
-            Err(why) => failed.push((*e, format!("cannot be fitted: {why}"))),
-        }
-    }
-    Ok((measured, fitted, failed))
 }
 
 /// Stage "decision", second half: the effect named first, and the forward
