@@ -45,6 +45,7 @@ pub mod bench;
 pub mod blind;
 pub mod candidates;
 pub mod cv;
+pub mod decision;
 pub mod expect;
 pub mod fits;
 pub mod folds;
@@ -55,12 +56,13 @@ pub mod noise;
 pub mod plot;
 pub mod report;
 pub mod scenario;
+pub mod scores;
 pub mod select;
 pub mod settings;
 pub mod stats;
 pub mod study;
 
-use anyhow::{anyhow, bail, Context as _, Result};
+use anyhow::{anyhow, Context as _, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
 use serde::{Deserialize, Serialize};
@@ -68,26 +70,19 @@ use serde::{Deserialize, Serialize};
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
 use candidates::{Effect, Refs, SensorFit};
-use cv::normal_errors;
-use expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
+use decision::{name_effects, named, settle};
+pub use decision::{Step, MAX_EFFECTS};
+use expect::{Analysis, Expectation, NoiseModel, Plan};
 use fits::{fit_measured, implausible_fits};
 pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
+use load::load;
 pub(crate) use load::reading_span;
 pub use load::{available_models, declared_sigma};
-use load::{load, Loaded};
 use noise::{NoiseEstimate, Outlier};
-use select::{decide, Decision};
+use scores::scores;
+pub use scores::Perf;
+use select::Decision;
 pub use settings::{draws_for, Args, NormalMethod, Settings, DRAWS, SMALL_RUN, SMALL_RUN_DRAWS};
-
-/// Held-out performance of a model.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Perf {
-    /// Held-out residual RMS [mm].
-    pub heldout_rms_mm: f64,
-    /// Mean held-out normal error [deg] (`null` when no pose's normal could
-    /// be measured).
-    pub heldout_normal_err_deg: Option<f64>,
-}
 
 /// One candidate in the JSON output.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -351,11 +346,6 @@ impl Diagnosis {
     }
 }
 
-fn mean_opt(v: &[Option<f64>]) -> Option<f64> {
-    let x: Vec<f64> = v.iter().flatten().copied().collect();
-    (!x.is_empty()).then(|| stats::mean(&x))
-}
-
 /// Warnings about the noise: excess white noise over the declared value.
 fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     let mut w = Vec::new();
@@ -386,17 +376,6 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     w
 }
 
-/// The effects named: the verdict `effect` and those the forward
-/// selection added (`also`); none for `none` and `unexplained`.
-fn named(effect: Effect, also: &[Step]) -> Vec<Effect> {
-    match effect {
-        Effect::None | Effect::Unexplained => Vec::new(),
-        e => std::iter::once(e)
-            .chain(also.iter().map(|st| st.effect))
-            .collect(),
-    }
-}
-
 /// Above this |r| between temperature and time, a thermal coefficient and
 /// a drift in time are the same pattern within the run.
 pub const CONFOUNDED_R: f64 = 0.9;
@@ -425,142 +404,6 @@ fn time_warning(poses: &PoseTable, named: &[Effect]) -> Option<String> {
     })
 }
 
-/// A further effect of the forward selection: named by the same
-/// calibrated decision as the first, with the effects before it added to
-/// every model (the paper's model included) and the noise and the
-/// effect-free re-simulations taken from that model.
-#[derive(Debug, Clone)]
-pub struct Step {
-    /// The effect added.
-    pub effect: Effect,
-    /// Every effect selected up to and including this one.
-    pub with: Vec<Effect>,
-    /// Its evaluation against the model before it.
-    pub verdict: select::Verdict,
-    /// Held-out RMS of the model before it [mm].
-    pub before_rms_mm: f64,
-    /// Held-out cross-validation of the model with it.
-    pub cv: cv::CvResult,
-    /// All poses fitted with every effect up to this one.
-    pub fits: Vec<SensorFit>,
-}
-
-/// Forward selection after `first` was named (module docs): adds the
-/// candidate that the calibrated decision names on top of the effects
-/// selected so far ([`next_step`]), refits, repeats; stops when nothing
-/// more is named or after [`MAX_EFFECTS`] effects.
-///
-/// # Errors
-/// A winner without a verdict (an internal inconsistency).
-fn forward(
-    first: Effect,
-    l: &Loaded,
-    declared: Option<Vec<f64>>,
-    s: &Settings,
-) -> Result<Vec<Step>> {
-    let mut with = vec![first];
-    let mut steps = Vec::new();
-    while with.len() < MAX_EFFECTS {
-        let Some(step) = next_step(&with, l, &declared, s)? else {
-            break;
-        };
-        with.push(step.effect);
-        steps.push(step);
-    }
-    Ok(steps)
-}
-
-/// One round of [`forward`]: the candidates not yet selected (nor excluded
-/// by one that is) decided on top of `with`, as the first effect was
-/// (noise from the full model, effect-free re-simulations). `None` when
-/// nothing more is named, or when a model the solver cannot fit on this
-/// run (more terms than the pose set identifies) ends the selection: what
-/// was named so far stands.
-///
-/// # Errors
-/// A winner without a verdict (an internal inconsistency).
-fn next_step(
-    with: &[Effect],
-    l: &Loaded,
-    declared: &Option<Vec<f64>>,
-    s: &Settings,
-) -> Result<Option<Step>> {
-    let (nominal, poses) = (&l.nominal, &l.poses);
-    let r = Refs {
-        extra: with.to_vec(),
-        ..l.refs.clone()
-    };
-    let models: Vec<Effect> = available_models(poses)
-        .into_iter()
-        .filter(|e| !(with.contains(e) || with.iter().any(|w| e.excluded_by(*w))))
-        .collect();
-    if models.len() < 2 {
-        return Ok(None);
-    }
-    let plan = Plan {
-        nominal,
-        refs: &r,
-        folds: &l.folds,
-        models: &models,
-        lsq: &s.lsq,
-        method: s.method,
-    };
-    let Ok(measured) = analyse(poses, &plan, false) else {
-        return Ok(None);
-    };
-    let fitted: Vec<Effect> = measured
-        .cv
-        .iter()
-        .filter(|(_, x)| x.is_ok())
-        .map(|(e, _)| *e)
-        .collect();
-    let plan = Plan {
-        models: &fitted,
-        ..plan
-    };
-    let bad: Vec<Effect> = implausible_fits(nominal, poses, &r, &fitted, &s.lsq)
-        .into_iter()
-        .map(|(e, _)| e)
-        .collect();
-    let settled = settle(
-        nominal,
-        poses,
-        &r,
-        &plan,
-        &measured,
-        declared.clone(),
-        s,
-        &bad,
-    );
-    let Ok((_, _, _, d)) = settled else {
-        return Ok(None);
-    };
-    let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
-        return Ok(None);
-    };
-    if d.effect != e {
-        return Ok(None);
-    }
-    let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
-        return Ok(None);
-    };
-    let mut with = with.to_vec();
-    with.push(e);
-    Ok(Some(Step {
-        effect: e,
-        with,
-        verdict: d
-            .verdicts
-            .iter()
-            .find(|v| v.effect == e)
-            .cloned()
-            .ok_or_else(|| anyhow!("no verdict"))?,
-        before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
-        cv: cv.clone(),
-        fits,
-    }))
-}
-
 /// The fit `f` (of several effects) reduced to the coefficients and 1σ of
 /// `e`'s own terms (columns in the extension's term order).
 pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
@@ -577,123 +420,6 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
         coeffs: pick(&f.coeffs),
         sigma: pick(&f.sigma),
         ..f.clone()
-    }
-}
-
-/// Most effects named together.
-pub const MAX_EFFECTS: usize = 3;
-
-/// Noise → expectation → decision, with the noise estimated from the
-/// residuals of the full model fitted on all poses (of the paper's model
-/// when not even one candidate fits).
-#[allow(clippy::too_many_arguments)]
-fn settle(
-    nominal: &[Sensor<f64>],
-    poses: &PoseTable,
-    refs: &Refs,
-    plan: &Plan,
-    measured: &Analysis,
-    declared: Option<Vec<f64>>,
-    s: &Settings,
-    implausible: &[Effect],
-) -> Result<(NoiseEstimate, NoiseModel, Expectation, Decision)> {
-    let (fits, resid) = noise::full_residuals(nominal, poses, refs, plan.models, &s.lsq)
-        .unwrap_or_else(|| (measured.base_fit.clone(), measured.insample.clone()));
-    let estimate = noise::estimate(nominal, poses, &fits, &resid, declared, s.tracker);
-    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
-    let noise = NoiseModel {
-        sigma: estimate.reading_mm.clone(),
-        tracker: estimate.tracker,
-    };
-    let draws = draws_for(poses.rows.len(), s.draws);
-    let expected = expect(&truth, poses, &noise, plan, draws, s.seed);
-    if expected.draws < 2 {
-        bail!("the simulated expectation failed: the base model could not be fitted on the simulated runs");
-    }
-    let decision = decide(measured, &expected, nominal.len(), &s.rule, implausible);
-    Ok((estimate, noise, expected, decision))
-}
-
-/// Stage "decision", second half: the effect named first, and the forward
-/// selection on top of it. A winner that leaves structure may be one of
-/// two effects: the forward selection looks for the other before
-/// `unexplained` stands, and names both when it finds it (the reason is
-/// added to `decision`).
-///
-/// # Errors
-/// Those of [`forward`].
-fn name_effects(
-    decision: &mut Decision,
-    l: &Loaded,
-    declared: Option<Vec<f64>>,
-    s: &Settings,
-) -> Result<(Effect, Vec<Step>)> {
-    let mut effect = decision.effect;
-    let first = match (effect, decision.winner) {
-        (Effect::Unexplained, Some(w)) => w,
-        (e, _) => e,
-    };
-    let also = match first {
-        Effect::None | Effect::Unexplained => Vec::new(),
-        e => forward(e, l, declared, s)?,
-    };
-    if let (Effect::Unexplained, Some(st)) = (effect, also.last()) {
-        decision.reasons.push(format!(
-            "with {} added the residuals are explained: {} are named together",
-            st.effect.name(),
-            st.with
-                .iter()
-                .map(|e| e.name())
-                .collect::<Vec<_>>()
-                .join(" + ")
-        ));
-        effect = first;
-    }
-    Ok((effect, also))
-}
-
-/// Held-out performance of the paper's model and of the model behind the
-/// verdict (stage "held-out scores" of what is reported).
-struct Scores {
-    base: Perf,
-    extended: Perf,
-    base_normals: Vec<Option<f64>>,
-    ext_normals: Vec<Option<f64>>,
-    /// The model behind `extended` (`None` = the paper's).
-    ext_model: Effect,
-}
-
-/// [`Scores`] of the verdict `effect` (with the forward selection's
-/// `also`): the extended figures are those of the last model selected,
-/// the paper's model's for `none` and `unexplained`.
-fn scores(effect: Effect, also: &[Step], measured: &Analysis, l: &Loaded, s: &Settings) -> Scores {
-    let base_normals = measured.base_normal.clone();
-    let base = Perf {
-        heldout_rms_mm: measured.cv_of(Effect::None).map_or(f64::NAN, |c| c.rms),
-        heldout_normal_err_deg: mean_opt(&base_normals),
-    };
-    let ext_model = match effect {
-        Effect::None | Effect::Unexplained => Effect::None,
-        e => e,
-    };
-    let ext_cv = also.last().map(|st| &st.cv).or(measured.cv_of(ext_model));
-    let (extended, ext_normals) = match ext_cv {
-        Some(c) if ext_model != Effect::None => {
-            let ne = normal_errors(c, &l.poses, &l.folds, s.method);
-            let perf = Perf {
-                heldout_rms_mm: c.rms,
-                heldout_normal_err_deg: mean_opt(&ne),
-            };
-            (perf, ne)
-        }
-        _ => (base, base_normals.clone()),
-    };
-    Scores {
-        base,
-        extended,
-        base_normals,
-        ext_normals,
-        ext_model,
     }
 }
 
