@@ -16,7 +16,7 @@ use perpend_core::head::Sensor;
 use super::candidates::{self, Effect, Refs, SensorFit};
 use super::cv;
 use super::expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
-use super::fits::implausible_fits;
+use super::fits::{implausible_fits, Fitted};
 use super::load::{available_models, Loaded};
 use super::noise::{self, NoiseEstimate};
 use super::select::{self, decide, Decision};
@@ -30,7 +30,7 @@ pub const MAX_EFFECTS: usize = 3;
 /// residuals of the full model fitted on all poses (of the paper's model
 /// when not even one candidate fits).
 #[allow(clippy::too_many_arguments)]
-pub(super) fn settle(
+fn settle(
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
     refs: &Refs,
@@ -65,7 +65,7 @@ pub(super) fn settle(
 ///
 /// # Errors
 /// Those of [`forward`].
-pub(super) fn name_effects(
+fn name_effects(
     decision: &mut Decision,
     l: &Loaded,
     declared: Option<Vec<f64>>,
@@ -240,4 +240,57 @@ pub(super) fn named(effect: Effect, also: &[Step]) -> Vec<Effect> {
             .chain(also.iter().map(|st| st.effect))
             .collect(),
     }
+}
+
+/// The output of stages 4-5: the noise, the effect-free expectation and
+/// the verdict with the effects named.
+pub(super) struct Decided {
+    /// The run's own noise.
+    pub(super) estimate: NoiseEstimate,
+    /// The noise the expectation was simulated with.
+    pub(super) noise: NoiseModel,
+    /// The effect-free re-simulations.
+    pub(super) expected: Expectation,
+    /// The calibrated decision.
+    pub(super) decision: Decision,
+    /// The name given.
+    pub(super) effect: Effect,
+    /// Further effects selected on top of `effect`.
+    pub(super) also: Vec<Step>,
+    /// Simulated held-out RMS of the paper's model on effect-free data at
+    /// the noise from the full model (the floor reported) [mm].
+    pub(super) floor_mm: f64,
+}
+
+/// Stages 4-5 on the fitted run: the noise from the full model (every
+/// candidate at once: an effect not yet named is not counted as noise),
+/// the decision ([`settle`]) and the forward selection ([`name_effects`]).
+///
+/// # Errors
+/// Those of [`settle`] and [`name_effects`].
+pub(super) fn decide_run(l: &Loaded, f: &Fitted, s: &Settings) -> Result<Decided> {
+    // Models that failed on the measured data are not simulated either.
+    let plan = l.plan(&f.fitted, s);
+    let bad: Vec<Effect> = f.implausible.iter().map(|(e, _)| *e).collect();
+    let (estimate, noise, expected, mut decision) = settle(
+        &l.nominal,
+        &l.poses,
+        &l.refs,
+        &plan,
+        &f.measured,
+        l.declared.clone(),
+        s,
+        &bad,
+    )?;
+    let (effect, also) = name_effects(&mut decision, l, l.declared.clone(), s)?;
+    let floor_mm = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
+    Ok(Decided {
+        estimate,
+        noise,
+        expected,
+        decision,
+        effect,
+        also,
+        floor_mm,
+    })
 }

@@ -15,7 +15,8 @@ use perpend_core::head::Sensor;
 
 use super::candidates::{self, Effect, Refs};
 use super::expect::{analyse, Analysis, Plan};
-use super::load::{reading_span, Skipped};
+use super::load::{reading_span, Loaded, Skipped};
+use super::settings::Settings;
 use crate::exchange::PoseTable;
 
 /// Stage "nominal fit → candidates": every model cross-validated on the
@@ -24,10 +25,7 @@ use crate::exchange::PoseTable;
 ///
 /// # Errors
 /// The paper's model cannot be cross-validated.
-pub(super) fn fit_measured(
-    poses: &PoseTable,
-    plan: &Plan,
-) -> Result<(Analysis, Vec<Effect>, Skipped)> {
+fn fit_measured(poses: &PoseTable, plan: &Plan) -> Result<(Analysis, Vec<Effect>, Skipped)> {
     let measured = analyse(poses, plan, true).map_err(|e| anyhow!("{e}"))?;
     match measured.cv.first() {
         Some((_, Ok(_))) => {}
@@ -64,4 +62,33 @@ pub(super) fn implausible_fits(
                 .map(|why| (e, why))
         })
         .collect()
+}
+
+/// The output of stages 2-3: the measured run's analysis and which models
+/// it could fit.
+pub(super) struct Fitted {
+    /// Every model cross-validated on the measured run.
+    pub(super) measured: Analysis,
+    /// The models fitted (the paper's first); the later stages simulate
+    /// and decide among these only.
+    pub(super) fitted: Vec<Effect>,
+    /// Models that could not be fitted, with why.
+    pub(super) failed: Skipped,
+    /// Fitted models whose fit on all poses leaves the physical bounds.
+    pub(super) implausible: Vec<(Effect, String)>,
+}
+
+/// Stages 2-3 on the loaded run `l` ([`fit_measured`], [`implausible_fits`]).
+///
+/// # Errors
+/// Those of [`fit_measured`].
+pub(super) fn fit(l: &Loaded, s: &Settings) -> Result<Fitted> {
+    let (measured, fitted, failed) = fit_measured(&l.poses, &l.plan(&l.models, s))?;
+    let implausible = implausible_fits(&l.nominal, &l.poses, &l.refs, &fitted, &s.lsq);
+    Ok(Fitted {
+        measured,
+        fitted,
+        failed,
+        implausible,
+    })
 }

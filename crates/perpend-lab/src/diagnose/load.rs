@@ -13,6 +13,7 @@ use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
 
 use super::candidates::{available, Effect, Refs};
+use super::expect::Plan;
 use super::folds::{folds_for, Folds};
 use super::lags;
 use super::noise::{self, Outlier};
@@ -33,6 +34,22 @@ pub(super) struct Loaded {
     pub(super) models: Vec<Effect>,
     /// Candidates not tested and why.
     pub(super) skipped: Skipped,
+    /// The declared reading noise per sensor ([`declared_sigma`]).
+    pub(super) declared: Option<Vec<f64>>,
+}
+
+impl Loaded {
+    /// The plan of the cross-validations of `models` on this run.
+    pub(super) fn plan<'a>(&'a self, models: &'a [Effect], s: &'a Settings) -> Plan<'a> {
+        Plan {
+            nominal: &self.nominal,
+            refs: &self.refs,
+            folds: &self.folds,
+            models,
+            lsq: &s.lsq,
+            method: s.method,
+        }
+    }
 }
 
 /// Models left out of the diagnosis, each with why.
@@ -75,6 +92,7 @@ pub(super) fn load(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -
         }
     }
     Ok(Loaded {
+        declared: declared_sigma(sensors, s.sigma_mm),
         nominal,
         outliers,
         refs: Refs::of(&poses),

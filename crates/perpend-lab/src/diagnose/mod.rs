@@ -70,10 +70,10 @@ use serde::{Deserialize, Serialize};
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
 use candidates::{Effect, Refs, SensorFit};
-use decision::{name_effects, named, settle};
+use decision::{decide_run, named, Decided};
 pub use decision::{Step, MAX_EFFECTS};
-use expect::{Analysis, Expectation, NoiseModel, Plan};
-use fits::{fit_measured, implausible_fits};
+use expect::{Analysis, Expectation, NoiseModel};
+use fits::fit;
 pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
 use load::load;
 pub(crate) use load::reading_span;
@@ -434,40 +434,17 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
 /// too few poses for the folds.
 pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> Result<Diagnosis> {
     let mut l = load(sensors, all_poses, s)?;
-    let plan = Plan {
-        nominal: &l.nominal,
-        refs: &l.refs,
-        folds: &l.folds,
-        models: &l.models,
-        lsq: &s.lsq,
-        method: s.method,
-    };
-    let (measured, fitted, failed) = fit_measured(&l.poses, &plan)?;
-    // Models that failed on the measured data are not simulated either.
-    let plan = Plan {
-        models: &fitted,
-        ..plan
-    };
-    let implausible = implausible_fits(&l.nominal, &l.poses, &l.refs, &fitted, &s.lsq);
-    let bad: Vec<Effect> = implausible.iter().map(|(e, _)| *e).collect();
-    let declared = declared_sigma(sensors, s.sigma_mm);
-    // The noise comes from the full model (every candidate at once): an
-    // effect not yet named is not counted as noise.
-    let (estimate, noise, expected, mut decision) = settle(
-        &l.nominal,
-        &l.poses,
-        &l.refs,
-        &plan,
-        &measured,
-        declared.clone(),
-        s,
-        &bad,
-    )?;
-    let (effect, also) = name_effects(&mut decision, &l, declared, s)?;
-    // The floor reported: the paper's model on effect-free re-simulations
-    // at the noise from the full model.
-    let floor_mm = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
-    let sc = scores(effect, &also, &measured, &l, s);
+    let f = fit(&l, s)?;
+    let Decided {
+        estimate,
+        noise,
+        expected,
+        decision,
+        effect,
+        also,
+        floor_mm,
+    } = decide_run(&l, &f, s)?;
+    let sc = scores(effect, &also, &f.measured, &l, s);
     let refit_model = match effect {
         Effect::None => None,
         Effect::Unexplained => decision.winner,
@@ -478,20 +455,20 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
             .ok()
             .map(|f| (e, f))
     });
-    let checks = report::checks(&measured, &expected, &fitted, &decision);
+    let checks = report::checks(&f.measured, &expected, &f.fitted, &decision);
     let mut warnings = noise_warnings(&estimate, effect);
     warnings.extend(time_warning(&l.poses, &named(effect, &also)));
-    l.skipped.extend(failed);
+    l.skipped.extend(f.failed);
     Ok(Diagnosis {
         effect,
         decision,
         expected,
         floor_mm,
-        measured,
+        measured: f.measured,
         noise,
         estimate,
         outliers: l.outliers,
-        implausible,
+        implausible: f.implausible,
         warnings,
         base: sc.base,
         extended: sc.extended,
