@@ -64,24 +64,7 @@ use super::stats;
 /// fitted by a linear one). Below it the verdict is `unexplained`.
 pub const MOSTLY: f64 = 0.75;
 
-/// Decision thresholds.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Rule {
-    /// Family-wise false-naming level α.
-    pub alpha: f64,
-    /// Smallest relative drop of the held-out mean square error, in units
-    /// of the simulated floor's mean square.
-    pub min_gain: f64,
-}
-
-impl Default for Rule {
-    fn default() -> Self {
-        Self {
-            alpha: 0.01,
-            min_gain: 0.02,
-        }
-    }
-}
+pub use super::settings::Rule;
 
 /// The evaluation of one candidate.
 #[derive(Debug, Clone, PartialEq)]

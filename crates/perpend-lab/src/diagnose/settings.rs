@@ -4,8 +4,8 @@
 //! [`super::folds`]).
 //!
 //! Every later stage reads [`Settings`]; this module reads no stage.
-//! Limits: the selection's thresholds ([`Rule`]) are defined with the
-//! decision ([`super::select`]).
+//! Limits: only the thresholds of the decision are set here ([`Rule`]);
+//! how they are used is [`super::select`]'s.
 
 use std::path::PathBuf;
 
@@ -13,8 +13,26 @@ use anyhow::{bail, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::normal::Method;
 
-use super::select::Rule;
 use crate::sim::Tracker;
+
+/// Decision thresholds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rule {
+    /// Family-wise false-naming level α.
+    pub alpha: f64,
+    /// Smallest relative drop of the held-out mean square error, in units
+    /// of the simulated floor's mean square.
+    pub min_gain: f64,
+}
+
+impl Default for Rule {
+    fn default() -> Self {
+        Self {
+            alpha: 0.01,
+            min_gain: 0.02,
+        }
+    }
+}
 
 /// Which micro-plane normal the held-out normal error uses.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
