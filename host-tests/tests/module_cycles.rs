@@ -15,15 +15,21 @@
 //! count: a child's `use super::*` in its test module imports the parent.
 //!
 //! `MODULE_GRAPH=1 cargo test -p host-tests --test module_cycles -- --nocapture`
-//! prints every cycle longer than a pair too (strongly connected files).
+//! prints the parent/child pairs and every cycle longer than a pair too
+//! (strongly connected files); `MODULE_GRAPH_ROOT=DIR` scans another
+//! checkout.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
-/// The workspace root.
+/// The workspace root (`MODULE_GRAPH_ROOT` scans another checkout, e.g.
+/// an extracted older commit, to compare).
 fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+    std::env::var_os("MODULE_GRAPH_ROOT").map_or_else(
+        || Path::new(env!("CARGO_MANIFEST_DIR")).join(".."),
+        PathBuf::from,
+    )
 }
 
 /// A token of the cleaned source.
@@ -551,4 +557,18 @@ fn the_scan_sees_use_trees_inline_paths_and_skips_comments() {
         &tokens("use super::super::c;"),
     );
     assert_eq!(refs, [vec!["c".to_string()]].into_iter().collect());
+}
+
+/// `MODULE_GRAPH_INTO=path` prints the files that import `path`.
+#[test]
+fn print_importers() {
+    let Some(into) = std::env::var_os("MODULE_GRAPH_INTO") else {
+        return;
+    };
+    let (g, _) = graph();
+    for (a, to) in &g {
+        if to.contains(Path::new(&into)) {
+            eprintln!("{} -> {}", a.display(), into.to_string_lossy());
+        }
+    }
 }
