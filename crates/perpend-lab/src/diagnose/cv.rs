@@ -45,14 +45,18 @@ pub struct CvResult {
     pub n: usize,
 }
 
-/// Wilcoxon signed-rank z of the per-pose loss differences `base − cand`.
-pub fn paired_rank(base: &CvResult, cand: &CvResult) -> f64 {
-    let d: Vec<f64> = base
-        .pose_loss
+/// The per-pose held-out loss differences `base − cand` [mm²].
+fn loss_differences(base: &CvResult, cand: &CvResult) -> Vec<f64> {
+    base.pose_loss
         .iter()
         .zip(&cand.pose_loss)
         .map(|(a, b)| a - b)
-        .collect();
+        .collect()
+}
+
+/// Wilcoxon signed-rank z of the per-pose loss differences `base − cand`.
+pub fn paired_rank(base: &CvResult, cand: &CvResult) -> f64 {
+    let d = loss_differences(base, cand);
     stats::signed_rank_z(&d)
 }
 
@@ -60,12 +64,7 @@ pub fn paired_rank(base: &CvResult, cand: &CvResult) -> f64 {
 /// `(mean gain per reading [mm²], z, standard error of the mean gain per
 /// pose)`.
 pub fn paired(base: &CvResult, cand: &CvResult) -> (f64, f64, f64) {
-    let d: Vec<f64> = base
-        .pose_loss
-        .iter()
-        .zip(&cand.pose_loss)
-        .map(|(a, b)| a - b)
-        .collect();
+    let d = loss_differences(base, cand);
     let k = d.len().max(1) as f64;
     let m = stats::mean(&d);
     let se = stats::sd(&d) / k.sqrt();
