@@ -5,7 +5,7 @@
 //! then the forward selection of further effects on top of the first
 //! ([`Step`], at most [`MAX_EFFECTS`]).
 //!
-//! Input: the loaded run ([`Loaded`]) and the measured [`Analysis`] of
+//! Input: the loaded run (`Loaded`) and the measured [`Analysis`] of
 //! stages 2-3; output: the noise, the expectation, the [`Decision`] and the
 //! effects named with their steps. Reads stages 0-3 only. Limits: a
 //! forward step whose model the solver cannot fit ends the selection.

@@ -4,7 +4,7 @@
 //! chosen on them ([`super::lags`]), the folds ([`super::folds`]) and the
 //! models the run's columns allow ([`available_models`]).
 //!
-//! Input: the tables and [`Settings`]; output: [`Loaded`]. Reads no later
+//! Input: the tables and [`Settings`]; output: `Loaded`. Reads no later
 //! stage. Limits: a head whose sensor count differs from the poses'
 //! reading columns, or fewer than two poses per fold, is refused.
 

@@ -423,10 +423,11 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
     }
 }
 
-/// Runs the diagnosis on a run read from the exchange format, in one pass:
-/// load → bad poses ([`load`]) → nominal fit → candidates
-/// ([`fit_measured`]) → noise → effect-free re-simulations → decision
-/// ([`settle`], [`name_effects`]) → held-out scores ([`scores`]) → the
+/// Runs the diagnosis on a run read from the exchange format, in one pass
+/// through the stages (docs/diagnosis.md, "How the code is laid out"):
+/// read and check ([`load`](load::load)) → nominal and candidate fits
+/// ([`fits::fit`]) → noise, effect-free re-simulations and decision
+/// ([`decision::decide_run`]) → held-out scores ([`scores::scores`]) → the
 /// report's parts.
 ///
 /// # Errors

@@ -4,7 +4,7 @@
 //! states as the gain.
 //!
 //! Input: the verdict (the effect and the forward selection's steps), the
-//! measured [`Analysis`] and the loaded run; output: [`Scores`]. Reads
+//! measured [`Analysis`] and the loaded run; output: `Scores`. Reads
 //! stages 0-5 only; refits nothing (the steps carry their
 //! cross-validation). Limits: a pose without three readings has no normal
 //! error; the mean skips it.
