@@ -20,6 +20,7 @@ use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 
 use crate::diagnose::candidates::{self, Effect, Refs};
+pub use crate::diagnose::lags::run_end_s;
 use crate::exchange::{read_poses, read_sensors, PoseTable};
 use crate::paramfile::{Identifiability, ParamFile, SensorParams, Triples};
 
@@ -134,11 +135,6 @@ fn lag_lines(model: Effect, lags: &crate::diagnose::lags::Lags, report: &mut Str
             lags.drift_tau_s
         );
     }
-}
-
-/// The time of the run's last pose \[s\] (`t_s`; 0 without times).
-pub fn run_end_s(poses: &PoseTable) -> f64 {
-    poses.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max)
 }
 
 /// Refuses a model whose fit the board could not reproduce in use

@@ -245,7 +245,7 @@ impl Refs {
             return out;
         }
         let n = poses.rows.len();
-        let folds = super::cv::Folds::new(n, super::folds_for(n, None), 1);
+        let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 1);
         let mut best = vec![f64::INFINITY; nominal.len()];
         for rule in KnotRule::ALL {
             let trial = self.with_rule(poses, rule);
@@ -371,7 +371,7 @@ fn heldout_sse(
     idx: usize,
     poses: &PoseTable,
     terms: ExtTerms<f64>,
-    folds: &super::cv::Folds,
+    folds: &super::folds::Folds,
     cfg: &LsqConfig<f64>,
 ) -> f64 {
     let mut sse = 0.0;
@@ -1114,7 +1114,8 @@ mod tests {
                 .unwrap()
                 .poses;
             let n = run.rows.len();
-            let folds = super::super::cv::Folds::new(n, super::super::folds_for(n, None), 7);
+            let folds =
+                super::super::folds::Folds::new(n, super::super::folds::folds_for(n, None), 7);
             let chosen =
                 Refs::of(&run).with_table_choice(&head.nominal, &run, Effect::LinearityTable, &lsq);
             let plain = Refs {

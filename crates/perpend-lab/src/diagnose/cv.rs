@@ -20,50 +20,11 @@ use nalgebra::Vector3;
 use perpend_core::calib::{LsqConfig, Poses};
 use perpend_core::head::{Head, Sensor};
 use perpend_core::normal::{plane, Method};
-use rand::rngs::StdRng;
-use rand::seq::SliceRandom;
-use rand::SeedableRng;
 
 use super::candidates::{line_angle_deg, predict, Effect, Refs, SensorFit, Subset};
+pub use super::folds::Folds;
+use super::stats;
 use crate::exchange::PoseTable;
-
-/// Assignment of poses to folds.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Folds {
-    /// Fold of each pose.
-    pub of_pose: Vec<usize>,
-    /// Number of folds.
-    pub k: usize,
-}
-
-impl Folds {
-    /// `k` folds (at least 2, at most the number of poses) of `n` poses,
-    /// dealt after a shuffle seeded by `seed`.
-    pub fn new(n: usize, k: usize, seed: u64) -> Self {
-        let k = k.clamp(2, n.max(2));
-        let mut order: Vec<usize> = (0..n).collect();
-        order.shuffle(&mut StdRng::seed_from_u64(seed));
-        let mut of_pose = vec![0; n];
-        for (pos, &p) in order.iter().enumerate() {
-            of_pose[p] = pos % k;
-        }
-        Self { of_pose, k }
-    }
-
-    /// Training poses (all but fold `f`).
-    pub fn train(&self, f: usize) -> Vec<usize> {
-        (0..self.of_pose.len())
-            .filter(|&p| self.of_pose[p] != f)
-            .collect()
-    }
-
-    /// Held-out poses of fold `f`.
-    pub fn test(&self, f: usize) -> Vec<usize> {
-        (0..self.of_pose.len())
-            .filter(|&p| self.of_pose[p] == f)
-            .collect()
-    }
-}
 
 /// Cross-validation result of one model.
 #[derive(Debug, Clone, PartialEq)]
@@ -82,6 +43,33 @@ pub struct CvResult {
     pub pose_loss: Vec<f64>,
     /// Number of held-out residuals.
     pub n: usize,
+}
+
+/// The per-pose held-out loss differences `base − cand` [mm²].
+fn loss_differences(base: &CvResult, cand: &CvResult) -> Vec<f64> {
+    base.pose_loss
+        .iter()
+        .zip(&cand.pose_loss)
+        .map(|(a, b)| a - b)
+        .collect()
+}
+
+/// Wilcoxon signed-rank z of the per-pose loss differences `base − cand`.
+pub fn paired_rank(base: &CvResult, cand: &CvResult) -> f64 {
+    let d = loss_differences(base, cand);
+    stats::signed_rank_z(&d)
+}
+
+/// Paired comparison of two models' per-pose held-out losses: returns
+/// `(mean gain per reading [mm²], z, standard error of the mean gain per
+/// pose)`.
+pub fn paired(base: &CvResult, cand: &CvResult) -> (f64, f64, f64) {
+    let d = loss_differences(base, cand);
+    let k = d.len().max(1) as f64;
+    let m = stats::mean(&d);
+    let se = stats::sd(&d) / k.sqrt();
+    let z = if se > 0.0 { m / se } else { 0.0 };
+    (d.iter().sum::<f64>() / base.n.max(1) as f64, z, se)
 }
 
 /// Cross-validates `effect` on `poses`.

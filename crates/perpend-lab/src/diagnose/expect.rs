@@ -450,8 +450,8 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
         runs_z: Spread::of(&runs),
         r2,
         normal_err_deg: Spread::of(&nerr),
-        gain_z: null_of(&|b, c| super::select::paired(b, c).1),
-        rank_z: null_of(&super::select::paired_rank),
+        gain_z: null_of(&|b, c| super::cv::paired(b, c).1),
+        rank_z: null_of(&super::cv::paired_rank),
         structure: structure_spreads(analyses, plan),
     }
 }

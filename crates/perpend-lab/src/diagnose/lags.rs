@@ -171,6 +171,11 @@ fn rss_with(
     Some((r, dof.max(1.0)))
 }
 
+/// The time of the run's last pose \[s\] (`t_s`; 0 without times).
+pub fn run_end_s(poses: &PoseTable) -> f64 {
+    poses.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max)
+}
+
 /// [`rss_with`] of `effect` alone.
 #[cfg(test)]
 fn rss(

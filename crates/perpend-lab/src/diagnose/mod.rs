@@ -45,197 +45,44 @@ pub mod bench;
 pub mod blind;
 pub mod candidates;
 pub mod cv;
+pub mod decision;
 pub mod expect;
+pub mod fits;
+pub mod folds;
 pub mod lags;
+pub mod load;
 pub mod moments;
 pub mod noise;
 pub mod plot;
 pub mod report;
 pub mod scenario;
+pub mod scores;
 pub mod select;
+pub mod settings;
 pub mod stats;
 pub mod study;
 
-use std::path::PathBuf;
-
-use anyhow::{anyhow, bail, Context as _, Result};
+use anyhow::{anyhow, Context as _, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
-use perpend_core::normal::Method;
 use serde::{Deserialize, Serialize};
 
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
-use crate::sim::Tracker;
-use candidates::{available, Effect, Refs, SensorFit};
-use cv::{normal_errors, Folds};
-use expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
+use candidates::{Effect, Refs, SensorFit};
+use decision::{decide_run, named, Decided};
+pub use decision::{Step, MAX_EFFECTS};
+use expect::{Analysis, Expectation, NoiseModel};
+use fits::fit;
+pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
+use load::load;
+pub(crate) use load::reading_span;
+pub use load::{available_models, declared_sigma};
 use noise::{NoiseEstimate, Outlier};
-use select::{decide, Decision, Rule};
-
-/// Which micro-plane normal the held-out normal error uses.
-#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
-pub enum NormalMethod {
-    /// Total least-squares plane (any number of sensors; the board's default).
-    Lsq,
-    /// Chen eq. 18-19 (averaged cross products; four sensors in order).
-    Chen,
-}
-
-impl NormalMethod {
-    /// The core's method.
-    pub fn method(self) -> Method {
-        match self {
-            NormalMethod::Lsq => Method::LeastSquares,
-            NormalMethod::Chen => Method::Chen,
-        }
-    }
-}
-
-/// Arguments of `perpend diagnose`.
-#[derive(clap::Args, Debug, Clone)]
-pub struct Args {
-    /// The nominal head (sensors.csv).
-    #[arg(long)]
-    pub sensors: PathBuf,
-    /// The calibration run (poses.csv).
-    #[arg(long)]
-    pub poses: PathBuf,
-    /// Datasheet reading noise 1σ [mm] (overrides the sigma_mm column).
-    #[arg(long)]
-    pub sigma_mm: Option<f64>,
-    /// Print one JSON object instead of the report.
-    #[arg(long)]
-    pub json: bool,
-    /// Write SVG plots into this directory.
-    #[arg(long)]
-    pub plot: Option<PathBuf>,
-    /// Write the calibration of the named model (all poses; the paper's
-    /// model for none / unexplained) as parameter JSON here, extension
-    /// coefficients included.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-    /// Tracker point noise ξ (1σ per coordinate) [mm]; 0: planes exact.
-    #[arg(long, default_value_t = 0.02)]
-    pub xi_mm: f64,
-    /// Tracker points per plane fit.
-    #[arg(long, default_value_t = 20)]
-    pub tracker_points: usize,
-    /// Side of the square patch the tracker points cover [mm].
-    #[arg(long, default_value_t = 150.0)]
-    pub tracker_patch_mm: f64,
-    /// Folds of the cross-validation (split by pose); default: 10 below 100
-    /// poses (at most half the poses, at least 5), else 5 (see [`folds_for`]).
-    #[arg(long)]
-    pub folds: Option<usize>,
-    /// Monte-Carlo draws of the simulated expectation; default: 8, or 16
-    /// on runs of fewer than 50 poses (see [`draws_for`]).
-    #[arg(long)]
-    pub draws: Option<usize>,
-    /// Seed of the folds and the draws.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Family-wise level of naming an effect that is not there.
-    #[arg(long, default_value_t = 0.01)]
-    pub alpha: f64,
-    /// Normal computation for the held-out normal error.
-    #[arg(long, value_enum, default_value_t = NormalMethod::Lsq)]
-    pub normal: NormalMethod,
-}
-
-/// Settings of a diagnosis (what [`Args`] carries besides the files).
-#[derive(Debug, Clone)]
-pub struct Settings {
-    /// Reading noise override [mm].
-    pub sigma_mm: Option<f64>,
-    /// Tracker model (`None`: exact planes).
-    pub tracker: Option<Tracker>,
-    /// Folds (`None`: [`folds_for`] the run's pose count).
-    pub folds: Option<usize>,
-    /// Monte-Carlo draws (`None`: [`draws_for`] the run's pose count).
-    pub draws: Option<usize>,
-    /// Seed.
-    pub seed: u64,
-    /// Selection thresholds.
-    pub rule: Rule,
-    /// Normal method.
-    pub method: Method,
-    /// Solver settings.
-    pub lsq: LsqConfig<f64>,
-}
-
-impl Default for Settings {
-    fn default() -> Self {
-        Self {
-            sigma_mm: None,
-            tracker: Some(Tracker::paper()),
-            folds: None,
-            draws: None,
-            seed: 1,
-            rule: Rule::default(),
-            method: Method::LeastSquares,
-            lsq: LsqConfig::default(),
-        }
-    }
-}
-
-impl Settings {
-    /// From the command line.
-    ///
-    /// # Errors
-    /// Out-of-range values.
-    pub fn from_args(a: &Args) -> Result<Self> {
-        for (v, name) in [
-            (a.xi_mm, "--xi-mm"),
-            (a.tracker_patch_mm, "--tracker-patch-mm"),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                bail!("{name} must be a non-negative number, got {v}");
-            }
-        }
-        if let Some(s) = a.sigma_mm {
-            if !(s.is_finite() && s > 0.0) {
-                bail!("--sigma-mm must be a positive number, got {s}");
-            }
-        }
-        if a.folds.is_some_and(|k| k < 2) {
-            bail!("--folds must be at least 2");
-        }
-        if a.draws.is_some_and(|d| d < 3) {
-            bail!("--draws must be at least 3 (the spread of the expectation needs them)");
-        }
-        if !(a.alpha > 0.0 && a.alpha < 0.5) {
-            bail!("--alpha must be in (0, 0.5), got {}", a.alpha);
-        }
-        Ok(Self {
-            sigma_mm: a.sigma_mm,
-            tracker: (a.xi_mm > 0.0 && a.tracker_points >= 3).then_some(Tracker {
-                xi_mm: a.xi_mm,
-                points: a.tracker_points,
-                patch_mm: a.tracker_patch_mm,
-            }),
-            folds: a.folds,
-            draws: a.draws,
-            seed: a.seed,
-            rule: Rule {
-                alpha: a.alpha,
-                ..Rule::default()
-            },
-            method: a.normal.method(),
-            lsq: LsqConfig::default(),
-        })
-    }
-}
-
-/// Held-out performance of a model.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Perf {
-    /// Held-out residual RMS [mm].
-    pub heldout_rms_mm: f64,
-    /// Mean held-out normal error [deg] (`null` when no pose's normal could
-    /// be measured).
-    pub heldout_normal_err_deg: Option<f64>,
-}
+use scores::scores;
+pub use scores::Perf;
+use select::Decision;
+pub use settings::{draws_for, Args, NormalMethod, Settings, DRAWS, SMALL_RUN, SMALL_RUN_DRAWS};
 
 /// One candidate in the JSON output.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -499,71 +346,6 @@ impl Diagnosis {
     }
 }
 
-/// The declared reading noise of each sensor: the override or the
-/// `sigma_mm` column; `None` when neither gives a positive value for every
-/// sensor (the diagnosis then relies on its own estimate alone).
-pub fn declared_sigma(sensors: &SensorTable, sigma_mm: Option<f64>) -> Option<Vec<f64>> {
-    if let Some(s) = sigma_mm {
-        return Some(vec![s; sensors.len()]);
-    }
-    sensors
-        .rows
-        .iter()
-        .map(|r| r.sigma_mm.filter(|s| *s > 0.0))
-        .collect()
-}
-
-fn mean_opt(v: &[Option<f64>]) -> Option<f64> {
-    let x: Vec<f64> = v.iter().flatten().copied().collect();
-    (!x.is_empty()).then(|| stats::mean(&x))
-}
-
-/// The paper's model and every candidate the run has the inputs for.
-pub fn available_models(poses: &PoseTable) -> Vec<Effect> {
-    std::iter::once(Effect::None)
-        .chain(
-            Effect::CATALOG
-                .into_iter()
-                .filter(|e| available(*e, poses).is_ok()),
-        )
-        .collect()
-}
-
-/// The largest `|d − d_ref|` of the run [mm] (for the plausibility bounds).
-pub(crate) fn reading_span(poses: &PoseTable, refs: &Refs) -> f64 {
-    poses
-        .rows
-        .iter()
-        .flat_map(|r| {
-            r.readings
-                .iter()
-                .enumerate()
-                .filter_map(|(i, d)| Some((d.as_ref()? - refs.d_ref.get(i)?).abs()))
-        })
-        .fold(0.0, f64::max)
-}
-
-/// Candidates whose fit on all poses leaves the physical bounds.
-fn implausible_fits(
-    nominal: &[Sensor<f64>],
-    poses: &PoseTable,
-    refs: &Refs,
-    models: &[Effect],
-    lsq: &LsqConfig<f64>,
-) -> Vec<(Effect, String)> {
-    let span = reading_span(poses, refs);
-    models
-        .iter()
-        .filter(|e| **e != Effect::None)
-        .filter_map(|&e| {
-            let fits = candidates::fit_all(nominal, poses, refs, e, lsq).ok()?;
-            candidates::plausible(e, &fits, span)
-                .err()
-                .map(|why| (e, why))
-        })
-        .collect()
-}
-
 /// Warnings about the noise: excess white noise over the declared value.
 fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     let mut w = Vec::new();
@@ -594,17 +376,6 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     w
 }
 
-/// The effects named: the verdict `effect` and those the forward
-/// selection added (`also`); none for `none` and `unexplained`.
-fn named(effect: Effect, also: &[Step]) -> Vec<Effect> {
-    match effect {
-        Effect::None | Effect::Unexplained => Vec::new(),
-        e => std::iter::once(e)
-            .chain(also.iter().map(|st| st.effect))
-            .collect(),
-    }
-}
-
 /// Above this |r| between temperature and time, a thermal coefficient and
 /// a drift in time are the same pattern within the run.
 pub const CONFOUNDED_R: f64 = 0.9;
@@ -633,142 +404,6 @@ fn time_warning(poses: &PoseTable, named: &[Effect]) -> Option<String> {
     })
 }
 
-/// A further effect of the forward selection: named by the same
-/// calibrated decision as the first, with the effects before it added to
-/// every model (the paper's model included) and the noise and the
-/// effect-free re-simulations taken from that model.
-#[derive(Debug, Clone)]
-pub struct Step {
-    /// The effect added.
-    pub effect: Effect,
-    /// Every effect selected up to and including this one.
-    pub with: Vec<Effect>,
-    /// Its evaluation against the model before it.
-    pub verdict: select::Verdict,
-    /// Held-out RMS of the model before it [mm].
-    pub before_rms_mm: f64,
-    /// Held-out cross-validation of the model with it.
-    pub cv: cv::CvResult,
-    /// All poses fitted with every effect up to this one.
-    pub fits: Vec<SensorFit>,
-}
-
-/// Forward selection after `first` was named (module docs): adds the
-/// candidate that the calibrated decision names on top of the effects
-/// selected so far ([`next_step`]), refits, repeats; stops when nothing
-/// more is named or after [`MAX_EFFECTS`] effects.
-///
-/// # Errors
-/// A winner without a verdict (an internal inconsistency).
-fn forward(
-    first: Effect,
-    l: &Loaded,
-    declared: Option<Vec<f64>>,
-    s: &Settings,
-) -> Result<Vec<Step>> {
-    let mut with = vec![first];
-    let mut steps = Vec::new();
-    while with.len() < MAX_EFFECTS {
-        let Some(step) = next_step(&with, l, &declared, s)? else {
-            break;
-        };
-        with.push(step.effect);
-        steps.push(step);
-    }
-    Ok(steps)
-}
-
-/// One round of [`forward`]: the candidates not yet selected (nor excluded
-/// by one that is) decided on top of `with`, as the first effect was
-/// (noise from the full model, effect-free re-simulations). `None` when
-/// nothing more is named, or when a model the solver cannot fit on this
-/// run (more terms than the pose set identifies) ends the selection: what
-/// was named so far stands.
-///
-/// # Errors
-/// A winner without a verdict (an internal inconsistency).
-fn next_step(
-    with: &[Effect],
-    l: &Loaded,
-    declared: &Option<Vec<f64>>,
-    s: &Settings,
-) -> Result<Option<Step>> {
-    let (nominal, poses) = (&l.nominal, &l.poses);
-    let r = Refs {
-        extra: with.to_vec(),
-        ..l.refs.clone()
-    };
-    let models: Vec<Effect> = available_models(poses)
-        .into_iter()
-        .filter(|e| !(with.contains(e) || with.iter().any(|w| e.excluded_by(*w))))
-        .collect();
-    if models.len() < 2 {
-        return Ok(None);
-    }
-    let plan = Plan {
-        nominal,
-        refs: &r,
-        folds: &l.folds,
-        models: &models,
-        lsq: &s.lsq,
-        method: s.method,
-    };
-    let Ok(measured) = analyse(poses, &plan, false) else {
-        return Ok(None);
-    };
-    let fitted: Vec<Effect> = measured
-        .cv
-        .iter()
-        .filter(|(_, x)| x.is_ok())
-        .map(|(e, _)| *e)
-        .collect();
-    let plan = Plan {
-        models: &fitted,
-        ..plan
-    };
-    let bad: Vec<Effect> = implausible_fits(nominal, poses, &r, &fitted, &s.lsq)
-        .into_iter()
-        .map(|(e, _)| e)
-        .collect();
-    let settled = settle(
-        nominal,
-        poses,
-        &r,
-        &plan,
-        &measured,
-        declared.clone(),
-        s,
-        &bad,
-    );
-    let Ok((_, _, _, d)) = settled else {
-        return Ok(None);
-    };
-    let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
-        return Ok(None);
-    };
-    if d.effect != e {
-        return Ok(None);
-    }
-    let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
-        return Ok(None);
-    };
-    let mut with = with.to_vec();
-    with.push(e);
-    Ok(Some(Step {
-        effect: e,
-        with,
-        verdict: d
-            .verdicts
-            .iter()
-            .find(|v| v.effect == e)
-            .cloned()
-            .ok_or_else(|| anyhow!("no verdict"))?,
-        before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
-        cv: cv.clone(),
-        fits,
-    }))
-}
-
 /// The fit `f` (of several effects) reduced to the coefficients and 1σ of
 /// `e`'s own terms (columns in the extension's term order).
 pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
@@ -788,306 +423,11 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
     }
 }
 
-/// Most effects named together.
-pub const MAX_EFFECTS: usize = 3;
-
-/// Noise → expectation → decision, with the noise estimated from the
-/// residuals of the full model fitted on all poses (of the paper's model
-/// when not even one candidate fits).
-#[allow(clippy::too_many_arguments)]
-fn settle(
-    nominal: &[Sensor<f64>],
-    poses: &PoseTable,
-    refs: &Refs,
-    plan: &Plan,
-    measured: &Analysis,
-    declared: Option<Vec<f64>>,
-    s: &Settings,
-    implausible: &[Effect],
-) -> Result<(NoiseEstimate, NoiseModel, Expectation, Decision)> {
-    let (fits, resid) = noise::full_residuals(nominal, poses, refs, plan.models, &s.lsq)
-        .unwrap_or_else(|| (measured.base_fit.clone(), measured.insample.clone()));
-    let estimate = noise::estimate(nominal, poses, &fits, &resid, declared, s.tracker);
-    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
-    let noise = NoiseModel {
-        sigma: estimate.reading_mm.clone(),
-        tracker: estimate.tracker,
-    };
-    let draws = draws_for(poses.rows.len(), s.draws);
-    let expected = expect(&truth, poses, &noise, plan, draws, s.seed);
-    if expected.draws < 2 {
-        bail!("the simulated expectation failed: the base model could not be fitted on the simulated runs");
-    }
-    let decision = decide(measured, &expected, nominal.len(), &s.rule, implausible);
-    Ok((estimate, noise, expected, decision))
-}
-
-/// The run without `outliers`, re-timed with the time constants chosen on
-/// it ([`lags`]; the lag filters every pose's temperature, the outliers'
-/// included).
-fn retimed(
-    nominal: &[Sensor<f64>],
-    all: &PoseTable,
-    outliers: &[Outlier],
-    lsq: &LsqConfig<f64>,
-) -> (PoseTable, lags::Lags) {
-    let kept = noise::without(all, outliers);
-    let lags = lags::select(nominal, &kept, &[Effect::Thermal, Effect::Drift], lsq);
-    (noise::without(&lags::apply(all, &lags), outliers), lags)
-}
-
-/// Runs below this many poses take [`SMALL_RUN_DRAWS`] effect-free draws
-/// instead of [`DRAWS`].
-pub const SMALL_RUN: usize = 50;
-/// Folds of the cross-validation below [`LARGE_RUN`] poses (at most half
-/// the poses, at least [`MIN_FOLDS`]).
-pub const FOLDS: usize = 10;
-/// Fewest folds [`folds_for`] chooses, and the folds from [`LARGE_RUN`]
-/// poses on.
-pub const MIN_FOLDS: usize = 5;
-/// Runs from this many poses on take [`MIN_FOLDS`] folds.
-pub const LARGE_RUN: usize = 100;
-
-/// The number of folds for a run of `n` poses: `requested`, or below 100
-/// poses 10 (each fit trains on 90 % of the poses; at most `n/2` folds, at
-/// least 5), from 100 poses on 5 (each fit trains on at least 80 poses).
-///
-/// Why 10 and not 5: a held-out figure estimates the error of the model
-/// fitted to *all* poses, and a fit on 80 % of them overstates it most for
-/// the most flexible candidates (4-8 parameters per sensor), most where the
-/// readings are sparse. The runs of a wide spread have isolated extreme
-/// readings; when a 5-fold split holds two of them out together, the
-/// linearity table is extrapolated over an end it never saw. On the blind
-/// ±15° sine of seed 501830 (`host-tests/blind/score.py`, 60 poses) the
-/// table's held-out RMS was 1.33×, 1.08×, 1.04×, 1.13×, 1.13× the same-draw
-/// floor with 5 folds on fold seeds 1, 3-6 (seed 2 named the cubic at
-/// 1.34×); with 10 folds 1.06-1.07× on seeds 1-4 against that 5-fold
-/// floor, and 1.10× against the 10-fold floor the grid now grades by
-/// (fold seed 1). On small runs 10
-/// folds also keep a candidate's own estimation noise from eating what it
-/// gains (the 30-pose gain beside a lagged thermal or a settling drift:
-/// paired z 2.6-2.9 against a threshold of 2.9 with 5 folds, 2.4-3.3 with
-/// 10; seeds 706407, 502035, 706324). From 100 poses on 10 folds bought
-/// nothing measurable on the blind grid's 120-pose regime (false positives
-/// 0/100, 17/17 singles, 3/3 pairs, worst 1.04× the floor with either) and
-/// cost the 120-pose speed case (the table's knot and ridge choice
-/// cross-validates in every re-simulation) 2.8-3.0 → 6.1-6.6 s on one
-/// core, over the 5 s goal. The effect-free re-simulations use the same
-/// folds, so every decision stays calibrated.
-pub fn folds_for(n: usize, requested: Option<usize>) -> usize {
-    requested.unwrap_or(if n < LARGE_RUN {
-        FOLDS.min(n / 2).max(MIN_FOLDS)
-    } else {
-        MIN_FOLDS
-    })
-}
-
-/// Monte-Carlo draws of the expectation from [`SMALL_RUN`] poses on.
-pub const DRAWS: usize = 8;
-/// Monte-Carlo draws of the expectation below [`SMALL_RUN`] poses.
-pub const SMALL_RUN_DRAWS: usize = 16;
-
-/// The number of effect-free re-simulations of a run of `n` poses:
-/// `requested`, else [`SMALL_RUN_DRAWS`] below [`SMALL_RUN`] poses and
-/// [`DRAWS`] from there on.
-///
-/// Why more on small runs: each candidate's threshold is its null's mean
-/// plus `z*` times the null's spread over the draws, and with 8 draws
-/// that spread is itself uncertain by about a quarter. On 30-pose runs the
-/// candidates' null spreads are wide, and the scatter of their estimate
-/// costs power: on effect-free runs of tracker ×3 at 30 poses the thermal
-/// candidate's rank threshold ranged from 3.0 to 5.4 between runs, and a
-/// lagged thermal (seed 900391 of `host-tests/blind/score.py --combined`,
-/// paired z 3.3, rank z 4.0) stayed under thresholds of 3.6 and 5.7 with 8
-/// draws and was named with 16 (as `drift`: on a warm-up either is the
-/// same time-like pattern). A draw costs in proportion to the pose
-/// count, so 16 draws of 30 poses cost what 8 of 60 do.
-pub fn draws_for(n: usize, requested: Option<usize>) -> usize {
-    requested.unwrap_or(if n < SMALL_RUN {
-        SMALL_RUN_DRAWS
-    } else {
-        DRAWS
-    })
-}
-
-/// The run as the diagnosis sees it (stage "load → bad poses"): the
-/// nominal head, the poses kept (re-timed), the folds and the models the
-/// run's columns allow.
-struct Loaded {
-    nominal: Vec<Sensor<f64>>,
-    outliers: Vec<Outlier>,
-    poses: PoseTable,
-    lags: lags::Lags,
-    refs: Refs,
-    folds: Folds,
-    /// The paper's model first, then every candidate the run allows.
-    models: Vec<Effect>,
-    /// Candidates not tested and why.
-    skipped: Skipped,
-}
-
-/// Models left out of the diagnosis, each with why.
-type Skipped = Vec<(Effect, String)>;
-
-/// Reads the head, rejects the bad poses ([`noise::reject`]), re-times the
-/// rest ([`retimed`]), chooses the folds ([`folds_for`]) and the
-/// candidates the run's columns allow ([`available`]).
-///
-/// # Errors
-/// A head that does not match the poses' reading columns, too few poses
-/// for the folds.
-fn load(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> Result<Loaded> {
-    let nominal = sensors
-        .sensors()
-        .map_err(|e| anyhow!("nominal head: {e}"))?;
-    if all_poses.n_sensors != nominal.len() {
-        bail!(
-            "the poses have {} reading columns, the head {} sensors",
-            all_poses.n_sensors,
-            nominal.len()
-        );
-    }
-    let outliers = noise::reject(&nominal, all_poses, &s.lsq, &available_models(all_poses));
-    let (poses, lags) = retimed(&nominal, all_poses, &outliers, &s.lsq);
-    let n = poses.rows.len();
-    let k = folds_for(n, s.folds);
-    if n < 2 * k {
-        bail!(
-            "{n} poses are too few for {k}-fold cross-validation (need at least {})",
-            2 * k
-        );
-    }
-    let mut models = vec![Effect::None];
-    let mut skipped = Vec::new();
-    for e in Effect::CATALOG {
-        match available(e, &poses) {
-            Ok(()) => models.push(e),
-            Err(why) => skipped.push((e, why)),
-        }
-    }
-    Ok(Loaded {
-        nominal,
-        outliers,
-        refs: Refs::of(&poses),
-        folds: Folds::new(n, k, s.seed),
-        poses,
-        lags,
-        models,
-        skipped,
-    })
-}
-
-/// Stage "nominal fit → candidates": every model cross-validated on the
-/// measured run ([`analyse`]); returns the analysis, the models that could
-/// be fitted, and those that could not with why.
-///
-/// # Errors
-/// The paper's model cannot be cross-validated.
-fn fit_measured(poses: &PoseTable, plan: &Plan) -> Result<(Analysis, Vec<Effect>, Skipped)> {
-    let measured = analyse(poses, plan, true).map_err(|e| anyhow!("{e}"))?;
-    match measured.cv.first() {
-        Some((_, Ok(_))) => {}
-        Some((_, Err(e))) => bail!("the paper's model cannot be cross-validated: {e}"),
-        None => bail!("no model"),
-    }
-    let mut fitted = Vec::new();
-    let mut failed = Vec::new();
-    for (e, r) in &measured.cv {
-        match r {
-            Ok(_) => fitted.push(*e),
-            Err(why) => failed.push((*e, format!("cannot be fitted: {why}"))),
-        }
-    }
-    Ok((measured, fitted, failed))
-}
-
-/// Stage "decision", second half: the effect named first, and the forward
-/// selection on top of it. A winner that leaves structure may be one of
-/// two effects: the forward selection looks for the other before
-/// `unexplained` stands, and names both when it finds it (the reason is
-/// added to `decision`).
-///
-/// # Errors
-/// Those of [`forward`].
-fn name_effects(
-    decision: &mut Decision,
-    l: &Loaded,
-    declared: Option<Vec<f64>>,
-    s: &Settings,
-) -> Result<(Effect, Vec<Step>)> {
-    let mut effect = decision.effect;
-    let first = match (effect, decision.winner) {
-        (Effect::Unexplained, Some(w)) => w,
-        (e, _) => e,
-    };
-    let also = match first {
-        Effect::None | Effect::Unexplained => Vec::new(),
-        e => forward(e, l, declared, s)?,
-    };
-    if let (Effect::Unexplained, Some(st)) = (effect, also.last()) {
-        decision.reasons.push(format!(
-            "with {} added the residuals are explained: {} are named together",
-            st.effect.name(),
-            st.with
-                .iter()
-                .map(|e| e.name())
-                .collect::<Vec<_>>()
-                .join(" + ")
-        ));
-        effect = first;
-    }
-    Ok((effect, also))
-}
-
-/// Held-out performance of the paper's model and of the model behind the
-/// verdict (stage "held-out scores" of what is reported).
-struct Scores {
-    base: Perf,
-    extended: Perf,
-    base_normals: Vec<Option<f64>>,
-    ext_normals: Vec<Option<f64>>,
-    /// The model behind `extended` (`None` = the paper's).
-    ext_model: Effect,
-}
-
-/// [`Scores`] of the verdict `effect` (with the forward selection's
-/// `also`): the extended figures are those of the last model selected,
-/// the paper's model's for `none` and `unexplained`.
-fn scores(effect: Effect, also: &[Step], measured: &Analysis, l: &Loaded, s: &Settings) -> Scores {
-    let base_normals = measured.base_normal.clone();
-    let base = Perf {
-        heldout_rms_mm: measured.cv_of(Effect::None).map_or(f64::NAN, |c| c.rms),
-        heldout_normal_err_deg: mean_opt(&base_normals),
-    };
-    let ext_model = match effect {
-        Effect::None | Effect::Unexplained => Effect::None,
-        e => e,
-    };
-    let ext_cv = also.last().map(|st| &st.cv).or(measured.cv_of(ext_model));
-    let (extended, ext_normals) = match ext_cv {
-        Some(c) if ext_model != Effect::None => {
-            let ne = normal_errors(c, &l.poses, &l.folds, s.method);
-            let perf = Perf {
-                heldout_rms_mm: c.rms,
-                heldout_normal_err_deg: mean_opt(&ne),
-            };
-            (perf, ne)
-        }
-        _ => (base, base_normals.clone()),
-    };
-    Scores {
-        base,
-        extended,
-        base_normals,
-        ext_normals,
-        ext_model,
-    }
-}
-
-/// Runs the diagnosis on a run read from the exchange format, in one pass:
-/// load → bad poses ([`load`]) → nominal fit → candidates
-/// ([`fit_measured`]) → noise → effect-free re-simulations → decision
-/// ([`settle`], [`name_effects`]) → held-out scores ([`scores`]) → the
+/// Runs the diagnosis on a run read from the exchange format, in one pass
+/// through the stages (docs/diagnosis.md, "How the code is laid out"):
+/// read and check ([`load`](load::load)) → nominal and candidate fits
+/// ([`fits::fit`]) → noise, effect-free re-simulations and decision
+/// ([`decision::decide_run`]) → held-out scores ([`scores::scores`]) → the
 /// report's parts.
 ///
 /// # Errors
@@ -1095,40 +435,17 @@ fn scores(effect: Effect, also: &[Step], measured: &Analysis, l: &Loaded, s: &Se
 /// too few poses for the folds.
 pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> Result<Diagnosis> {
     let mut l = load(sensors, all_poses, s)?;
-    let plan = Plan {
-        nominal: &l.nominal,
-        refs: &l.refs,
-        folds: &l.folds,
-        models: &l.models,
-        lsq: &s.lsq,
-        method: s.method,
-    };
-    let (measured, fitted, failed) = fit_measured(&l.poses, &plan)?;
-    // Models that failed on the measured data are not simulated either.
-    let plan = Plan {
-        models: &fitted,
-        ..plan
-    };
-    let implausible = implausible_fits(&l.nominal, &l.poses, &l.refs, &fitted, &s.lsq);
-    let bad: Vec<Effect> = implausible.iter().map(|(e, _)| *e).collect();
-    let declared = declared_sigma(sensors, s.sigma_mm);
-    // The noise comes from the full model (every candidate at once): an
-    // effect not yet named is not counted as noise.
-    let (estimate, noise, expected, mut decision) = settle(
-        &l.nominal,
-        &l.poses,
-        &l.refs,
-        &plan,
-        &measured,
-        declared.clone(),
-        s,
-        &bad,
-    )?;
-    let (effect, also) = name_effects(&mut decision, &l, declared, s)?;
-    // The floor reported: the paper's model on effect-free re-simulations
-    // at the noise from the full model.
-    let floor_mm = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
-    let sc = scores(effect, &also, &measured, &l, s);
+    let f = fit(&l, s)?;
+    let Decided {
+        estimate,
+        noise,
+        expected,
+        decision,
+        effect,
+        also,
+        floor_mm,
+    } = decide_run(&l, &f, s)?;
+    let sc = scores(effect, &also, &f.measured, &l, s);
     let refit_model = match effect {
         Effect::None => None,
         Effect::Unexplained => decision.winner,
@@ -1139,20 +456,20 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
             .ok()
             .map(|f| (e, f))
     });
-    let checks = report::checks(&measured, &expected, &fitted, &decision);
+    let checks = report::checks(&f.measured, &expected, &f.fitted, &decision);
     let mut warnings = noise_warnings(&estimate, effect);
     warnings.extend(time_warning(&l.poses, &named(effect, &also)));
-    l.skipped.extend(failed);
+    l.skipped.extend(f.failed);
     Ok(Diagnosis {
         effect,
         decision,
         expected,
         floor_mm,
-        measured,
+        measured: f.measured,
         noise,
         estimate,
         outliers: l.outliers,
-        implausible,
+        implausible: f.implausible,
         warnings,
         base: sc.base,
         extended: sc.extended,
@@ -1206,7 +523,7 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
             .map_err(|why| anyhow!("not stored: {why}"))?;
         let mut p = candidates::params_of(i, &fit, s);
         // Drift is removed from the estimate, never extrapolated.
-        p.fold_drift(crate::calibrate::run_end_s(&d.poses));
+        p.fold_drift(lags::run_end_s(&d.poses));
         f.sensors.push(p);
     }
     // The sensor bodies' lag, for the board to lag its temperature alike.

@@ -53,7 +53,7 @@
 //!   reported as a warning, not an effect).
 
 use super::candidates::Effect;
-use super::cv::CvResult;
+use super::cv::{paired, paired_rank, CvResult};
 use super::expect::{Analysis, Expectation, Spread};
 use super::stats;
 
@@ -64,24 +64,7 @@ use super::stats;
 /// fitted by a linear one). Below it the verdict is `unexplained`.
 pub const MOSTLY: f64 = 0.75;
 
-/// Decision thresholds.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Rule {
-    /// Family-wise false-naming level α.
-    pub alpha: f64,
-    /// Smallest relative drop of the held-out mean square error, in units
-    /// of the simulated floor's mean square.
-    pub min_gain: f64,
-}
-
-impl Default for Rule {
-    fn default() -> Self {
-        Self {
-            alpha: 0.01,
-            min_gain: 0.02,
-        }
-    }
-}
+pub use super::settings::Rule;
 
 /// The evaluation of one candidate.
 #[derive(Debug, Clone, PartialEq)]
@@ -139,34 +122,6 @@ pub struct Decision {
     pub explained_fraction: Option<f64>,
     /// Reasons, in words.
     pub reasons: Vec<String>,
-}
-
-/// Wilcoxon signed-rank z of the per-pose loss differences `base − cand`.
-pub fn paired_rank(base: &CvResult, cand: &CvResult) -> f64 {
-    let d: Vec<f64> = base
-        .pose_loss
-        .iter()
-        .zip(&cand.pose_loss)
-        .map(|(a, b)| a - b)
-        .collect();
-    stats::signed_rank_z(&d)
-}
-
-/// Paired comparison of two models' per-pose held-out losses: returns
-/// `(mean gain per reading [mm²], z, standard error of the mean gain per
-/// pose)`.
-pub fn paired(base: &CvResult, cand: &CvResult) -> (f64, f64, f64) {
-    let d: Vec<f64> = base
-        .pose_loss
-        .iter()
-        .zip(&cand.pose_loss)
-        .map(|(a, b)| a - b)
-        .collect();
-    let k = d.len().max(1) as f64;
-    let m = stats::mean(&d);
-    let se = stats::sd(&d) / k.sqrt();
-    let z = if se > 0.0 { m / se } else { 0.0 };
-    (d.iter().sum::<f64>() / base.n.max(1) as f64, z, se)
 }
 
 /// Floor of the predictive spread of an RMS over `n` readings

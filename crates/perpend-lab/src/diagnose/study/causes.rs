@@ -15,6 +15,7 @@
 //! Limits: the sensor's measuring range (50 mm) converts the front end's
 //! %-of-range figures to mm; it is assumed (the readings are ~40 mm).
 
+pub use super::model::name;
 use super::model::Cause;
 use crate::diagnose::candidates::Effect;
 
@@ -88,17 +89,6 @@ pub const NUISANCES: [(&str, &str, &str); 5] = [
          leaves a residual between the two",
     ),
 ];
-
-/// Name of a cause.
-pub fn name(c: Cause) -> &'static str {
-    match c {
-        Cause::Sensor(e) => e.name(),
-        Cause::Ripple => "ripple",
-        Cause::Tcs => "TCS error per pose",
-        Cause::Form => "datum form error",
-        Cause::Robot => "robot reorientation error",
-    }
-}
 
 /// What a cause's magnitude means.
 pub fn unit(c: Cause) -> &'static str {

@@ -68,7 +68,18 @@ pub enum Cause {
 
 impl Serialize for Cause {
     fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(super::causes::name(*self))
+        s.serialize_str(name(*self))
+    }
+}
+
+/// Name of a cause.
+pub fn name(c: Cause) -> &'static str {
+    match c {
+        Cause::Sensor(e) => e.name(),
+        Cause::Ripple => "ripple",
+        Cause::Tcs => "TCS error per pose",
+        Cause::Form => "datum form error",
+        Cause::Robot => "robot reorientation error",
     }
 }
 

@@ -1,0 +1,296 @@
+//! Stages 4 and 5 of `perpend diagnose`, held-out scores against their
+//! nulls and the decision: the noise estimated from the full model's
+//! residuals ([`super::noise`]), the effect-free re-simulations at that
+//! noise ([`super::expect`]), the calibrated decision ([`super::select`]),
+//! then the forward selection of further effects on top of the first
+//! ([`Step`], at most [`MAX_EFFECTS`]).
+//!
+//! Input: the loaded run (`Loaded`) and the measured [`Analysis`] of
+//! stages 2-3; output: the noise, the expectation, the [`Decision`] and the
+//! effects named with their steps. Reads stages 0-3 only. Limits: a
+//! forward step whose model the solver cannot fit ends the selection.
+
+use anyhow::{anyhow, bail, Result};
+use perpend_core::head::Sensor;
+
+use super::candidates::{self, Effect, Refs, SensorFit};
+use super::cv;
+use super::expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
+use super::fits::{implausible_fits, Fitted};
+use super::load::{available_models, Loaded};
+use super::noise::{self, NoiseEstimate};
+use super::select::{self, decide, Decision};
+use super::settings::{draws_for, Settings};
+use crate::exchange::PoseTable;
+
+/// Most effects named together.
+pub const MAX_EFFECTS: usize = 3;
+
+/// Noise → expectation → decision, with the noise estimated from the
+/// residuals of the full model fitted on all poses (of the paper's model
+/// when not even one candidate fits).
+#[allow(clippy::too_many_arguments)]
+fn settle(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    plan: &Plan,
+    measured: &Analysis,
+    declared: Option<Vec<f64>>,
+    s: &Settings,
+    implausible: &[Effect],
+) -> Result<(NoiseEstimate, NoiseModel, Expectation, Decision)> {
+    let (fits, resid) = noise::full_residuals(nominal, poses, refs, plan.models, &s.lsq)
+        .unwrap_or_else(|| (measured.base_fit.clone(), measured.insample.clone()));
+    let estimate = noise::estimate(nominal, poses, &fits, &resid, declared, s.tracker);
+    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
+    let noise = NoiseModel {
+        sigma: estimate.reading_mm.clone(),
+        tracker: estimate.tracker,
+    };
+    let draws = draws_for(poses.rows.len(), s.draws);
+    let expected = expect(&truth, poses, &noise, plan, draws, s.seed);
+    if expected.draws < 2 {
+        bail!("the simulated expectation failed: the base model could not be fitted on the simulated runs");
+    }
+    let decision = decide(measured, &expected, nominal.len(), &s.rule, implausible);
+    Ok((estimate, noise, expected, decision))
+}
+
+/// Stage "decision", second half: the effect named first, and the forward
+/// selection on top of it. A winner that leaves structure may be one of
+/// two effects: the forward selection looks for the other before
+/// `unexplained` stands, and names both when it finds it (the reason is
+/// added to `decision`).
+///
+/// # Errors
+/// Those of [`forward`].
+fn name_effects(
+    decision: &mut Decision,
+    l: &Loaded,
+    declared: Option<Vec<f64>>,
+    s: &Settings,
+) -> Result<(Effect, Vec<Step>)> {
+    let mut effect = decision.effect;
+    let first = match (effect, decision.winner) {
+        (Effect::Unexplained, Some(w)) => w,
+        (e, _) => e,
+    };
+    let also = match first {
+        Effect::None | Effect::Unexplained => Vec::new(),
+        e => forward(e, l, declared, s)?,
+    };
+    if let (Effect::Unexplained, Some(st)) = (effect, also.last()) {
+        decision.reasons.push(format!(
+            "with {} added the residuals are explained: {} are named together",
+            st.effect.name(),
+            st.with
+                .iter()
+                .map(|e| e.name())
+                .collect::<Vec<_>>()
+                .join(" + ")
+        ));
+        effect = first;
+    }
+    Ok((effect, also))
+}
+
+/// A further effect of the forward selection: named by the same
+/// calibrated decision as the first, with the effects before it added to
+/// every model (the paper's model included) and the noise and the
+/// effect-free re-simulations taken from that model.
+#[derive(Debug, Clone)]
+pub struct Step {
+    /// The effect added.
+    pub effect: Effect,
+    /// Every effect selected up to and including this one.
+    pub with: Vec<Effect>,
+    /// Its evaluation against the model before it.
+    pub verdict: select::Verdict,
+    /// Held-out RMS of the model before it [mm].
+    pub before_rms_mm: f64,
+    /// Held-out cross-validation of the model with it.
+    pub cv: cv::CvResult,
+    /// All poses fitted with every effect up to this one.
+    pub fits: Vec<SensorFit>,
+}
+
+/// Forward selection after `first` was named (module docs): adds the
+/// candidate that the calibrated decision names on top of the effects
+/// selected so far ([`next_step`]), refits, repeats; stops when nothing
+/// more is named or after [`MAX_EFFECTS`] effects.
+///
+/// # Errors
+/// A winner without a verdict (an internal inconsistency).
+fn forward(
+    first: Effect,
+    l: &Loaded,
+    declared: Option<Vec<f64>>,
+    s: &Settings,
+) -> Result<Vec<Step>> {
+    let mut with = vec![first];
+    let mut steps = Vec::new();
+    while with.len() < MAX_EFFECTS {
+        let Some(step) = next_step(&with, l, &declared, s)? else {
+            break;
+        };
+        with.push(step.effect);
+        steps.push(step);
+    }
+    Ok(steps)
+}
+
+/// One round of [`forward`]: the candidates not yet selected (nor excluded
+/// by one that is) decided on top of `with`, as the first effect was
+/// (noise from the full model, effect-free re-simulations). `None` when
+/// nothing more is named, or when a model the solver cannot fit on this
+/// run (more terms than the pose set identifies) ends the selection: what
+/// was named so far stands.
+///
+/// # Errors
+/// A winner without a verdict (an internal inconsistency).
+fn next_step(
+    with: &[Effect],
+    l: &Loaded,
+    declared: &Option<Vec<f64>>,
+    s: &Settings,
+) -> Result<Option<Step>> {
+    let (nominal, poses) = (&l.nominal, &l.poses);
+    let r = Refs {
+        extra: with.to_vec(),
+        ..l.refs.clone()
+    };
+    let models: Vec<Effect> = available_models(poses)
+        .into_iter()
+        .filter(|e| !(with.contains(e) || with.iter().any(|w| e.excluded_by(*w))))
+        .collect();
+    if models.len() < 2 {
+        return Ok(None);
+    }
+    let plan = Plan {
+        nominal,
+        refs: &r,
+        folds: &l.folds,
+        models: &models,
+        lsq: &s.lsq,
+        method: s.method,
+    };
+    let Ok(measured) = analyse(poses, &plan, false) else {
+        return Ok(None);
+    };
+    let fitted: Vec<Effect> = measured
+        .cv
+        .iter()
+        .filter(|(_, x)| x.is_ok())
+        .map(|(e, _)| *e)
+        .collect();
+    let plan = Plan {
+        models: &fitted,
+        ..plan
+    };
+    let bad: Vec<Effect> = implausible_fits(nominal, poses, &r, &fitted, &s.lsq)
+        .into_iter()
+        .map(|(e, _)| e)
+        .collect();
+    let settled = settle(
+        nominal,
+        poses,
+        &r,
+        &plan,
+        &measured,
+        declared.clone(),
+        s,
+        &bad,
+    );
+    let Ok((_, _, _, d)) = settled else {
+        return Ok(None);
+    };
+    let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
+        return Ok(None);
+    };
+    if d.effect != e {
+        return Ok(None);
+    }
+    let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
+        return Ok(None);
+    };
+    let mut with = with.to_vec();
+    with.push(e);
+    Ok(Some(Step {
+        effect: e,
+        with,
+        verdict: d
+            .verdicts
+            .iter()
+            .find(|v| v.effect == e)
+            .cloned()
+            .ok_or_else(|| anyhow!("no verdict"))?,
+        before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
+        cv: cv.clone(),
+        fits,
+    }))
+}
+
+/// The effects named: the verdict `effect` and those the forward
+/// selection added (`also`); none for `none` and `unexplained`.
+pub(super) fn named(effect: Effect, also: &[Step]) -> Vec<Effect> {
+    match effect {
+        Effect::None | Effect::Unexplained => Vec::new(),
+        e => std::iter::once(e)
+            .chain(also.iter().map(|st| st.effect))
+            .collect(),
+    }
+}
+
+/// The output of stages 4-5: the noise, the effect-free expectation and
+/// the verdict with the effects named.
+pub(super) struct Decided {
+    /// The run's own noise.
+    pub(super) estimate: NoiseEstimate,
+    /// The noise the expectation was simulated with.
+    pub(super) noise: NoiseModel,
+    /// The effect-free re-simulations.
+    pub(super) expected: Expectation,
+    /// The calibrated decision.
+    pub(super) decision: Decision,
+    /// The name given.
+    pub(super) effect: Effect,
+    /// Further effects selected on top of `effect`.
+    pub(super) also: Vec<Step>,
+    /// Simulated held-out RMS of the paper's model on effect-free data at
+    /// the noise from the full model (the floor reported) [mm].
+    pub(super) floor_mm: f64,
+}
+
+/// Stages 4-5 on the fitted run: the noise from the full model (every
+/// candidate at once: an effect not yet named is not counted as noise),
+/// the decision ([`settle`]) and the forward selection ([`name_effects`]).
+///
+/// # Errors
+/// Those of [`settle`] and [`name_effects`].
+pub(super) fn decide_run(l: &Loaded, f: &Fitted, s: &Settings) -> Result<Decided> {
+    // Models that failed on the measured data are not simulated either.
+    let plan = l.plan(&f.fitted, s);
+    let bad: Vec<Effect> = f.implausible.iter().map(|(e, _)| *e).collect();
+    let (estimate, noise, expected, mut decision) = settle(
+        &l.nominal,
+        &l.poses,
+        &l.refs,
+        &plan,
+        &f.measured,
+        l.declared.clone(),
+        s,
+        &bad,
+    )?;
+    let (effect, also) = name_effects(&mut decision, l, l.declared.clone(), s)?;
+    let floor_mm = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
+    Ok(Decided {
+        estimate,
+        noise,
+        expected,
+        decision,
+        effect,
+        also,
+        floor_mm,
+    })
+}

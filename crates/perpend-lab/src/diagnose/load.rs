@@ -1,0 +1,158 @@
+//! Stage 1 of `perpend diagnose`, read and check: the nominal head of the
+//! sensor table, the poses that disagree with every model left out
+//! ([`super::noise::reject`]), the rest re-timed with the time constants
+//! chosen on them ([`super::lags`]), the folds ([`super::folds`]) and the
+//! models the run's columns allow ([`available_models`]).
+//!
+//! Input: the tables and [`Settings`]; output: `Loaded`. Reads no later
+//! stage. Limits: a head whose sensor count differs from the poses'
+//! reading columns, or fewer than two poses per fold, is refused.
+
+use anyhow::{anyhow, bail, Result};
+use perpend_core::calib::LsqConfig;
+use perpend_core::head::Sensor;
+
+use super::candidates::{available, Effect, Refs};
+use super::expect::Plan;
+use super::folds::{folds_for, Folds};
+use super::lags;
+use super::noise::{self, Outlier};
+use super::settings::Settings;
+use crate::exchange::{PoseTable, SensorTable};
+
+/// The run as the diagnosis sees it (stage "load → bad poses"): the
+/// nominal head, the poses kept (re-timed), the folds and the models the
+/// run's columns allow.
+pub(super) struct Loaded {
+    pub(super) nominal: Vec<Sensor<f64>>,
+    pub(super) outliers: Vec<Outlier>,
+    pub(super) poses: PoseTable,
+    pub(super) lags: lags::Lags,
+    pub(super) refs: Refs,
+    pub(super) folds: Folds,
+    /// The paper's model first, then every candidate the run allows.
+    pub(super) models: Vec<Effect>,
+    /// Candidates not tested and why.
+    pub(super) skipped: Skipped,
+    /// The declared reading noise per sensor ([`declared_sigma`]).
+    pub(super) declared: Option<Vec<f64>>,
+}
+
+impl Loaded {
+    /// The plan of the cross-validations of `models` on this run.
+    pub(super) fn plan<'a>(&'a self, models: &'a [Effect], s: &'a Settings) -> Plan<'a> {
+        Plan {
+            nominal: &self.nominal,
+            refs: &self.refs,
+            folds: &self.folds,
+            models,
+            lsq: &s.lsq,
+            method: s.method,
+        }
+    }
+}
+
+/// Models left out of the diagnosis, each with why.
+pub(super) type Skipped = Vec<(Effect, String)>;
+
+/// Reads the head, rejects the bad poses ([`noise::reject`]), re-times the
+/// rest ([`retimed`]), chooses the folds ([`folds_for`]) and the
+/// candidates the run's columns allow ([`available`]).
+///
+/// # Errors
+/// A head that does not match the poses' reading columns, too few poses
+/// for the folds.
+pub(super) fn load(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> Result<Loaded> {
+    let nominal = sensors
+        .sensors()
+        .map_err(|e| anyhow!("nominal head: {e}"))?;
+    if all_poses.n_sensors != nominal.len() {
+        bail!(
+            "the poses have {} reading columns, the head {} sensors",
+            all_poses.n_sensors,
+            nominal.len()
+        );
+    }
+    let outliers = noise::reject(&nominal, all_poses, &s.lsq, &available_models(all_poses));
+    let (poses, lags) = retimed(&nominal, all_poses, &outliers, &s.lsq);
+    let n = poses.rows.len();
+    let k = folds_for(n, s.folds);
+    if n < 2 * k {
+        bail!(
+            "{n} poses are too few for {k}-fold cross-validation (need at least {})",
+            2 * k
+        );
+    }
+    let mut models = vec![Effect::None];
+    let mut skipped = Vec::new();
+    for e in Effect::CATALOG {
+        match available(e, &poses) {
+            Ok(()) => models.push(e),
+            Err(why) => skipped.push((e, why)),
+        }
+    }
+    Ok(Loaded {
+        declared: declared_sigma(sensors, s.sigma_mm),
+        nominal,
+        outliers,
+        refs: Refs::of(&poses),
+        folds: Folds::new(n, k, s.seed),
+        poses,
+        lags,
+        models,
+        skipped,
+    })
+}
+
+/// The run without `outliers`, re-timed with the time constants chosen on
+/// it ([`lags`]; the lag filters every pose's temperature, the outliers'
+/// included).
+fn retimed(
+    nominal: &[Sensor<f64>],
+    all: &PoseTable,
+    outliers: &[Outlier],
+    lsq: &LsqConfig<f64>,
+) -> (PoseTable, lags::Lags) {
+    let kept = noise::without(all, outliers);
+    let lags = lags::select(nominal, &kept, &[Effect::Thermal, Effect::Drift], lsq);
+    (noise::without(&lags::apply(all, &lags), outliers), lags)
+}
+
+/// The paper's model and every candidate the run has the inputs for.
+pub fn available_models(poses: &PoseTable) -> Vec<Effect> {
+    std::iter::once(Effect::None)
+        .chain(
+            Effect::CATALOG
+                .into_iter()
+                .filter(|e| available(*e, poses).is_ok()),
+        )
+        .collect()
+}
+
+/// The largest `|d − d_ref|` of the run [mm] (for the plausibility bounds).
+pub(crate) fn reading_span(poses: &PoseTable, refs: &Refs) -> f64 {
+    poses
+        .rows
+        .iter()
+        .flat_map(|r| {
+            r.readings
+                .iter()
+                .enumerate()
+                .filter_map(|(i, d)| Some((d.as_ref()? - refs.d_ref.get(i)?).abs()))
+        })
+        .fold(0.0, f64::max)
+}
+
+/// The declared reading noise of each sensor: the override or the
+/// `sigma_mm` column; `None` when neither gives a positive value for every
+/// sensor (the diagnosis then relies on its own estimate alone).
+pub fn declared_sigma(sensors: &SensorTable, sigma_mm: Option<f64>) -> Option<Vec<f64>> {
+    if let Some(s) = sigma_mm {
+        return Some(vec![s; sensors.len()]);
+    }
+    sensors
+        .rows
+        .iter()
+        .map(|r| r.sigma_mm.filter(|s| *s > 0.0))
+        .collect()
+}
