@@ -1685,7 +1685,7 @@ fn layout_6_image_loads_with_a_zero_stamp() {
 fn program_download_objects() {
     let mut b = Bus::new();
     let data: Vec<u8> = (0..20u8).map(|i| i * 7 + 1).collect();
-    let crc = crate::sdo_block::crc16_ccitt(&data, 0).to_le_bytes();
+    let crc = crate::sdo::block::crc16_ccitt(&data, 0).to_le_bytes();
     let r = b.sdo([0xC6, 0x50, 0x1F, 1, 20, 0, 0, 0]).unwrap();
     assert_eq!(r[..5], [0xA4, 0x50, 0x1F, 1, 127]);
     for (k, chunk) in data.chunks(7).enumerate() {

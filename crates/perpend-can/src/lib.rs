@@ -103,7 +103,7 @@
 //! * **SDO server** on 0x600+id → 0x580+id, pre-operational and operational
 //!   only: expedited and segmented upload/download, toggle check, server
 //!   timeout (`Defaults::sdo_timeout_us`, abort 0x05040000), block
-//!   download with CRC (feature `sdo-block`, module `sdo_block`); block upload
+//!   download with CRC (feature `sdo-block`, module `sdo::block`); block upload
 //!   refused (0x05040001). See [`sdo`] for the codes. Order of checks:
 //!   object (0x06020000) → sub-index (0x06090011) → access (0x06010002) →
 //!   length (0x06070012 too long, 0x06070013 too short) → state (0x08000022) → lock (0x08000021) → value
@@ -193,8 +193,6 @@ pub mod frame;
 pub mod lss;
 pub mod od;
 pub mod sdo;
-#[cfg(feature = "sdo-block")]
-pub mod sdo_block;
 #[cfg(all(test, feature = "sdo-block"))]
 mod sdo_block_tests;
 pub mod status;

@@ -11,7 +11,7 @@
 //! the outcome ([`crate::Device::finish_request`]).
 //!
 //! Block download with CRC (CiA 301 §7.2.4.3.10-16) is in
-//! [`crate::sdo_block`] (feature `sdo-block`, which sizes the transfer
+//! [`crate::sdo::block`] (feature `sdo-block`, which sizes the transfer
 //! buffer for a whole sub-block of 127 segments, 889 bytes); without it a
 //! block request is refused with 0x05040001 and a client falls back to
 //! segmented transfer.
@@ -24,6 +24,10 @@
 //! Limits: block upload is not implemented (abort 0x05040001; CiA 301 lets
 //! the client use a segmented upload instead); segmented downloads of a
 //! non-DOMAIN object carry at most 8 bytes (no writable object is larger).
+
+/// SDO block download with CRC (CiA 301 §7.2.4.3.10-16).
+#[cfg(feature = "sdo-block")]
+pub mod block;
 
 /// CiA 301 SDO abort codes the server produces.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -230,7 +234,7 @@ pub const MAX_DOWNLOAD: usize = 8;
 /// segments of 7 bytes with the feature `sdo-block`, else one 7-byte
 /// segment (DOMAIN parts are then a segment each) or an 8-byte value.
 #[cfg(feature = "sdo-block")]
-pub const BUF_LEN: usize = crate::sdo_block::BLOCK_BYTES;
+pub const BUF_LEN: usize = crate::sdo::block::BLOCK_BYTES;
 /// Bytes of the server's transfer buffer: one whole sub-block of 127
 /// segments of 7 bytes with the feature `sdo-block`, else one 7-byte
 /// segment (DOMAIN parts are then a segment each) or an 8-byte value.
@@ -260,9 +264,9 @@ pub(crate) enum Transfer {
         toggle: bool,
         deadline: u64,
     },
-    /// Block download (`sdo_block.rs`).
+    /// Block download (`sdo/block.rs`).
     #[cfg(feature = "sdo-block")]
-    BlockDown(crate::sdo_block::BlockDown),
+    BlockDown(crate::sdo::block::BlockDown),
     /// A write handed to the application; `resp` is the confirmation to
     /// send on success.
     Deferred {
@@ -691,7 +695,7 @@ impl SdoServer {
     /// The abort to send if a segmented transfer has timed out at `now_us`
     /// (the transfer is then dropped); in a block download also the
     /// acknowledgement that a stalled sub-block is due
-    /// ([`crate::sdo_block`]).
+    /// ([`crate::sdo::block`]).
     pub fn check_timeout(&mut self, now_us: u64) -> Option<[u8; 8]> {
         self.now_us = now_us;
         let (index, sub, deadline) = match self.transfer {

@@ -1,10 +1,10 @@
-//! Tests of the SDO block download (`sdo_block.rs`) against a small
+//! Tests of the SDO block download (`sdo/block.rs`) against a small
 //! in-test client that follows CiA 301 §7.2.4.3.10-16 and resends after
 //! the server's ackseq.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
+use crate::sdo::block::{crc16_ccitt, BLOCK_BYTES};
 use crate::sdo::{Dictionary, SdoAbort, SdoServer, Value, Written};
-use crate::sdo_block::{crc16_ccitt, BLOCK_BYTES};
 use proptest::prelude::*;
 
 const TIMEOUT: u64 = 1_000_000;

@@ -56,31 +56,13 @@ use serde::Serialize;
 
 use crate::calibrate::angle_deg;
 use crate::exchange::{PoseRow, PoseTable};
-use crate::sim::{plane_from_tilts, readings, Moment, PoseSpread, SimConfig, SimHead};
+use crate::sim::{readings, Moment, PoseSpread, SimConfig, SimHead};
 
 type Info = SMatrix<f64, DOF, DOF>;
 
-/// One planned pose: how the robot presents the datum plane.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct PlannedPose {
-    /// Tilt about TCS x (θ1) [deg].
-    pub tilt_x_deg: f64,
-    /// Tilt about TCS y (θ2) [deg].
-    pub tilt_y_deg: f64,
-    /// Where the plane crosses the spindle axis [mm].
-    pub standoff_mm: f64,
-}
-
-impl PlannedPose {
-    /// The plane in the TCS.
-    pub fn plane(&self) -> Plane<f64> {
-        plane_from_tilts(
-            self.tilt_x_deg.to_radians(),
-            self.tilt_y_deg.to_radians(),
-            self.standoff_mm,
-        )
-    }
-}
+/// One planned pose (defined beside the simulator that presents it, so
+/// that `frames::plan` can use it without importing this module).
+pub use crate::sim::PlannedPose;
 
 /// The reachable poses.
 #[derive(Debug, Clone, Copy, PartialEq)]

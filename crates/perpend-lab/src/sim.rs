@@ -48,6 +48,29 @@ use perpend_core::model::distance;
 use perpend_core::surface::CurvedSurface;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+
+/// One planned pose: how the robot presents the datum plane
+/// (`perpend plan`, `crate::plan`).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PlannedPose {
+    /// Tilt about TCS x (θ1) [deg].
+    pub tilt_x_deg: f64,
+    /// Tilt about TCS y (θ2) [deg].
+    pub tilt_y_deg: f64,
+    /// Where the plane crosses the spindle axis [mm].
+    pub standoff_mm: f64,
+}
+
+impl PlannedPose {
+    /// The plane in the TCS.
+    pub fn plane(&self) -> Plane<f64> {
+        plane_from_tilts(
+            self.tilt_x_deg.to_radians(),
+            self.tilt_y_deg.to_radians(),
+            self.standoff_mm,
+        )
+    }
+}
 use rand_distr::StandardNormal;
 
 use crate::exchange::{PoseRow, PoseTable, SensorTable};

@@ -31,7 +31,7 @@ use anyhow::{anyhow, Result};
 use perpend_board::app::{defaults_for, App};
 use perpend_board::pipeline::{Output, Sample};
 use perpend_board::program::{BootState, ProgramStore};
-use perpend_board::storage::{host_store, save_with_tail, HostFlash, SeqStore};
+use perpend_board::storage::{host_store, save_with_tail, HostFlash};
 use perpend_board::txq::{TryWrite, TxController, TxQueue, TX_QUEUE_LEN};
 use perpend_can::lss::UNCONFIGURED;
 use perpend_can::{Device, Frame, IMAGE_LEN};
@@ -40,8 +40,7 @@ use perpend_core::params::Params;
 
 use super::sim::SimHead;
 
-/// The application type of the virtual board.
-pub type HostApp = App<SeqStore<HostFlash>>;
+pub use super::update::HostApp;
 
 /// What the board starts with.
 #[derive(Debug, Clone)]

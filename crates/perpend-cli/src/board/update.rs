@@ -15,9 +15,11 @@
 use perpend_board::app::App;
 use perpend_board::image;
 use perpend_board::program::{build_version, RamProgram};
-use perpend_board::storage::{host_store, HostFlash};
+use perpend_board::storage::{host_store, HostFlash, SeqStore};
 
-use super::node::HostApp;
+/// The application type of the virtual board (defined here, beside its
+/// flash fake, so that this module does not import `node`).
+pub type HostApp = App<SeqStore<HostFlash>>;
 
 /// The largest image the virtual board takes \[bytes\]: the planned ACTIVE
 /// partition (docs/firmware.md; the DFU partition is one page larger).

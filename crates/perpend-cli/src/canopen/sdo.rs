@@ -362,7 +362,7 @@ impl Client {
     ) -> Result<(), ClientError> {
         let n = ((7 - data.len() % 7) % 7) as u8;
         let crc = if crc_on {
-            perpend_can::sdo_block::crc16_ccitt(data, 0)
+            perpend_can::sdo::block::crc16_ccitt(data, 0)
         } else {
             0
         };

@@ -30,6 +30,7 @@ use perpend_board::image::{Identity, SIGNATURE_LEN, TRAILER_LEN};
 use perpend_board::program::{FLASH_BAD_SIGNATURE, FLASH_WRONG_PRODUCT};
 use perpend_can::od;
 
+pub use super::update_record::version_words;
 use super::update_record::{Board, UpdateRecord};
 use super::Node;
 use crate::canopen::NodeState;
@@ -50,21 +51,6 @@ pub struct Args {
     /// overwritten.
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
-}
-
-/// `major.minor.patch (#xx)` of a 0x1F56 identification.
-pub fn version_words(ident: u32) -> String {
-    if ident == 0 {
-        return "none (0x1F56 = 0)".into();
-    }
-    let v = ident & 0x00FF_FFFF;
-    format!(
-        "{}.{}.{} (image {:02x})",
-        v >> 16,
-        (v >> 8) & 0xFF,
-        v & 0xFF,
-        ident >> 24
-    )
 }
 
 /// 0x1F57 in words.

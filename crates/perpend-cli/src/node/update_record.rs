@@ -24,7 +24,20 @@ use perpend_board::image::Identity;
 use perpend_lab::record::{sha256_hex, tool_version, utc_now};
 use serde::Serialize;
 
-use super::update::version_words;
+/// `major.minor.patch (#xx)` of a 0x1F56 identification.
+pub fn version_words(ident: u32) -> String {
+    if ident == 0 {
+        return "none (0x1F56 = 0)".into();
+    }
+    let v = ident & 0x00FF_FFFF;
+    format!(
+        "{}.{}.{} (image {:02x})",
+        v >> 16,
+        (v >> 8) & 0xFF,
+        v & 0xFF,
+        ident >> 24
+    )
+}
 
 /// Value of the `schema` field.
 pub const SCHEMA: &str = "perpend.update/1";

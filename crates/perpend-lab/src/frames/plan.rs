@@ -19,7 +19,7 @@ use anyhow::{anyhow, bail, Result};
 use perpend_core::geometry::Plane;
 
 use super::FramePose;
-use crate::plan::PlannedPose;
+use crate::sim::PlannedPose;
 
 /// Most joint angles per pose (every 15°).
 pub const MAX_REVERSAL: usize = 24;

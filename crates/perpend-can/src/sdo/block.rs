@@ -39,7 +39,7 @@
 //! Limits: server-chosen blksize 127 (less when a non-DOMAIN download has
 //! data in the buffer); no block upload.
 
-use crate::sdo::{abort_payload, Dictionary, SdoAbort, SdoServer, Transfer, Written};
+use super::{abort_payload, Dictionary, SdoAbort, SdoServer, Transfer, Written};
 
 /// Segments in a full sub-block (CiA 301: 1..=127).
 pub const MAX_BLKSIZE: u8 = 127;
