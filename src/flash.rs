@@ -56,6 +56,10 @@ const BANK: u32 = 0x4_0000;
 /// A storage read is in progress (the NMI handler excuses ECC errors only
 /// then).
 static READING: AtomicBool = AtomicBool::new(false);
+/// A read of a field-update partition ([`Region`]) is in progress: an ECC
+/// double error there (a double word torn by a power cut) is excused and
+/// the data taken as read, as embassy-boot expects of a torn STATE word.
+static REGION_READING: AtomicBool = AtomicBool::new(false);
 /// Offsets of the double errors excused during the current read.
 static ECC_LOG: [AtomicU32; MAX_FAULTS] = [const { AtomicU32::new(0) }; MAX_FAULTS];
 /// Number of distinct offsets in [`ECC_LOG`] (`MAX_FAULTS + 1`: more).
@@ -362,9 +366,9 @@ pub const STATE: core::ops::Range<u32> = 0x8000..0x9000;
 /// as [`BoardFlash`] (interrupts enabled). DFU is in bank 2 (read-while-
 /// write: no fetch stall); writing STATE (bank 1, two small writes and a
 /// two-page erase per `mark_updated`/`mark_booted`) stalls the CPU's
-/// fetches for the ≈ 45 ms of the erase. Reads are plain loads (an ECC
-/// double error there is fatal: the NMI handler excuses only the
-/// parameter storage).
+/// fetches for the ≈ 45 ms of the erase. Reads are plain loads; an ECC
+/// double error during one (a torn double word) is excused by the NMI
+/// handler and the data taken as read.
 ///
 /// It shares the flash controller with [`BoardFlash`] without owning the
 /// peripheral: only the main loop uses either, one operation at a time.
@@ -405,10 +409,15 @@ impl embedded_storage::nor_flash::ReadNorFlash for Region {
 
     fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
         let at = self.at(offset, bytes.len(), 1)?;
+        REGION_READING.store(true, Ordering::SeqCst);
         for (i, b) in bytes.iter_mut().enumerate() {
-            // SAFETY: inside the partition (checked above), readable flash.
+            // SAFETY: inside the partition (checked above), readable flash
+            // (an ECC double error raises the NMI, excused below).
             *b = unsafe { ((BASE + at + i as u32) as *const u8).read_volatile() };
         }
+        cortex_m::asm::dsb();
+        cortex_m::asm::isb();
+        REGION_READING.store(false, Ordering::SeqCst);
         Ok(())
     }
 
@@ -464,6 +473,9 @@ unsafe fn NonMaskableInt() {
             // ECCD is cleared by writing 1 (keep ECCIE, clear ECCC too).
             pac::FLASH.eccr().write_value(eccr);
             record_fault(off);
+        }
+        None if eccr.eccd() && REGION_READING.load(Ordering::SeqCst) => {
+            pac::FLASH.eccr().write_value(eccr);
         }
         _ => loop {
             cortex_m::asm::nop();
