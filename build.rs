@@ -1,5 +1,9 @@
-//! Puts `memory.x` where the linker (cortex-m-rt's `link.x`) finds it.
+//! Puts `src/memory.x` where the linker (cortex-m-rt's `link.x`) finds it.
 //! The target-specific link arguments are in `.cargo/config.toml`.
+//!
+//! Not at the repository root: the linker runs in the workspace root and
+//! looks for `memory.x` there before the `-L` paths, so a root `memory.x`
+//! would also be taken by the bootloader (`boot/`, its own layout).
 
 use std::env;
 use std::fs;
@@ -7,8 +11,8 @@ use std::path::PathBuf;
 
 fn main() {
     let out = PathBuf::from(env::var_os("OUT_DIR").expect("OUT_DIR is set by cargo"));
-    fs::copy("memory.x", out.join("memory.x")).expect("memory.x is next to build.rs");
+    fs::copy("src/memory.x", out.join("memory.x")).expect("src/memory.x of the firmware");
     println!("cargo:rustc-link-search={}", out.display());
-    println!("cargo:rerun-if-changed=memory.x");
+    println!("cargo:rerun-if-changed=src/memory.x");
     println!("cargo:rerun-if-changed=build.rs");
 }

@@ -56,6 +56,10 @@ const BANK: u32 = 0x4_0000;
 /// A storage read is in progress (the NMI handler excuses ECC errors only
 /// then).
 static READING: AtomicBool = AtomicBool::new(false);
+/// A read of a field-update partition ([`Region`]) is in progress: an ECC
+/// double error there (a double word torn by a power cut) is excused and
+/// the data taken as read, as embassy-boot expects of a torn STATE word.
+static REGION_READING: AtomicBool = AtomicBool::new(false);
 /// Offsets of the double errors excused during the current read.
 static ECC_LOG: [AtomicU32; MAX_FAULTS] = [const { AtomicU32::new(0) }; MAX_FAULTS];
 /// Number of distinct offsets in [`ECC_LOG`] (`MAX_FAULTS + 1`: more).
@@ -279,52 +283,65 @@ impl NorFlash for BoardFlash {
 
     async fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
         self.check_on(from, to.saturating_sub(from) as usize, PAGE as u32)?;
-        let dcen = Self::unlock();
-        let mut r = Ok(());
-        for page in (from..to).step_by(PAGE) {
-            // RM0440 §5.3.7 page erase: BKER, PNB, PER, then STRT.
-            pac::FLASH.cr().modify(|w| {
-                w.set_per(true);
-                w.set_bker(page >= BANK);
-                w.set_pnb(((page % BANK) / PAGE as u32) as u8);
-            });
-            pac::FLASH.cr().modify(|w| w.set_strt(true));
-            r = Self::finish();
-            pac::FLASH.cr().modify(|w| w.set_per(false));
-            if r.is_err() {
-                break;
-            }
-        }
-        Self::lock(dcen);
-        r
+        erase_pages(from, to)
     }
 
     async fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
         self.check_on(offset, bytes.len(), WORD as u32)?;
-        if !bytes.len().is_multiple_of(WORD) {
-            return Err(BoardFlashError::Bounds);
-        }
-        let dcen = Self::unlock();
-        pac::FLASH.cr().modify(|w| w.set_pg(true));
-        let mut r = Ok(());
-        for (k, dw) in bytes.chunks_exact(WORD).enumerate() {
-            let at = (BASE + offset) as usize + k * WORD;
-            let lo = u32::from_le_bytes([dw[0], dw[1], dw[2], dw[3]]);
-            let hi = u32::from_le_bytes([dw[4], dw[5], dw[6], dw[7]]);
-            // SAFETY: a double word of the unlocked storage pages; the
-            // second write starts the programming (RM0440 §5.3.8).
-            unsafe {
-                (at as *mut u32).write_volatile(lo);
-                ((at + 4) as *mut u32).write_volatile(hi);
-            }
-            r = Self::finish();
-            if r.is_err() {
-                break;
-            }
-        }
-        Self::lock(dcen);
-        r
+        program(offset, bytes)
     }
+}
+
+/// Erases the pages `from..to` (flash offsets, page-aligned, checked by
+/// the caller), interrupts enabled (RM0440 §5.3.7).
+fn erase_pages(from: u32, to: u32) -> Result<(), BoardFlashError> {
+    let dcen = BoardFlash::unlock();
+    let mut r = Ok(());
+    for page in (from..to).step_by(PAGE) {
+        // RM0440 §5.3.7 page erase: BKER, PNB, PER, then STRT.
+        pac::FLASH.cr().modify(|w| {
+            w.set_per(true);
+            w.set_bker(page >= BANK);
+            w.set_pnb(((page % BANK) / PAGE as u32) as u8);
+        });
+        pac::FLASH.cr().modify(|w| w.set_strt(true));
+        r = BoardFlash::finish();
+        pac::FLASH.cr().modify(|w| w.set_per(false));
+        if r.is_err() {
+            break;
+        }
+    }
+    BoardFlash::lock(dcen);
+    r
+}
+
+/// Programs `bytes` (whole double words) at flash offset `offset`
+/// (8-aligned, erased, checked by the caller), interrupts enabled
+/// (RM0440 §5.3.8).
+fn program(offset: u32, bytes: &[u8]) -> Result<(), BoardFlashError> {
+    if !bytes.len().is_multiple_of(WORD) {
+        return Err(BoardFlashError::Bounds);
+    }
+    let dcen = BoardFlash::unlock();
+    pac::FLASH.cr().modify(|w| w.set_pg(true));
+    let mut r = Ok(());
+    for (k, dw) in bytes.chunks_exact(WORD).enumerate() {
+        let at = (BASE + offset) as usize + k * WORD;
+        let lo = u32::from_le_bytes([dw[0], dw[1], dw[2], dw[3]]);
+        let hi = u32::from_le_bytes([dw[4], dw[5], dw[6], dw[7]]);
+        // SAFETY: a double word of the unlocked storage pages; the
+        // second write starts the programming (RM0440 §5.3.8).
+        unsafe {
+            (at as *mut u32).write_volatile(lo);
+            ((at + 4) as *mut u32).write_volatile(hi);
+        }
+        r = BoardFlash::finish();
+        if r.is_err() {
+            break;
+        }
+    }
+    BoardFlash::lock(dcen);
+    r
 }
 
 impl FlashHealth for BoardFlash {
@@ -334,6 +351,93 @@ impl FlashHealth for BoardFlash {
     fn supply_ok(&mut self) -> bool {
         // PWR_SR2.PVDO = 1: VDD below the PVD threshold (RM0440 §6.4.12).
         !pac::PWR.sr2().read().pvdo()
+    }
+}
+
+/// The DFU partition (bank 2, 0x0804_0000..0x0807_7800; embassy-boot's
+/// download area, src/memory.x) as flash offsets.
+pub const DFU: core::ops::Range<u32> = 0x4_0000..0x7_7800;
+/// The STATE partition (bank 1, 0x0800_8000..0x0800_9000).
+pub const STATE: core::ops::Range<u32> = 0x8000..0x9000;
+
+/// A partition of the field update (`DFU` or `STATE`) as a blocking
+/// `NorFlash` for `perpend_board::dfu::DfuProgram` (embassy-boot's
+/// updater): offsets from the partition start, the same register sequence
+/// as [`BoardFlash`] (interrupts enabled). DFU is in bank 2 (read-while-
+/// write: no fetch stall); writing STATE (bank 1, two small writes and a
+/// two-page erase per `mark_updated`/`mark_booted`) stalls the CPU's
+/// fetches for the ≈ 45 ms of the erase. Reads are plain loads; an ECC
+/// double error during one (a torn double word) is excused by the NMI
+/// handler and the data taken as read.
+///
+/// It shares the flash controller with [`BoardFlash`] without owning the
+/// peripheral: only the main loop uses either, one operation at a time.
+pub struct Region {
+    range: core::ops::Range<u32>,
+    /// The flash layout check at boot passed.
+    enabled: bool,
+}
+
+impl Region {
+    /// The partition `range` (flash offsets, page-aligned, outside
+    /// [`STORAGE`]); `enabled` = the layout check at boot passed.
+    pub const fn new(range: core::ops::Range<u32>, enabled: bool) -> Self {
+        Self { range, enabled }
+    }
+
+    /// The flash offset of `offset..offset + len`, if inside.
+    fn at(&self, offset: u32, len: usize, align: u32) -> Result<u32, BoardFlashError> {
+        let start = self.range.start.checked_add(offset);
+        let end = start.and_then(|s| s.checked_add(len as u32));
+        match (start, end) {
+            (Some(s), Some(e))
+                if self.enabled && e <= self.range.end && s.is_multiple_of(align) =>
+            {
+                Ok(s)
+            }
+            _ => Err(BoardFlashError::Bounds),
+        }
+    }
+}
+
+impl embedded_storage::nor_flash::ErrorType for Region {
+    type Error = BoardFlashError;
+}
+
+impl embedded_storage::nor_flash::ReadNorFlash for Region {
+    const READ_SIZE: usize = 1;
+
+    fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        let at = self.at(offset, bytes.len(), 1)?;
+        REGION_READING.store(true, Ordering::SeqCst);
+        for (i, b) in bytes.iter_mut().enumerate() {
+            // SAFETY: inside the partition (checked above), readable flash
+            // (an ECC double error raises the NMI, excused below).
+            *b = unsafe { ((BASE + at + i as u32) as *const u8).read_volatile() };
+        }
+        cortex_m::asm::dsb();
+        cortex_m::asm::isb();
+        REGION_READING.store(false, Ordering::SeqCst);
+        Ok(())
+    }
+
+    fn capacity(&self) -> usize {
+        (self.range.end - self.range.start) as usize
+    }
+}
+
+impl embedded_storage::nor_flash::NorFlash for Region {
+    const WRITE_SIZE: usize = WORD;
+    const ERASE_SIZE: usize = PAGE;
+
+    fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        let at = self.at(from, to.saturating_sub(from) as usize, PAGE as u32)?;
+        erase_pages(at, at + (to - from))
+    }
+
+    fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        let at = self.at(offset, bytes.len(), WORD as u32)?;
+        program(at, bytes)
     }
 }
 
@@ -369,6 +473,9 @@ unsafe fn NonMaskableInt() {
             // ECCD is cleared by writing 1 (keep ECCIE, clear ECCC too).
             pac::FLASH.eccr().write_value(eccr);
             record_fault(off);
+        }
+        None if eccr.eccd() && REGION_READING.load(Ordering::SeqCst) => {
+            pac::FLASH.eccr().write_value(eccr);
         }
         _ => loop {
             cortex_m::asm::nop();

@@ -23,6 +23,11 @@
 //!   [`flash::BoardFlash`] behind `EccGuard`: interrupts stay enabled
 //!   during erase/program, ECC double errors become skipped records, a low
 //!   supply refuses the store).
+//! * **Field update** ([`update`]): CiA 302-3 program download into
+//!   embassy-boot's DFU partition (`perpend_board::dfu`), verified against
+//!   the bootloader's public key before the swap is marked; the running
+//!   image confirms itself (`mark_booted`) once storage, CAN and the first
+//!   heartbeat or SYNC are up (`perpend_board::confirm`).
 //! * **Health** ([`board`]): reset cause, VREF+ from VREFINT, die
 //!   temperature, flash layout check, IWDG frozen under a debugger, DWT
 //!   worst loop time, painted stack with an MPU guard, entry into the
@@ -45,6 +50,7 @@ mod board;
 mod can_rx;
 mod can_tx;
 mod flash;
+mod update;
 
 use defmt::{info, warn};
 use embassy_executor::Spawner;
@@ -106,7 +112,7 @@ fn start_can(
 
 /// The firmware's state between events.
 struct Fw {
-    app: App<SeqStore<EccGuard<flash::BoardFlash>>>,
+    app: App<SeqStore<EccGuard<flash::BoardFlash>>, update::BoardDfu>,
     txq: TxQueue<TX_QUEUE_LEN>,
     can_tx: FdcanTx<'static>,
     props: can::Properties,
@@ -238,6 +244,7 @@ impl Fw {
             q.push(o);
         });
         self.check_bus_off();
+        self.confirm_boot();
         if acq_ctl::overrun() {
             warn!("ADC overrun: restarting the acquisition");
             acq_ctl::restart(&mut self.ring, &self.tim, &self.acq, self.locked);
@@ -252,6 +259,21 @@ impl Fw {
         let can_alive = self.bus.bus_off_for_us(now.as_micros()) < 1_000_000;
         if acq_alive && can_alive {
             self.wdg.pet();
+        }
+    }
+
+    /// Confirms a freshly swapped-in image once it has come up completely
+    /// (`perpend_board::confirm`): "CAN running" = FDCAN TXBTO shows a
+    /// frame acknowledged on the bus (the App latches it).
+    fn confirm_boot(&mut self) {
+        let acked = embassy_stm32::pac::FDCAN1.txbto().read().0 & 0b111 != 0;
+        match self.app.confirm_boot(acked) {
+            Some(Ok(())) => info!("image confirmed (embassy-boot mark_booted)"),
+            Some(Err(e)) => warn!(
+                "image not confirmed ({}): the bootloader reverts it at the next reset",
+                defmt::Debug2Format(&e)
+            ),
+            None => {}
         }
     }
 
@@ -320,13 +342,15 @@ impl Fw {
         if self.app.take_bootloader_request() {
             self.enter_bootloader();
         }
+        if self.app.take_update_restart() {
+            warn!("0x1F51 start: resetting into perpend-boot, which swaps the new image in");
+            self.flush_tx();
+            cortex_m::peripheral::SCB::sys_reset();
+        }
     }
 
-    /// 0x2500 = bootloader in pre-operational: the SDO answer and what else
-    /// is queued leave (at most 20 ms), then a reset into the ROM
-    /// bootloader.
-    fn enter_bootloader(&mut self) -> ! {
-        warn!("0x2500: resetting into the system bootloader (field update)");
+    /// Lets the SDO answer and what else is queued leave (at most 20 ms).
+    fn flush_tx(&mut self) {
         let end = Instant::now() + Duration::from_millis(20);
         while Instant::now() < end {
             self.txq.service(&mut self.can_tx);
@@ -335,6 +359,14 @@ impl Fw {
                 break;
             }
         }
+    }
+
+    /// 0x2500 = bootloader in pre-operational: the SDO answer and what else
+    /// is queued leave (at most 20 ms), then a reset into the ROM
+    /// bootloader.
+    fn enter_bootloader(&mut self) -> ! {
+        warn!("0x2500: resetting into the system bootloader (field update)");
+        self.flush_tx();
         board::reset_into_bootloader()
     }
 }
@@ -383,7 +415,7 @@ fn setup() -> Fw {
     // 0x1018 sub 4: the 96-bit unique ID folded to 32 bits.
     let serial = perpend_can::config::serial_from_uid(&embassy_stm32::uid::uid());
     info!("serial number {=u32:#010x}", serial);
-    let mut app = App::with_serial(store, serial);
+    let mut app = App::with_program(store, serial, update::program(flash_ok));
     app.report_reset(reset);
     if app.boot_read_faults() > 0 {
         warn!(

@@ -334,6 +334,8 @@ pub fn ci(args: &[String]) -> Result<()> {
         "perpend-fw",
         "-p",
         "perpend-hil",
+        "-p",
+        "perpend-boot",
         "--all-targets",
         "--target",
         thumb,

@@ -10,9 +10,10 @@
 //!   board whose true head has the paper's errors (`perpend cell run`).
 //! * `bring-up --bus BUS --node-id N | --virtual` — the bus side of
 //!   docs/bring-up.md against a board or a virtual board.
-//! * `fw [--sign KEY]` — build the release firmware image (and its signed
+//! * `fw [--sign KEY]` — build the release firmware and bootloader images (and the signed
 //!   field-update image); `keygen OUT` — a new ed25519 key pair; `size` — its flash and static
-//!   RAM use against the budget (128 KiB / 48 KiB); `mcu-bench [--json]` —
+//!   RAM use against the budget (220 KiB ACTIVE / 48 KiB), and the
+//!   bootloader's (32 KiB); `mcu-bench [--json]` —
 //!   instructions per update on an emulated Cortex-M4F (QEMU mps2-an386).
 //! * `hil [--qemu]` — the on-target tests: with a probe, on the board
 //!   (`probe-rs run`; exit 2 = no probe found, 3 = probe-rs not installed);

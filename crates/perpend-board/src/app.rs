@@ -269,8 +269,13 @@ fn conditions(status: u32, boot_bad: bool) -> [(u16, u8, Option<[u8; 5]>); CONDS
     out
 }
 
-/// The board application (see the module docs).
-pub struct App<S: ParamStore> {
+/// COB-ID of the SYNC (CiA 301 default, 0x1005).
+const SYNC_COB_ID: u16 = 0x080;
+
+/// The board application (see the module docs); `P` is the program store
+/// of the field update ([`crate::program::BoardProgram`] unless the
+/// firmware gives its DFU partition, [`App::with_program`]).
+pub struct App<S: ParamStore, P: crate::program::ProgramStore = crate::program::BoardProgram> {
     dev: Device,
     pipe: Pipeline,
     store: S,
@@ -308,8 +313,13 @@ pub struct App<S: ParamStore> {
     /// Acquisition was locked to SYNC at the last reload.
     locked: bool,
     /// CiA 302-3 program download (`program.rs`).
-    program: crate::program::BoardProgram,
+    program: P,
     program_state: crate::program::ProgramState,
+    /// When a swapped-in image confirms itself (`confirm.rs`).
+    confirm: crate::confirm::BootConfirm,
+    /// 0x1F51 "start" marked the swap: the firmware resets into the
+    /// bootloader.
+    update_restart: bool,
 }
 
 impl<S: ParamStore> App<S> {
@@ -319,11 +329,19 @@ impl<S: ParamStore> App<S> {
         Self::with_serial(store, 0)
     }
 
+    /// [`App::with_program`] with this build's [`crate::program::BoardProgram`].
+    pub fn with_serial(store: S, serial: u32) -> Self {
+        App::with_program(store, serial, crate::program::board_program())
+    }
+}
+
+impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     /// Boots: loads the stored item from `store` (factory defaults if it is
     /// missing or bad) and builds the device, whose 0x1018 sub 4 is
     /// `serial` (the firmware passes [`perpend_can::config::serial_from_uid`]
-    /// of the MCU's unique ID), and the pipeline.
-    pub fn with_serial(mut store: S, serial: u32) -> Self {
+    /// of the MCU's unique ID), and the pipeline; `program` is the store
+    /// of the field update (0x1F50..0x1F57).
+    pub fn with_program(mut store: S, serial: u32, program: P) -> Self {
         let factory = Params::factory();
         let defaults = defaults_for(&factory).with_serial(serial);
         let mut image = [0u8; IMAGE_LEN];
@@ -366,9 +384,12 @@ impl<S: ParamStore> App<S> {
             comm_error: false,
             locked: false,
             recovering: false,
-            program: crate::program::board_program(),
+            program,
             program_state: crate::program::ProgramState::default(),
+            confirm: crate::confirm::BootConfirm::new(),
+            update_restart: false,
         };
+        app.confirm.storage_loaded();
         app.program_state = crate::program::ProgramState::of(&app.program);
         crate::program::publish(&app.program_state, &mut app.dev);
         app.reload();
@@ -429,13 +450,13 @@ impl<S: ParamStore> App<S> {
     }
 
     /// The program store (the virtual board: reset, `mark_booted`).
-    pub fn program_mut(&mut self) -> &mut crate::program::BoardProgram {
+    pub fn program_mut(&mut self) -> &mut P {
         &mut self.program
     }
 
     /// Replaces the program store (the virtual board's flash fake) and
     /// publishes its active image in 0x1F56.
-    pub fn set_program(&mut self, program: crate::program::BoardProgram) {
+    pub fn set_program(&mut self, program: P) {
         self.program = program;
         self.program_state = crate::program::ProgramState::of(&self.program);
         crate::program::publish(&self.program_state, &mut self.dev);
@@ -508,7 +529,38 @@ impl<S: ParamStore> App<S> {
     /// Handles a received frame.
     pub fn handle(&mut self, frame: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
         self.dev.handle(frame, now_us, out);
+        // A SYNC served in operational (its TPDOs) serves the bus
+        // (`confirm.rs`); checked without wrapping `out`, which would cost
+        // the SYNC path some 40 instructions (`cargo xtask mcu-bench`).
+        if frame.id == SYNC_COB_ID
+            && !self.confirm.done()
+            && self.dev.nmt_state() == perpend_can::NmtState::Operational
+        {
+            self.confirm.served();
+        }
         self.service(out);
+    }
+
+    /// Whether 0x1F51 "start" has marked a verified image for the swap
+    /// (once): the firmware then sends the SDO answer and resets into the
+    /// bootloader, which swaps the image in.
+    pub fn take_update_restart(&mut self) -> bool {
+        core::mem::take(&mut self.update_restart)
+    }
+
+    /// Confirms a freshly swapped-in image (`ProgramStore::mark_booted`)
+    /// once it has come up completely (`confirm.rs`): the storage was
+    /// loaded (at boot), `can_running` (the firmware saw a frame
+    /// acknowledged on the bus) and a heartbeat was sent or a SYNC
+    /// answered. `Some(result)` once, when it confirmed; call it every tick.
+    pub fn confirm_boot(
+        &mut self,
+        can_running: bool,
+    ) -> Option<Result<(), crate::program::ProgramError>> {
+        if can_running {
+            self.confirm.can_running();
+        }
+        self.confirm.run(&mut self.program)
     }
 
     /// Runs the device's timers (heartbeat, event timers, SDO timeout,
@@ -517,7 +569,21 @@ impl<S: ParamStore> App<S> {
         if core::mem::take(&mut self.comm_error) {
             self.dev.communication_error(now_us, out);
         }
-        self.dev.poll(now_us, out);
+        if self.confirm.done() {
+            self.dev.poll(now_us, out);
+        } else {
+            // A heartbeat sent serves the bus (`confirm.rs`); the boot-up
+            // message (same COB-ID, state byte 0) does not.
+            let hb = 0x700 + u16::from(self.dev.node_id());
+            let mut beat = false;
+            self.dev.poll(now_us, &mut |f| {
+                beat |= f.id == hb && f.len == 1 && f.data[0] != 0;
+                out(f)
+            });
+            if beat {
+                self.confirm.served();
+            }
+        }
         if self.recovering {
             self.recover_step(out);
         }
@@ -681,8 +747,10 @@ impl<S: ParamStore> App<S> {
         if ev.contains(Events::REQUEST) {
             if let Some(req) = self.dev.pending_request() {
                 let (store, state) = (&mut self.program, &mut self.program_state);
+                let started = state.running;
                 let ok = crate::program::serve(store, state, &mut self.dev, req)
                     .unwrap_or_else(|| self.store_now(req));
+                self.update_restart |= !started && self.program_state.running;
                 // NoRequest cannot happen: a request is pending.
                 if !self.recovering {
                     let _ = self.dev.finish_request(ok, out);

@@ -44,6 +44,11 @@ pub mod app;
 pub mod bittiming;
 pub mod busmon;
 pub mod capture;
+pub mod confirm;
+#[cfg(any(test, feature = "dfu"))]
+pub mod dfu;
+#[cfg(test)]
+mod dfu_tests;
 pub mod ecc;
 pub mod fdcan;
 pub mod health;

@@ -15,8 +15,9 @@
 //! tests) with the bootloader's part modelled (swap at reset, rollback of
 //! an image that did not confirm itself) and faults on request: refuse a
 //! part, or tear it (write half, then fail). On the MCU [`BoardProgram`] is
-//! [`NoProgram`] (every download refused, 0x1F57 "flash secured") until the
-//! embassy-boot DFU partition is wired in; it costs no RAM.
+//! [`NoProgram`] (every download refused, 0x1F57 "flash secured"); the
+//! firmware gives the App its embassy-boot DFU partition instead
+//! (`crate::dfu::DfuProgram`, `App::with_program`).
 //!
 //! Limits: one program (sub 1); "stop" and "reset" only change the
 //! reported state.
