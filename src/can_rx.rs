@@ -39,7 +39,18 @@ use perpend_board::busmon::PsrRead;
 use perpend_board::rxfilter::{Fifo, StdFilter, MAX_STD_FILTERS};
 use perpend_can::Frame;
 
-use crate::can_tx::from_hal;
+/// A HAL frame as a perpend frame (`None` for extended identifiers, which
+/// are not CANopen classic).
+pub fn from_hal(f: &embassy_stm32::can::frame::Frame) -> Option<Frame> {
+    let embedded_can::Id::Standard(id) = f.id() else {
+        return None;
+    };
+    let mut out = Frame::new(id.as_raw(), f.data());
+    if f.header().rtr() {
+        out = Frame::remote(id.as_raw(), f.header().len());
+    }
+    Some(out)
+}
 
 /// Frames the RAM ring holds.
 pub const RX_RING: usize = 256;

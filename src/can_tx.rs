@@ -39,6 +39,8 @@ use embassy_stm32::can::{self, CanTx};
 use embassy_stm32::pac;
 use perpend_board::fdcan::FdcanRegs;
 use perpend_can::Frame;
+
+use crate::can_rx::from_hal;
 use perpend_core::params::Bitrate;
 
 /// Words per Tx buffer element in the G4 message RAM (T0, T1, 64 data
@@ -52,19 +54,6 @@ pub fn to_hal(f: &Frame) -> Option<can::frame::Frame> {
     } else {
         can::frame::Frame::new_standard(f.id, f.payload()).ok()
     }
-}
-
-/// A HAL frame as a perpend frame (`None` for extended identifiers, which
-/// are not CANopen classic).
-pub fn from_hal(f: &can::frame::Frame) -> Option<Frame> {
-    let embedded_can::Id::Standard(id) = f.id() else {
-        return None;
-    };
-    let mut out = Frame::new(id.as_raw(), f.data());
-    if f.header().rtr() {
-        out = Frame::remote(id.as_raw(), f.header().len());
-    }
-    Some(out)
 }
 
 /// The frame held by Tx buffer `k`, read back from the message RAM: T0

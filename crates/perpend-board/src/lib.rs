@@ -45,6 +45,8 @@ pub mod bittiming;
 pub mod busmon;
 pub mod capture;
 pub mod confirm;
+#[cfg(test)]
+mod confirm_app_tests;
 #[cfg(any(test, feature = "dfu"))]
 pub mod dfu;
 #[cfg(test)]
@@ -52,6 +54,8 @@ mod dfu_tests;
 pub mod ecc;
 pub mod fdcan;
 pub mod health;
+#[cfg(test)]
+mod health_tests;
 pub mod image;
 pub mod pipeline;
 pub mod program;

@@ -36,9 +36,12 @@ use super::Node;
 use crate::canopen::NodeState;
 
 /// How long the board may take for the last answer of the download (it
-/// verifies the signature then) and to restart after "start".
+/// verifies the signature then).
 const VERIFY_TIMEOUT: Duration = Duration::from_secs(5);
-const RESTART_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long the board may take to restart after "start": the bootloader's
+/// swap of 110 pages takes about 10 s on the G474 (docs/firmware.md), a
+/// rollback as long again; 30 s leaves room for both.
+const RESTART_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// Arguments of `perpend node update`.
 #[derive(clap::Args, Debug)]
