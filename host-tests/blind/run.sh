@@ -19,18 +19,22 @@ set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
 (cd "$here" && "${PYTHON:-python3}" -m unittest -q test_v3)
-(cd "$root" && cargo build --quiet -p perpend-cli --bin perpend)
-target="${CARGO_TARGET_DIR:-$root/target}"
-case "$target" in /*) ;; *) target="$root/$target" ;; esac
+# PERPEND_BIN set (CI: the binary `cargo xtask test` built): used as is.
+if [ -z "${PERPEND_BIN:-}" ]; then
+    (cd "$root" && cargo build --quiet -p perpend-cli --bin perpend)
+    target="${CARGO_TARGET_DIR:-$root/target}"
+    case "$target" in /*) ;; *) target="$root/$target" ;; esac
+    PERPEND_BIN="$target/debug/perpend"
+fi
 if [ "${1:-}" = "--v3" ]; then
     shift
-    exec "${PYTHON:-python3}" "$here/score.py" --v3 --perpend "$target/debug/perpend" "$@"
+    exec "${PYTHON:-python3}" "$here/score.py" --v3 --perpend "$PERPEND_BIN" "$@"
 fi
 if [ "${1:-}" = "--full" ]; then
-    exec "$target/debug/perpend" bench diagnose --blind "$here" "$@"
+    exec "$PERPEND_BIN" bench diagnose --blind "$here" "$@"
 fi
 # The tracker-tilt estimate of `perpend frames` on gen.py's reversal runs
 # (frames_check.py: 10 tilted + 10 tilt-free runs per regime, ~10 s).
-"${PYTHON:-python3}" "$here/frames_check.py" "$target/debug/perpend" --runs 10
-case " $* " in *" --check "*) exec "$target/debug/perpend" bench diagnose --blind "$here" "$@" ;; esac
-exec "$target/debug/perpend" bench diagnose --blind "$here" --check "$@"
+"${PYTHON:-python3}" "$here/frames_check.py" "$PERPEND_BIN" --runs 10
+case " $* " in *" --check "*) exec "$PERPEND_BIN" bench diagnose --blind "$here" "$@" ;; esac
+exec "$PERPEND_BIN" bench diagnose --blind "$here" --check "$@"

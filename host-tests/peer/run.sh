@@ -16,10 +16,13 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$here/requirements.txt"
 
-(cd "$root" && cargo build --quiet -p perpend-cli --bin perpend)
-target="${CARGO_TARGET_DIR:-$root/target}"
-case "$target" in /*) ;; *) target="$root/$target" ;; esac
-export PERPEND_BIN="$target/debug/perpend"
+# PERPEND_BIN set (CI: the binary `cargo xtask test` built): used as is.
+if [ -z "${PERPEND_BIN:-}" ]; then
+    (cd "$root" && cargo build --quiet -p perpend-cli --bin perpend)
+    target="${CARGO_TARGET_DIR:-$root/target}"
+    case "$target" in /*) ;; *) target="$root/$target" ;; esac
+    export PERPEND_BIN="$target/debug/perpend"
+fi
 
 cd "$here"
 exec "$venv/bin/python" -m pytest -q -p no:cacheprovider "$@"

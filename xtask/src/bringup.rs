@@ -308,7 +308,12 @@ mod tests {
     /// The whole bring-up against the virtual board (builds `perpend`).
     #[test]
     fn bring_up_passes_on_the_virtual_board() {
-        run(&cargo(), &["build", "--quiet", "-p", "perpend-cli"]).unwrap();
+        // `cargo xtask test` built it with the tests (PERPEND_BIN); a
+        // `cargo build -p perpend-cli` would resolve other features and
+        // build it again.
+        if std::env::var_os("PERPEND_BIN").is_none() {
+            run(&cargo(), &["build", "--quiet", "-p", "perpend-cli"]).unwrap();
+        }
         let (_b, bus) = virtual_board().unwrap();
         let dir = tempdir();
         let res = checks(&bus, "16", &dir).unwrap();

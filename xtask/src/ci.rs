@@ -309,9 +309,12 @@ pub fn ci(args: &[String]) -> Result<()> {
     r.step("host tests", &mut xtask(&["test"]), tests_done)?;
     // The `perpend` binary is built now: the peer tests run alongside the
     // firmware steps (see the module header).
+    // Both scripts take the binary the test build made (`PERPEND_BIN`): a
+    // `cargo build -p perpend-cli` of their own resolves features without
+    // the dev-dependencies and would build it all again.
     let peer = r.start(
         "peer tests (python)",
-        &mut cmd("bash", &["host-tests/peer/run.sh"]),
+        cmd("bash", &["host-tests/peer/run.sh"]).env("PERPEND_BIN", crate::cell::perpend()),
     )?;
     // no_std, no alloc: the pure crates build for the board's target.
     let nostd = [
@@ -370,7 +373,7 @@ pub fn ci(args: &[String]) -> Result<()> {
     })?;
     r.step(
         "blind diagnosis",
-        &mut cmd("bash", &["host-tests/blind/run.sh"]),
+        cmd("bash", &["host-tests/blind/run.sh"]).env("PERPEND_BIN", crate::cell::perpend()),
         line_starting("blind:"),
     )?;
     if !no_fuzz {

@@ -11,7 +11,9 @@
 //! directory (as cargo does), its output kept whole and printed when it
 //! ends (`Running …` then the harness's lines, so `test result:` lines
 //! count as before). Binaries of perpend-lab (long, CPU-bound) start
-//! first. Limits: tests that need a machine to themselves must not exist
+//! first. `PERPEND_BIN` names the `perpend` binary the test build made
+//! (for perpend-cli's integration tests), so tests that run it elsewhere
+//! need not build it again with other features. Limits: tests that need a machine to themselves must not exist
 //! (they would already be flaky under the harness's own threads); a
 //! failing binary does not stop the others, and the failures are printed
 //! first at the end.
@@ -100,6 +102,7 @@ fn run_one(b: &TestBin) -> Outcome {
         .current_dir(&b.dir)
         .env("CARGO_MANIFEST_DIR", &b.dir)
         .env("CARGO_PKG_NAME", &b.package)
+        .env("PERPEND_BIN", crate::cell::perpend())
         .stdin(Stdio::null())
         .output();
     let label = format!("{} ({})", b.label, b.package);
