@@ -15,6 +15,7 @@ use perpend_core::head::Sensor;
 
 use super::candidates::{self, Effect, Refs, SensorFit};
 use super::cv;
+use super::direction::{self, DirectionTest, NullPlan};
 use super::expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
 use super::fits::{implausible_fits, Fitted};
 use super::load::{available_models, Loaded};
@@ -260,6 +261,8 @@ pub(super) struct Decided {
     /// Simulated held-out RMS of the paper's model on effect-free data at
     /// the noise from the full model (the floor reported) [mm].
     pub(super) floor_mm: f64,
+    /// The test for direction-dependent offsets ([`direction`]).
+    pub(super) direction: DirectionTest,
 }
 
 /// Stages 4-5 on the fitted run: the noise from the full model (every
@@ -282,8 +285,15 @@ pub(super) fn decide_run(l: &Loaded, f: &Fitted, s: &Settings) -> Result<Decided
         s,
         &bad,
     )?;
-    let (effect, also) = name_effects(&mut decision, l, l.declared.clone(), s)?;
+    let (mut effect, also) = name_effects(&mut decision, l, l.declared.clone(), s)?;
     let floor_mm = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
+    let direction = direction_test(l, f, &noise, s, decision.verdicts.len());
+    if effect == Effect::None && direction.found() {
+        // Nothing in the catalogue: the run is `unexplained`, nothing named.
+        effect = Effect::Unexplained;
+        decision.effect = Effect::Unexplained;
+        decision.winner = None;
+    }
     Ok(Decided {
         estimate,
         noise,
@@ -292,5 +302,29 @@ pub(super) fn decide_run(l: &Loaded, f: &Fitted, s: &Settings) -> Result<Decided
         effect,
         also,
         floor_mm,
+        direction,
     })
+}
+
+/// The direction test ([`direction::judge`]) on the nominal fit, its null
+/// from effect-free re-simulations at the run's noise `noise`, at the
+/// family level `α/m` (`m`: the candidates and this test, `tests`).
+fn direction_test(
+    l: &Loaded,
+    f: &Fitted,
+    noise: &NoiseModel,
+    s: &Settings,
+    tests: usize,
+) -> DirectionTest {
+    let geom: Vec<Sensor<f64>> = f.measured.base_fit.iter().map(|x| x.sensor).collect();
+    let plan = NullPlan {
+        truth: &geom,
+        nominal: &l.nominal,
+        refs: &l.refs,
+        noise,
+        lsq: &s.lsq,
+        seed: s.seed,
+    };
+    let level = s.rule.alpha / tests.max(1) as f64;
+    direction::judge(&l.poses, &geom, &f.measured.insample, &plan, level)
 }

@@ -46,6 +46,7 @@ pub mod blind;
 pub mod candidates;
 pub mod cv;
 pub mod decision;
+pub mod direction;
 pub mod expect;
 pub mod fits;
 pub mod folds;
@@ -175,6 +176,42 @@ pub struct DiagnoseJson {
     pub extended: Perf,
     /// Every model cross-validated.
     pub candidates: Vec<CandidateJson>,
+    /// A direction-dependent (hysteresis-like) offset, present only when
+    /// found ([`direction`]): the verdict is then `unexplained`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direction_offset: Option<DirectionJson>,
+}
+
+/// A direction-dependent offset found, in the JSON output.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DirectionJson {
+    /// Per sensor: `h` [mm], the reading is `−h·sign(last move)` off
+    /// (`null`: too few moves).
+    pub h_mm: Vec<Option<f64>>,
+    /// Their 1σ [mm].
+    pub sigma_mm: Vec<Option<f64>>,
+    /// One-sided p against the effect-free re-simulations.
+    pub p: f64,
+    /// The level it beat (`α/m`).
+    pub level: f64,
+    /// The measurement order used: `t_s` or `file order`.
+    pub order: String,
+}
+
+impl DirectionJson {
+    /// Of a test that found an offset; `None` otherwise.
+    fn of(t: &direction::DirectionTest) -> Option<Self> {
+        match t {
+            direction::DirectionTest::Tested(t) if t.found => Some(Self {
+                h_mm: t.sensors.iter().map(|s| s.map(|s| s.h_mm)).collect(),
+                sigma_mm: t.sensors.iter().map(|s| s.map(|s| s.sigma_mm)).collect(),
+                p: t.p,
+                level: t.level,
+                order: t.order.name().into(),
+            }),
+            _ => None,
+        }
+    }
 }
 
 /// A comparison of a measured statistic with its simulated expectation.
@@ -248,6 +285,8 @@ pub struct Diagnosis {
     pub poses: PoseTable,
     /// The time constants of the time-like candidates ([`lags`]).
     pub lags: lags::Lags,
+    /// The test for direction-dependent offsets ([`direction`]).
+    pub direction: direction::DirectionTest,
 }
 
 impl Diagnosis {
@@ -342,6 +381,7 @@ impl Diagnosis {
                     n_params: v.n_params,
                 })
                 .collect(),
+            direction_offset: DirectionJson::of(&self.direction),
         }
     }
 }
@@ -444,6 +484,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         effect,
         also,
         floor_mm,
+        direction,
     } = decide_run(&l, &f, s)?;
     let sc = scores(effect, &also, &f.measured, &l, s);
     let refit_model = match effect {
@@ -485,6 +526,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         nominal: l.nominal,
         poses: l.poses,
         lags: l.lags,
+        direction,
     })
 }
 

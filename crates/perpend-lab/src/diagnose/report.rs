@@ -327,6 +327,7 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
     for r in &d.decision.reasons {
         let _ = writeln!(o, "  {r}");
     }
+    let _ = writeln!(o, "  {}", d.direction.line());
     for st in &d.also {
         let before: Vec<&str> = st.with[..st.with.len() - 1]
             .iter()
