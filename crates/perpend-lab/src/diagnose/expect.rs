@@ -462,19 +462,18 @@ fn structure_spreads(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Vec
         .collect()
 }
 
-/// Each candidate's normal-error reduction z over the draws (the draws
-/// where both models measured normals).
-fn normal_nulls(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Spread)> {
+/// The spread over the draws of a per-candidate statistic `stat` (the
+/// draws where it has a value), for every candidate of `plan`.
+fn per_candidate(
+    analyses: &[Analysis],
+    plan: &Plan<'_>,
+    stat: &dyn Fn(&Analysis, Effect) -> Option<f64>,
+) -> Vec<(Effect, Spread)> {
     plan.models
         .iter()
         .filter(|e| **e != Effect::None)
         .map(|&e| {
-            let v: Vec<f64> = analyses
-                .iter()
-                .filter_map(|a| a.normal_gain_of(e))
-                .filter(|g| g.poses > 0)
-                .map(|g| g.z)
-                .collect();
+            let v: Vec<f64> = analyses.iter().filter_map(|a| stat(a, e)).collect();
             (e, Spread::of(&v))
         })
         .collect()
@@ -483,15 +482,7 @@ fn normal_nulls(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Spread)>
 /// The spreads of every statistic over the draws' analyses.
 fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
     let (rms, rms_sensor) = rms_spreads(analyses, plan);
-    let r2 = plan
-        .models
-        .iter()
-        .filter(|e| **e != Effect::None)
-        .map(|&e| {
-            let v: Vec<f64> = analyses.iter().filter_map(|a| a.r2_of(e)).collect();
-            (e, Spread::of(&v))
-        })
-        .collect();
+    let r2 = per_candidate(analyses, plan, &|a, e| a.r2_of(e));
     let lag: Vec<f64> = analyses.iter().map(|a| a.lag1.0).collect();
     let runs: Vec<f64> = analyses.iter().map(|a| a.runs_z).collect();
     let nerr: Vec<f64> = analyses
@@ -501,18 +492,10 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
             stats::mean(&v)
         })
         .collect();
-    let null_of = |stat: &dyn Fn(&CvResult, &CvResult) -> f64| -> Vec<(Effect, Spread)> {
-        plan.models
-            .iter()
-            .filter(|e| **e != Effect::None)
-            .map(|&e| {
-                let v: Vec<f64> = analyses
-                    .iter()
-                    .filter_map(|a| Some(stat(a.cv_of(Effect::None)?, a.cv_of(e)?)))
-                    .collect();
-                (e, Spread::of(&v))
-            })
-            .collect()
+    let null_of = |stat: &dyn Fn(&CvResult, &CvResult) -> f64| {
+        per_candidate(analyses, plan, &|a, e| {
+            Some(stat(a.cv_of(Effect::None)?, a.cv_of(e)?))
+        })
     };
     Expectation {
         draws: analyses.len(),
@@ -524,7 +507,10 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
         normal_err_deg: Spread::of(&nerr),
         gain_z: null_of(&|b, c| super::cv::paired(b, c).1),
         rank_z: null_of(&super::cv::paired_rank),
-        normal_z: normal_nulls(analyses, plan),
+        // the draws where both models measured normals
+        normal_z: per_candidate(analyses, plan, &|a, e| {
+            a.normal_gain_of(e).filter(|g| g.poses > 0).map(|g| g.z)
+        }),
         structure: structure_spreads(analyses, plan),
     }
 }
