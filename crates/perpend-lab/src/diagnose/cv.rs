@@ -305,6 +305,26 @@ pub fn normal_errors(
 mod tests {
     use super::*;
 
+    /// The pairing skips a pose either model has no normal for; the mean,
+    /// the standard error and z are those of the differences; fewer than 3
+    /// pairs give nothing.
+    #[test]
+    fn paired_normals_pairs_poses_both_measured() {
+        let base = [Some(0.05), Some(0.04), None, Some(0.06), Some(0.05)];
+        let cand = [Some(0.03), Some(0.03), Some(0.01), None, Some(0.02)];
+        let g = paired_normals(&base, &cand);
+        assert_eq!(g.poses, 3);
+        // differences 0.02, 0.01, 0.03
+        assert!((g.reduction_deg - 0.02).abs() < 1e-12, "{g:?}");
+        assert!((g.se_deg - 0.01 / 3f64.sqrt()).abs() < 1e-12, "{g:?}");
+        assert!((g.z - 0.02 / g.se_deg).abs() < 1e-9, "{g:?}");
+        // means over the 3 paired poses only
+        assert!((g.base_deg - 0.14 / 3.0).abs() < 1e-12, "{g:?}");
+        assert!((g.cand_deg - 0.08 / 3.0).abs() < 1e-12, "{g:?}");
+        let g = paired_normals(&base[..2], &cand[..2]);
+        assert_eq!(g, NormalGain::default());
+    }
+
     #[test]
     fn folds_are_deterministic_and_balanced() {
         let a = Folds::new(103, 5, 7);
