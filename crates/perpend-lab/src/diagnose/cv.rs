@@ -12,6 +12,9 @@
 //! corrections of [`perpend_core::ext`], then the micro-plane) and the
 //! normal of the pose's plane as given in the file.
 //!
+//! [`paired_normals`] compares two models' held-out normal errors pose by
+//! pose (the normal-cost test of [`super::select`]).
+//!
 //! Limits: a pose is predicted only by the fold that holds it out, so each
 //! reading gets exactly one held-out residual; poses with fewer than three
 //! readings have no normal error; heads of 3 to 8 sensors.
@@ -70,6 +73,58 @@ pub fn paired(base: &CvResult, cand: &CvResult) -> (f64, f64, f64) {
     let se = stats::sd(&d) / k.sqrt();
     let z = if se > 0.0 { m / se } else { 0.0 };
     (d.iter().sum::<f64>() / base.n.max(1) as f64, z, se)
+}
+
+/// A paired comparison of two models' held-out normal errors
+/// ([`paired_normals`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct NormalGain {
+    /// Mean held-out normal error of the base model over the paired
+    /// poses [deg].
+    pub base_deg: f64,
+    /// The same of the candidate [deg].
+    pub cand_deg: f64,
+    /// Mean reduction `base − cand` per pose [deg].
+    pub reduction_deg: f64,
+    /// Its standard error `sd/√K` [deg].
+    pub se_deg: f64,
+    /// `reduction / se` (0 when the poses agree exactly).
+    pub z: f64,
+    /// Poses with a normal under both models (`K`).
+    pub poses: usize,
+}
+
+/// Paired comparison of held-out normal errors per pose, `base` against
+/// `cand` (both from [`normal_errors`] on the same folds): the mean of
+/// `D_k = e_base(k) − e_cand(k)` over the poses where both models measure
+/// a normal, its standard error and z. Fewer than 3 such poses: all 0.
+pub fn paired_normals(base: &[Option<f64>], cand: &[Option<f64>]) -> NormalGain {
+    let pairs: Vec<(f64, f64)> = base
+        .iter()
+        .zip(cand)
+        .filter_map(|(b, c)| Some(((*b)?, (*c)?)))
+        .collect();
+    if pairs.len() < 3 {
+        return NormalGain::default();
+    }
+    let d: Vec<f64> = pairs.iter().map(|(b, c)| b - c).collect();
+    let k = d.len() as f64;
+    let reduction_deg = stats::mean(&d);
+    let se_deg = stats::sd(&d) / k.sqrt();
+    let b: Vec<f64> = pairs.iter().map(|p| p.0).collect();
+    let c: Vec<f64> = pairs.iter().map(|p| p.1).collect();
+    NormalGain {
+        base_deg: stats::mean(&b),
+        cand_deg: stats::mean(&c),
+        reduction_deg,
+        se_deg,
+        z: if se_deg > 0.0 {
+            reduction_deg / se_deg
+        } else {
+            0.0
+        },
+        poses: d.len(),
+    }
 }
 
 /// Cross-validates `effect` on `poses`.
@@ -249,6 +304,26 @@ pub fn normal_errors(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The pairing skips a pose either model has no normal for; the mean,
+    /// the standard error and z are those of the differences; fewer than 3
+    /// pairs give nothing.
+    #[test]
+    fn paired_normals_pairs_poses_both_measured() {
+        let base = [Some(0.05), Some(0.04), None, Some(0.06), Some(0.05)];
+        let cand = [Some(0.03), Some(0.03), Some(0.01), None, Some(0.02)];
+        let g = paired_normals(&base, &cand);
+        assert_eq!(g.poses, 3);
+        // differences 0.02, 0.01, 0.03
+        assert!((g.reduction_deg - 0.02).abs() < 1e-12, "{g:?}");
+        assert!((g.se_deg - 0.01 / 3f64.sqrt()).abs() < 1e-12, "{g:?}");
+        assert!((g.z - 0.02 / g.se_deg).abs() < 1e-9, "{g:?}");
+        // means over the 3 paired poses only
+        assert!((g.base_deg - 0.14 / 3.0).abs() < 1e-12, "{g:?}");
+        assert!((g.cand_deg - 0.08 / 3.0).abs() < 1e-12, "{g:?}");
+        let g = paired_normals(&base[..2], &cand[..2]);
+        assert_eq!(g, NormalGain::default());
+    }
 
     #[test]
     fn folds_are_deterministic_and_balanced() {

@@ -102,6 +102,10 @@ pub struct Analysis {
     /// Held-out normal errors of the base model [deg] (simulated runs
     /// only when asked).
     pub base_normal: Vec<Option<f64>>,
+    /// Held-out normal errors of each candidate [deg], same folds, same
+    /// poses (only when asked, like `base_normal`): the normal-cost test
+    /// of [`super::select`].
+    pub normals: Vec<(Effect, Vec<Option<f64>>)>,
     /// Structure z of each model's held-out residuals along each axis of
     /// [`super::noise::AXES`] (keys from the base fit's geometry).
     pub structure: Vec<(Effect, Vec<Option<f64>>)>,
@@ -119,6 +123,25 @@ impl Analysis {
     /// Pooled R² of candidate `e`.
     pub fn r2_of(&self, e: Effect) -> Option<f64> {
         self.r2.iter().find(|(x, _)| *x == e).map(|(_, r)| *r)
+    }
+
+    /// Held-out normal errors of model `e` per pose (`Effect::None`: the
+    /// base model's); `None` when they were not computed.
+    pub fn normals_of(&self, e: Effect) -> Option<&[Option<f64>]> {
+        if e == Effect::None {
+            return (!self.base_normal.is_empty()).then_some(self.base_normal.as_slice());
+        }
+        self.normals
+            .iter()
+            .find(|(x, _)| *x == e)
+            .map(|(_, v)| v.as_slice())
+    }
+
+    /// The paired normal-error comparison of candidate `e` with the base
+    /// model ([`super::cv::paired_normals`]), when both were computed.
+    pub fn normal_gain_of(&self, e: Effect) -> Option<super::cv::NormalGain> {
+        let b = self.normals_of(Effect::None)?;
+        Some(super::cv::paired_normals(b, self.normals_of(e)?))
     }
 
     /// Structure z per axis of model `e`'s held-out residuals.
@@ -184,8 +207,8 @@ fn explained_share(
 
 /// Runs the analysis on `poses`: the paper's model fitted on all poses, its
 /// in-sample residuals' whiteness and the share each candidate's regressors
-/// explain, every model cross-validated, the held-out normal errors of the
-/// paper's model (with `normals`) and the residuals' structure.
+/// explain, every model cross-validated, the held-out normal errors of
+/// every model (with `normals`) and the residuals' structure.
 ///
 /// # Errors
 /// When the base model cannot be fitted on all poses.
@@ -226,6 +249,10 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         (true, Some((_, Ok(b)))) => normal_errors(b, poses, plan.folds, plan.method),
         _ => Vec::new(),
     };
+    let normals = match normals && !base_normal.is_empty() {
+        true => candidate_normals(&cv, poses, plan),
+        false => Vec::new(),
+    };
     let geom: Vec<Sensor<f64>> = base_fit.iter().map(|f| f.sensor).collect();
     let structure = cv
         .iter()
@@ -244,8 +271,25 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         runs_z,
         r2,
         base_normal,
+        normals,
         structure,
     })
+}
+
+/// Held-out normal errors of every candidate that could be
+/// cross-validated (the base model's are computed apart).
+fn candidate_normals(
+    cv: &[(Effect, Result<CvResult, String>)],
+    poses: &PoseTable,
+    plan: &Plan<'_>,
+) -> Vec<(Effect, Vec<Option<f64>>)> {
+    cv.iter()
+        .filter(|(e, _)| *e != Effect::None)
+        .filter_map(|(e, r)| {
+            let c = r.as_ref().ok()?;
+            Some((*e, normal_errors(c, poses, plan.folds, plan.method)))
+        })
+        .collect()
 }
 
 /// Mean and sample spread of a statistic over the draws.
@@ -299,6 +343,11 @@ pub struct Expectation {
     pub gain_z: Vec<(Effect, Spread)>,
     /// Signed-rank z of the same per-pose gains on effect-free data.
     pub rank_z: Vec<(Effect, Spread)>,
+    /// Paired z of each candidate's held-out normal-error reduction over
+    /// the base model on effect-free data ([`super::cv::paired_normals`]:
+    /// the normals against the planes as the simulated tracker reports
+    /// them, like the measured run's).
+    pub normal_z: Vec<(Effect, Spread)>,
     /// Structure z of each model's held-out residuals per axis: what a
     /// model that captures the run leaves (cross-validation's own fold
     /// errors are smooth in the geometry, more so with more parameters).
@@ -327,6 +376,11 @@ impl Expectation {
     /// Null spread of candidate `e`'s paired gain z.
     pub fn gain_z_of(&self, e: Effect) -> Option<Spread> {
         self.gain_z.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
+    }
+
+    /// Null spread of candidate `e`'s normal-error reduction z.
+    pub fn normal_z_of(&self, e: Effect) -> Option<Spread> {
+        self.normal_z.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
     }
 
     /// Null spread of candidate `e`'s signed-rank z.
@@ -408,18 +462,27 @@ fn structure_spreads(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Vec
         .collect()
 }
 
-/// The spreads of every statistic over the draws' analyses.
-fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
-    let (rms, rms_sensor) = rms_spreads(analyses, plan);
-    let r2 = plan
-        .models
+/// The spread over the draws of a per-candidate statistic `stat` (the
+/// draws where it has a value), for every candidate of `plan`.
+fn per_candidate(
+    analyses: &[Analysis],
+    plan: &Plan<'_>,
+    stat: &dyn Fn(&Analysis, Effect) -> Option<f64>,
+) -> Vec<(Effect, Spread)> {
+    plan.models
         .iter()
         .filter(|e| **e != Effect::None)
         .map(|&e| {
-            let v: Vec<f64> = analyses.iter().filter_map(|a| a.r2_of(e)).collect();
+            let v: Vec<f64> = analyses.iter().filter_map(|a| stat(a, e)).collect();
             (e, Spread::of(&v))
         })
-        .collect();
+        .collect()
+}
+
+/// The spreads of every statistic over the draws' analyses.
+fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
+    let (rms, rms_sensor) = rms_spreads(analyses, plan);
+    let r2 = per_candidate(analyses, plan, &|a, e| a.r2_of(e));
     let lag: Vec<f64> = analyses.iter().map(|a| a.lag1.0).collect();
     let runs: Vec<f64> = analyses.iter().map(|a| a.runs_z).collect();
     let nerr: Vec<f64> = analyses
@@ -429,18 +492,10 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
             stats::mean(&v)
         })
         .collect();
-    let null_of = |stat: &dyn Fn(&CvResult, &CvResult) -> f64| -> Vec<(Effect, Spread)> {
-        plan.models
-            .iter()
-            .filter(|e| **e != Effect::None)
-            .map(|&e| {
-                let v: Vec<f64> = analyses
-                    .iter()
-                    .filter_map(|a| Some(stat(a.cv_of(Effect::None)?, a.cv_of(e)?)))
-                    .collect();
-                (e, Spread::of(&v))
-            })
-            .collect()
+    let null_of = |stat: &dyn Fn(&CvResult, &CvResult) -> f64| {
+        per_candidate(analyses, plan, &|a, e| {
+            Some(stat(a.cv_of(Effect::None)?, a.cv_of(e)?))
+        })
     };
     Expectation {
         draws: analyses.len(),
@@ -452,6 +507,10 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
         normal_err_deg: Spread::of(&nerr),
         gain_z: null_of(&|b, c| super::cv::paired(b, c).1),
         rank_z: null_of(&super::cv::paired_rank),
+        // the draws where both models measured normals
+        normal_z: per_candidate(analyses, plan, &|a, e| {
+            a.normal_gain_of(e).filter(|g| g.poses > 0).map(|g| g.z)
+        }),
         structure: structure_spreads(analyses, plan),
     }
 }

@@ -180,6 +180,10 @@ pub struct DiagnoseJson {
     /// found ([`direction`]): the verdict is then `unexplained`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub direction_offset: Option<DirectionJson>,
+    /// A candidate named by its normal cost alone, present only then
+    /// ([`select`], "Normal cost").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal_cost: Option<select::NormalCostJson>,
 }
 
 /// A direction-dependent offset found, in the JSON output.
@@ -382,6 +386,7 @@ impl Diagnosis {
                 })
                 .collect(),
             direction_offset: DirectionJson::of(&self.direction),
+            normal_cost: select::NormalCostJson::of(&self.decision),
         }
     }
 }

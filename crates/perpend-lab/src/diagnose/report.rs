@@ -307,6 +307,14 @@ fn candidates_section(o: &mut String, d: &Diagnosis, s: &Settings) {
             }
         );
     }
+    if let Some(c) = &d.decision.cost_named {
+        let g = c.test.gain;
+        let _ = writeln!(
+            o,
+            "  normal cost: {} lowers the held-out normal error {:.4}° → {:.4}° ({:.4} ± {:.4}° per pose), z = {:.1} / {:.1}, p = {:.1e} < α/m = {:.1e}; the paper's model costs {:.2}× the floor ({:.4}°)",
+            c.effect.name(), g.base_deg, g.cand_deg, g.reduction_deg, g.se_deg, g.z, c.test.threshold, c.test.p, c.level, c.cost, c.floor_deg
+        );
+    }
     for (e, why) in &d.skipped {
         let _ = writeln!(o, "  skipped: {} ({why})", e.name());
     }

@@ -24,6 +24,24 @@
 //! Among those the one with the lowest held-out error wins, unless one with
 //! fewer parameters is within one standard error of it (parsimony).
 //!
+//! **Normal cost.** What an effect costs is the calibrated normal, and a
+//! small residual pattern can tilt it: for every candidate the held-out
+//! normal errors of the base model and of the candidate (same folds,
+//! [`super::cv::normal_errors`]) are paired per pose,
+//! `N_k = e_base(k) − e_c(k)`, and the mean reduction is tested with its
+//! paired z (`mean(N)/(sd(N)/√K)`), against the same statistic on the
+//! effect-free re-simulations at the same level `α/m` and by the same rule
+//! as the residual z (`μ + z*·max(s, 1)·√(1 + 1/n)`, never below `z*`).
+//! The normals are against the planes as the tracker reported them, on
+//! the measured run as on the draws (whose tracker noise is drawn anew),
+//! so the null carries the same plane noise. When no candidate beats the
+//! base model by 1-3, a plausible one that passes this test is the winner
+//! (the largest reduction if several do, or the one with the fewest
+//! parameters within one standard error of it), judged like any winner,
+//! with the reason "costs X× the floor; named at p = …": `X` the base
+//! model's mean held-out normal error over its effect-free expectation,
+//! `p` the larger of the one-sided p of `z` and of `z` against its null.
+//!
 //! **Structure.** The residuals of a model that captures the run are
 //! white along every axis of [`super::noise::AXES`]; the structure z of a
 //! model's held-out residuals is compared with the base model's on the
@@ -52,8 +70,10 @@
 //!   are excess noise: they enter the noise estimate, and so the floor;
 //!   reported as a warning, not an effect).
 
+use serde::{Deserialize, Serialize};
+
 use super::candidates::Effect;
-use super::cv::{paired, paired_rank, CvResult};
+use super::cv::{paired, paired_rank, CvResult, NormalGain};
 use super::expect::{Analysis, Expectation, Spread};
 use super::stats;
 
@@ -92,6 +112,40 @@ pub struct Verdict {
     pub beats_base: bool,
     /// Simulated held-out RMS of this model on effect-free data.
     pub expected: Spread,
+    /// The normal-cost test (module docs), when the run's normals were
+    /// measured.
+    pub normal: Option<NormalTest>,
+}
+
+/// The normal-cost test of one candidate (module docs, "Normal cost").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NormalTest {
+    /// The paired held-out normal errors, base against the candidate.
+    pub gain: NormalGain,
+    /// The threshold its z had to pass (`z*` or its effect-free null).
+    pub threshold: f64,
+    /// One-sided p of its z (the larger of `P(Z > z)` and of z against its
+    /// null's predictive spread).
+    pub p: f64,
+    /// Whether it passes (`z > threshold`, equivalently `p < α/m`) and the
+    /// candidate is plausible.
+    pub passes: bool,
+}
+
+/// A candidate named by its normal cost alone.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CostNamed {
+    /// The candidate.
+    pub effect: Effect,
+    /// The base model's mean held-out normal error over its effect-free
+    /// expectation (the floor).
+    pub cost: f64,
+    /// That floor [deg].
+    pub floor_deg: f64,
+    /// Its test.
+    pub test: NormalTest,
+    /// The level it beat (`α/m`).
+    pub level: f64,
 }
 
 /// The outcome of the selection.
@@ -122,6 +176,60 @@ pub struct Decision {
     pub explained_fraction: Option<f64>,
     /// Reasons, in words.
     pub reasons: Vec<String>,
+    /// The winner when it is named by its normal cost alone (module docs).
+    pub cost_named: Option<CostNamed>,
+}
+
+/// A candidate named by its normal cost alone, in the `--json` output
+/// (key `normal_cost`, present only then: docs/json.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NormalCostJson {
+    /// The candidate named.
+    pub effect: String,
+    /// The paper's model's mean held-out normal error over its effect-free
+    /// expectation (`X` of "costs X× the floor").
+    pub cost: f64,
+    /// That expectation, the floor [deg].
+    pub floor_deg: f64,
+    /// Mean held-out normal error of the paper's model over the paired
+    /// poses [deg].
+    pub base_deg: f64,
+    /// The same with the candidate [deg].
+    pub with_deg: f64,
+    /// Mean reduction per pose [deg] and its standard error.
+    pub reduction_deg: f64,
+    /// Standard error of the reduction [deg].
+    pub se_deg: f64,
+    /// Paired z of the reduction and the threshold it passed.
+    pub z: f64,
+    /// The threshold (`z*` or the effect-free null's).
+    pub threshold: f64,
+    /// One-sided p against the effect-free re-simulations.
+    pub p: f64,
+    /// The level it beat (`α/m`).
+    pub level: f64,
+}
+
+impl NormalCostJson {
+    /// Of a decision whose winner was named by its normal cost; `None`
+    /// otherwise.
+    pub fn of(d: &Decision) -> Option<Self> {
+        let c = d.cost_named.as_ref()?;
+        let g = c.test.gain;
+        Some(Self {
+            effect: c.effect.name().into(),
+            cost: c.cost,
+            floor_deg: c.floor_deg,
+            base_deg: g.base_deg,
+            with_deg: g.cand_deg,
+            reduction_deg: g.reduction_deg,
+            se_deg: g.se_deg,
+            z: g.z,
+            threshold: c.test.threshold,
+            p: c.test.p,
+            level: c.level,
+        })
+    }
 }
 
 /// Floor of the predictive spread of an RMS over `n` readings
@@ -212,6 +320,7 @@ fn verdicts(
             beats_base: false,
             plausible: true,
             expected: base_exp,
+            normal: None,
         });
     }
     for c in cands {
@@ -239,6 +348,7 @@ fn verdicts(
             beats_base: significant && gain >= rule.min_gain * floor_ms && plausible,
             plausible,
             expected: exp.rms_of(c.effect).unwrap_or_default(),
+            normal: normal_test(measured, exp, c.effect, z_star, plausible),
         });
     }
     (out, z_star)
@@ -252,6 +362,81 @@ fn verdicts(
 fn threshold(z_star: f64, null: &Spread) -> f64 {
     let n = null.n.max(1) as f64;
     z_star.max(null.mean + z_star * null.sd.max(1.0) * (1.0 + 1.0 / n).sqrt())
+}
+
+/// The normal-cost test of candidate `e` (module docs): its paired
+/// normal-error z against `z*` and its effect-free null; `None` when the
+/// measured run's normals were not computed (the forward steps).
+fn normal_test(
+    measured: &Analysis,
+    exp: &Expectation,
+    e: Effect,
+    z_star: f64,
+    plausible: bool,
+) -> Option<NormalTest> {
+    let gain = measured.normal_gain_of(e).filter(|g| g.poses > 0)?;
+    let null = exp.normal_z_of(e).unwrap_or_default();
+    let threshold = threshold(z_star, &null);
+    let n = null.n.max(1) as f64;
+    let against_null = (gain.z - null.mean) / (null.sd.max(1.0) * (1.0 + 1.0 / n).sqrt());
+    let p = stats::normal_upper_tail(gain.z).max(stats::normal_upper_tail(against_null));
+    Some(NormalTest {
+        gain,
+        threshold,
+        p,
+        passes: plausible && gain.z > threshold,
+    })
+}
+
+/// When no candidate beats the base model by the residual test: the one
+/// whose normal-cost test passes with the largest reduction, as a
+/// [`CostNamed`] with its reason; `None` when none passes.
+fn by_normal_cost(
+    verdicts: &[Verdict],
+    measured: &Analysis,
+    exp: &Expectation,
+    level: f64,
+    reasons: &mut Vec<String>,
+) -> Option<CostNamed> {
+    let passing: Vec<(&Verdict, NormalTest)> = verdicts
+        .iter()
+        .filter_map(|v| Some((v, v.normal.filter(|t| t.passes)?)))
+        .collect();
+    let best = passing
+        .iter()
+        .max_by(|a, b| a.1.gain.reduction_deg.total_cmp(&b.1.gain.reduction_deg))?;
+    // Parsimony as in [`choose`]: the fewest parameters within one
+    // standard error of the largest reduction.
+    let (effect, test) = passing
+        .iter()
+        .filter(|(_, t)| t.gain.reduction_deg >= best.1.gain.reduction_deg - best.1.gain.se_deg)
+        .min_by_key(|(v, _)| v.n_params)
+        .map_or((best.0.effect, best.1), |(v, t)| (v.effect, *t));
+    let base: Vec<f64> = measured
+        .normals_of(Effect::None)
+        .unwrap_or(&[])
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
+    let floor_deg = exp.normal_err_deg.mean;
+    let cost = if floor_deg > 0.0 {
+        stats::mean(&base) / floor_deg
+    } else {
+        f64::NAN
+    };
+    let g = test.gain;
+    reasons.push(format!(
+        "{} costs {cost:.2}× the floor; named at p = {:.1e} (level α/m = {level:.1e}): the paper's model's held-out normal error is {:.4}° against {floor_deg:.4}° on effect-free re-simulations, and with {} it drops to {:.4}° ({:.4} ± {:.4}° per pose, paired z = {:.1} > {:.2}, from the effect-free re-simulations), although its residual gain stays below the residual test's threshold",
+        effect.name(), test.p, stats::mean(&base), effect.name(), g.cand_deg, g.reduction_deg, g.se_deg, g.z, test.threshold
+    ));
+    Some(CostNamed {
+        effect,
+        cost,
+        floor_deg,
+        test,
+        level,
+    })
 }
 
 /// The best verdict that beats the base model, preferring a simpler one
@@ -340,10 +525,6 @@ fn judge_winner(
     let ex0 = base_rms * base_rms - w.expected.mean * w.expected.mean;
     let explained_fraction =
         (ex0 > 0.0).then(|| ((base_rms * base_rms - w.rms * w.rms) / ex0).clamp(0.0, 1.0));
-    reasons.push(format!(
-        "{} beats the base model: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from the effect-free re-simulations), signed-rank z = {:.1} (threshold {:.2})",
-        w.effect.name(), base_rms, w.rms, w.z, w.z_threshold, w.z_rank, w.rank_threshold
-    ));
     let left = structured(w.effect, measured, exp, alpha);
     let w_n = measured.cv_of(w.effect).map_or(0, |c| c.n);
     let w_z = excess_z(w.rms, &w.expected, w_n);
@@ -441,7 +622,28 @@ pub fn decide(
     };
     let (verdicts, z_star) = verdicts(measured, exp, n_sensors, rule, implausible);
     let (winner, ties) = choose(&verdicts, measured, &mut reasons);
-    let winner = winner.cloned();
+    let mut winner = winner.cloned();
+    let m = verdicts.iter().filter(|v| v.effect != Effect::None).count();
+    let m = m.max(1);
+    let cost_named = match &winner {
+        Some(w) => {
+            reasons.push(format!(
+                "{} beats the base model: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from the effect-free re-simulations), signed-rank z = {:.1} (threshold {:.2})",
+                w.effect.name(), base_rms, w.rms, w.z, w.z_threshold, w.z_rank, w.rank_threshold
+            ));
+            None
+        }
+        None => by_normal_cost(
+            &verdicts,
+            measured,
+            exp,
+            rule.alpha / m as f64,
+            &mut reasons,
+        ),
+    };
+    if let Some(c) = &cost_named {
+        winner = verdicts.iter().find(|v| v.effect == c.effect).cloned();
+    }
     let (effect, explained_fraction) = match &winner {
         Some(w) => judge_winner(w, measured, exp, rule.alpha, &base, &mut reasons),
         None => (
@@ -461,6 +663,7 @@ pub fn decide(
         alpha: rule.alpha,
         explained_fraction,
         reasons,
+        cost_named,
     }
 }
 
@@ -510,6 +713,7 @@ mod tests {
             runs_z: 0.0,
             r2: vec![],
             base_normal: vec![],
+            normals: vec![],
         }
     }
 
@@ -611,6 +815,72 @@ mod tests {
             d.extended.heldout_rms_mm,
             d.floor_mm
         );
+    }
+
+    /// Per-pose normal errors around `level` [deg], deterministic
+    /// pseudo-noise of ±25 %.
+    fn normal_errs(level: f64, k: usize, seed: u64) -> Vec<Option<f64>> {
+        (0..k)
+            .map(|i| {
+                let u = ((i as u64 * 40503 + seed * 7919) % 1000) as f64 / 1000.0;
+                Some(level * (0.75 + 0.5 * u))
+            })
+            .collect()
+    }
+
+    /// The normal-cost test on constructed inputs: a gain that fails the
+    /// residual test (its residual losses 1 % worse than the base model's)
+    /// but lowers the held-out normal error by 20 % is named, with the
+    /// cost over the floor and the p in the reason; the same reduction no
+    /// larger than what the candidate gains on effect-free re-simulations,
+    /// or an implausible fit, is not named.
+    #[test]
+    fn a_normal_cost_beyond_its_null_names_the_candidate() {
+        let floor = 0.01;
+        let base = cv(Effect::None, &losses(floor, 100, 1));
+        let worse: Vec<f64> = base.pose_loss.iter().map(|l| l * 1.01).collect();
+        let mut a = analysis(vec![(base, 0.0), (cv(Effect::Gain, &worse), 0.0)]);
+        let b_err = normal_errs(0.03, 100, 1);
+        // 20 % lower in every pose, with its own pose-to-pose scatter
+        let g_err: Vec<Option<f64>> = b_err
+            .iter()
+            .zip(normal_errs(1.0, 100, 5))
+            .map(|(b, u)| Some(b.unwrap() * (0.8 + 0.05 * (u.unwrap() - 1.0))))
+            .collect();
+        a.base_normal = b_err;
+        a.normals = vec![(Effect::Gain, g_err)];
+        let mut e = expectation(&[(Effect::None, floor), (Effect::Gain, floor)]);
+        e.normal_err_deg = spread(0.02, 0.001);
+        e.normal_z = vec![(Effect::Gain, spread(-0.5, 1.0))];
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
+        assert!(!d.verdicts[1].beats_base, "{:?}", d.verdicts[1]);
+        let t = d.verdicts[1].normal.unwrap();
+        assert!(t.passes && t.gain.z > t.threshold, "{t:?}");
+        assert_eq!(d.effect, Effect::Gain, "{:?}", d.reasons);
+        let c = d.cost_named.unwrap();
+        assert!(c.test.p < c.level, "{c:?}");
+        // the base model's mean normal error (about 0.03°) over the 0.02° floor
+        let b_mean = stats::mean(&a.base_normal.iter().flatten().copied().collect::<Vec<_>>());
+        assert!((c.cost - b_mean / 0.02).abs() < 1e-12, "{c:?}");
+        assert!((1.4..1.6).contains(&c.cost), "{c:?}");
+        let line = format!("costs {:.2}× the floor; named at p = ", c.cost);
+        assert!(
+            d.reasons.iter().any(|r| r.contains(&line)),
+            "{:?}",
+            d.reasons
+        );
+        let j = NormalCostJson::of(&d).unwrap();
+        assert_eq!(j.effect, "gain");
+        // The same reduction on effect-free data: noise, not an effect.
+        e.normal_z = vec![(Effect::Gain, spread(t.gain.z, 1.0))];
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
+        assert_eq!(d.effect, Effect::None, "{:?}", d.reasons);
+        assert!(d.cost_named.is_none() && NormalCostJson::of(&d).is_none());
+        assert!(d.verdicts[1].normal.unwrap().p > d.alpha);
+        // Named at its null again, but outside its physical bounds.
+        e.normal_z = vec![(Effect::Gain, spread(-0.5, 1.0))];
+        let d = decide(&a, &e, 4, &Rule::default(), &[Effect::Gain]);
+        assert_eq!(d.effect, Effect::None);
     }
 
     #[test]
