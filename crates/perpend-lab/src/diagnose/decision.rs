@@ -18,7 +18,9 @@ use super::cv;
 use super::direction::{self, DirectionTest, NullPlan};
 use super::expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
 use super::fits::{implausible_fits, Fitted};
+use super::lags;
 use super::load::{available_models, Loaded};
+use super::nested::{self, Nested, NestedPlan};
 use super::noise::{self, NoiseEstimate};
 use super::select::{self, decide, Decision};
 use super::settings::{draws_for, Settings};
@@ -114,6 +116,10 @@ pub struct Step {
     pub cv: cv::CvResult,
     /// All poses fitted with every effect up to this one.
     pub fits: Vec<SensorFit>,
+    /// The nested in-sample test that named it, when the held-out test
+    /// alone did not ([`nested`]: the time-like partner of a time-like
+    /// effect).
+    pub nested: Option<Nested>,
 }
 
 /// Forward selection after `first` was named (module docs): adds the
@@ -203,15 +209,20 @@ fn next_step(
         s,
         &bad,
     );
-    let Ok((_, _, _, d)) = settled else {
+    let Ok((_, noise, expected, d)) = settled else {
         return Ok(None);
     };
-    let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
+    let held_out = d.winner.filter(|w| d.effect == *w);
+    let nested = match held_out {
+        Some(_) => None,
+        None => nested_partner(with, l, &r, &measured, &noise, &expected, &d, s),
+    };
+    let Some(e) = held_out.or(nested.as_ref().map(|n| n.effect)) else {
         return Ok(None);
     };
-    if d.effect != e {
+    let Some(cv) = measured.cv_of(e) else {
         return Ok(None);
-    }
+    };
     let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
         return Ok(None);
     };
@@ -229,7 +240,44 @@ fn next_step(
         before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
         cv: cv.clone(),
         fits,
+        nested,
     }))
+}
+
+/// The time-like partner of a time-like effect in `with`, named by the
+/// nested in-sample test ([`nested`]) when the held-out test of the step
+/// (`d`) named nothing: on a run that separates thermal from drift
+/// ([`lags::separable`]), with `p` below the step's family level and a
+/// held-out gain (paired z above its effect-free mean, plausible
+/// coefficients, lower held-out mean square).
+#[allow(clippy::too_many_arguments)]
+fn nested_partner(
+    with: &[Effect],
+    l: &Loaded,
+    r: &Refs,
+    measured: &Analysis,
+    noise: &NoiseModel,
+    expected: &Expectation,
+    d: &Decision,
+    s: &Settings,
+) -> Option<Nested> {
+    let c = nested::partner(with)?;
+    let v = d.verdicts.iter().find(|v| v.effect == c)?;
+    let null_mean = expected.gain_z_of(c).map_or(0.0, |z| z.mean);
+    if !(lags::separable(&l.poses) && v.plausible && v.gain_mse > 0.0 && v.z > null_mean) {
+        return None;
+    }
+    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
+    let plan = NestedPlan {
+        nominal: &l.nominal,
+        refs: r,
+        truth: &truth,
+        noise,
+        lsq: &s.lsq,
+        seed: s.seed,
+    };
+    let m = d.verdicts.len().saturating_sub(1).max(1);
+    nested::judge(&plan, &l.poses, c, s.rule.alpha / m as f64).filter(Nested::found)
 }
 
 /// The effects named: the verdict `effect` and those the forward

@@ -171,6 +171,30 @@ fn rss_with(
     Some((r, dof.max(1.0)))
 }
 
+/// Above this |r| between the logged temperature and the time, a thermal
+/// coefficient and a drift in time are the same pattern within the run
+/// (a warm-up that only rises): the run cannot tell them apart.
+pub const CONFOUNDED_R: f64 = 0.9;
+
+/// Pearson's r between the logged temperature and the time over the poses
+/// that have both (`None`: fewer than three such poses).
+pub fn temp_time_r(poses: &PoseTable) -> Option<f64> {
+    let (t, temp): (Vec<f64>, Vec<f64>) = poses
+        .rows
+        .iter()
+        .filter_map(|r| Some((r.t_s?, r.temp_c?)))
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .unzip();
+    (t.len() >= 3).then(|| super::stats::pearson(&t, &temp))
+}
+
+/// Whether the run tells a temperature coefficient from a drift in time
+/// (|r| of the logged columns at most [`CONFOUNDED_R`]): a warm-up that
+/// reaches its plateau, a swing, a cool-down.
+pub fn separable(poses: &PoseTable) -> bool {
+    temp_time_r(poses).is_some_and(|r| r.abs() <= CONFOUNDED_R)
+}
+
 /// The time of the run's last pose \[s\] (`t_s`; 0 without times).
 pub fn run_end_s(poses: &PoseTable) -> f64 {
     poses.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max)
@@ -193,6 +217,7 @@ fn best(
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
     effect: Effect,
+    partner: Option<Effect>,
     grid: &[f64],
     retime: &dyn Fn(f64) -> Lags,
     cfg: &LsqConfig<f64>,
@@ -207,6 +232,7 @@ fn best(
                 .zip(m)
                 .filter(|(e, on)| **on && super::candidates::available(*e, poses).is_ok())
                 .map(|(e, _)| e)
+                .chain(partner)
                 .collect::<Vec<_>>()
         })
         .find_map(|b| rss_with(nominal, &start, effect, &b, cfg).map(|(r0, _)| (b, r0)));
@@ -245,12 +271,15 @@ pub fn select(
         drift_tau_s: x * run,
         ..Lags::default()
     };
-    let pick = |e: Effect, grid: &[f64], retime: &dyn Fn(f64) -> Lags| {
-        wanted(e).then(|| best(nominal, poses, e, grid, retime, cfg) * run)
+    let both = wanted(Effect::Thermal) && wanted(Effect::Drift) && separable(poses);
+    let pick = |e: Effect, partner: Effect, grid: &[f64], retime: &dyn Fn(f64) -> Lags| {
+        let partner = both.then_some(partner);
+        wanted(e).then(|| best(nominal, poses, e, partner, grid, retime, cfg) * run)
     };
     Lags {
-        thermal_tau_s: pick(Effect::Thermal, &THERMAL_GRID, &thermal).unwrap_or(0.0),
-        drift_tau_s: pick(Effect::Drift, &DRIFT_GRID, &drift).unwrap_or(f64::INFINITY),
+        thermal_tau_s: pick(Effect::Thermal, Effect::Drift, &THERMAL_GRID, &thermal).unwrap_or(0.0),
+        drift_tau_s: pick(Effect::Drift, Effect::Thermal, &DRIFT_GRID, &drift)
+            .unwrap_or(f64::INFINITY),
     }
 }
 

@@ -53,6 +53,7 @@ pub mod folds;
 pub mod lags;
 pub mod load;
 pub mod moments;
+pub mod nested;
 pub mod noise;
 pub mod plot;
 pub mod report;
