@@ -59,7 +59,7 @@ pub fn partner(with: &[Effect]) -> Option<Effect> {
 /// The test's outcome.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Nested {
-    /// The partner tested.
+    /// The (first) effect tested.
     pub effect: Effect,
     /// `T` on the run.
     pub stat: f64,
@@ -94,13 +94,18 @@ pub struct NestedPlan<'a> {
     pub seed: u64,
 }
 
-/// `T` of candidate `c` on `poses` (module docs); `None` when a sensor
-/// cannot be fitted with either model.
-fn stat(plan: &NestedPlan<'_>, poses: &PoseTable, c: Effect) -> Option<f64> {
+/// `T` of the effects `added` on `poses` (module docs); `None` when a
+/// sensor cannot be fitted with either model.
+fn stat(plan: &NestedPlan<'_>, poses: &PoseTable, added: &[Effect]) -> Option<f64> {
+    let (c, rest) = added.split_first()?;
+    let after_refs = Refs {
+        extra: plan.refs.extra.iter().chain(rest).copied().collect(),
+        ..plan.refs.clone()
+    };
     let mut t = 0.0;
     for (i, s) in plan.nominal.iter().enumerate() {
         let before = fit(s, i, poses, plan.refs.terms(Effect::None, i), plan.lsq).ok()?;
-        let after = fit(s, i, poses, plan.refs.terms(c, i), plan.lsq).ok()?;
+        let after = fit(s, i, poses, after_refs.terms(*c, i), plan.lsq).ok()?;
         let rss = |f: &super::candidates::SensorFit| f.rms * f.rms * f.used as f64;
         let nu = after.used.saturating_sub(5 + after.terms.count()).max(1) as f64;
         let scale = rss(&after) / nu;
@@ -111,10 +116,17 @@ fn stat(plan: &NestedPlan<'_>, poses: &PoseTable, c: Effect) -> Option<f64> {
     Some(t)
 }
 
-/// The nested test of `c` on top of the model of `plan.refs` (module
-/// docs) at `level`; `None` when the run or too many draws cannot be fitted.
-pub fn judge(plan: &NestedPlan<'_>, poses: &PoseTable, c: Effect, level: f64) -> Option<Nested> {
-    let t = stat(plan, poses, c)?;
+/// The nested test of the effects `added` together on top of the model of
+/// `plan.refs` (module docs) at `level`; `None` when the run or too many
+/// draws cannot be fitted, or nothing is added.
+pub fn judge(
+    plan: &NestedPlan<'_>,
+    poses: &PoseTable,
+    added: &[Effect],
+    level: f64,
+) -> Option<Nested> {
+    let effect = *added.first()?;
+    let t = stat(plan, poses, added)?;
     let nulls: Vec<f64> = (0..NULL_DRAWS)
         .filter_map(|j| {
             let mut rng = StdRng::seed_from_u64(
@@ -123,7 +135,7 @@ pub fn judge(plan: &NestedPlan<'_>, poses: &PoseTable, c: Effect, level: f64) ->
                     .wrapping_mul(0x9E37_79B9_7F4A_7C15),
             );
             let table = null_table(plan.truth, poses, plan.noise, &mut rng);
-            stat(plan, &table, c)
+            stat(plan, &table, added)
         })
         .collect();
     let null = Spread::of(&nulls);
@@ -134,7 +146,7 @@ pub fn judge(plan: &NestedPlan<'_>, poses: &PoseTable, c: Effect, level: f64) ->
     let root = Spread::of(&nulls.iter().map(|x| x.cbrt()).collect::<Vec<_>>());
     let z = (t.cbrt() - root.mean) / root.predictive_sd(1e-12);
     Some(Nested {
-        effect: c,
+        effect,
         stat: t,
         null,
         p: t_tail(z, (null.n - 1) as f64),
