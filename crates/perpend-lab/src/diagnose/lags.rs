@@ -195,6 +195,24 @@ pub fn separable(poses: &PoseTable) -> bool {
     temp_time_r(poses).is_some_and(|r| r.abs() <= CONFOUNDED_R)
 }
 
+/// What separates thermal from drift, in words (the report and
+/// [`super::InseparableJson`]).
+pub const SEPARATED_BY: &str =
+    "a run continued past the warm-up's plateau, a run started warm (soaked), or a cool-down";
+
+/// The |r| of temperature and time when `named` holds thermal or drift on a
+/// run that cannot tell them apart (above [`CONFOUNDED_R`]); `None`
+/// otherwise.
+pub fn inseparable(poses: &PoseTable, named: &[Effect]) -> Option<f64> {
+    if !named
+        .iter()
+        .any(|e| matches!(e, Effect::Thermal | Effect::Drift))
+    {
+        return None;
+    }
+    temp_time_r(poses).filter(|r| r.abs() > CONFOUNDED_R)
+}
+
 /// The time of the run's last pose \[s\] (`t_s`; 0 without times).
 pub fn run_end_s(poses: &PoseTable) -> f64 {
     poses.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max)
