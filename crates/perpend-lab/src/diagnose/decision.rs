@@ -157,7 +157,7 @@ fn time_pair(
         return Ok(None);
     }
     decision.reasons.push(format!(
-        "{} and {} together explain the residuals where neither alone does (they cancel in part over the warm-up): in-sample p = {:.1e} against effect-free re-simulations (level {:.1e}), held-out RMS {base:.4} → {:.4} mm",
+        "but {} and {} together explain the residuals where neither alone does (they cancel in part over the warm-up): in-sample p = {:.1e} against effect-free re-simulations (level {:.1e}), held-out RMS {base:.4} → {:.4} mm",
         a.name(),
         b.name(),
         test.p,
