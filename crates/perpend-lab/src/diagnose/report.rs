@@ -341,31 +341,23 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
             .iter()
             .map(|e| e.name())
             .collect();
-        if let Some(n) = &st.nested {
-            let _ = writeln!(
-                o,
-                "  then {} on top of {}: held-out RMS {:.4} → {:.4} mm (paired z = {:.1}), in-sample nested test p = {:.1e} (level {:.1e}, from effect-free re-simulations of the model with {}): the run separates thermal from drift",
-                st.effect.name(),
-                before.join(" + "),
-                st.before_rms_mm,
-                st.cv.rms,
-                st.verdict.z,
-                n.p,
-                n.level,
-                before.join(" + ")
-            );
-            continue;
-        }
+        let with = before.join(" + ");
+        let test = match &st.nested {
+            Some(n) => format!(
+                "paired z = {:.1}, in-sample nested test p = {:.1e} (level {:.1e}, from effect-free re-simulations of the model with {with}): the run separates thermal from drift",
+                st.verdict.z, n.p, n.level
+            ),
+            None => format!(
+                "paired z = {:.1} (threshold {:.2}, from effect-free re-simulations of the model with {with})",
+                st.verdict.z, st.verdict.z_threshold
+            ),
+        };
         let _ = writeln!(
             o,
-            "  then {} on top of {}: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from effect-free re-simulations of the model with {})",
+            "  then {} on top of {with}: held-out RMS {:.4} → {:.4} mm, {test}",
             st.effect.name(),
-            before.join(" + "),
             st.before_rms_mm,
             st.cv.rms,
-            st.verdict.z,
-            st.verdict.z_threshold,
-            before.join(" + ")
         );
     }
     for e in d.effects() {
