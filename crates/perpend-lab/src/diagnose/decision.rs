@@ -18,7 +18,9 @@ use super::cv;
 use super::direction::{self, DirectionTest, NullPlan};
 use super::expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
 use super::fits::{implausible_fits, Fitted};
+use super::lags;
 use super::load::{available_models, Loaded};
+use super::nested::{self, Nested, NestedPlan};
 use super::noise::{self, NoiseEstimate};
 use super::select::{self, decide, Decision};
 use super::settings::{draws_for, Settings};
@@ -69,16 +71,20 @@ fn settle(
 fn name_effects(
     decision: &mut Decision,
     l: &Loaded,
-    declared: Option<Vec<f64>>,
+    f: &Fitted,
+    noise: &NoiseModel,
     s: &Settings,
 ) -> Result<(Effect, Vec<Step>)> {
+    let declared = l.declared.clone();
     let mut effect = decision.effect;
     let first = match (effect, decision.winner) {
         (Effect::Unexplained, Some(w)) => w,
         (e, _) => e,
     };
     let also = match first {
-        Effect::None | Effect::Unexplained => Vec::new(),
+        Effect::None | Effect::Unexplained => {
+            return Ok(time_pair(decision, l, f, noise, s)?.unwrap_or((effect, Vec::new())));
+        }
         e => forward(e, l, declared, s)?,
     };
     if let (Effect::Unexplained, Some(st)) = (effect, also.last()) {
@@ -94,6 +100,73 @@ fn name_effects(
         effect = first;
     }
     Ok((effect, also))
+}
+
+/// Thermal and drift named together where neither alone beats the base
+/// model (`decision` names nothing): on a run that separates them
+/// ([`lags::separable`]) the two can cancel over the warm-up and show only
+/// together. The pair is judged by the nested in-sample test against the
+/// paper's model ([`nested`], at the decision's family level `α/m`), the
+/// better of the two alone is then taken first and the other must be
+/// named on top of it by the forward step, and the pair must lower the
+/// held-out RMS of the paper's model. `None` otherwise.
+///
+/// # Errors
+/// Those of [`next_step`].
+fn time_pair(
+    decision: &mut Decision,
+    l: &Loaded,
+    f: &Fitted,
+    noise: &NoiseModel,
+    s: &Settings,
+) -> Result<Option<(Effect, Vec<Step>)>> {
+    let cv = |e: Effect| f.measured.cv_of(e).map(|c| c.rms);
+    let (Some(base), Some(th), Some(dr)) =
+        (cv(Effect::None), cv(Effect::Thermal), cv(Effect::Drift))
+    else {
+        return Ok(None);
+    };
+    if decision.winner.is_some() || !lags::separable(&l.poses) {
+        return Ok(None);
+    }
+    let (a, b) = if th <= dr {
+        (Effect::Thermal, Effect::Drift)
+    } else {
+        (Effect::Drift, Effect::Thermal)
+    };
+    let truth: Vec<Sensor<f64>> = f.measured.base_fit.iter().map(|x| x.sensor).collect();
+    let plan = NestedPlan {
+        nominal: &l.nominal,
+        refs: &l.refs,
+        truth: &truth,
+        noise,
+        lsq: &s.lsq,
+        seed: s.seed,
+    };
+    let m = decision.verdicts.len().saturating_sub(1).max(1);
+    let Some(test) = nested::judge(&plan, &l.poses, &[a, b], s.rule.alpha / m as f64) else {
+        return Ok(None);
+    };
+    if !test.found() {
+        return Ok(None);
+    }
+    let Some(step) = next_step(&[a], l, &l.declared, s)? else {
+        return Ok(None);
+    };
+    if step.effect != b || step.cv.rms >= base {
+        return Ok(None);
+    }
+    decision.reasons.push(format!(
+        "but {} and {} together explain the residuals where neither alone does (they cancel in part over the warm-up): in-sample p = {:.1e} against effect-free re-simulations (level {:.1e}), held-out RMS {base:.4} → {:.4} mm",
+        a.name(),
+        b.name(),
+        test.p,
+        test.level,
+        step.cv.rms
+    ));
+    decision.effect = a;
+    decision.winner = Some(a);
+    Ok(Some((a, vec![step])))
 }
 
 /// A further effect of the forward selection: named by the same
@@ -114,6 +187,10 @@ pub struct Step {
     pub cv: cv::CvResult,
     /// All poses fitted with every effect up to this one.
     pub fits: Vec<SensorFit>,
+    /// The nested in-sample test that named it, when the held-out test
+    /// alone did not ([`nested`]: the time-like partner of a time-like
+    /// effect).
+    pub nested: Option<Nested>,
 }
 
 /// Forward selection after `first` was named (module docs): adds the
@@ -203,15 +280,20 @@ fn next_step(
         s,
         &bad,
     );
-    let Ok((_, _, _, d)) = settled else {
+    let Ok((_, noise, expected, d)) = settled else {
         return Ok(None);
     };
-    let (Some(e), Some(cv)) = (d.winner, d.winner.and_then(|w| measured.cv_of(w))) else {
+    let held_out = d.winner.filter(|w| d.effect == *w);
+    let nested = match held_out {
+        Some(_) => None,
+        None => nested_partner(with, l, &r, &measured, &noise, &expected, &d, s),
+    };
+    let Some(e) = held_out.or(nested.as_ref().map(|n| n.effect)) else {
         return Ok(None);
     };
-    if d.effect != e {
+    let Some(cv) = measured.cv_of(e) else {
         return Ok(None);
-    }
+    };
     let Ok(fits) = candidates::fit_all(nominal, poses, &r, e, &s.lsq) else {
         return Ok(None);
     };
@@ -229,7 +311,44 @@ fn next_step(
         before_rms_mm: measured.cv_of(Effect::None).map_or(0.0, |b| b.rms),
         cv: cv.clone(),
         fits,
+        nested,
     }))
+}
+
+/// The time-like partner of a time-like effect in `with`, named by the
+/// nested in-sample test ([`nested`]) when the held-out test of the step
+/// (`d`) named nothing: on a run that separates thermal from drift
+/// ([`lags::separable`]), with `p` below the step's family level and a
+/// held-out gain (paired z above its effect-free mean, plausible
+/// coefficients, lower held-out mean square).
+#[allow(clippy::too_many_arguments)]
+fn nested_partner(
+    with: &[Effect],
+    l: &Loaded,
+    r: &Refs,
+    measured: &Analysis,
+    noise: &NoiseModel,
+    expected: &Expectation,
+    d: &Decision,
+    s: &Settings,
+) -> Option<Nested> {
+    let c = nested::partner(with)?;
+    let v = d.verdicts.iter().find(|v| v.effect == c)?;
+    let null_mean = expected.gain_z_of(c).map_or(0.0, |z| z.mean);
+    if !(lags::separable(&l.poses) && v.plausible && v.gain_mse > 0.0 && v.z > null_mean) {
+        return None;
+    }
+    let truth: Vec<Sensor<f64>> = measured.base_fit.iter().map(|f| f.sensor).collect();
+    let plan = NestedPlan {
+        nominal: &l.nominal,
+        refs: r,
+        truth: &truth,
+        noise,
+        lsq: &s.lsq,
+        seed: s.seed,
+    };
+    let m = d.verdicts.len().saturating_sub(1).max(1);
+    nested::judge(&plan, &l.poses, &[c], s.rule.alpha / m as f64).filter(Nested::found)
 }
 
 /// The effects named: the verdict `effect` and those the forward
@@ -285,7 +404,7 @@ pub(super) fn decide_run(l: &Loaded, f: &Fitted, s: &Settings) -> Result<Decided
         s,
         &bad,
     )?;
-    let (mut effect, also) = name_effects(&mut decision, l, l.declared.clone(), s)?;
+    let (mut effect, also) = name_effects(&mut decision, l, f, &noise, s)?;
     let floor_mm = expected.rms_of(Effect::None).map_or(0.0, |x| x.mean);
     let direction = direction_test(l, f, &noise, s, decision.verdicts.len());
     if effect == Effect::None && direction.found() {
@@ -327,4 +446,74 @@ fn direction_test(
     };
     let level = s.rule.alpha / tests.max(1) as f64;
     direction::judge(&l.poses, &geom, &f.measured.insample, &plan, level)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::super::{diagnose, Settings};
+    use super::*;
+    use crate::exchange::SensorTable;
+
+    /// A simulated run (paper head, 60 poses 30 s apart) with a linear
+    /// drift `A_i·t/t_end` and a reading tied to a head temperature that
+    /// warms as `21 + 6·tanh(t/τ)` (`k_i` mm/°C), τ a fraction `tau_frac`
+    /// of the run: 0.12 reaches the plateau by 36 % of the run, 1.2 ends on
+    /// the rise.
+    fn warm_drift_run(tau_frac: f64, seed: u64) -> (SensorTable, PoseTable) {
+        let (head, mut run) = lags::timed_run(seed);
+        let t_end = run.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max);
+        let (a, k) = ([0.03, -0.025, 0.02, -0.03], [0.005, 0.006, -0.005, 0.004]);
+        for row in &mut run.rows {
+            let t = row.t_s.unwrap();
+            let temp = 21.0 + 6.0 * (t / (tau_frac * t_end)).tanh();
+            row.temp_c = Some(temp);
+            for (i, r) in row.readings.iter_mut().enumerate() {
+                if let Some(d) = r {
+                    *d += a[i] * t / t_end + k[i] * (temp - 21.0);
+                }
+            }
+        }
+        let table = SensorTable::from_sensors(&head.nominal, head.sigma_mm);
+        (table, run)
+    }
+
+    /// With the plateau in the run (temperature against time r ≈ 0.6) the
+    /// drift and the warm-up are named together, on several draws, and the
+    /// JSON carries no `inseparable`.
+    #[test]
+    fn drift_and_a_warm_up_with_its_plateau_are_named_together() {
+        for seed in [21, 22, 23] {
+            let (table, run) = warm_drift_run(0.12, seed);
+            assert!(lags::separable(&run), "seed {seed}");
+            let d = diagnose(&table, &run, &Settings::default()).unwrap();
+            let named = d.effects();
+            assert!(
+                named.contains(&Effect::Thermal) && named.contains(&Effect::Drift),
+                "seed {seed}: {named:?} ({:?})",
+                d.decision.reasons
+            );
+            assert!(d.json().inseparable.is_none(), "seed {seed}");
+        }
+    }
+
+    /// Without the plateau (the run ends on the rise, r > 0.98) the two are
+    /// said inseparable: one of them named, the JSON key `inseparable`
+    /// present with the run that would separate them.
+    #[test]
+    fn drift_and_a_warm_up_without_plateau_are_said_inseparable() {
+        for seed in [21, 22] {
+            let (table, run) = warm_drift_run(1.2, seed);
+            assert!(!lags::separable(&run), "seed {seed}");
+            let d = diagnose(&table, &run, &Settings::default()).unwrap();
+            let named = d.effects();
+            assert!(
+                named.contains(&Effect::Thermal) || named.contains(&Effect::Drift),
+                "seed {seed}: {named:?}"
+            );
+            let j = d.json().inseparable.unwrap();
+            assert!(j.temp_time_r > lags::CONFOUNDED_R, "seed {seed}: {j:?}");
+            assert!(j.separated_by.contains("plateau"), "{j:?}");
+        }
+    }
 }

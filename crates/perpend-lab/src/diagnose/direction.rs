@@ -346,7 +346,7 @@ pub const P_MIN: f64 = 1e-16;
 
 /// One-sided tail `P(t_ν > z)` of Student's t, by inverting
 /// [`stats::t_quantile`] (bisection on `log p`), at least [`P_MIN`].
-fn t_tail(z: f64, nu: f64) -> f64 {
+pub(super) fn t_tail(z: f64, nu: f64) -> f64 {
     if z <= 0.0 {
         return 0.5;
     }

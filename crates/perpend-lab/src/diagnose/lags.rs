@@ -171,6 +171,48 @@ fn rss_with(
     Some((r, dof.max(1.0)))
 }
 
+/// Above this |r| between the logged temperature and the time, a thermal
+/// coefficient and a drift in time are the same pattern within the run
+/// (a warm-up that only rises): the run cannot tell them apart.
+pub const CONFOUNDED_R: f64 = 0.9;
+
+/// Pearson's r between the logged temperature and the time over the poses
+/// that have both (`None`: fewer than three such poses).
+pub fn temp_time_r(poses: &PoseTable) -> Option<f64> {
+    let (t, temp): (Vec<f64>, Vec<f64>) = poses
+        .rows
+        .iter()
+        .filter_map(|r| Some((r.t_s?, r.temp_c?)))
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .unzip();
+    (t.len() >= 3).then(|| super::stats::pearson(&t, &temp))
+}
+
+/// Whether the run tells a temperature coefficient from a drift in time
+/// (|r| of the logged columns at most [`CONFOUNDED_R`]): a warm-up that
+/// reaches its plateau, a swing, a cool-down.
+pub fn separable(poses: &PoseTable) -> bool {
+    temp_time_r(poses).is_some_and(|r| r.abs() <= CONFOUNDED_R)
+}
+
+/// What separates thermal from drift, in words (the report and
+/// [`super::InseparableJson`]).
+pub const SEPARATED_BY: &str =
+    "a run continued past the warm-up's plateau, a run started warm (soaked), or a cool-down";
+
+/// The |r| of temperature and time when `named` holds thermal or drift on a
+/// run that cannot tell them apart (above [`CONFOUNDED_R`]); `None`
+/// otherwise.
+pub fn inseparable(poses: &PoseTable, named: &[Effect]) -> Option<f64> {
+    if !named
+        .iter()
+        .any(|e| matches!(e, Effect::Thermal | Effect::Drift))
+    {
+        return None;
+    }
+    temp_time_r(poses).filter(|r| r.abs() > CONFOUNDED_R)
+}
+
 /// The time of the run's last pose \[s\] (`t_s`; 0 without times).
 pub fn run_end_s(poses: &PoseTable) -> f64 {
     poses.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max)
@@ -193,6 +235,7 @@ fn best(
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
     effect: Effect,
+    partner: Option<Effect>,
     grid: &[f64],
     retime: &dyn Fn(f64) -> Lags,
     cfg: &LsqConfig<f64>,
@@ -207,6 +250,7 @@ fn best(
                 .zip(m)
                 .filter(|(e, on)| **on && super::candidates::available(*e, poses).is_ok())
                 .map(|(e, _)| e)
+                .chain(partner)
                 .collect::<Vec<_>>()
         })
         .find_map(|b| rss_with(nominal, &start, effect, &b, cfg).map(|(r0, _)| (b, r0)));
@@ -245,22 +289,49 @@ pub fn select(
         drift_tau_s: x * run,
         ..Lags::default()
     };
-    let pick = |e: Effect, grid: &[f64], retime: &dyn Fn(f64) -> Lags| {
-        wanted(e).then(|| best(nominal, poses, e, grid, retime, cfg) * run)
+    let both = wanted(Effect::Thermal) && wanted(Effect::Drift) && separable(poses);
+    let pick = |e: Effect, partner: Effect, grid: &[f64], retime: &dyn Fn(f64) -> Lags| {
+        let partner = both.then_some(partner);
+        wanted(e).then(|| best(nominal, poses, e, partner, grid, retime, cfg) * run)
     };
     Lags {
-        thermal_tau_s: pick(Effect::Thermal, &THERMAL_GRID, &thermal).unwrap_or(0.0),
-        drift_tau_s: pick(Effect::Drift, &DRIFT_GRID, &drift).unwrap_or(f64::INFINITY),
+        thermal_tau_s: pick(Effect::Thermal, Effect::Drift, &THERMAL_GRID, &thermal).unwrap_or(0.0),
+        drift_tau_s: pick(Effect::Drift, Effect::Thermal, &DRIFT_GRID, &drift)
+            .unwrap_or(f64::INFINITY),
     }
+}
+
+/// A simulated effect-free run for the tests: the paper head, 60 poses
+/// 30 s apart, the temperature column held at 21 °C (a test writes its own
+/// warm-up).
+///
+/// # Panics
+/// When the simulator fails on the paper head (a test failure).
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+pub(super) fn timed_run(seed: u64) -> (crate::sim::SimHead, PoseTable) {
+    use crate::sim::{paper_head, simulate, SimConfig, TempProfile};
+    use rand::SeedableRng;
+    let head = paper_head().unwrap();
+    let mut cfg = SimConfig::paper();
+    cfg.poses = 60;
+    cfg.dt_s = Some(30.0);
+    cfg.temp = Some(TempProfile {
+        start_c: 21.0,
+        rate_c_per_s: 0.0,
+        swing_c: 0.0,
+        period_s: 300.0,
+    });
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let run = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
+    (head, run)
 }
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::sim::{paper_head, simulate, SimConfig, TempProfile};
     use approx::assert_relative_eq;
-    use rand::SeedableRng;
 
     /// A simulated run (paper head, 60 poses 30 s apart, a warm-up logged
     /// by the head thermometer), with the sensor bodies lagging the head
@@ -270,18 +341,7 @@ mod tests {
     /// e^{−t/τ_h})`, `T_s = T0 + ΔT(1 − (τ_h e^{−t/τ_h} − τ_l
     /// e^{−t/τ_l})/(τ_h − τ_l))`.
     fn warm_run(tau_l: f64, k: [f64; 4], seed: u64) -> (Vec<Sensor<f64>>, PoseTable) {
-        let head = paper_head().unwrap();
-        let mut cfg = SimConfig::paper();
-        cfg.poses = 60;
-        cfg.dt_s = Some(30.0);
-        cfg.temp = Some(TempProfile {
-            start_c: 21.0,
-            rate_c_per_s: 0.0,
-            swing_c: 0.0,
-            period_s: 300.0,
-        });
-        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-        let mut run = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
+        let (head, mut run) = timed_run(seed);
         let (t0, dt, tau_h) = (21.0, 8.0, 900.0);
         for row in &mut run.rows {
             let t = row.t_s.unwrap();
@@ -389,6 +449,33 @@ mod tests {
                 Lags::default(),
                 "seed {seed}"
             );
+        }
+    }
+
+    /// A linear drift beside a warm-up that reaches its plateau (the run
+    /// separates them): chosen beside each other, both time constants keep
+    /// their defaults (tied, linear) on every draw, where the thermal lag
+    /// chosen alone can bend the temperature towards the time and take the
+    /// drift in (it does on the first draw).
+    #[test]
+    fn a_drift_beside_a_plateau_keeps_the_defaults() {
+        let cfg = LsqConfig::default();
+        for seed in [5, 6, 7] {
+            let (head, mut run) = timed_run(seed);
+            let t_end = run_end_s(&run);
+            let (a, k) = ([0.03, -0.025, 0.02, -0.03], [0.005, 0.006, -0.005, 0.004]);
+            for row in &mut run.rows {
+                let t = row.t_s.unwrap();
+                row.temp_c = Some(21.0 + 6.0 * (t / (0.12 * t_end)).tanh());
+            }
+            assert!(separable(&run), "seed {seed}");
+            add(&mut run, |t, i, _| {
+                a[i] * t / t_end + k[i] * 6.0 * (t / (0.12 * t_end)).tanh()
+            });
+            let both = select(&head.nominal, &run, &BOTH, &cfg);
+            assert_eq!(both, Lags::default(), "seed {seed}");
+            let alone = select(&head.nominal, &run, &[Effect::Thermal], &cfg);
+            assert!(seed != 5 || alone.thermal_tau_s > 0.0, "{alone:?}");
         }
     }
 

@@ -53,6 +53,7 @@ pub mod folds;
 pub mod lags;
 pub mod load;
 pub mod moments;
+pub mod nested;
 pub mod noise;
 pub mod plot;
 pub mod report;
@@ -184,6 +185,34 @@ pub struct DiagnoseJson {
     /// ([`select`], "Normal cost").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub normal_cost: Option<select::NormalCostJson>,
+    /// Thermal and drift cannot be told apart on this run, present only
+    /// when one of them is named and the temperature follows the time
+    /// ([`lags::inseparable`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inseparable: Option<InseparableJson>,
+}
+
+/// Two named time-like effects this run cannot tell apart, in the JSON
+/// output.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InseparableJson {
+    /// The effects (`thermal`, `drift`).
+    pub effects: Vec<String>,
+    /// Pearson's r of the temperature and the time over the poses kept.
+    pub temp_time_r: f64,
+    /// The run that would separate them, in words.
+    pub separated_by: String,
+}
+
+impl InseparableJson {
+    /// Of a diagnosis that named `named` on `poses`; `None` when separable.
+    fn of(poses: &PoseTable, named: &[Effect]) -> Option<Self> {
+        lags::inseparable(poses, named).map(|r| Self {
+            effects: vec![Effect::Thermal.name().into(), Effect::Drift.name().into()],
+            temp_time_r: r,
+            separated_by: lags::SEPARATED_BY.into(),
+        })
+    }
 }
 
 /// A direction-dependent offset found, in the JSON output.
@@ -387,6 +416,7 @@ impl Diagnosis {
                 .collect(),
             direction_offset: DirectionJson::of(&self.direction),
             normal_cost: select::NormalCostJson::of(&self.decision),
+            inseparable: InseparableJson::of(&self.poses, &self.effects()),
         }
     }
 }
@@ -421,28 +451,14 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
     w
 }
 
-/// Above this |r| between temperature and time, a thermal coefficient and
-/// a drift in time are the same pattern within the run.
-pub const CONFOUNDED_R: f64 = 0.9;
+pub use lags::CONFOUNDED_R;
 
 /// A warning when a time-like effect (thermal, drift) is named on a run
 /// whose temperature follows its time (a warm-up that only rises): the run
 /// cannot tell one from the other; which is named is the better fit of
 /// this run's pattern, not evidence for its cause.
 fn time_warning(poses: &PoseTable, named: &[Effect]) -> Option<String> {
-    if !named
-        .iter()
-        .any(|e| matches!(e, Effect::Thermal | Effect::Drift))
-    {
-        return None;
-    }
-    let (t, temp): (Vec<f64>, Vec<f64>) = poses
-        .rows
-        .iter()
-        .filter_map(|r| Some((r.t_s?, r.temp_c?)))
-        .unzip();
-    let r = stats::pearson(&t, &temp);
-    (r.abs() > CONFOUNDED_R).then(|| {
+    lags::inseparable(poses, named).map(|r| {
         format!(
             "thermal and drift are confounded in this run: the temperature follows the time (r = {r:.2}), so the run cannot tell a temperature coefficient from a drift in time; the correction fits this run, but would extrapolate differently. A run in which the temperature falls or is held (a cool-down, a second warm-up after a pause) separates them"
         )

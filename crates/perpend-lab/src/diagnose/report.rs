@@ -335,22 +335,37 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
     for r in &d.decision.reasons {
         let _ = writeln!(o, "  {r}");
     }
+    if let Some(r) = super::lags::inseparable(&d.poses, &d.effects()) {
+        let _ = writeln!(
+            o,
+            "  inseparable: thermal and drift are the same pattern on this run (temperature against time r = {r:.2}): {} is the better fit, not the proven cause; {} would separate them",
+            names.join(" + "),
+            super::lags::SEPARATED_BY
+        );
+    }
     let _ = writeln!(o, "  {}", d.direction.line());
     for st in &d.also {
         let before: Vec<&str> = st.with[..st.with.len() - 1]
             .iter()
             .map(|e| e.name())
             .collect();
+        let with = before.join(" + ");
+        let test = match &st.nested {
+            Some(n) => format!(
+                "paired z = {:.1}, in-sample nested test p = {:.1e} (level {:.1e}, from effect-free re-simulations of the model with {with}): the run separates thermal from drift",
+                st.verdict.z, n.p, n.level
+            ),
+            None => format!(
+                "paired z = {:.1} (threshold {:.2}, from effect-free re-simulations of the model with {with})",
+                st.verdict.z, st.verdict.z_threshold
+            ),
+        };
         let _ = writeln!(
             o,
-            "  then {} on top of {}: held-out RMS {:.4} → {:.4} mm, paired z = {:.1} (threshold {:.2}, from effect-free re-simulations of the model with {})",
+            "  then {} on top of {with}: held-out RMS {:.4} → {:.4} mm, {test}",
             st.effect.name(),
-            before.join(" + "),
             st.before_rms_mm,
             st.cv.rms,
-            st.verdict.z,
-            st.verdict.z_threshold,
-            before.join(" + ")
         );
     }
     for e in d.effects() {
