@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Checks of gen.py's v3 additions (issue 35, item 5), standard library
-only: `python3 host-tests/blind/test_v3.py`. Not run by CI (neither is the
-v3 block); run it after changing gen.py or v3.py."""
+only: `python3 host-tests/blind/test_v3.py`; run.sh runs it first in
+every mode (CI included)."""
 
 import math
 import os
@@ -56,6 +56,13 @@ class V3(unittest.TestCase):
             case = v3.make_v3_case(name, ["drift_linear", "thermal_tied"], 21, 1.0, "tian30")
             r = gen.generate(case)[2]["temp_time_r"]
             self.assertTrue(lo <= r <= hi, (name, r))
+
+    def test_only_takes_case_names_that_hold_commas_whole(self):
+        self.assertEqual(v3.only_cases("gain, two sensors,incidence spot, 5 deg"),
+                         {"gain, two sensors", "incidence spot, 5 deg"})
+        self.assertEqual(v3.only_cases("none,incidence spot"), {"none", "incidence spot"})
+        with self.assertRaises(SystemExit):
+            v3.only_cases("gain")
 
     def test_tracker_tilt_turns_against_the_head(self):
         eps = [0.05, -0.03]

@@ -209,6 +209,26 @@ def check(cells):
     return fails
 
 
+def only_cases(text):
+    """The case names in `--only`'s comma-separated list. Some names hold
+    a comma themselves ("gain, two sensors"): at each place the longest
+    run of pieces that spells a known name is taken; an unknown name is an
+    error, not an empty selection."""
+    known = {c[0] for c in V3_CASES} | {"none"}
+    pieces, keep, i = text.split(","), set(), 0
+    while i < len(pieces):
+        for j in range(len(pieces), i, -1):
+            name = ",".join(pieces[i:j]).strip()
+            if name in known:
+                keep.add(name)
+                i = j
+                break
+        else:
+            raise SystemExit("v3.py --only: unknown case %r (known: %s)" % (
+                pieces[i].strip(), "; ".join(sorted(known))))
+    return keep
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description="the v3 block of the blind check (issue 35)")
     ap.add_argument("--perpend", required=True)
@@ -223,7 +243,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     jobs = plan(a.seed_base, a.nulls, a.effects)
     if a.only:
-        keep = set(a.only.split(","))
+        keep = only_cases(a.only)
         jobs = [j for j in jobs if j[0] in keep]
     with cf.ThreadPoolExecutor(max(1, a.jobs)) as ex:
         outs = list(ex.map(score.run_one, [(a.perpend, j[3]) for j in jobs]))
