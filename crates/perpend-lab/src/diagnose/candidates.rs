@@ -11,7 +11,7 @@
 //! | `gain` | `d − d_ref` | scale error of the analog chain |
 //! | `nonlinearity` | `d − d_ref`, `(d − d_ref)²`, `(d − d_ref)³` | polynomial linearity error (the linear term keeps the polynomial independent of the reference `d_ref`) |
 //! | `linearity_table` | `d − d_ref`, `C_0..C_2(d − d_ref)` | linearity error of any smooth shape: a natural cubic spline with 5 knots, its values at the 3 interior knots fitted ([`perpend_core::ext::LinTable`]); an alternative to `nonlinearity`, never selected with it |
-//! | `incidence` | `1/cos γ − 1` | spot/speckle bias growing with the angle between beam and surface normal |
+//! | `incidence` | `1/cos γ − 1`, and/or `tan²γ·cos φ`, `tan²γ·sin φ` | spot/speckle bias growing with the angle between beam and surface normal: symmetric, or with the azimuth `φ` of the surface's tilt about the beam (a triangulation receiver at azimuth `ψ` sees `k·tan²γ·cos(φ − ψ)`, [`perpend_core::ext`], "Incidence"); the form per sensor by held-out error ([`Refs::with_incidence_choice`]) |
 //! | `crosstalk` | `d_src − d` | ADC sample-and-hold carry-over from the channel converted just before: the previous one in sensor order unless another fits the run better ([`sources`]) |
 //! | `thermal` | `T − T_ref` | drift with the head temperature (`temp_c`) |
 //! | `drift` | `t` | drift with time since the start of the run (`t_s`) |
@@ -44,8 +44,8 @@
 //! `d_src` is the source channel's measured reading (known without the
 //! reading predicted); `d` is the distance the geometry predicts.
 //!
-//! Limits: at most eight extension terms per sensor (the solver's
-//! parameter count is a compile-time constant, dispatched here for 5..13).
+//! Limits: at most ten extension terms per sensor (the solver's
+//! parameter count is a compile-time constant, dispatched here for 5..15).
 
 use nalgebra::Vector3;
 use perpend_core::calib::{fit_sensor, ExtTerms, LsqConfig, Poses, Regressors, Term};
@@ -188,6 +188,40 @@ pub struct Refs {
     /// Effects already selected (forward selection): their terms are added
     /// to every model, the paper's model included.
     pub extra: Vec<Effect>,
+    /// The form of each sensor's incidence terms ([`IncidenceForm`];
+    /// symmetric until [`Refs::with_incidence_choice`]).
+    pub incidence: Vec<IncidenceForm>,
+}
+
+/// The form of a sensor's incidence correction (module docs): which of the
+/// symmetric term `1/cos γ − 1` and the two spot terms `tan²γ·cos φ`,
+/// `tan²γ·sin φ` it fits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IncidenceForm {
+    /// `1/cos γ − 1` only (one coefficient).
+    Symmetric,
+    /// The spot terms only (two coefficients: `k·cos ψ`, `k·sin ψ`).
+    Spot,
+    /// All three.
+    Both,
+}
+
+impl IncidenceForm {
+    /// The forms tried, the default first.
+    pub const ALL: [IncidenceForm; 3] = [
+        IncidenceForm::Symmetric,
+        IncidenceForm::Spot,
+        IncidenceForm::Both,
+    ];
+
+    /// Whether term `t` of the incidence candidate is in this form.
+    fn keeps(self, t: Term) -> bool {
+        match t {
+            Term::Incidence => self != IncidenceForm::Spot,
+            Term::SpotCos | Term::SpotSin => self != IncidenceForm::Symmetric,
+            _ => true,
+        }
+    }
 }
 
 impl Refs {
@@ -216,6 +250,7 @@ impl Refs {
                 super::stats::mean(&temps)
             },
             ridge: vec![0.0; knots.len()],
+            incidence: vec![IncidenceForm::Symmetric; knots.len()],
             knots,
             table_affine,
             extra: Vec::new(),
@@ -240,7 +275,7 @@ impl Refs {
         effect: Effect,
         cfg: &LsqConfig<f64>,
     ) -> Refs {
-        let mut out = self.clone();
+        let mut out = self.with_incidence_choice(nominal, poses, effect, cfg);
         if !(effect == Effect::LinearityTable || self.extra.contains(&Effect::LinearityTable)) {
             return out;
         }
@@ -283,6 +318,43 @@ impl Refs {
         out
     }
 
+    /// These references with each sensor's [`IncidenceForm`] chosen for
+    /// model `effect` on `poses` (unchanged without an incidence term): the
+    /// form with the lowest held-out error of that sensor, cross-validated
+    /// as [`Refs::with_table_choice`] does (the symmetric form on ties).
+    /// The spot form costs two coefficients where the symmetric one costs
+    /// one: chosen held out, it is taken only where the azimuth pays for
+    /// them, and on the table analysed, so the effect-free re-simulations
+    /// choose too and the choice's optimism enters the candidate's null.
+    pub fn with_incidence_choice(
+        &self,
+        nominal: &[Sensor<f64>],
+        poses: &PoseTable,
+        effect: Effect,
+        cfg: &LsqConfig<f64>,
+    ) -> Refs {
+        let mut out = self.clone();
+        if !(effect == Effect::Incidence || self.extra.contains(&Effect::Incidence)) {
+            return out;
+        }
+        let n = poses.rows.len();
+        let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 1);
+        let mut best = vec![f64::INFINITY; nominal.len()];
+        for form in IncidenceForm::ALL {
+            let trial = Refs {
+                incidence: vec![form; nominal.len()],
+                ..self.clone()
+            };
+            for (i, (s, b)) in nominal.iter().zip(best.iter_mut()).enumerate() {
+                let sse = heldout_sse(s, i, poses, trial.terms(effect, i), &folds, cfg);
+                if let Some(f) = out.incidence.get_mut(i).filter(|_| sse < *b) {
+                    (*b, *f) = (sse, form);
+                }
+            }
+        }
+        out
+    }
+
     /// These references with every sensor's table knots placed by `rule`
     /// on its readings in `poses`.
     fn with_rule(&self, poses: &PoseTable, rule: KnotRule) -> Refs {
@@ -300,11 +372,20 @@ impl Refs {
     /// The regressors of `effect` (with those of [`Refs::extra`]) for
     /// sensor `idx`.
     pub fn terms(&self, effect: Effect, idx: usize) -> ExtTerms<f64> {
+        let form = self
+            .incidence
+            .get(idx)
+            .copied()
+            .unwrap_or(IncidenceForm::Symmetric);
+        let inc = effect == Effect::Incidence || self.extra.contains(&Effect::Incidence);
+        let spot = if inc { &Term::SPOT[..] } else { &[] };
         let terms: Vec<Term> = effect
             .terms()
             .iter()
             .chain(self.extra.iter().flat_map(|e| e.terms()))
+            .chain(spot)
             .copied()
+            .filter(|t| form.keeps(*t))
             .collect();
         ExtTerms::new(
             &terms,
@@ -498,7 +579,7 @@ fn knots_spread(k: &[f64; TABLE_KNOTS]) -> bool {
 /// | gain | `|g| ≤ 10 %` |
 /// | nonlinearity | `|g| ≤ 10 %`, quadratic + cubic excess `≤ 1 mm` at the run's range ends |
 /// | linearity_table | `|g| ≤ 10 %`, table excess `≤ 1 mm` anywhere within the run's range |
-/// | incidence | `|c| ≤ 5 mm` per unit of `1/cos γ − 1` (0.8 mm at 30°) |
+/// | incidence | `|c| ≤ 5 mm` per unit of `1/cos γ − 1` (0.8 mm at 30°); spot `k ≤ 3 mm` per unit of `tan²γ` (1 mm at 30°) |
 /// | crosstalk | carry-over in `[0, 0.5)`, a negative value allowed within 2σ of 0 |
 /// | thermal | `|c| ≤ 0.1 mm/°C` |
 /// | drift | `|c| ≤ 5 mm/h` |
@@ -531,6 +612,10 @@ pub fn plausible(effect: Effect, fits: &[SensorFit], span: f64) -> Result<(), St
                 "incidence bias {:+.3} mm per unit (bound ±5 mm)",
                 e.incidence
             )),
+            Effect::Incidence if e.spot_polar().0 > SPOT_BOUND_MM => Some(format!(
+                "spot bias {:.3} mm per unit of tan²γ (bound {SPOT_BOUND_MM} mm)",
+                e.spot_polar().0
+            )),
             Effect::Crosstalk if e.crosstalk >= 0.5 || e.crosstalk < -2.0 * sd(0) => Some(format!(
                 "carry-over {:+.2} % ± {:.2} % (bound [0, 50 %))",
                 100.0 * e.crosstalk,
@@ -552,6 +637,38 @@ pub fn plausible(effect: Effect, fits: &[SensorFit], span: f64) -> Result<(), St
     }
     Ok(())
 }
+
+/// A fitted incidence correction in physical words: the symmetric term
+/// as its bias at 30° (± `sd`, its 1σ per unit of `1/cos γ − 1`; `inc30`
+/// = `1/cos 30° − 1`) when fitted, the spot terms as their size `k` per
+/// unit of tan²γ (and at 30°, tan² = 1/3) and the receiver's azimuth `ψ`
+/// in the beam's frame ([`perpend_core::ext::beam_frame`]) when fitted.
+pub fn incidence_words(x: &Extension<f64>, sd: f64, inc30: f64) -> String {
+    let sym = format!(
+        "incidence bias {:+.1} µm ± {:.1} µm at 30°",
+        1000.0 * x.incidence * inc30,
+        1000.0 * sd * inc30
+    );
+    if !x.has_spot() {
+        return sym;
+    }
+    let (k, psi) = x.spot_polar();
+    let spot = format!(
+        "spot bias k = {:.1} µm per tan²γ ({:.1} µm at 30°) at azimuth ψ = {:.0}°",
+        1000.0 * k,
+        1000.0 * k / 3.0,
+        psi.to_degrees()
+    );
+    if x.incidence == 0.0 {
+        spot
+    } else {
+        format!("{sym}, {spot}")
+    }
+}
+
+/// Bound of the spot bias `k` [mm per unit of tan²γ] ([`plausible`]): 1 mm
+/// at 30°, as the symmetric term's bound is 0.8 mm there.
+pub const SPOT_BOUND_MM: f64 = 3.0;
 
 /// One sensor fitted with a candidate model.
 #[derive(Debug, Clone, PartialEq)]
@@ -872,7 +989,9 @@ fn fit_terms<PS: Poses<f64> + ?Sized>(
         6 => convert::<11>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
         7 => convert::<12>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
         8 => convert::<13>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
-        n => Err(format!("{n} extension terms: at most 8 are supported")),
+        9 => convert::<14>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        10 => convert::<15>(fit_sensor(&start, idx, poses, &terms, cfg), terms),
+        n => Err(format!("{n} extension terms: at most 10 are supported")),
     }
 }
 
@@ -888,7 +1007,7 @@ pub fn predict<PS: Poses<f64> + ?Sized>(
 ) -> Option<f64> {
     poses.reading(k, idx)?;
     let f = distance(&fit.sensor, &poses.plane(k), idx).ok()?;
-    let mut x = [0.0; 10];
+    let mut x = [0.0; 12];
     let n = fit.terms.count().min(x.len());
     let view = Rewired {
         inner: poses,

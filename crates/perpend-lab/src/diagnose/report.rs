@@ -618,11 +618,7 @@ pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> Strin
                     .join(", ")
             )
         }
-        Effect::Incidence => format!(
-            "incidence bias {:+.1} µm ± {:.1} µm at 30°",
-            1000.0 * x.incidence * inc30,
-            1000.0 * sd(0) * inc30
-        ),
+        Effect::Incidence => super::candidates::incidence_words(x, sd(0), inc30),
         Effect::Crosstalk => format!(
             "carry-over {:+.2} % ± {:.2} % from sensor {}",
             100.0 * x.crosstalk,
