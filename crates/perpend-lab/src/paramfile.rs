@@ -650,7 +650,10 @@ mod tests {
         let f = file();
         let text = serde_json::to_string_pretty(&f).unwrap();
         assert!(!text.contains("spot_mm"));
-        let s = ParamFile::parse(&text, "p.json").unwrap().sensors().unwrap();
+        let s = ParamFile::parse(&text, "p.json")
+            .unwrap()
+            .sensors()
+            .unwrap();
         assert!(s.iter().all(|x| x.ext.spot == [0.0; 2]));
         let mut g = f.clone();
         g.sensors[2].ext.spot_mm = Some([0.125, -0.0625]);
