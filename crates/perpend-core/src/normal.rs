@@ -573,13 +573,8 @@ mod tests {
             s.ext.spot = [0.0; 2];
         }
         let ctx = Context::default();
-        for (tx, ty) in [(0.0, 0.0), (12.0, -3.0), (-8.0, 9.0), (4.0, 14.0)] {
-            let n = Vector3::new(
-                -(ty as f64).to_radians().tan(),
-                (tx as f64).to_radians().tan(),
-                1.0,
-            )
-            .normalize();
+        for (tx, ty) in [(0.0f64, 0.0f64), (12.0, -3.0), (-8.0, 9.0), (4.0, 14.0)] {
+            let n = Vector3::new(-ty.to_radians().tan(), tx.to_radians().tan(), 1.0).normalize();
             let p = Plane { n, d: -42.0 * n.z };
             let r: [Option<f64>; 4] = core::array::from_fn(|i| {
                 let s = &head.sensors[i];
