@@ -1338,14 +1338,9 @@ mod tests {
             // within 3σ of the truth per coefficient (the geometry takes
             // the part of the spot form linear in the tilt: σ ≈ 0.05-0.1 mm)
             let want = [k * p.cos(), k * p.sin()];
-            for j in 0..2 {
-                let (got, sd) = (f.sensor.ext.spot[j], f.sigma[j]);
-                assert!(
-                    (got - want[j]).abs() < 3.0 * sd,
-                    "{got} ± {sd} vs {}",
-                    want[j]
-                );
-                assert!(sd < 0.15, "σ {sd}");
+            for ((got, sd), w) in f.sensor.ext.spot.iter().zip(&f.sigma).zip(want) {
+                assert!((got - w).abs() < 3.0 * sd, "{got} ± {sd} vs {w}");
+                assert!(*sd < 0.15, "σ {sd}");
             }
             assert_eq!(f.sensor.ext.incidence, 0.0);
         }
