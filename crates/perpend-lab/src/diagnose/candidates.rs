@@ -305,9 +305,13 @@ impl Refs {
                 ridge: vec![ridge; out.ridge.len()],
                 ..out.clone()
             };
-            for (i, (s, b)) in nominal.iter().zip(best.iter_mut()).enumerate() {
-                let sse = heldout_sse(s, i, poses, trial.terms(effect, i), &folds, cfg);
-                if let Some(r) = out.ridge.get_mut(i).filter(|_| sse < *b) {
+            let sses = trial.heldout_sses(nominal, poses, effect, &folds, cfg);
+            for ((sse, b), r) in sses
+                .into_iter()
+                .zip(best.iter_mut())
+                .zip(out.ridge.iter_mut())
+            {
+                if sse < *b {
                     (*b, *r) = (sse, ridge);
                 }
             }
@@ -347,14 +351,35 @@ impl Refs {
                 incidence: vec![form; nominal.len()],
                 ..self.clone()
             };
-            for (i, (s, b)) in nominal.iter().zip(best.iter_mut()).enumerate() {
-                let sse = heldout_sse(s, i, poses, trial.terms(effect, i), &folds, cfg);
-                if let Some(f) = out.incidence.get_mut(i).filter(|_| sse < *b) {
+            let sses = trial.heldout_sses(nominal, poses, effect, &folds, cfg);
+            for ((sse, b), f) in sses
+                .into_iter()
+                .zip(best.iter_mut())
+                .zip(out.incidence.iter_mut())
+            {
+                if sse < *b {
                     (*b, *f) = (sse, form);
                 }
             }
         }
         out
+    }
+
+    /// Each sensor's held-out squared error ([`heldout_sse`]) with these
+    /// references' terms of `effect` over `folds`.
+    fn heldout_sses(
+        &self,
+        nominal: &[Sensor<f64>],
+        poses: &PoseTable,
+        effect: Effect,
+        folds: &super::folds::Folds,
+        cfg: &LsqConfig<f64>,
+    ) -> Vec<f64> {
+        nominal
+            .iter()
+            .enumerate()
+            .map(|(i, s)| heldout_sse(s, i, poses, self.terms(effect, i), folds, cfg))
+            .collect()
     }
 
     /// These references with every sensor's table knots placed by `rule`
