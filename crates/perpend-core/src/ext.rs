@@ -438,6 +438,9 @@ pub struct Prepared<T: Real> {
     iterate: bool,
     /// Which terms that do not depend on `f` have a coefficient.
     fixed: Fixed,
+    /// [`Extension::needs_incidence`], decided once (the board asks it for
+    /// every sensor on every sample).
+    incidence: bool,
     /// `L/2` and `L/6`, `L` a Lipschitz constant of `δ''`.
     lip2: T,
     lip6: T,
@@ -459,6 +462,13 @@ enum Fixed {
 }
 
 impl<T: Real> Prepared<T> {
+    /// Whether the extension it was prepared from has an incidence term
+    /// ([`Extension::needs_incidence`]).
+    #[inline]
+    pub fn needs_incidence(&self) -> bool {
+        self.incidence
+    }
+
     /// Whether the step `−(n + w)` from `f0`, taken with slope `j`,
     /// curvature `c` (`F'(f0)`, `F''(f0)`), Newton step `n` and correction
     /// `w = c·n²/(2j)`, left the iterate within `early` of the root
@@ -602,6 +612,7 @@ impl<T: Real> Extension<T> {
         Prepared {
             moving,
             iterate: table.is_some() || self.depends_on_distance(),
+            incidence: self.needs_incidence(),
             fixed: if self.needs_incidence()
                 || self.crosstalk != T::zero()
                 || self.drift != T::zero()
@@ -694,7 +705,7 @@ impl<T: Real> Extension<T> {
     ) -> T {
         let scale = T::one() + d.abs();
         let early = early_rel::<T>() * scale;
-        self.invert(prep, d, d_prev, &inc.into(), ctx, early).0
+        self.invert(prep, d, d_prev, inc, ctx, early).0
     }
 
     /// The inversion (module docs) with the early stop at `early` (`ε`); also
@@ -705,7 +716,7 @@ impl<T: Real> Extension<T> {
         prep: &Prepared<T>,
         d: T,
         d_prev: Option<T>,
-        inc: &Incidence<T>,
+        inc: impl Into<Incidence<T>>,
         ctx: &Context<T>,
         early: T,
     ) -> (T, usize) {
@@ -715,7 +726,9 @@ impl<T: Real> Extension<T> {
                 Some(t) => self.thermal * (t - self.temp_ref),
                 None => T::zero(),
             },
-            Fixed::All => self.fixed(d_prev, inc, ctx),
+            // converted only here: the board's samples without incidence,
+            // carry-over or drift never build the angles
+            Fixed::All => self.fixed(d_prev, &inc.into(), ctx),
         };
         if !prep.iterate {
             return (d - c0, 0);
@@ -1313,7 +1326,7 @@ mod prepared_tests {
         for k in 0..=300 {
             let d = 45.0 + 0.01 * k as f64;
             let eps = 1e-6 * (1.0 + d);
-            let (f, evals) = e.invert(&prep, d, None, &Incidence::from(1.0), &ctx, eps);
+            let (f, evals) = e.invert(&prep, d, None, 1.0, &ctx, eps);
             assert_eq!(evals, 1, "{d}");
             let err = (f - root(&e, d, None, 1.0, &ctx)).abs();
             assert!(err <= eps, "{d}: {err} > {eps}");
@@ -1324,10 +1337,10 @@ mod prepared_tests {
             let f = e.d_ref + e.table.knots[j + 1];
             let d = f + e.table.coeffs[j];
             let eps = 1e-6 * (1.0 + d);
-            let (got, evals) = e.invert(&prep, d, None, &Incidence::from(1.0), &ctx, eps);
+            let (got, evals) = e.invert(&prep, d, None, 1.0, &ctx, eps);
             assert_eq!(evals, 1);
             assert!((got - f).abs() <= eps, "{got} vs {f}");
-            assert!(e.invert(&prep, d, None, &Incidence::from(1.0), &ctx, 0.0).1 >= 2);
+            assert!(e.invert(&prep, d, None, 1.0, &ctx, 0.0).1 >= 2);
         }
     }
 
@@ -1352,7 +1365,7 @@ mod prepared_tests {
             let f = e.d_ref + e.table.knots[j + 1];
             let d = f + e.table.coeffs[j];
             let eps = 1e-6 * (1.0 + d);
-            let (got, evals) = e.invert(&prep, d, None, &Incidence::from(1.0), &ctx, eps);
+            let (got, evals) = e.invert(&prep, d, None, 1.0, &ctx, eps);
             assert!(evals >= 2, "{d}");
             assert!((got - f).abs() <= eps, "{got} vs {f}");
         }

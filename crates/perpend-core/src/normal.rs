@@ -112,7 +112,7 @@ pub fn spots<T: Real, const N: usize>(
     ctx: &Context<T>,
     inc: &[Incidence<T>; N],
 ) -> Result<([Option<Vector3<T>>; N], u32)> {
-    spots_with(head, &prepare(head), readings, ctx, inc)
+    spots_with(head, &prepare(head), readings, ctx, Some(inc))
 }
 
 /// Every sensor's extension prepared for the inversion
@@ -122,7 +122,9 @@ pub fn prepare<T: Real, const N: usize>(head: &Head<T, N>) -> [Prepared<T>; N] {
     core::array::from_fn(|i| head.sensors[i].ext.prepare())
 }
 
-/// [`spots`] with the extensions prepared once ([`prepare`] of `head`).
+/// [`spots`] with the extensions prepared once ([`prepare`] of `head`);
+/// `inc` `None` before any plane is known (every beam taken along the
+/// normal: `cos γ = 1`, no spot terms).
 ///
 /// # Errors
 /// As [`spots`].
@@ -131,7 +133,7 @@ pub fn spots_with<T: Real, const N: usize>(
     prep: &[Prepared<T>; N],
     readings: &[Option<T>; N],
     ctx: &Context<T>,
-    inc: &[Incidence<T>; N],
+    inc: Option<&[Incidence<T>; N]>,
 ) -> Result<([Option<Vector3<T>>; N], u32)> {
     let mask = check_readings(readings)?;
     let mut out = [None; N];
@@ -139,7 +141,12 @@ pub fn spots_with<T: Real, const N: usize>(
         if let Some(d) = r {
             let prev = readings[(i + N - 1) % N];
             let s = &head.sensors[i];
-            let dc = s.ext.correct_with(&prep[i], *d, prev, inc[i], ctx);
+            // `cos γ` = 1 as a bare number before a plane is known: the
+            // angles are built only where the correction uses them
+            let dc = match inc {
+                None => s.ext.correct_with(&prep[i], *d, prev, T::one(), ctx),
+                Some(a) => s.ext.correct_with(&prep[i], *d, prev, a[i], ctx),
+            };
             out[i] = Some(s.spot(dc));
         }
     }
@@ -352,16 +359,15 @@ pub fn plane_and_spots_with<T: Real, const N: usize>(
     ctx: &Context<T>,
     method: Method,
 ) -> Result<(PlaneFit<T>, Spots<T, N>)> {
-    let ones = [Incidence::from(T::one()); N];
-    let (mut s, _) = spots_with(head, prep, readings, ctx, &ones)?;
+    let (mut s, _) = spots_with(head, prep, readings, ctx, None)?;
     let mut current = fit(head, &s, method)?;
-    if !head.sensors.iter().any(|s| s.ext.needs_incidence()) {
+    if !prep.iter().any(Prepared::needs_incidence) {
         return Ok((current, s));
     }
     let tol = degenerate_tol::<T>();
     for _ in 0..INCIDENCE_PASSES {
         let inc = incidences(head, &current.normal);
-        (s, _) = spots_with(head, prep, readings, ctx, &inc)?;
+        (s, _) = spots_with(head, prep, readings, ctx, Some(&inc))?;
         let next = fit(head, &s, method)?;
         let moved = (next.normal - current.normal).norm_squared();
         current = next;
