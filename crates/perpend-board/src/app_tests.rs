@@ -906,7 +906,7 @@ fn stored_item(store: &mut SeqStore<HostFlash>) -> Vec<u8> {
 /// A board whose flash holds a version-1 record (firmware before the
 /// linearity table: record version 1 followed by a device image of layout
 /// 4) boots from it, record-only settings included, with inactive tables;
-/// the next store (0x1010) writes a record of the current version (3) that
+/// the next store (0x1010) writes a record of the current version (4) that
 /// decodes to the same values.
 #[test]
 fn v1_record_boots_and_the_next_store_writes_v3() {
@@ -941,13 +941,13 @@ fn v1_record_boots_and_the_next_store_writes_v3() {
     assert!(!b.app.device().emcy_active(emcy::DATA_SET));
     assert!(b.app.pipeline().calibrated());
     assert_eq!(*b.app.pipeline().params(), p);
-    // store: version 3 of the same values (stamp + 1), then the image
+    // store: the current version of the same values (stamp + 1), then the image
     b.write(0x1010, 1, &SAVE.to_le_bytes()).unwrap();
     assert_eq!(b.app.stores(), 1);
     let mut store = b.app.into_store();
     let raw = stored_item(&mut store);
     assert_eq!(raw.len(), RECORD_LEN + IMAGE_LEN);
-    assert_eq!(&raw[4..6], &3u16.to_le_bytes());
+    assert_eq!(&raw[4..6], &perpend_core::params::VERSION.to_le_bytes());
     let want = Params { stamp: 6, ..p };
     assert_eq!(Params::decode_with_len(&raw), Ok((want, RECORD_LEN)));
     let b = Bench::new(store.into_flash());
@@ -1146,7 +1146,7 @@ fn thermal_lag_zero_is_todays_output() {
 /// by 0x1010 sub 3 in the version-3 record and the image, and boots again.
 #[test]
 fn thermal_tau_is_stored_and_an_old_record_boots_without_lag() {
-    use perpend_core::params::{record_as_v2, RECORD_LEN, V2_RECORD_LEN};
+    use perpend_core::params::{record_as_v2, RECORD_LEN, V2_RECORD_LEN, V3_RECORD_LEN};
     let mut b = Bench::new(HostFlash::new());
     b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
     b.write_f32(0x2102, 13, 2e-3).unwrap();
@@ -1175,7 +1175,7 @@ fn thermal_tau_is_stored_and_an_old_record_boots_without_lag() {
     };
     assert_eq!(*b.app.pipeline().params(), want);
     assert_eq!(b.app.device().thermal_tau_s(), 0.0);
-    assert_eq!(V2_RECORD_LEN + 4, RECORD_LEN);
+    assert_eq!(V2_RECORD_LEN + 4, V3_RECORD_LEN);
     // set over CAN: applied at once, stored with the application group
     b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
     b.write_f32(0x2105, 0, 450.0).unwrap();

@@ -270,6 +270,9 @@ impl SensorCalibration {
             nonlinearity: [c(self.nl2), c(self.nl3)],
             table: self.table(),
             incidence: c(self.incidence),
+            // no object carries the spot terms yet: zero here, kept from
+            // the stored record by `Device::params`
+            spot: [T::zero(); 2],
             crosstalk: c(self.crosstalk),
             thermal: c(self.thermal),
             temp_ref: c(self.temp_ref),

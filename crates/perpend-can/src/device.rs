@@ -1848,11 +1848,14 @@ impl Device {
         let mut p = *base;
         for (i, s) in p.head.sensors.iter_mut().enumerate() {
             if let Some(c) = self.calibration(i) {
+                // the spot terms have no object: kept from `base`
+                let spot = s.ext.spot;
                 *s = c.to_sensor::<f32>().unwrap_or(Sensor {
                     zero: nalgebra::Vector3::from(c.zero),
                     dir: nalgebra::Vector3::from(c.dir),
                     ext: c.extension(),
                 });
+                s.ext.spot = spot;
             }
         }
         for (i, t) in p.transfer.iter_mut().enumerate() {

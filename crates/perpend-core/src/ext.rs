@@ -12,6 +12,8 @@
 //!      + nl2·(f − d_ref)² + nl3·(f − d_ref)³   polynomial linearity error
 //!      + Σ_k c_k·N_k(f − d_ref)                 linearity table (natural spline)
 //!      + incidence·(1/cos γ − 1)               γ: angle beam ↔ surface normal
+//!      + spot₁·tan²γ·cos φ + spot₂·tan²γ·sin φ  φ: azimuth of the normal's
+//!                                              tilt about the beam
 //!      + crosstalk·(d_prev − f)                S&H carry-over from the channel
 //!                                              converted just before
 //!      + thermal·(T − T_ref)                   sensor-body temperature [°C]
@@ -38,6 +40,23 @@
 //! ([`crate::lag`]; the board's `perpend_board::thermal`, the host's
 //! `perpend_lab::diagnose::lags` and `perpend measure`). The lag is state
 //! over time, so it lives with the caller, not in these coefficients.
+//!
+//! ## Incidence
+//!
+//! The angles come from the plane normal `n` and the beam `u` as an
+//! [`Incidence`] ([`Incidence::of`]; `n` of either orientation, taken
+//! along the beam: `c = |n·u| = cos γ`). The symmetric term `1/cos γ − 1`
+//! is the bias of a spot whose centroid moves along the beam with the
+//! spot's size; a triangulation sensor sees the spot from its receiver's
+//! side, at an azimuth `ψ` about the beam, and the centroid of the spot,
+//! stretched as `tan²γ` along the tilt's azimuth `φ`, moves as
+//! `k·tan²γ·cos(φ − ψ)` (the "spot" form). In a frame fixed to the beam
+//! (`e₁` the head's x axis projected ⊥ `u`, or its y axis where the beam
+//! is within 26° of x; `e₂ = u × e₁`) `φ = atan2(n·e₂, n·e₁)`, and
+//! `k·cos(φ − ψ) = (k·cos ψ)·cos φ + (k·sin ψ)·sin φ`: the two
+//! coefficients `spot = [k·cos ψ, k·sin ψ]` are linear, as the others.
+//! `tan²γ·cos φ = |s|·s₁/c²` with `s = (n·e₁, n·e₂)`: no trigonometry.
+//! Bounded where `c > 0`; a beam along the plane (`c = 0`) adds nothing.
 //!
 //! `d_prev` is the reading of the previous channel in the ADC scan; for the
 //! first channel it is the last channel of the same scan (the scan repeats
@@ -115,7 +134,63 @@
 //! above 100 % is no sensor); the coefficients are checked for
 //! plausibility where they are fitted, not here.
 
+use nalgebra::Vector3;
+
 use crate::Real;
+
+/// The beam's angles to the surface that the incidence terms take (module
+/// docs, "Incidence").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Incidence<T: Real> {
+    /// `cos γ = |n·u|`.
+    pub cos_gamma: T,
+    /// `[tan²γ·cos φ, tan²γ·sin φ]` in the beam's fixed frame.
+    pub spot: [T; 2],
+}
+
+impl<T: Real> From<T> for Incidence<T> {
+    /// `cos γ` alone: the azimuth unknown, the spot terms contribute 0
+    /// (what a caller without the plane normal, or a head without spot
+    /// coefficients, passes).
+    fn from(cos_gamma: T) -> Self {
+        Self {
+            cos_gamma,
+            spot: [T::zero(); 2],
+        }
+    }
+}
+
+impl<T: Real> Incidence<T> {
+    /// The angles of beam `u` (unit) on a surface of unit normal `n` of
+    /// either orientation (module docs, "Incidence").
+    pub fn of(n: &Vector3<T>, u: &Vector3<T>) -> Self {
+        let c = n.dot(u);
+        let (c, n) = if c < T::zero() { (-c, -n) } else { (c, *n) };
+        let (e1, e2) = beam_frame(u);
+        let (s1, s2) = (n.dot(&e1), n.dot(&e2));
+        let spot = if c > T::zero() {
+            let k = (s1 * s1 + s2 * s2).fast_sqrt() / (c * c);
+            [k * s1, k * s2]
+        } else {
+            [T::zero(); 2]
+        };
+        Self { cos_gamma: c, spot }
+    }
+}
+
+/// The frame `(e₁, e₂)` fixed to beam `u` in which the spot's azimuth is
+/// measured (module docs, "Incidence").
+pub fn beam_frame<T: Real>(u: &Vector3<T>) -> (Vector3<T>, Vector3<T>) {
+    let a = if u.x.abs() < T::lit(0.9) {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let p = a - u * a.dot(u);
+    let len = p.norm_squared().fast_sqrt();
+    let e1 = if len > T::zero() { p / len } else { a };
+    (e1, u.cross(&e1))
+}
 
 /// Knots of the linearity table.
 pub const TABLE_KNOTS: usize = 5;
@@ -363,6 +438,9 @@ pub struct Prepared<T: Real> {
     iterate: bool,
     /// Which terms that do not depend on `f` have a coefficient.
     fixed: Fixed,
+    /// [`Extension::needs_incidence`], decided once (the board asks it for
+    /// every sensor on every sample).
+    incidence: bool,
     /// `L/2` and `L/6`, `L` a Lipschitz constant of `δ''`.
     lip2: T,
     lip6: T,
@@ -384,6 +462,13 @@ enum Fixed {
 }
 
 impl<T: Real> Prepared<T> {
+    /// Whether the extension it was prepared from has an incidence term
+    /// ([`Extension::needs_incidence`]).
+    #[inline]
+    pub fn needs_incidence(&self) -> bool {
+        self.incidence
+    }
+
     /// Whether the step `−(n + w)` from `f0`, taken with slope `j`,
     /// curvature `c` (`F'(f0)`, `F''(f0)`), Newton step `n` and correction
     /// `w = c·n²/(2j)`, left the iterate within `early` of the root
@@ -416,6 +501,9 @@ pub struct Extension<T: Real> {
     pub table: LinTable<T>,
     /// Incidence bias [mm] per unit of `(1/cos γ − 1)`.
     pub incidence: T,
+    /// Spot bias [mm] per unit of `tan²γ·cos φ` and of `tan²γ·sin φ`
+    /// (module docs, "Incidence"): `k·cos ψ`, `k·sin ψ`.
+    pub spot: [T; 2],
     /// Fraction [-] of the previous channel's reading that leaks into this one.
     pub crosstalk: T,
     /// Thermal drift [mm/°C] about `temp_ref`.
@@ -460,6 +548,7 @@ impl<T: Real> Extension<T> {
             nonlinearity: [T::zero(); 2],
             table: LinTable::none(),
             incidence: T::zero(),
+            spot: [T::zero(); 2],
             crosstalk: T::zero(),
             thermal: T::zero(),
             temp_ref: T::lit(20.0),
@@ -471,17 +560,38 @@ impl<T: Real> Extension<T> {
     /// two passes: the angle γ needs a first plane).
     #[inline]
     pub fn needs_incidence(&self) -> bool {
-        self.incidence != T::zero()
+        self.incidence != T::zero() || self.has_spot()
+    }
+
+    /// Whether a spot term is active (then the correction needs the beam's
+    /// azimuth, [`Incidence::of`], not only `cos γ`).
+    #[inline]
+    pub fn has_spot(&self) -> bool {
+        self.spot[0] != T::zero() || self.spot[1] != T::zero()
+    }
+
+    /// The spot bias as its size `k` [mm per unit of tan²γ] and the
+    /// receiver's azimuth `ψ` [rad] in the beam's frame.
+    pub fn spot_polar(&self) -> (T, T) {
+        let [a, b] = self.spot;
+        ((a * a + b * b).fast_sqrt(), b.atan2(a))
     }
 
     /// The excess `δ(f)` of the reading over the true distance `f`
     /// (module docs).
     ///
-    /// `d_prev` is the previous channel's reading, `cos_gamma` `|n·u|`.
-    pub fn excess(&self, f: T, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
+    /// `d_prev` is the previous channel's reading, `inc` the beam's angles
+    /// ([`Incidence::of`]; `cos γ = |n·u|` alone leaves out the spot terms).
+    pub fn excess(
+        &self,
+        f: T,
+        d_prev: Option<T>,
+        inc: impl Into<Incidence<T>>,
+        ctx: &Context<T>,
+    ) -> T {
         let prep = self.prepare();
         let (g, _) = self.moving(&prep, f, d_prev.is_some());
-        self.fixed(d_prev, cos_gamma, ctx) + g
+        self.fixed(d_prev, &inc.into(), ctx) + g
     }
 
     /// What [`Extension::correct_with`] needs besides the coefficients,
@@ -502,7 +612,8 @@ impl<T: Real> Extension<T> {
         Prepared {
             moving,
             iterate: table.is_some() || self.depends_on_distance(),
-            fixed: if self.incidence != T::zero()
+            incidence: self.needs_incidence(),
+            fixed: if self.needs_incidence()
                 || self.crosstalk != T::zero()
                 || self.drift != T::zero()
             {
@@ -520,10 +631,14 @@ impl<T: Real> Extension<T> {
     /// The terms of the excess that do not depend on `f`: incidence,
     /// thermal, drift and the previous channel's share of the carry-over.
     #[inline]
-    fn fixed(&self, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
+    fn fixed(&self, d_prev: Option<T>, inc: &Incidence<T>, ctx: &Context<T>) -> T {
         let mut c = T::zero();
+        let cos_gamma = inc.cos_gamma;
         if self.incidence != T::zero() && cos_gamma > T::zero() {
             c += self.incidence * (T::one() / cos_gamma - T::one());
+        }
+        if self.has_spot() {
+            c += self.spot[0] * inc.spot[0] + self.spot[1] * inc.spot[1];
         }
         if let Some(p) = d_prev {
             c += self.crosstalk * p;
@@ -566,8 +681,14 @@ impl<T: Real> Extension<T> {
     /// coefficients on every call; [`Extension::correct_with`] takes them
     /// prepared once.
     #[inline]
-    pub fn correct(&self, d: T, d_prev: Option<T>, cos_gamma: T, ctx: &Context<T>) -> T {
-        self.correct_with(&self.prepare(), d, d_prev, cos_gamma, ctx)
+    pub fn correct(
+        &self,
+        d: T,
+        d_prev: Option<T>,
+        inc: impl Into<Incidence<T>>,
+        ctx: &Context<T>,
+    ) -> T {
+        self.correct_with(&self.prepare(), d, d_prev, inc, ctx)
     }
 
     /// [`Extension::correct`] with the coefficients prepared by
@@ -579,12 +700,12 @@ impl<T: Real> Extension<T> {
         prep: &Prepared<T>,
         d: T,
         d_prev: Option<T>,
-        cos_gamma: T,
+        inc: impl Into<Incidence<T>>,
         ctx: &Context<T>,
     ) -> T {
         let scale = T::one() + d.abs();
         let early = early_rel::<T>() * scale;
-        self.invert(prep, d, d_prev, cos_gamma, ctx, early).0
+        self.invert(prep, d, d_prev, inc, ctx, early).0
     }
 
     /// The inversion (module docs) with the early stop at `early` (`ε`); also
@@ -595,7 +716,7 @@ impl<T: Real> Extension<T> {
         prep: &Prepared<T>,
         d: T,
         d_prev: Option<T>,
-        cos_gamma: T,
+        inc: impl Into<Incidence<T>>,
         ctx: &Context<T>,
         early: T,
     ) -> (T, usize) {
@@ -605,7 +726,9 @@ impl<T: Real> Extension<T> {
                 Some(t) => self.thermal * (t - self.temp_ref),
                 None => T::zero(),
             },
-            Fixed::All => self.fixed(d_prev, cos_gamma, ctx),
+            // converted only here: the board's samples without incidence,
+            // carry-over or drift never build the angles
+            Fixed::All => self.fixed(d_prev, &inc.into(), ctx),
         };
         if !prep.iterate {
             return (d - c0, 0);
@@ -653,6 +776,8 @@ impl<T: Real> Extension<T> {
                 self.nonlinearity[0],
                 self.nonlinearity[1],
                 self.incidence,
+                self.spot[0],
+                self.spot[1],
                 self.crosstalk,
                 self.thermal,
                 self.temp_ref,
@@ -674,6 +799,7 @@ impl<T: Real> Extension<T> {
                 coeffs: self.table.coeffs.map(c),
             },
             incidence: c(self.incidence),
+            spot: self.spot.map(c),
             crosstalk: c(self.crosstalk),
             thermal: c(self.thermal),
             temp_ref: c(self.temp_ref),
@@ -704,6 +830,7 @@ mod tests {
                 coeffs: [1e-3, -2e-3, 1.5e-3],
             },
             incidence: 0.02,
+            spot: [0.0; 2],
             crosstalk: 0.2,
             thermal: 0.003,
             temp_ref: 22.0,
@@ -787,6 +914,54 @@ mod tests {
         }
     }
 
+    /// [`Incidence::of`] is the spot form of the blind generator
+    /// (`host-tests/blind/gen.py`, `spot_form`): `spot = [k·cos ψ, k·sin ψ]`
+    /// gives `k·tan²γ·cos(φ − ψ)` with `φ` measured by trigonometry in the
+    /// beam's frame, for any `ψ`; the normal's orientation does not matter,
+    /// and a beam along the normal has no spot bias.
+    #[test]
+    fn spot_terms_are_the_azimuthal_form() {
+        let e0 = Extension::<f64>::identity();
+        let ctx = Context::default();
+        for (ux, uy) in [(0.5, 0.0), (-0.2, 0.45), (0.95, 0.1)] {
+            let u = Vector3::<f64>::new(ux, uy, 1.0).normalize();
+            let (e1, e2) = beam_frame(&u);
+            assert!(e1.dot(&u).abs() < 1e-12 && (e1.norm() - 1.0).abs() < 1e-12);
+            assert!(e2.dot(&u).abs() < 1e-12 && e2.dot(&e1).abs() < 1e-12);
+            for (nx, ny) in [(0.1, -0.3), (-0.4, 0.2), (0.0, 0.05)] {
+                let n = Vector3::<f64>::new(nx, ny, 1.0).normalize();
+                let c = n.dot(&u);
+                let tan2 = (1.0 - c * c) / (c * c);
+                let phi = n.dot(&e2).atan2(n.dot(&e1));
+                for psi in [0.0, 1.1, -2.5, 3.0] {
+                    let k: f64 = 0.3;
+                    let e = Extension {
+                        spot: [k * f64::cos(psi), k * f64::sin(psi)],
+                        ..e0
+                    };
+                    let want = k * tan2 * (phi - psi).cos();
+                    let got = e.excess(40.0, None, Incidence::of(&n, &u), &ctx);
+                    assert_relative_eq!(got, want, epsilon = 1e-12);
+                    let flipped = e.excess(40.0, None, Incidence::of(&-n, &u), &ctx);
+                    assert_relative_eq!(flipped, want, epsilon = 1e-12);
+                    let d = 40.0 + got;
+                    let back = e.correct(d, None, Incidence::of(&n, &u), &ctx);
+                    assert_relative_eq!(back, 40.0, epsilon = 1e-12);
+                }
+            }
+            let along = Incidence::of(&u, &u);
+            assert!(along.spot[0].abs() + along.spot[1].abs() < 1e-12);
+        }
+        let e = Extension {
+            spot: [0.0, 0.02],
+            ..e0
+        };
+        assert!(e.needs_incidence() && e.has_spot());
+        assert_eq!(e.prepare().fixed, Fixed::All);
+        assert_relative_eq!(e.spot_polar().0, 0.02);
+        assert_relative_eq!(e.spot_polar().1, core::f64::consts::FRAC_PI_2);
+    }
+
     #[test]
     fn identity_changes_nothing() {
         let e = Extension::<f64>::identity();
@@ -809,6 +984,7 @@ mod tests {
             nonlinearity: [1e-4, 1e-5],
             table: LinTable::none(),
             incidence: 0.01,
+            spot: [0.0; 2],
             crosstalk: 0.002,
             thermal: 0.001,
             temp_ref: 20.0,
@@ -968,7 +1144,7 @@ mod prepared_tests {
             cg: f64,
             ctx: &Context<f64>,
         ) -> f64 {
-            e.fixed(p, cg, ctx) + moving(e, f, p.is_some()).0
+            e.fixed(p, &cg.into(), ctx) + moving(e, f, p.is_some()).0
         }
 
         pub fn correct(
@@ -978,7 +1154,7 @@ mod prepared_tests {
             cg: f64,
             ctx: &Context<f64>,
         ) -> f64 {
-            let c0 = e.fixed(p, cg, ctx);
+            let c0 = e.fixed(p, &cg.into(), ctx);
             let tol = 1e-6 * (1.0 + d.abs());
             let mut f = d;
             for _ in 0..4 {
@@ -1269,7 +1445,7 @@ mod prepared_tests {
         cap: usize,
     ) -> (f64, usize, bool) {
         let lin = if p.is_some() { 1.0 - e.crosstalk } else { 1.0 };
-        let r = d - e.fixed(p, 1.0, &Context::default());
+        let r = d - e.fixed(p, &1.0.into(), &Context::default());
         let mut f = d;
         for evals in 1..=cap {
             let (v, s, c) = prep.moving.eval2(f);

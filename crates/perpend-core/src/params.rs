@@ -7,14 +7,14 @@
 //! settings. It is stored in `f32` (the board computes in `f32`; the host
 //! casts its `f64` calibration with [`crate::head::Head::cast`]).
 //!
-//! ## Record layout (version 3, little endian)
+//! ## Record layout (version 4, little endian)
 //!
 //! ```text
 //! offset  size  field
 //!      0     4  magic "PPND"
-//!      4     2  version (u16) = 3
-//!      6     2  payload length (u16) = PAYLOAD_LEN = 485
-//!      8   485  payload: stamp u32; 4 × sensor (zero xyz, dir xyz, the nine
+//!      4     2  version (u16) = 4
+//!      6     2  payload length (u16) = PAYLOAD_LEN = 517
+//!      8   517  payload: stamp u32; 4 × sensor (zero xyz, dir xyz, the nine
 //!               scalar extension coefficients d_ref, gain, nonlinearity[0..2],
 //!               incidence, crosstalk, thermal, temp_ref, drift, then the
 //!               linearity table's knots[0..5] and coeffs[0..3]: 23 × f32);
@@ -24,16 +24,28 @@
 //!               method u8 0 = least squares / 1 = Chen, stuck_samples u16,
 //!               stuck_counts u16, jump_mm f32, jump_hold u16,
 //!               max_rms_mm f32); CAN (node_id u8, bit-rate code u8);
-//!               thermal_tau_s f32 (payload offset 481, record offset 489)
-//!    493     4  CRC-32 (IEEE 802.3, reflected, as zlib) of bytes 0..493
+//!               thermal_tau_s f32 (payload offset 481, record offset 489);
+//!               4 × spot[0..2] f32 (payload offset 485, record offset 493)
+//!    525     4  CRC-32 (IEEE 802.3, reflected, as zlib) of bytes 0..525
 //! ```
+//!
+//! The spot coefficients of the incidence correction (the azimuthal
+//! terms `spot·[tan²γ·cos φ, tan²γ·sin φ]`, [`crate::ext`], "Incidence")
+//! are appended after `thermal_tau_s`, sensor by sensor, so every offset
+//! of version 3 is unchanged in version 4.
 //!
 //! The head-level thermal time constant `thermal_tau_s` (the sensor bodies
 //! follow the head thermometer through a first-order lag,
 //! [`crate::lag`]) is appended at the end of the payload, so every offset
 //! of version 2 is unchanged in version 3.
 //!
-//! ## Versions 2 and 1 (read only: migration)
+//! ## Versions 3, 2 and 1 (read only: migration)
+//!
+//! Version 3 is version 4 without the spot coefficients: payload length
+//! [`V3_PAYLOAD_LEN`] = 485, record length [`V3_RECORD_LEN`] = 497, CRC
+//! over bytes 0..493. It decodes with `spot = [0, 0]` for each sensor (the
+//! symmetric incidence term only: the behaviour of the firmware that
+//! wrote it).
 //!
 //! Version 2 is version 3 without `thermal_tau_s`: payload length
 //! [`V2_PAYLOAD_LEN`] = 481, record length [`V2_RECORD_LEN`] = 493, CRC
@@ -44,11 +56,12 @@
 //! sensor (ending with `drift`), payload length [`V1_PAYLOAD_LEN`] = 353,
 //! record length [`V1_RECORD_LEN`] = 365, CRC over bytes 0..361. It
 //! decodes with [`LinTable::none`] for each sensor and `thermal_tau_s = 0`.
+//! Versions 2 and 1 decode with zero spot coefficients too.
 //!
 //! A board whose flash holds an older record (older firmware) boots from
 //! it: [`Params::decode`] reads it with every structural check of its own
-//! length (magic, payload length, CRC); the next store writes version 3.
-//! [`Params::encode`] writes version 3 only.
+//! length (magic, payload length, CRC); the next store writes version 4.
+//! [`Params::encode`] writes version 4 only.
 //!
 //! [`Params::decode`] rejects, in this order: a short buffer, a wrong magic,
 //! an unknown version, a wrong payload length (for that version), a
@@ -56,13 +69,14 @@
 //! [`Params::validate`] refuses (for the table: an active table whose
 //! knots are not strictly ascending within ±1000 mm or whose coefficients
 //! exceed 1 mm; for the time constant: not finite, or outside
-//! 0..=[`THERMAL_TAU_MAX_S`]). A decoded record is therefore always usable
+//! 0..=[`THERMAL_TAU_MAX_S`]; for a spot coefficient: not finite, or
+//! above [`SPOT_MAX_MM`]). A decoded record is therefore always usable
 //! as it is; the board falls back to [`Params::factory`] on any error.
 //! [`Params::encode`] validates first, so an invalid record is never
 //! written.
 //!
 //! Versioning: a later layout gets a new version number; the decoder keeps
-//! reading every older version it knows (1, 2 and 3) and the board writes
+//! reading every older version it knows (1, 2, 3 and 4) and the board writes
 //! the newest layout on the next store (0x1010).
 //!
 //! Limits: exactly four sensors (the product's head); the CRC detects every
@@ -79,7 +93,9 @@ use crate::{Error, Result};
 /// Magic bytes at the start of a record.
 pub const MAGIC: [u8; 4] = *b"PPND";
 /// The layout version this code writes.
-pub const VERSION: u16 = 3;
+pub const VERSION: u16 = 4;
+/// The layout version before the spot coefficients, still decoded.
+pub const VERSION_3: u16 = 3;
 /// The layout version before the thermal time constant, still decoded.
 pub const VERSION_2: u16 = 2;
 /// The layout version before the linearity table, still decoded.
@@ -89,9 +105,13 @@ pub const SENSORS: usize = 4;
 /// Header length: magic, version, payload length.
 pub const HEADER_LEN: usize = 8;
 /// Payload length of the current version ([`VERSION`]).
-pub const PAYLOAD_LEN: usize = V2_PAYLOAD_LEN + TAU_LEN;
+pub const PAYLOAD_LEN: usize = V3_PAYLOAD_LEN + SPOT_LEN;
 /// Total length of an encoded record of the current version.
 pub const RECORD_LEN: usize = HEADER_LEN + PAYLOAD_LEN + 4;
+/// Payload length of a version-3 record (no spot coefficients).
+pub const V3_PAYLOAD_LEN: usize = V2_PAYLOAD_LEN + TAU_LEN;
+/// Total length of a version-3 record.
+pub const V3_RECORD_LEN: usize = HEADER_LEN + V3_PAYLOAD_LEN + 4;
 /// Payload length of a version-2 record (no thermal time constant).
 pub const V2_PAYLOAD_LEN: usize = 4 + SENSORS * SENSOR_LEN + SENSORS * TRANSFER_LEN + ACQ_LEN + 2;
 /// Total length of a version-2 record.
@@ -109,6 +129,11 @@ const TRANSFER_LEN: usize = 1 + 5 * 4;
 const ACQ_LEN: usize = 4 + 1 + 1 + 2 + 1 + 2 + 2 + 4 + 2 + 4;
 /// The thermal time constant: one f32.
 const TAU_LEN: usize = 4;
+/// The spot coefficients: two f32 per sensor.
+const SPOT_LEN: usize = SENSORS * 2 * 4;
+/// Largest spot coefficient magnitude [mm per unit of tan²γ] (as the
+/// incidence coefficient's bound of the CAN object).
+pub const SPOT_MAX_MM: f32 = 10.0;
 /// Largest thermal time constant \[s\] (one day): a head that needs more
 /// never reaches thermal equilibrium within a shift.
 pub const THERMAL_TAU_MAX_S: f32 = 86_400.0;
@@ -420,7 +445,8 @@ impl CanConfig {
 }
 
 /// Checks one sensor's calibration: finite, zero point within ±10 m, unit
-/// beam direction (±1e-3), finite extension, and [`validate_table`].
+/// beam direction (±1e-3), finite extension, spot coefficients within
+/// ±[`SPOT_MAX_MM`], and [`validate_table`].
 ///
 /// # Errors
 /// [`Error::NonFinite`] / [`Error::OutOfRange`] naming the field.
@@ -439,6 +465,9 @@ pub fn validate_sensor(s: &Sensor<f32>) -> Result<()> {
     }
     if !s.ext.is_finite() {
         return Err(Error::NonFinite("extension"));
+    }
+    if !s.ext.spot.iter().all(|c| c.abs() <= SPOT_MAX_MM) {
+        return Err(Error::OutOfRange("spot bias"));
     }
     validate_table(&s.ext.table)
 }
@@ -590,14 +619,19 @@ impl Params {
         w.u8(self.can.node_id);
         w.u8(self.can.bitrate.code());
         w.f32(self.thermal_tau_s);
+        for s in &self.head.sensors {
+            w.f32(s.ext.spot[0]);
+            w.f32(s.ext.spot[1]);
+        }
         let crc = crc32(w.buf.get(..RECORD_LEN - 4).unwrap_or(&[]));
         w.u32(crc);
         Ok(w.pos)
     }
 
-    /// Decodes and validates a record of version 3, 2 or 1 (the layouts in
-    /// the module docs; a version-2 or -1 record gets `thermal_tau_s = 0`,
-    /// a version-1 record inactive linearity tables).
+    /// Decodes and validates a record of version 4, 3, 2 or 1 (the layouts
+    /// in the module docs; a version-3, -2 or -1 record gets zero spot
+    /// coefficients, a version-2 or -1 record `thermal_tau_s = 0`, a
+    /// version-1 record inactive linearity tables).
     /// Trailing bytes after the record are ignored (flash items are padded).
     ///
     /// # Errors
@@ -611,8 +645,8 @@ impl Params {
     }
 
     /// As [`Params::decode`], and returns the length of the record in `buf`
-    /// ([`RECORD_LEN`], [`V2_RECORD_LEN`] or [`V1_RECORD_LEN`] for a
-    /// version-3, -2 or -1 record): where
+    /// ([`RECORD_LEN`], [`V3_RECORD_LEN`], [`V2_RECORD_LEN`] or
+    /// [`V1_RECORD_LEN`] for a version-4, -3, -2 or -1 record): where
     /// the bytes stored after it start.
     ///
     /// # Errors
@@ -628,6 +662,7 @@ impl Params {
         let version = r.u16()?;
         let (payload_len, has_table) = match version {
             VERSION => (PAYLOAD_LEN, true),
+            VERSION_3 => (V3_PAYLOAD_LEN, true),
             VERSION_2 => (V2_PAYLOAD_LEN, true),
             VERSION_1 => (V1_PAYLOAD_LEN, false),
             _ => return Err(Error::Decode("unsupported version")),
@@ -661,7 +696,12 @@ impl Params {
         let acq = r.acquisition()?;
         let node_id = r.u8()?;
         let bitrate = Bitrate::from_code(r.u8()?)?;
-        let thermal_tau_s = if version == VERSION { r.f32()? } else { 0.0 };
+        let thermal_tau_s = if version >= VERSION_3 { r.f32()? } else { 0.0 };
+        if version >= VERSION {
+            for s in sensors.iter_mut() {
+                s.ext.spot = r.f32s::<2>()?;
+            }
+        }
         let p = Params {
             stamp,
             head: Head4::new(sensors),
@@ -675,9 +715,30 @@ impl Params {
     }
 }
 
-/// Converts a current (version-3) record into the version-2 record of the
+/// Converts a current (version-4) record into the version-3 record of the
+/// same values, as the firmware before the spot coefficients wrote it:
+/// the trailing spot coefficients left out, header and CRC rewritten. For
+/// compatibility tests and fuzz seeds (the board never writes version 3).
+/// The input is not checked.
+pub fn record_as_v3(v4: &[u8; RECORD_LEN]) -> [u8; V3_RECORD_LEN] {
+    let mut v3 = [0u8; V3_RECORD_LEN];
+    let mut w = Writer {
+        buf: &mut v3,
+        pos: 0,
+    };
+    w.bytes(&MAGIC);
+    w.u16(VERSION_3);
+    w.u16(V3_PAYLOAD_LEN as u16);
+    w.bytes(&v4[HEADER_LEN..HEADER_LEN + V3_PAYLOAD_LEN]);
+    let crc = crc32(&w.buf[..V3_RECORD_LEN - 4]);
+    w.u32(crc);
+    v3
+}
+
+/// Converts a current (version-4) record into the version-2 record of the
 /// same values, as the firmware before the thermal time constant wrote
-/// it: the trailing `thermal_tau_s` left out, header and CRC rewritten.
+/// it: the trailing `thermal_tau_s` and spot coefficients left out,
+/// header and CRC rewritten.
 /// For compatibility tests and fuzz seeds (the board never writes
 /// version 2). The input is not checked.
 pub fn record_as_v2(v3: &[u8; RECORD_LEN]) -> [u8; V2_RECORD_LEN] {
@@ -695,9 +756,10 @@ pub fn record_as_v2(v3: &[u8; RECORD_LEN]) -> [u8; V2_RECORD_LEN] {
     v2
 }
 
-/// Converts a current (version-3) record into the version-1 record of the
+/// Converts a current (version-4) record into the version-1 record of the
 /// same values, as the firmware before the linearity table wrote it: each
-/// sensor's table bytes and the thermal time constant left out, header
+/// sensor's table bytes, the thermal time constant and the spot
+/// coefficients left out, header
 /// and CRC rewritten. For compatibility tests and fuzz seeds (the board
 /// never writes version 1). The input is not checked: a record that fails
 /// to decode converts into one that fails too, unless only its tables or
@@ -826,6 +888,7 @@ impl Reader<'_> {
             nonlinearity: [nl0, nl1],
             table,
             incidence,
+            spot: [0.0; 2],
             crosstalk,
             thermal,
             temp_ref,
@@ -892,8 +955,10 @@ mod tests {
 
     #[test]
     fn layout_constants_add_up() {
-        assert_eq!(PAYLOAD_LEN, 485);
-        assert_eq!(RECORD_LEN, 497);
+        assert_eq!(PAYLOAD_LEN, 517);
+        assert_eq!(RECORD_LEN, 529);
+        assert_eq!(V3_PAYLOAD_LEN, 485);
+        assert_eq!(V3_RECORD_LEN, 497);
         assert_eq!(V2_PAYLOAD_LEN, 481);
         assert_eq!(V2_RECORD_LEN, 493);
         assert_eq!(SENSOR_LEN, 23 * 4);
@@ -931,7 +996,7 @@ mod tests {
         let mut b = buf;
         b[0] = b'X';
         assert_eq!(Params::decode(&b), Err(Error::Decode("bad magic")));
-        for v in [0u8, 4, 9] {
+        for v in [0u8, 5, 9] {
             let mut b = buf;
             b[4] = v;
             assert_eq!(
@@ -939,12 +1004,15 @@ mod tests {
                 Err(Error::Decode("unsupported version"))
             );
         }
-        // an older header over a version-3 payload (and the reverse)
-        for v in [1u8, 2] {
+        // an older header over a version-4 payload (and the reverse)
+        for v in [1u8, 2, 3] {
             let mut b = buf;
             b[4] = v;
             assert_eq!(Params::decode(&b), Err(Error::Decode("bad length")));
         }
+        let mut b3 = record_as_v3(&buf);
+        b3[4] = 4;
+        assert_eq!(Params::decode(&b3), Err(Error::Decode("bad length")));
         let mut b2 = record_as_v2(&buf);
         b2[4] = 3;
         assert_eq!(Params::decode(&b2), Err(Error::Decode("bad length")));
@@ -1035,6 +1103,7 @@ mod tests {
                     nonlinearity: [2e-4, -3e-5 * k],
                     table: LinTable::none(),
                     incidence: 0.02 - 0.01 * k,
+                    spot: [0.0; 2],
                     crosstalk: 0.005,
                     thermal: -0.001 * k,
                     temp_ref: 22.5,
@@ -1097,6 +1166,56 @@ mod tests {
         assert_eq!(&record_as_v1(&v3)[..], &v1[..]);
     }
 
+    /// Record offset of `thermal_tau_s` (module docs).
+    const TAU_AT: usize = HEADER_LEN + V2_PAYLOAD_LEN;
+
+    /// A record written by the version-3 encoder (the code before the spot
+    /// coefficients, run once on [`golden_params`] with [`active_table`]
+    /// on sensor 3 and τ = 412.75 s): 497 bytes.
+    const GOLDEN_V3_HEX: &str = "50504e440300e501785634120000c841000000000000c0bf00000000000000000000803f000034426f12833a17b75139000000800ad7a33c0ad7a33b000000800000b441acc527b70000000000000000000000000000000000000000000000000000000000000000000000000000c841000010409a99193f00000000cdcc4c3f000038426f12033b17b7513982a8fbb70ad7233c0ad7a33b6f1283ba0000b441acc527b700000000000000000000000000000000000000000000000000000000000000000000c8c1000000000000003e000000009a9919bfcdcc4c3f00003c42a69b443b17b7513982a87bb8000000000ad7a33b6f1203bb0000b441acc527b7000040c10000a0c00000000000009040000040416f12833a0ad723bb0ad7a33a000000000000c8c1000040bf295c8fbe000000008fc2753f000040426f12833b17b7513962bebcb80ad723bc0ad7a33ba69b44bb0000b441acc527b700000000000000000000000000000000000000000000000000000000000000000000001643000080400000a0410000a0410000a042010000003f0000000000002041000020410000b4420000007a43000080400000a041000000000000c842010000803e00000000000020410000a0420000a041e80300000400e40c01d00703000000403f1400cdcc4c3d31010060ce43d566c23e";
+
+    /// The migration path from version 3: it decodes to the values it was
+    /// made from with zero spot coefficients, says where it ends, and the
+    /// next store writes version 4 of the same values with the spot
+    /// coefficients appended after τ; spot coefficients round-trip
+    /// bit-exactly at their documented offset and a v3 record of the same
+    /// values drops them.
+    #[test]
+    fn golden_v3_record_decodes_without_spot_terms() {
+        let v3 = unhex(GOLDEN_V3_HEX);
+        assert_eq!(v3.len(), V3_RECORD_LEN);
+        assert_eq!(&v3[4..6], &[3, 0]);
+        let mut want = golden_params();
+        want.head.sensors[2].ext.table = active_table();
+        want.thermal_tau_s = 412.75;
+        let (p, len) = Params::decode_with_len(&v3).unwrap();
+        assert_eq!((p, len), (want, V3_RECORD_LEN));
+        assert!(p.head.sensors.iter().all(|s| s.ext.spot == [0.0; 2]));
+        let mut v4 = [0u8; RECORD_LEN];
+        assert_eq!(p.encode(&mut v4), Ok(RECORD_LEN));
+        assert_eq!(
+            &v4[8..HEADER_LEN + V3_PAYLOAD_LEN],
+            &v3[8..V3_RECORD_LEN - 4]
+        );
+        assert_eq!(&record_as_v3(&v4)[..], &v3[..]);
+        let mut q = want;
+        for (i, s) in q.head.sensors.iter_mut().enumerate() {
+            s.ext.spot = [0.0125 * (i as f32 + 1.0), 0.25 * i as f32 - 0.75];
+        }
+        q.head.sensors[1].ext.spot[0] = -SPOT_MAX_MM;
+        let mut buf = [0u8; RECORD_LEN];
+        q.encode(&mut buf).unwrap();
+        assert_eq!(Params::decode_with_len(&buf), Ok((q, RECORD_LEN)));
+        let at = HEADER_LEN + V3_PAYLOAD_LEN + 2 * 8 + 4;
+        assert_eq!(&buf[at..at + 4], &(-0.25f32).to_le_bytes());
+        assert_eq!(Params::decode(&record_as_v3(&buf)), Ok(want));
+        q.head.sensors[3].ext.spot[1] = 10.5;
+        assert_eq!(q.validate(), Err(Error::OutOfRange("spot bias")));
+        assert_eq!(q.encode(&mut buf), Err(Error::OutOfRange("spot bias")));
+        q.head.sensors[3].ext.spot[1] = f32::NAN;
+        assert_eq!(q.validate(), Err(Error::NonFinite("extension")));
+    }
+
     /// A record written by the version-2 encoder (the code before the
     /// thermal time constant, run once on [`golden_params`] with
     /// [`active_table`] on sensor 3): 493 bytes.
@@ -1119,16 +1238,16 @@ mod tests {
         let mut padded = v2.clone();
         padded.extend_from_slice(&[0x5A; 17]);
         assert_eq!(Params::decode_with_len(&padded), Ok((p, V2_RECORD_LEN)));
-        let mut v3 = [0u8; RECORD_LEN];
-        assert_eq!(p.encode(&mut v3), Ok(RECORD_LEN));
-        assert_eq!(&v3[4..8], &[3, 0, 0xE5, 0x01]);
-        // the v2 payload is the v3 payload's prefix; τ follows it
+        let mut v4 = [0u8; RECORD_LEN];
+        assert_eq!(p.encode(&mut v4), Ok(RECORD_LEN));
+        assert_eq!(&v4[4..8], &[4, 0, 0x05, 0x02]);
+        // the v2 payload is the v4 payload's prefix; τ follows it
         assert_eq!(
-            &v3[8..HEADER_LEN + V2_PAYLOAD_LEN],
+            &v4[8..HEADER_LEN + V2_PAYLOAD_LEN],
             &v2[8..V2_RECORD_LEN - 4]
         );
-        assert_eq!(&v3[RECORD_LEN - 8..RECORD_LEN - 4], &[0; 4]);
-        assert_eq!(&record_as_v2(&v3)[..], &v2[..]);
+        assert_eq!(&v4[TAU_AT..TAU_AT + 4], &[0; 4]);
+        assert_eq!(&record_as_v2(&v4)[..], &v2[..]);
     }
 
     /// τ round-trips bit-exactly at the documented offset; a v2 or v1
@@ -1178,7 +1297,7 @@ mod tests {
                 assert_eq!(buf, [0xA5u8; RECORD_LEN], "nothing written");
             }
             let mut b = good;
-            patch(&mut b, RECORD_LEN - 8, &tau.to_le_bytes());
+            patch(&mut b, TAU_AT, &tau.to_le_bytes());
             assert_eq!(Params::decode(&b).map(|_| ()), want, "{tau}");
         }
     }
@@ -1223,10 +1342,10 @@ mod tests {
         patch(&mut b, acq, &50u32.to_le_bytes());
         assert_eq!(Params::decode(&b), Err(Error::OutOfRange("period")));
         let mut b = buf;
-        patch(&mut b, RECORD_LEN - 10, &[0]);
+        patch(&mut b, TAU_AT - 2, &[0]);
         assert_eq!(Params::decode(&b), Err(Error::OutOfRange("node id")));
         let mut b = buf;
-        patch(&mut b, RECORD_LEN - 9, &[4]);
+        patch(&mut b, TAU_AT - 1, &[4]);
         assert_eq!(Params::decode(&b), Err(Error::OutOfRange("bit rate")));
         let mut b = buf;
         patch(&mut b, HEADER_LEN + 4, &f32::NAN.to_le_bytes());
@@ -1359,17 +1478,23 @@ mod tests {
     }
 
     fn arb_ext() -> impl Strategy<Value = Extension<f32>> {
-        (prop::array::uniform9(-1.0f32..1.0), arb_table()).prop_map(|(a, table)| Extension {
-            d_ref: a[0] * 50.0 + 50.0,
-            gain: a[1] * 1e-2,
-            nonlinearity: [a[2] * 1e-3, a[3] * 1e-4],
-            table,
-            incidence: a[4] * 0.1,
-            crosstalk: a[5] * 0.01,
-            thermal: a[6] * 0.01,
-            temp_ref: a[7] * 10.0 + 20.0,
-            drift: a[8] * 1e-4,
-        })
+        (
+            prop::array::uniform9(-1.0f32..1.0),
+            prop::array::uniform2(-1.0f32..1.0),
+            arb_table(),
+        )
+            .prop_map(|(a, spot, table)| Extension {
+                d_ref: a[0] * 50.0 + 50.0,
+                gain: a[1] * 1e-2,
+                nonlinearity: [a[2] * 1e-3, a[3] * 1e-4],
+                table,
+                incidence: a[4] * 0.1,
+                spot: spot.map(|x| x * SPOT_MAX_MM),
+                crosstalk: a[5] * 0.01,
+                thermal: a[6] * 0.01,
+                temp_ref: a[7] * 10.0 + 20.0,
+                drift: a[8] * 1e-4,
+            })
     }
 
     fn arb_sensor() -> impl Strategy<Value = Sensor<f32>> {
@@ -1445,6 +1570,14 @@ mod tests {
             })
     }
 
+    /// `p` with every spot coefficient zero (what an older record keeps).
+    fn without_spot(mut p: Params) -> Params {
+        for s in p.head.sensors.iter_mut() {
+            s.ext.spot = [0.0; 2];
+        }
+        p
+    }
+
     proptest! {
         #[test]
         fn round_trip(p in arb_params()) {
@@ -1465,7 +1598,7 @@ mod tests {
         fn v1_of_any_params_decodes_without_table(p in arb_params()) {
             let mut buf = [0u8; RECORD_LEN];
             p.encode(&mut buf).unwrap();
-            let mut want = p;
+            let mut want = without_spot(p);
             want.thermal_tau_s = 0.0;
             for s in want.head.sensors.iter_mut() {
                 s.ext.table = LinTable::none();
@@ -1477,8 +1610,16 @@ mod tests {
         fn v2_of_any_params_decodes_without_lag(p in arb_params()) {
             let mut buf = [0u8; RECORD_LEN];
             p.encode(&mut buf).unwrap();
-            let want = Params { thermal_tau_s: 0.0, ..p };
+            let want = Params { thermal_tau_s: 0.0, ..without_spot(p) };
             prop_assert_eq!(Params::decode_with_len(&record_as_v2(&buf)), Ok((want, V2_RECORD_LEN)));
+        }
+
+        #[test]
+        fn v3_of_any_params_decodes_without_spot_terms(p in arb_params()) {
+            let mut buf = [0u8; RECORD_LEN];
+            p.encode(&mut buf).unwrap();
+            let want = without_spot(p);
+            prop_assert_eq!(Params::decode_with_len(&record_as_v3(&buf)), Ok((want, V3_RECORD_LEN)));
         }
 
         #[test]

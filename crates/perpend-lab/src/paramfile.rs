@@ -44,6 +44,11 @@
 //! says where the values came from: push ignores it (it stamps the board
 //! with the file it pushes), so a pulled file pushes again.
 //!
+//! `spot_mm` (in `ext`, two numbers [mm]: the spot bias of the incidence
+//! correction per unit of `tan²γ·cos φ` and `tan²γ·sin φ`,
+//! [`perpend_core::ext`], "Incidence") is present only when fitted; files
+//! without it read as before (no spot terms).
+//!
 //! `linearity_table` (the natural-spline table of
 //! [`perpend_core::ext::LinTable`], knots about `d_ref_mm`) is present only
 //! when a table was fitted; files without it read as before.
@@ -97,6 +102,11 @@ pub struct ExtParams {
     pub nonlinearity: [f64; 2],
     /// Incidence bias [mm per unit of 1/cos γ − 1].
     pub incidence_mm: f64,
+    /// Spot bias [mm per unit of tan²γ·cos φ and tan²γ·sin φ], φ the
+    /// azimuth of the surface's tilt about the beam
+    /// ([`perpend_core::ext`], "Incidence"), when fitted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spot_mm: Option<[f64; 2]>,
     /// Crosstalk fraction from the previously converted channel [-].
     pub crosstalk: f64,
     /// Thermal drift [mm/°C].
@@ -127,6 +137,7 @@ impl From<&Extension<f64>> for ExtParams {
             gain: e.gain,
             nonlinearity: e.nonlinearity,
             incidence_mm: e.incidence,
+            spot_mm: e.has_spot().then_some(e.spot),
             crosstalk: e.crosstalk,
             thermal_mm_per_c: e.thermal,
             temp_ref_c: e.temp_ref,
@@ -146,6 +157,7 @@ impl From<&ExtParams> for Extension<f64> {
             gain: p.gain,
             nonlinearity: p.nonlinearity,
             incidence: p.incidence_mm,
+            spot: p.spot_mm.unwrap_or([0.0; 2]),
             crosstalk: p.crosstalk,
             thermal: p.thermal_mm_per_c,
             temp_ref: p.temp_ref_c,
@@ -288,6 +300,16 @@ impl SensorParams {
             ],
             "ext",
         )?;
+        if let Some(spot) = &e.spot_mm {
+            finite(spot, "ext.spot_mm")?;
+            let max = f64::from(perpend_core::params::SPOT_MAX_MM);
+            if spot.iter().any(|c| c.abs() > max) {
+                bail!(
+                    "sensor {id}: ext.spot_mm {spot:?} exceeds ±{max} mm per unit of tan²γ \
+                     (the board's bound): no sensor has such a spot bias; refit the run"
+                );
+            }
+        }
         if let Some(t) = &e.linearity_table {
             finite(&t.knots_mm, "linearity_table.knots_mm")?;
             finite(&t.values_mm, "linearity_table.values_mm")?;
@@ -618,5 +640,35 @@ mod tests {
         assert!(e.contains("thermal_tau_s = NaN"), "{e}");
         f.thermal_tau_s = THERMAL_TAU_MAX_S;
         f.validate().unwrap();
+    }
+
+    /// The spot terms: absent by default (files write as before) and read
+    /// as zero; fitted ones round-trip through the file to the extension;
+    /// a non-finite or oversized value is refused naming the sensor.
+    #[test]
+    fn spot_terms_are_optional_and_round_trip() {
+        let f = file();
+        let text = serde_json::to_string_pretty(&f).unwrap();
+        assert!(!text.contains("spot_mm"));
+        let s = ParamFile::parse(&text, "p.json")
+            .unwrap()
+            .sensors()
+            .unwrap();
+        assert!(s.iter().all(|x| x.ext.spot == [0.0; 2]));
+        let mut g = f.clone();
+        g.sensors[2].ext.spot_mm = Some([0.125, -0.0625]);
+        let text = serde_json::to_string_pretty(&g).unwrap();
+        assert!(text.contains("\"spot_mm\""), "{text}");
+        let back = ParamFile::parse(&text, "p.json").unwrap();
+        assert_eq!(back, g);
+        let ext = back.sensors().unwrap()[2].ext;
+        assert_eq!(ext.spot, [0.125, -0.0625]);
+        assert_eq!(ExtParams::from(&ext).spot_mm, Some([0.125, -0.0625]));
+        let bad = text.replace("0.125", "12.5");
+        let e = format!("{:#}", ParamFile::parse(&bad, "p.json").unwrap_err());
+        assert!(e.contains("sensor 3") && e.contains("spot_mm"), "{e}");
+        g.sensors[2].ext.spot_mm = Some([f64::NAN, 0.0]);
+        let e = g.validate().unwrap_err().to_string();
+        assert!(e.contains("spot_mm"), "{e}");
     }
 }

@@ -41,7 +41,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context as _, Result};
 use nalgebra::{Matrix3, SVector, Vector3};
-use perpend_core::ext::{Context, Extension};
+use perpend_core::ext::{Context, Extension, Incidence};
 use perpend_core::geometry::{tangent_basis, Plane};
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
@@ -461,10 +461,12 @@ impl Effect for ExtensionEffect {
             temp_c: truth.temp_c,
             t_s: truth.t_s,
         };
-        let cosg: Vec<f64> = truth
+        // the beam's angles to the surface, azimuth included (the spot
+        // terms of `perpend_core::ext`, "Incidence")
+        let cosg: Vec<Incidence<f64>> = truth
             .head
             .iter()
-            .map(|s| truth.plane.n.dot(&s.dir).abs())
+            .map(|s| Incidence::of(&truth.plane.n, &s.dir))
             .collect();
         let base: Vec<Option<f64>> = truth.distances.to_vec();
         let mut cur: Vec<Option<f64>> = base.clone();

@@ -832,6 +832,9 @@ fn sensor_params(i: usize, c: &[f64; CAL_VALUES], t: Option<TransferParams>) -> 
             gain: c[7],
             nonlinearity: [c[8], c[9]],
             incidence_mm: c[10],
+            // no object carries the spot terms (0x2101.. sub 11 is the
+            // symmetric term only)
+            spot_mm: None,
             crosstalk: c[11],
             thermal_mm_per_c: c[12],
             temp_ref_c: c[13],

@@ -11,8 +11,8 @@
 //!
 //! where `f` is Chen eq. 1-3 and `x_j` are the regressors supplied by a
 //! [`Regressors`] implementation. [`ExtTerms`] supplies the terms of
-//! [`crate::ext::Extension::excess`] (gain, linearity, incidence, crosstalk,
-//! thermal, drift), so that a fitted coefficient vector becomes an
+//! [`crate::ext::Extension::excess`] (gain, linearity, incidence and its
+//! spot terms, crosstalk, thermal, drift), so that a fitted coefficient vector becomes an
 //! [`Extension`] that the board applies with
 //! [`crate::ext::Extension::correct`]; [`NoExtra`] is the paper's model.
 //!
@@ -37,7 +37,7 @@
 //! geometry is first order in the coefficients).
 
 use super::Poses;
-use crate::ext::{Extension, LinTable, TABLE_COEFFS, TABLE_KNOTS};
+use crate::ext::{Extension, Incidence, LinTable, TABLE_COEFFS, TABLE_KNOTS};
 use crate::head::Sensor;
 use crate::model::distance;
 use crate::Real;
@@ -108,11 +108,15 @@ pub enum Term {
     Table1,
     /// `v_2 · C_2(d − d_ref)`.
     Table2,
+    /// `spot[0] · tan²γ·cos φ` ([`crate::ext`], "Incidence").
+    SpotCos,
+    /// `spot[1] · tan²γ·sin φ`.
+    SpotSin,
 }
 
 impl Term {
     /// All terms, in the column order [`ExtTerms`] uses.
-    pub const ALL: [Term; 10] = [
+    pub const ALL: [Term; 12] = [
         Term::Gain,
         Term::Quadratic,
         Term::Cubic,
@@ -123,7 +127,12 @@ impl Term {
         Term::Table0,
         Term::Table1,
         Term::Table2,
+        Term::SpotCos,
+        Term::SpotSin,
     ];
+
+    /// The spot terms of the incidence correction.
+    pub const SPOT: [Term; 2] = [Term::SpotCos, Term::SpotSin];
 
     /// The linearity table's terms.
     pub const TABLE: [Term; 3] = [Term::Table0, Term::Table1, Term::Table2];
@@ -144,6 +153,8 @@ impl Term {
             Term::Table0 => 128,
             Term::Table1 => 256,
             Term::Table2 => 512,
+            Term::SpotCos => 1024,
+            Term::SpotSin => 2048,
         }
     }
 
@@ -160,6 +171,8 @@ impl Term {
             Term::Table0 => "table0",
             Term::Table1 => "table1",
             Term::Table2 => "table2",
+            Term::SpotCos => "spot_cos",
+            Term::SpotSin => "spot_sin",
         }
     }
 }
@@ -353,6 +366,8 @@ impl<T: Real> ExtTerms<T> {
                 Term::Table0 => table[0] = c,
                 Term::Table1 => table[1] = c,
                 Term::Table2 => table[2] = c,
+                Term::SpotCos => e.spot[0] = c,
+                Term::SpotSin => e.spot[1] = c,
             }
         }
         if table.iter().any(|c| *c != T::zero()) {
@@ -393,13 +408,18 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
         };
         let n = poses.sensors().max(1);
         let ctx = poses.context(k);
+        let inc = if self.mask & (Term::SpotCos.bit() | Term::SpotSin.bit()) != 0 {
+            Incidence::of(&plane.n, &geom.dir)
+        } else {
+            Incidence::from(plane.n.dot(&geom.dir).abs())
+        };
         for (slot, t) in out.iter_mut().zip(self.terms()) {
             *slot = match t {
                 Term::Gain => x,
                 Term::Quadratic => x * x,
                 Term::Cubic => x * x * x,
                 Term::Incidence => {
-                    let c = plane.n.dot(&geom.dir).abs();
+                    let c = inc.cos_gamma;
                     if c > T::zero() {
                         T::one() / c - T::one()
                     } else {
@@ -414,6 +434,8 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
                 Term::Table0 => basis[0] - self.table_affine[0].0 - self.table_slope(0) * x,
                 Term::Table1 => basis[1] - self.table_affine[1].0 - self.table_slope(1) * x,
                 Term::Table2 => basis[2] - self.table_affine[2].0 - self.table_slope(2) * x,
+                Term::SpotCos => inc.spot[0],
+                Term::SpotSin => inc.spot[1],
             };
         }
     }
@@ -457,25 +479,29 @@ mod tests {
         };
         let poses = [pose];
         let terms = ExtTerms::new(&Term::ALL, 32.0, 21.0).with_knots([-4.0, -1.5, 0.5, 2.0, 5.0]);
-        assert_eq!(Regressors::<f64>::count(&terms), 10);
+        assert_eq!(Regressors::<f64>::count(&terms), 12);
         let c = [
-            1e-3, 2e-4, -3e-5, 0.02, 4e-3, 1e-3, -2e-4, 3e-3, -1e-3, 2e-3,
+            1e-3, 2e-4, -3e-5, 0.02, 4e-3, 1e-3, -2e-4, 3e-3, -1e-3, 2e-3, 0.03, -0.045,
         ];
         let ext = terms.extension(&c);
         for i in [0usize, 1, 3] {
-            let mut x = [0.0; 10];
+            let mut x = [0.0; 12];
             terms.fill(poses.as_slice(), 0, i, &truth.sensors[i], &mut x);
             let lin: f64 = x.iter().zip(c.iter()).map(|(a, b)| a * b).sum();
             let prev = pose.readings[(i + 3) % 4];
-            let cg = p.n.dot(&truth.sensors[i].dir).abs();
+            let inc = Incidence::of(&p.n, &truth.sensors[i].dir);
+            assert!(
+                inc.spot[0].abs() + inc.spot[1].abs() > 1e-3,
+                "a tilted beam"
+            );
             // The excess evaluated at the predicted distance, not the reading.
             let f = distance(&truth.sensors[i], &p, i).unwrap();
-            let want = ext.excess(f, prev, cg, &pose.ctx);
+            let want = ext.excess(f, prev, inc, &pose.ctx);
             assert_relative_eq!(lin, want, epsilon = 1e-12);
             // ... so the pose's own reading does not enter its regressors.
             let mut moved = poses;
             moved[0].readings[i] = Some(pose.readings[i].unwrap() + 0.7);
-            let mut y = [0.0; 10];
+            let mut y = [0.0; 12];
             terms.fill(moved.as_slice(), 0, i, &truth.sensors[i], &mut y);
             assert_eq!(x, y);
         }

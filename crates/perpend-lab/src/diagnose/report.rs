@@ -339,7 +339,7 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
         let _ = writeln!(
             o,
             "  inseparable: thermal and drift are the same pattern on this run (temperature against time r = {r:.2}): {} is the better fit, not the proven cause; {} would separate them",
-            names.join(" + "),
+            time_like(&d.effects()),
             super::lags::SEPARATED_BY
         );
     }
@@ -641,11 +641,7 @@ pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> Strin
                     .join(", ")
             )
         }
-        Effect::Incidence => format!(
-            "incidence bias {:+.1} µm ± {:.1} µm at 30°",
-            1000.0 * x.incidence * inc30,
-            1000.0 * sd(0) * inc30
-        ),
+        Effect::Incidence => super::candidates::incidence_words(x, sd(0), inc30),
         Effect::Crosstalk => format!(
             "carry-over {:+.2} % ± {:.2} % from sensor {}",
             100.0 * x.crosstalk,
@@ -664,4 +660,15 @@ pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> Strin
         ),
         Effect::None | Effect::Unexplained => String::new(),
     }
+}
+
+/// The time-like effects among `named` (thermal, drift), `+`-joined: the
+/// one an `inseparable` line says fits better.
+fn time_like(named: &[Effect]) -> String {
+    named
+        .iter()
+        .filter(|e| matches!(e, Effect::Thermal | Effect::Drift))
+        .map(|e| e.name())
+        .collect::<Vec<_>>()
+        .join(" + ")
 }
