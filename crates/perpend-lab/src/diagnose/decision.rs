@@ -382,6 +382,10 @@ pub(super) struct Decided {
     pub(super) floor_mm: f64,
     /// The test for direction-dependent offsets ([`direction`]).
     pub(super) direction: DirectionTest,
+    /// The named effect (for `unexplained`, the partial winner) fitted on
+    /// all poses, with coefficients and 1σ: what is reported and stored
+    /// (`None` for `none`, or when it cannot be fitted on all poses).
+    pub(super) refit: Option<(Effect, Vec<SensorFit>)>,
 }
 
 /// Stages 4-5 on the fitted run: the noise from the full model (every
@@ -413,6 +417,7 @@ pub(super) fn decide_run(l: &Loaded, f: &Fitted, s: &Settings) -> Result<Decided
         decision.effect = Effect::Unexplained;
         decision.winner = None;
     }
+    let refit = refit(effect, decision.winner, l, s);
     Ok(Decided {
         estimate,
         noise,
@@ -422,7 +427,28 @@ pub(super) fn decide_run(l: &Loaded, f: &Fitted, s: &Settings) -> Result<Decided
         also,
         floor_mm,
         direction,
+        refit,
     })
+}
+
+/// The effect named (or, for `unexplained`, the partial `winner`) fitted
+/// on all poses: the coefficients reported and stored. `None` for `none`
+/// or when the solver cannot fit it on all poses (the parameter file then
+/// refuses, [`super::param_file`]).
+fn refit(
+    effect: Effect,
+    winner: Option<Effect>,
+    l: &Loaded,
+    s: &Settings,
+) -> Option<(Effect, Vec<SensorFit>)> {
+    let model = match effect {
+        Effect::None => None,
+        Effect::Unexplained => winner,
+        e => Some(e),
+    }?;
+    candidates::fit_all(&l.nominal, &l.poses, &l.refs, model, &s.lsq)
+        .ok()
+        .map(|f| (model, f))
 }
 
 /// The direction test ([`direction::judge`]) on the nominal fit, its null

@@ -64,8 +64,7 @@ pub mod settings;
 pub mod stats;
 pub mod study;
 
-use anyhow::{anyhow, Context as _, Result};
-use perpend_core::calib::LsqConfig;
+use anyhow::{anyhow, bail, Context as _, Result};
 use perpend_core::head::Sensor;
 use serde::{Deserialize, Serialize};
 
@@ -506,18 +505,9 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         also,
         floor_mm,
         direction,
+        refit,
     } = decide_run(&l, &f, s)?;
     let sc = scores(effect, &also, &f.measured, &l, s);
-    let refit_model = match effect {
-        Effect::None => None,
-        Effect::Unexplained => decision.winner,
-        e => Some(e),
-    };
-    let refit = refit_model.and_then(|e| {
-        candidates::fit_all(&l.nominal, &l.poses, &l.refs, e, &s.lsq)
-            .ok()
-            .map(|f| (e, f))
-    });
     let checks = report::checks(&f.measured, &expected, &f.fitted, &decision);
     let mut warnings = noise_warnings(&estimate, effect);
     warnings.extend(time_warning(&l.poses, &named(effect, &also)));
@@ -551,13 +541,16 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     })
 }
 
-/// The parameter file of the named model: every sensor fitted on all
-/// poses with the named extension (the paper's model for `none` and
-/// `unexplained`), with 1σ, residual RMS and identifiability.
+/// The parameter file of the named model: every sensor as the decision
+/// fitted it on all poses with the named extension (the paper's model for
+/// `none` and `unexplained`), with 1σ, residual RMS and identifiability.
+/// It reads the diagnosis and never refits.
 ///
 /// # Errors
-/// A sensor that cannot be fitted.
-pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
+/// A named model the decision could not fit on all poses; a fit that is
+/// not storable ([`candidates::storable`]) or a file that does not
+/// validate.
+pub fn param_file(d: &Diagnosis) -> Result<ParamFile> {
     let model = d.ext_model;
     let name = if model == Effect::None {
         "base".to_string()
@@ -578,9 +571,13 @@ pub fn param_file(d: &Diagnosis, lsq: &LsqConfig<f64>) -> Result<ParamFile> {
                 .ok_or_else(|| anyhow!("no fit"))?,
             (Some((e, fits)), m) if *e == m => fits[i].clone(),
             (_, Effect::None) => d.measured.base_fit[i].clone(),
-            _ => candidates::fit_all(&d.nominal, &d.poses, &d.refs, model, lsq)
-                .map_err(|e| anyhow!("{e}"))?
-                .swap_remove(i),
+            _ => bail!(
+                "not stored: the {} model could not be fitted on all {} poses (it was \
+                 cross-validated, but the solver failed on the whole run); store the paper's \
+                 model with `perpend calibrate`, or rerun with more poses",
+                model.name(),
+                d.poses.rows.len()
+            ),
         };
         candidates::storable(i, d.nominal.len(), &fit)
             .map_err(|why| anyhow!("not stored: {why}"))?;
@@ -626,7 +623,7 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
     }
     let mut record = None;
     if let Some(out) = &a.out {
-        let file = param_file(&d, &settings.lsq)?;
+        let file = param_file(&d)?;
         let previous = crate::record::Previous::of(out)?;
         file.write(out)?;
         record = Some(write_record(a, &d, &file, previous, out)?);
