@@ -66,10 +66,15 @@ fn offset_at_twice_the_noise_is_named_unexplained_with_its_size() {
     let (mut data, truth) = run(11);
     add_hysteresis(&mut data, &truth, &H_MM);
     let d = diag(&data);
-    assert_eq!(d.effect.name(), "unexplained", "{:?}", d.direction);
+    assert_eq!(
+        d.decided.effect.name(),
+        "unexplained",
+        "{:?}",
+        d.decided.direction
+    );
     assert!(d.effects().is_empty());
-    let DirectionTest::Tested(t) = &d.direction else {
-        panic!("not tested: {:?}", d.direction)
+    let DirectionTest::Tested(t) = &d.decided.direction else {
+        panic!("not tested: {:?}", d.decided.direction)
     };
     assert!(t.found && t.p < t.level, "{t:?}");
     assert_eq!(t.order.name(), "file order");
@@ -91,8 +96,8 @@ fn offset_at_twice_the_noise_is_named_unexplained_with_its_size() {
 fn same_run_without_the_offset_is_not_named() {
     let (data, _) = run(11);
     let d = diag(&data);
-    assert_eq!(d.effect.name(), "none", "{:?}", d.direction);
-    assert!(!d.direction.found(), "{:?}", d.direction);
+    assert_eq!(d.decided.effect.name(), "none", "{:?}", d.decided.direction);
+    assert!(!d.decided.direction.found(), "{:?}", d.decided.direction);
     assert!(d.json().direction_offset.is_none());
 }
 
@@ -103,8 +108,12 @@ fn a_large_tracker_noise_is_not_a_direction_effect() {
     for seed in 21..24 {
         let (data, _) = run_with(seed, 3.0);
         let d = diag(&data);
-        assert!(!d.direction.found(), "seed {seed}: {:?}", d.direction);
-        assert!(matches!(d.direction, DirectionTest::Tested(_)));
+        assert!(
+            !d.decided.direction.found(),
+            "seed {seed}: {:?}",
+            d.decided.direction
+        );
+        assert!(matches!(d.decided.direction, DirectionTest::Tested(_)));
     }
 }
 
@@ -116,10 +125,10 @@ fn shuffled_rows_without_time_cannot_be_tested() {
         .rows
         .shuffle(&mut rand::rngs::StdRng::seed_from_u64(5));
     let d = diag(&data);
-    let DirectionTest::Untestable(why) = &d.direction else {
-        panic!("tested on shuffled rows: {:?}", d.direction)
+    let DirectionTest::Untestable(why) = &d.decided.direction else {
+        panic!("tested on shuffled rows: {:?}", d.decided.direction)
     };
     assert!(why.contains("order of the moves is unknown"), "{why}");
-    assert!(d.direction.line().contains("cannot test"));
+    assert!(d.decided.direction.line().contains("cannot test"));
     assert!(d.json().direction_offset.is_none());
 }

@@ -55,6 +55,7 @@ const DRIFT_MM: f64 = 0.035;
 fn a_drift_below_the_residual_threshold_is_named_by_its_normal_cost() {
     let d = diag(&run(1, DRIFT_MM));
     let v = d
+        .decided
         .decision
         .verdicts
         .iter()
@@ -65,24 +66,34 @@ fn a_drift_below_the_residual_threshold_is_named_by_its_normal_cost() {
     // ... its normal cost does, calibrated on the effect-free draws.
     let t = v.normal.expect("the measured run's normals were computed");
     assert!(t.passes && t.gain.z > t.threshold, "{t:?}");
-    assert_eq!(d.effect.name(), "drift", "{:?}", d.decision.reasons);
-    let c = d.decision.cost_named.expect("named by its normal cost");
+    assert_eq!(
+        d.decided.effect.name(),
+        "drift",
+        "{:?}",
+        d.decided.decision.reasons
+    );
+    let c = d
+        .decided
+        .decision
+        .cost_named
+        .expect("named by its normal cost");
     assert_eq!(c.effect.name(), "drift");
     assert!(c.test.p < c.level && c.cost > 1.1, "{c:?}");
     assert!(
-        d.decision
+        d.decided
+            .decision
             .reasons
             .iter()
             .any(|r| r.contains(&format!("costs {:.2}× the floor; named at p = ", c.cost))),
         "{:?}",
-        d.decision.reasons
+        d.decided.decision.reasons
     );
     let j = d.json();
     let n = j.normal_cost.expect("the JSON carries normal_cost");
     assert_eq!((n.effect.as_str(), n.p), ("drift", c.test.p));
     // The null has one value per draw for every candidate.
-    for (e, s) in &d.expected.normal_z {
-        assert_eq!(s.n, d.expected.draws, "{e:?}");
+    for (e, s) in &d.decided.expected.normal_z {
+        assert_eq!(s.n, d.decided.expected.draws, "{e:?}");
     }
 }
 
@@ -91,10 +102,16 @@ fn a_drift_below_the_residual_threshold_is_named_by_its_normal_cost() {
 #[test]
 fn the_same_run_without_the_drift_is_named_by_neither_test() {
     let d = diag(&run(1, 0.0));
-    assert_eq!(d.effect.name(), "none", "{:?}", d.decision.reasons);
-    assert!(d.decision.cost_named.is_none());
+    assert_eq!(
+        d.decided.effect.name(),
+        "none",
+        "{:?}",
+        d.decided.decision.reasons
+    );
+    assert!(d.decided.decision.cost_named.is_none());
     assert!(d.json().normal_cost.is_none());
     assert!(d
+        .decided
         .decision
         .verdicts
         .iter()

@@ -1175,22 +1175,24 @@ mod tests {
         assert_eq!(d.effects(), vec![Effect::LinearityTable]);
         let floor = crate::diagnose::diagnose(&clean.sensors, &clean.poses, &Default::default())
             .unwrap()
+            .scores
             .base
             .heldout_rms_mm;
         assert!(
-            d.extended.heldout_rms_mm < 1.1 * floor,
+            d.scores.extended.heldout_rms_mm < 1.1 * floor,
             "{} vs {floor}",
-            d.extended.heldout_rms_mm
+            d.scores.extended.heldout_rms_mm
         );
         // The polynomial follows the sine inside the run about as well on
         // held-out poses, but bends away beyond it: more than 1 mm at the
         // range ends, which no sensor does; the table is linear there.
         assert!(
-            d.implausible
+            d.fits
+                .implausible
                 .iter()
                 .any(|(e, _)| *e == Effect::Nonlinearity),
             "{:?}",
-            d.implausible
+            d.fits.implausible
         );
     }
 

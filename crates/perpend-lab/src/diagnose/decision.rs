@@ -364,28 +364,29 @@ pub(super) fn named(effect: Effect, also: &[Step]) -> Vec<Effect> {
 
 /// The output of stages 4-5: the noise, the effect-free expectation and
 /// the verdict with the effects named.
-pub(super) struct Decided {
+#[derive(Debug, Clone)]
+pub struct Decided {
     /// The run's own noise.
-    pub(super) estimate: NoiseEstimate,
+    pub estimate: NoiseEstimate,
     /// The noise the expectation was simulated with.
-    pub(super) noise: NoiseModel,
+    pub noise: NoiseModel,
     /// The effect-free re-simulations.
-    pub(super) expected: Expectation,
+    pub expected: Expectation,
     /// The calibrated decision.
-    pub(super) decision: Decision,
+    pub decision: Decision,
     /// The name given.
-    pub(super) effect: Effect,
+    pub effect: Effect,
     /// Further effects selected on top of `effect`.
-    pub(super) also: Vec<Step>,
+    pub also: Vec<Step>,
     /// Simulated held-out RMS of the paper's model on effect-free data at
     /// the noise from the full model (the floor reported) [mm].
-    pub(super) floor_mm: f64,
+    pub floor_mm: f64,
     /// The test for direction-dependent offsets ([`direction`]).
-    pub(super) direction: DirectionTest,
+    pub direction: DirectionTest,
     /// The named effect (for `unexplained`, the partial winner) fitted on
     /// all poses, with coefficients and 1σ: what is reported and stored
     /// (`None` for `none`, or when it cannot be fitted on all poses).
-    pub(super) refit: Option<(Effect, Vec<SensorFit>)>,
+    pub refit: Option<(Effect, Vec<SensorFit>)>,
 }
 
 /// Stages 4-5 on the fitted run: the noise from the full model (every
@@ -517,7 +518,7 @@ mod tests {
             assert!(
                 named.contains(&Effect::Thermal) && named.contains(&Effect::Drift),
                 "seed {seed}: {named:?} ({:?})",
-                d.decision.reasons
+                d.decided.decision.reasons
             );
             assert!(d.json().inseparable.is_none(), "seed {seed}");
         }

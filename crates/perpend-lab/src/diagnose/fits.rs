@@ -66,16 +66,17 @@ pub(super) fn implausible_fits(
 
 /// The output of stages 2-3: the measured run's analysis and which models
 /// it could fit.
-pub(super) struct Fitted {
+#[derive(Debug, Clone)]
+pub struct Fitted {
     /// Every model cross-validated on the measured run.
-    pub(super) measured: Analysis,
+    pub measured: Analysis,
     /// The models fitted (the paper's first); the later stages simulate
     /// and decide among these only.
-    pub(super) fitted: Vec<Effect>,
+    pub fitted: Vec<Effect>,
     /// Models that could not be fitted, with why.
-    pub(super) failed: Skipped,
+    pub failed: Skipped,
     /// Fitted models whose fit on all poses leaves the physical bounds.
-    pub(super) implausible: Vec<(Effect, String)>,
+    pub implausible: Vec<(Effect, String)>,
 }
 
 /// Stages 2-3 on the loaded run `l` ([`fit_measured`], [`implausible_fits`]).

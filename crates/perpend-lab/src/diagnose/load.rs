@@ -23,19 +23,26 @@ use crate::exchange::{PoseTable, SensorTable};
 /// The run as the diagnosis sees it (stage "load → bad poses"): the
 /// nominal head, the poses kept (re-timed), the folds and the models the
 /// run's columns allow.
-pub(super) struct Loaded {
-    pub(super) nominal: Vec<Sensor<f64>>,
-    pub(super) outliers: Vec<Outlier>,
-    pub(super) poses: PoseTable,
-    pub(super) lags: lags::Lags,
-    pub(super) refs: Refs,
-    pub(super) folds: Folds,
+#[derive(Debug, Clone)]
+pub struct Loaded {
+    /// The nominal head (the sensor table).
+    pub nominal: Vec<Sensor<f64>>,
+    /// Poses left out as disagreeing with every model.
+    pub outliers: Vec<Outlier>,
+    /// The run without the outlying poses, re-timed with `lags`.
+    pub poses: PoseTable,
+    /// The time constants of the time-like candidates ([`lags`]).
+    pub lags: lags::Lags,
+    /// The candidates' term references.
+    pub refs: Refs,
+    /// The folds of every cross-validation.
+    pub folds: Folds,
     /// The paper's model first, then every candidate the run allows.
-    pub(super) models: Vec<Effect>,
+    pub models: Vec<Effect>,
     /// Candidates not tested and why.
-    pub(super) skipped: Skipped,
+    pub skipped: Skipped,
     /// The declared reading noise per sensor ([`declared_sigma`]).
-    pub(super) declared: Option<Vec<f64>>,
+    pub declared: Option<Vec<f64>>,
 }
 
 impl Loaded {

@@ -65,24 +65,21 @@ pub mod stats;
 pub mod study;
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::head::Sensor;
 use serde::{Deserialize, Serialize};
 
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
-use candidates::{Effect, Refs, SensorFit};
-use decision::{decide_run, named, Decided};
+use candidates::{Effect, SensorFit};
+use decision::{decide_run, named};
 pub use decision::{Step, MAX_EFFECTS};
-use expect::{Analysis, Expectation, NoiseModel};
 use fits::fit;
 pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
 use load::load;
 pub(crate) use load::reading_span;
 pub use load::{available_models, declared_sigma};
-use noise::{NoiseEstimate, Outlier};
+use noise::NoiseEstimate;
 use scores::scores;
 pub use scores::Perf;
-use select::Decision;
 pub use settings::{draws_for, Args, NormalMethod, Settings, DRAWS, SMALL_RUN, SMALL_RUN_DRAWS};
 
 /// One candidate in the JSON output.
@@ -263,76 +260,44 @@ pub struct Check {
     pub flagged: bool,
 }
 
-/// Everything a diagnosis found.
+/// Everything a diagnosis found: the output of each stage, in the order
+/// the data move (docs/diagnosis.md, "How the code is laid out"), and the
+/// report's comparisons and warnings. The report, the plots, `--json` and
+/// `--out` read it; none of them refits.
 #[derive(Debug, Clone)]
 pub struct Diagnosis {
-    /// The name given.
-    pub effect: Effect,
-    /// The selection.
-    pub decision: Decision,
-    /// The simulated expectation.
-    pub expected: Expectation,
-    /// Simulated held-out RMS of the paper's model on effect-free data at
-    /// the noise left by every effect named (the floor reported) [mm].
-    pub floor_mm: f64,
-    /// The analysis of the measured run.
-    pub measured: Analysis,
-    /// The noise the expectation assumed.
-    pub noise: NoiseModel,
-    /// Base model's held-out performance.
-    pub base: Perf,
-    /// Named extension's held-out performance (= base for none/unexplained).
-    pub extended: Perf,
-    /// Held-out normal errors per pose, base model [deg].
-    pub base_normals: Vec<Option<f64>>,
-    /// Held-out normal errors per pose, extended model [deg].
-    pub ext_normals: Vec<Option<f64>>,
-    /// The model behind `extended` (`None` = base).
-    pub ext_model: Effect,
-    /// All poses fitted with the named extension (or, for `unexplained`,
-    /// the partial winner), with coefficients and 1σ.
-    pub refit: Option<(Effect, Vec<SensorFit>)>,
-    /// Further effects selected on top of `effect` (forward selection), in
-    /// order; empty when one effect explains the run.
-    pub also: Vec<Step>,
-    /// Candidates not tested and why.
-    pub skipped: Vec<(Effect, String)>,
-    /// Comparisons with the simulation.
+    /// Stage 1, read and check: the head, the poses kept (re-timed with
+    /// the time constants of [`lags`]), the outliers left out, the folds,
+    /// the term references and the candidates skipped with the reason.
+    pub run: load::Loaded,
+    /// Stages 2-3, the nominal and candidate fits: the measured
+    /// [`expect::Analysis`] and the candidates fitted outside their physical bounds.
+    pub fits: fits::Fitted,
+    /// Stages 4-5, noise, held-out scores against their nulls and the
+    /// decision: the noise, the effect-free expectation, the [`select::Decision`],
+    /// the effects named, the direction test and the named model fitted on
+    /// all poses.
+    pub decided: decision::Decided,
+    /// Stage 6, held-out scores of the verdict.
+    pub scores: scores::Scores,
+    /// Comparisons of the measured run with the simulation.
     pub checks: Vec<Check>,
-    /// The run's own noise (what the expectation was simulated with).
-    pub estimate: NoiseEstimate,
-    /// Poses left out as disagreeing with every model.
-    pub outliers: Vec<Outlier>,
-    /// Candidates whose fit left the physical bounds, and why.
-    pub implausible: Vec<(Effect, String)>,
     /// Warnings for the user (excess white noise, ...).
     pub warnings: Vec<String>,
-    /// Term references.
-    pub refs: Refs,
-    /// Folds used.
-    pub folds: Folds,
-    /// Nominal head.
-    pub nominal: Vec<Sensor<f64>>,
-    /// The run, without the outlying poses, re-timed with [`Diagnosis::lags`].
-    pub poses: PoseTable,
-    /// The time constants of the time-like candidates ([`lags`]).
-    pub lags: lags::Lags,
-    /// The test for direction-dependent offsets ([`direction`]).
-    pub direction: direction::DirectionTest,
 }
 
 impl Diagnosis {
     /// Every effect named, in the order selected (empty for `none` and
     /// `unexplained`).
     pub fn effects(&self) -> Vec<Effect> {
-        named(self.effect, &self.also)
+        named(self.decided.effect, &self.decided.also)
     }
 
     /// The fitted time constant of `e` [s] ([`EffectJson::time_constant_s`]).
     pub fn time_constant(&self, e: Effect) -> Option<f64> {
         match e {
-            Effect::Thermal => Some(self.lags.thermal_tau_s).filter(|t| *t > 0.0),
-            Effect::Drift => Some(self.lags.drift_tau_s).filter(|t| t.is_finite()),
+            Effect::Thermal => Some(self.run.lags.thermal_tau_s).filter(|t| *t > 0.0),
+            Effect::Drift => Some(self.run.lags.drift_tau_s).filter(|t| t.is_finite()),
             _ => None,
         }
     }
@@ -340,12 +305,13 @@ impl Diagnosis {
     /// The `--json` object.
     pub fn json(&self) -> DiagnoseJson {
         use noise::Source;
-        let span = reading_span(&self.poses, &self.refs);
-        let steps = self.also.iter().map(|st| {
+        let span = reading_span(&self.run.poses, &self.run.refs);
+        let steps = self.decided.also.iter().map(|st| {
             let own: Vec<SensorFit> = st.fits.iter().map(|f| own_columns(st.effect, f)).collect();
             (st.effect, own)
         });
         let effects = self
+            .decided
             .refit
             .clone()
             .into_iter()
@@ -370,9 +336,10 @@ impl Diagnosis {
             })
             .collect();
         DiagnoseJson {
-            effect: self.effect.name().into(),
+            effect: self.decided.effect.name().into(),
             effects,
             outlier_poses: self
+                .run
                 .outliers
                 .iter()
                 .map(|o| OutlierJson {
@@ -381,28 +348,30 @@ impl Diagnosis {
                 })
                 .collect(),
             noise: NoiseJson {
-                declared_mm: self.estimate.declared_mm.clone(),
-                estimated_mm: self.estimate.reading_mm.clone(),
-                source: match self.estimate.source {
+                declared_mm: self.decided.estimate.declared_mm.clone(),
+                estimated_mm: self.decided.estimate.reading_mm.clone(),
+                source: match self.decided.estimate.source {
                     Source::Residuals => "residuals",
                     Source::SampleScatter => "sample_scatter",
                     Source::ResidualRms => "residual_rms",
                 }
                 .into(),
-                plane_mm: self.estimate.plane_mm,
-                plane_resolved: self.estimate.plane_resolved,
+                plane_mm: self.decided.estimate.plane_mm,
+                plane_resolved: self.decided.estimate.plane_resolved,
             },
             implausible: self
+                .fits
                 .implausible
                 .iter()
                 .map(|(e, w)| (e.name().to_string(), w.clone()))
                 .collect(),
             warnings: self.warnings.clone(),
-            expected_rms_mm: self.floor_mm,
-            folds: self.folds.k,
-            base: self.base,
-            extended: self.extended,
+            expected_rms_mm: self.decided.floor_mm,
+            folds: self.run.folds.k,
+            base: self.scores.base,
+            extended: self.scores.extended,
             candidates: self
+                .decided
                 .decision
                 .verdicts
                 .iter()
@@ -413,9 +382,9 @@ impl Diagnosis {
                     n_params: v.n_params,
                 })
                 .collect(),
-            direction_offset: DirectionJson::of(&self.direction),
-            normal_cost: select::NormalCostJson::of(&self.decision),
-            inseparable: InseparableJson::of(&self.poses, &self.effects()),
+            direction_offset: DirectionJson::of(&self.decided.direction),
+            normal_cost: select::NormalCostJson::of(&self.decided.decision),
+            inseparable: InseparableJson::of(&self.run.poses, &self.effects()),
         }
     }
 }
@@ -494,50 +463,29 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
 /// A base model that cannot be fitted (the pose set does not identify it),
 /// too few poses for the folds.
 pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> Result<Diagnosis> {
-    let mut l = load(sensors, all_poses, s)?;
-    let f = fit(&l, s)?;
-    let Decided {
-        estimate,
-        noise,
-        expected,
-        decision,
-        effect,
-        also,
-        floor_mm,
-        direction,
-        refit,
-    } = decide_run(&l, &f, s)?;
-    let sc = scores(effect, &also, &f.measured, &l, s);
-    let checks = report::checks(&f.measured, &expected, &f.fitted, &decision);
-    let mut warnings = noise_warnings(&estimate, effect);
-    warnings.extend(time_warning(&l.poses, &named(effect, &also)));
-    l.skipped.extend(f.failed);
+    let mut run = load(sensors, all_poses, s)?;
+    let mut fits = fit(&run, s)?;
+    let decided = decide_run(&run, &fits, s)?;
+    let scores = scores(decided.effect, &decided.also, &fits.measured, &run, s);
+    let checks = report::checks(
+        &fits.measured,
+        &decided.expected,
+        &fits.fitted,
+        &decided.decision,
+    );
+    let mut warnings = noise_warnings(&decided.estimate, decided.effect);
+    warnings.extend(time_warning(
+        &run.poses,
+        &named(decided.effect, &decided.also),
+    ));
+    run.skipped.append(&mut fits.failed);
     Ok(Diagnosis {
-        effect,
-        decision,
-        expected,
-        floor_mm,
-        measured: f.measured,
-        noise,
-        estimate,
-        outliers: l.outliers,
-        implausible: f.implausible,
-        warnings,
-        base: sc.base,
-        extended: sc.extended,
-        base_normals: sc.base_normals,
-        ext_normals: sc.ext_normals,
-        ext_model: sc.ext_model,
-        refit,
-        also,
-        skipped: l.skipped,
+        run,
+        fits,
+        decided,
+        scores,
         checks,
-        refs: l.refs,
-        folds: l.folds,
-        nominal: l.nominal,
-        poses: l.poses,
-        lags: l.lags,
-        direction,
+        warnings,
     })
 }
 
@@ -551,7 +499,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
 /// not storable ([`candidates::storable`]) or a file that does not
 /// validate.
 pub fn param_file(d: &Diagnosis) -> Result<ParamFile> {
-    let model = d.ext_model;
+    let model = d.scores.ext_model;
     let name = if model == Effect::None {
         "base".to_string()
     } else {
@@ -561,34 +509,35 @@ pub fn param_file(d: &Diagnosis) -> Result<ParamFile> {
             .collect::<Vec<_>>()
             .join("+")
     };
-    let mut f = ParamFile::new("lsq", &name, d.poses.rows.len());
-    for (i, s) in d.nominal.iter().enumerate() {
-        let fit = match (&d.refit, model) {
-            _ if !d.also.is_empty() => d
+    let mut f = ParamFile::new("lsq", &name, d.run.poses.rows.len());
+    for (i, s) in d.run.nominal.iter().enumerate() {
+        let fit = match (&d.decided.refit, model) {
+            _ if !d.decided.also.is_empty() => d
+                .decided
                 .also
                 .last()
                 .map(|st| st.fits[i].clone())
                 .ok_or_else(|| anyhow!("no fit"))?,
             (Some((e, fits)), m) if *e == m => fits[i].clone(),
-            (_, Effect::None) => d.measured.base_fit[i].clone(),
+            (_, Effect::None) => d.fits.measured.base_fit[i].clone(),
             _ => bail!(
                 "not stored: the {} model could not be fitted on all {} poses (it was \
                  cross-validated, but the solver failed on the whole run); store the paper's \
                  model with `perpend calibrate`, or rerun with more poses",
                 model.name(),
-                d.poses.rows.len()
+                d.run.poses.rows.len()
             ),
         };
-        candidates::storable(i, d.nominal.len(), &fit)
+        candidates::storable(i, d.run.nominal.len(), &fit)
             .map_err(|why| anyhow!("not stored: {why}"))?;
         let mut p = candidates::params_of(i, &fit, s);
         // Drift is removed from the estimate, never extrapolated.
-        p.fold_drift(lags::run_end_s(&d.poses));
+        p.fold_drift(lags::run_end_s(&d.run.poses));
         f.sensors.push(p);
     }
     // The sensor bodies' lag, for the board to lag its temperature alike.
     if d.effects().contains(&Effect::Thermal) {
-        f.thermal_tau_s = d.lags.thermal_tau_s;
+        f.thermal_tau_s = d.run.lags.thermal_tau_s;
     }
     f.validate()?;
     Ok(f)
@@ -647,7 +596,7 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
             writeln!(
                 out,
                 "parameters ({} model) written to {}",
-                d.ext_model.name(),
+                d.scores.ext_model.name(),
                 path.display()
             )?;
         }
@@ -673,10 +622,11 @@ fn write_record(
 ) -> Result<std::path::PathBuf> {
     use crate::record::{PoseError, Record, Verification, KIND_CROSS_VALIDATED};
     let errs = d
+        .run
         .poses
         .rows
         .iter()
-        .zip(&d.ext_normals)
+        .zip(&d.scores.ext_normals)
         .filter_map(|(row, e)| {
             e.map(|error_deg| PoseError {
                 pose: row.pose,
@@ -688,12 +638,12 @@ fn write_record(
         "held-out normal error of every pose of the {} model: {}-fold cross-validation by pose \
          (seed {}), each pose measured by the head fitted on the other folds, against its plane \
          normal; includes the reading noise",
-        file.model, d.folds.k, a.seed
+        file.model, d.run.folds.k, a.seed
     );
     let v = Verification::from_errors(KIND_CROSS_VALIDATED, &note, errs);
     let mut r = Record::new(&[&a.sensors, &a.poses], file)?
         .with_verification(v)
-        .with_dropped(d.outliers.iter().map(Into::into).collect())
+        .with_dropped(d.run.outliers.iter().map(Into::into).collect())
         .with_previous(previous);
     r.push_event(&format!("perpend diagnose wrote {}", out.display()));
     r.write_beside(out)
@@ -762,7 +712,11 @@ mod tests {
                 ..Settings::default()
             };
             let d = diagnose(&table, &poses, &s).unwrap();
-            assert_eq!((d.folds.k, d.folds.of_pose.len()), (k, n), "{n} poses");
+            assert_eq!(
+                (d.run.folds.k, d.run.folds.of_pose.len()),
+                (k, n),
+                "{n} poses"
+            );
         }
         // Too few poses for the folds asked for: a clear error.
         let err = diagnose(&table, &run_of(8), &Settings::default()).unwrap_err();
@@ -777,6 +731,6 @@ mod tests {
             [16, 8, 5]
         );
         let d = diagnose(&table, &run_of(20), &Settings::default()).unwrap();
-        assert_eq!(d.expected.draws, 16);
+        assert_eq!(d.decided.expected.draws, 16);
     }
 }

@@ -35,17 +35,19 @@ const COLOURS: [RGBColor; 8] = [
 
 /// Points `(regressor, held-out residual)` of every sensor.
 pub fn residual_points(d: &Diagnosis, effect: Effect, cv: &CvResult) -> Vec<Vec<(f64, f64)>> {
-    let ns = d.nominal.len();
+    let ns = d.run.nominal.len();
     (0..ns)
         .map(|i| {
-            let geom = &d.measured.base_fit[i].sensor;
-            (0..d.poses.rows.len())
+            let geom = &d.fits.measured.base_fit[i].sensor;
+            (0..d.run.poses.rows.len())
                 .filter_map(|k| {
                     let r = cv.resid.get(k)?.get(i).copied().flatten()?;
-                    let mut x = regressor(effect, &d.refs, &d.poses, k, i, geom)?;
+                    let mut x = regressor(effect, &d.run.refs, &d.run.poses, k, i, geom)?;
                     if effect == Effect::Thermal {
                         // Show the temperature offset, not the raw term.
-                        x = d.poses.rows[k].temp_c.map_or(x, |t| t - d.refs.temp_ref);
+                        x = d.run.poses.rows[k]
+                            .temp_c
+                            .map_or(x, |t| t - d.run.refs.temp_ref);
                     }
                     Some((x, r))
                 })
@@ -174,23 +176,25 @@ fn legend_strip(
 /// # Errors
 /// I/O and drawing errors.
 pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
-    let shown = match d.effect {
+    let shown = match d.decided.effect {
         Effect::None => None,
-        Effect::Unexplained => d.decision.winner,
+        Effect::Unexplained => d.decided.decision.winner,
         e => Some(e),
     };
     let axis_effect = shown.unwrap_or(Effect::None);
     let base_cv = d
+        .fits
         .measured
         .cv_of(Effect::None)
         .ok_or_else(|| anyhow!("no base cross-validation"))?;
     let before = residual_points(d, axis_effect, base_cv);
     // After: the model with every effect named (the last forward step).
     let after_cv = d
+        .decided
         .also
         .last()
         .map(|st| &st.cv)
-        .or(shown.and_then(|e| d.measured.cv_of(e)));
+        .or(shown.and_then(|e| d.fits.measured.cv_of(e)));
     let after = after_cv.map(|c| residual_points(d, axis_effect, c));
     let names = effects_label(d);
     let all = before.iter().chain(after.iter().flatten()).flatten();
@@ -203,7 +207,7 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
     root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
     let (top, body) = root.split_vertically(LEGEND_H);
     let verdict = if names.is_empty() {
-        d.effect.name().to_string()
+        d.decided.effect.name().to_string()
     } else {
         names.clone()
     };
@@ -212,18 +216,18 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
         &format!("points: held-out residuals; verdict: {verdict}"),
     )?;
     let areas = body.split_evenly((ns, cols));
-    let floor = |e: Effect| d.expected.rms_of(e).map_or(0.0, |s| s.mean);
+    let floor = |e: Effect| d.decided.expected.rms_of(e).map_or(0.0, |s| s.mean);
     for (i, pts) in before.iter().enumerate() {
         let panel = Panel {
             title: format!("sensor {}: paper's model", i + 1),
             xlabel: axis_effect.regressor_label(),
             colour: COLOURS[i % COLOURS.len()],
-            sigma: d.estimate.reading_mm.get(i).copied().unwrap_or(0.0),
+            sigma: d.decided.estimate.reading_mm.get(i).copied().unwrap_or(0.0),
             floor: floor(Effect::None),
         };
         scatter_panel(&areas[i * cols], &panel, pts, xr, yr)?;
         if let (Some(a), Some(e)) = (&after, shown) {
-            let title = match d.effect {
+            let title = match d.decided.effect {
                 Effect::Unexplained => {
                     format!("sensor {}: with {} (explains only part)", i + 1, e.name())
                 }
@@ -232,6 +236,7 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
             let p = Panel {
                 title,
                 floor: d
+                    .decided
                     .also
                     .last()
                     .map_or(floor(e), |st| st.verdict.expected.mean),
@@ -256,8 +261,8 @@ pub fn residuals(d: &Diagnosis, path: &Path) -> Result<()> {
 /// # Errors
 /// I/O and drawing errors.
 pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
-    let base: Vec<f64> = d.base_normals.iter().flatten().copied().collect();
-    let ext: Vec<f64> = d.ext_normals.iter().flatten().copied().collect();
+    let base: Vec<f64> = d.scores.base_normals.iter().flatten().copied().collect();
+    let ext: Vec<f64> = d.scores.ext_normals.iter().flatten().copied().collect();
     let hi = base
         .iter()
         .chain(&ext)
@@ -281,7 +286,7 @@ pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
     root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
     // The legend goes in a strip to the right of the data.
     let (root, side) = root.split_horizontally(590);
-    let title = if d.ext_model == Effect::None {
+    let title = if d.scores.ext_model == Effect::None {
         "held-out normal error: paper's model".to_string()
     } else {
         format!(
@@ -306,7 +311,7 @@ pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
         .draw()
         .map_err(|e| anyhow!("plot: {e}"))?;
     let mut series = vec![("paper's model", &hb, &base, COLOURS[0])];
-    if d.ext_model != Effect::None {
+    if d.scores.ext_model != Effect::None {
         series.push(("extended model", &he, &ext, COLOURS[1]));
     }
     for (j, (name, h, v, c)) in series.into_iter().enumerate() {

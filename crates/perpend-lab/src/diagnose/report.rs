@@ -202,7 +202,7 @@ pub fn text(
 
 /// The run, its noise and how the expectation was simulated.
 fn run_section(o: &mut String, d: &Diagnosis, sensors: &Path, poses: &Path, s: &Settings) {
-    let n_read = d.measured.insample.iter().flatten().flatten().count();
+    let n_read = d.fits.measured.insample.iter().flatten().flatten().count();
     let _ = writeln!(
         o,
         "perpend diagnose: {} + {}",
@@ -210,17 +210,17 @@ fn run_section(o: &mut String, d: &Diagnosis, sensors: &Path, poses: &Path, s: &
         poses.display()
     );
     let mut cols = Vec::new();
-    if d.poses.has_time() {
+    if d.run.poses.has_time() {
         cols.push("t_s");
     }
-    if d.poses.has_temperature() {
+    if d.run.poses.has_temperature() {
         cols.push("temp_c");
     }
     let _ = writeln!(
         o,
         "run: {} poses, {} sensors, {} readings{}",
-        d.poses.rows.len(),
-        d.nominal.len(),
+        d.run.poses.rows.len(),
+        d.run.nominal.len(),
         n_read,
         if cols.is_empty() {
             String::new()
@@ -234,7 +234,7 @@ fn run_section(o: &mut String, d: &Diagnosis, sensors: &Path, poses: &Path, s: &
     let _ = writeln!(
         o,
         "expectation: {} Monte-Carlo draws of this head (the paper's model fitted to this run, as truth) on these planes; {}-fold cross-validation by pose (seed {})",
-        d.expected.draws, d.folds.k, s.seed
+        d.decided.expected.draws, d.run.folds.k, s.seed
     );
 }
 
@@ -268,14 +268,14 @@ fn candidates_section(o: &mut String, d: &Diagnosis, s: &Settings) {
     let _ = writeln!(
         o,
         "\nCandidates (held-out, {} folds; z* = {:.2}: family level α = {}, Bonferroni over mean and rank tests)",
-        d.folds.k, d.decision.z_star, s.rule.alpha
+        d.run.folds.k, d.decided.decision.z_star, s.rule.alpha
     );
     let _ = writeln!(
         o,
         "  {:<15} {:>6}  {:>13}  {:>17}  {:>11}  {:>11}  beats base",
         "model", "params", "held-out RMS", "simulated floor", "gain z/thr", "rank z/thr"
     );
-    for v in &d.decision.verdicts {
+    for v in &d.decided.decision.verdicts {
         let _ = writeln!(
             o,
             "  {:<15} {:>6}  {:>10.4} mm  {:>8.4} ± {:<6.4}  {:>11}  {:>11}  {}",
@@ -307,7 +307,7 @@ fn candidates_section(o: &mut String, d: &Diagnosis, s: &Settings) {
             }
         );
     }
-    if let Some(c) = &d.decision.cost_named {
+    if let Some(c) = &d.decided.decision.cost_named {
         let g = c.test.gain;
         let _ = writeln!(
             o,
@@ -315,7 +315,7 @@ fn candidates_section(o: &mut String, d: &Diagnosis, s: &Settings) {
             c.effect.name(), g.base_deg, g.cand_deg, g.reduction_deg, g.se_deg, g.z, c.test.threshold, c.test.p, c.level, c.cost, c.floor_deg
         );
     }
-    for (e, why) in &d.skipped {
+    for (e, why) in &d.run.skipped {
         let _ = writeln!(o, "  skipped: {} ({why})", e.name());
     }
 }
@@ -329,13 +329,13 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
         if names.len() > 1 {
             names.join(" + ")
         } else {
-            d.effect.name().to_string()
+            d.decided.effect.name().to_string()
         }
     );
-    for r in &d.decision.reasons {
+    for r in &d.decided.decision.reasons {
         let _ = writeln!(o, "  {r}");
     }
-    if let Some(r) = super::lags::inseparable(&d.poses, &d.effects()) {
+    if let Some(r) = super::lags::inseparable(&d.run.poses, &d.effects()) {
         let _ = writeln!(
             o,
             "  inseparable: thermal and drift are the same pattern on this run (temperature against time r = {r:.2}): {} is the better fit, not the proven cause; {} would separate them",
@@ -343,8 +343,8 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
             super::lags::SEPARATED_BY
         );
     }
-    let _ = writeln!(o, "  {}", d.direction.line());
-    for st in &d.also {
+    let _ = writeln!(o, "  {}", d.decided.direction.line());
+    for st in &d.decided.also {
         let before: Vec<&str> = st.with[..st.with.len() - 1]
             .iter()
             .map(|e| e.name())
@@ -385,15 +385,15 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
             _ => {}
         }
     }
-    if !d.decision.ties.is_empty() {
-        let t: Vec<&str> = d.decision.ties.iter().map(|e| e.name()).collect();
+    if !d.decided.decision.ties.is_empty() {
+        let t: Vec<&str> = d.decided.decision.ties.iter().map(|e| e.name()).collect();
         let _ = writeln!(
             o,
             "  note: {} fits within one standard error as well; this run cannot tell them apart (e.g. temperature that follows time)",
             t.join(", ")
         );
     }
-    for (e, why) in &d.implausible {
+    for (e, why) in &d.fits.implausible {
         let _ = writeln!(
             o,
             "  {} fits outside its physical bounds ({why}): implausible, not named and never stored",
@@ -406,8 +406,8 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
     for w in &d.warnings {
         let _ = writeln!(o, "  warning: {w}");
     }
-    if let Some(f) = d.decision.explained_fraction {
-        if d.effect == Effect::Unexplained {
+    if let Some(f) = d.decided.decision.explained_fraction {
+        if d.decided.effect == Effect::Unexplained {
             let _ = writeln!(
                 o,
                 "  the best candidate removes {:.0}% of the excess mean square over the floor",
@@ -424,18 +424,18 @@ fn coefficients_section(
     (sensors, poses): (&Path, &Path),
     out: Option<&Path>,
 ) {
-    if let Some((e, fits)) = &d.refit {
+    if let Some((e, fits)) = &d.decided.refit {
         let _ = writeln!(
             o,
             "\nFitted {} coefficients (all poses, ± 1σ){}",
             e.name(),
-            if d.effect == Effect::Unexplained {
+            if d.decided.effect == Effect::Unexplained {
                 " — partial explanation only"
             } else {
                 ""
             }
         );
-        let span = super::reading_span(&d.poses, &d.refs);
+        let span = super::reading_span(&d.run.poses, &d.run.refs);
         for (i, f) in fits.iter().enumerate() {
             let _ = writeln!(
                 o,
@@ -446,7 +446,7 @@ fn coefficients_section(
             );
         }
         match out {
-            _ if d.effect == Effect::Unexplained => {}
+            _ if d.decided.effect == Effect::Unexplained => {}
             Some(p) => {
                 let _ = writeln!(o, "  stored in {} (--out)", p.display());
             }
@@ -465,15 +465,18 @@ fn coefficients_section(
 /// Base against extended model on held-out poses.
 fn gain_section(o: &mut String, d: &Diagnosis) {
     let _ = writeln!(o, "\nGain on held-out poses (base → extended)");
-    let b: Vec<f64> = d.base_normals.iter().flatten().copied().collect();
-    let x: Vec<f64> = d.ext_normals.iter().flatten().copied().collect();
+    let b: Vec<f64> = d.scores.base_normals.iter().flatten().copied().collect();
+    let x: Vec<f64> = d.scores.ext_normals.iter().flatten().copied().collect();
     let _ = writeln!(
         o,
         "  residual RMS        {:.4} → {:.4} mm ({})   simulated floor {:.4} mm",
-        d.base.heldout_rms_mm,
-        d.extended.heldout_rms_mm,
-        pct(d.base.heldout_rms_mm, d.extended.heldout_rms_mm),
-        d.floor_mm
+        d.scores.base.heldout_rms_mm,
+        d.scores.extended.heldout_rms_mm,
+        pct(
+            d.scores.base.heldout_rms_mm,
+            d.scores.extended.heldout_rms_mm
+        ),
+        d.decided.floor_mm
     );
     if !b.is_empty() {
         let _ = writeln!(
@@ -482,7 +485,7 @@ fn gain_section(o: &mut String, d: &Diagnosis) {
             stats::mean(&b),
             stats::mean(&x),
             pct(stats::mean(&b), stats::mean(&x)),
-            d.expected.normal_err_deg.mean
+            d.decided.expected.normal_err_deg.mean
         );
         let _ = writeln!(
             o,
@@ -502,7 +505,7 @@ fn gain_section(o: &mut String, d: &Diagnosis) {
             b.len()
         );
     }
-    if d.ext_model == Effect::None {
+    if d.scores.ext_model == Effect::None {
         let _ = writeln!(o, "  nothing named: the extended model is the base model");
     }
 }
@@ -511,7 +514,7 @@ fn gain_section(o: &mut String, d: &Diagnosis) {
 /// tracker, the poses left out.
 fn noise_lines(d: &Diagnosis, s: &Settings) -> Vec<String> {
     use super::noise::Source;
-    let e = &d.estimate;
+    let e = &d.decided.estimate;
     let um = |v: &[f64]| {
         v.iter()
             .map(|x| format!("{:.1}", 1000.0 * x))
@@ -558,17 +561,18 @@ fn noise_lines(d: &Diagnosis, s: &Settings) -> Vec<String> {
         ),
         None => "  no datum-plane error found in the residuals: planes taken as exact".into(),
     });
-    if !d.outliers.is_empty() {
+    if !d.run.outliers.is_empty() {
         let p: Vec<String> = d
+            .run
             .outliers
             .iter()
             .map(|o| format!("pose {} ({:.3} mm)", o.pose, o.residual_mm))
             .collect();
         out.push(format!(
             "  left out {} pose(s) that disagree with every model (tracker blunder, spatter): {}; the verdict is on the other {}",
-            d.outliers.len(),
+            d.run.outliers.len(),
             p.join(", "),
-            d.poses.rows.len()
+            d.run.poses.rows.len()
         ));
     }
     out
@@ -578,12 +582,13 @@ fn noise_lines(d: &Diagnosis, s: &Settings) -> Vec<String> {
 /// report never says two things without saying how they fit.
 fn reconcile(d: &Diagnosis) -> Vec<String> {
     let flagged: Vec<&Check> = d.checks.iter().filter(|c| c.flagged).collect();
-    if flagged.is_empty() || d.effect == Effect::Unexplained {
+    if flagged.is_empty() || d.decided.effect == Effect::Unexplained {
         return Vec::new();
     }
     let what: Vec<&str> = flagged.iter().map(|c| c.what.as_str()).collect();
-    let gain_um = 1000.0 * (d.base.heldout_rms_mm - d.extended.heldout_rms_mm).max(0.0);
-    vec![if d.effect == Effect::None {
+    let gain_um =
+        1000.0 * (d.scores.base.heldout_rms_mm - d.scores.extended.heldout_rms_mm).max(0.0);
+    vec![if d.decided.effect == Effect::None {
         format!(
             "the statistics flagged above ({}) differ from the simulation, but no candidate turns that into a better held-out prediction and no structure remains: below the level that matters for the normal",
             what.join("; ")
@@ -592,7 +597,7 @@ fn reconcile(d: &Diagnosis) -> Vec<String> {
         format!(
             "the statistics flagged above ({}) are what {} explains: held-out RMS {:.1} µm lower with it",
             what.join("; "),
-            d.effect.name(),
+            d.decided.effect.name(),
             gain_um
         )
     }]

@@ -31,13 +31,18 @@ pub struct Perf {
 
 /// Held-out performance of the paper's model and of the model behind the
 /// verdict (stage "held-out scores" of what is reported).
-pub(super) struct Scores {
-    pub(super) base: Perf,
-    pub(super) extended: Perf,
-    pub(super) base_normals: Vec<Option<f64>>,
-    pub(super) ext_normals: Vec<Option<f64>>,
+#[derive(Debug, Clone)]
+pub struct Scores {
+    /// The paper's model's held-out performance.
+    pub base: Perf,
+    /// The named model's (= `base` for `none` and `unexplained`).
+    pub extended: Perf,
+    /// Held-out normal error per pose, paper's model [deg].
+    pub base_normals: Vec<Option<f64>>,
+    /// Held-out normal error per pose, named model [deg].
+    pub ext_normals: Vec<Option<f64>>,
     /// The model behind `extended` (`None` = the paper's).
-    pub(super) ext_model: Effect,
+    pub ext_model: Effect,
 }
 
 /// [`Scores`] of the verdict `effect` (with the forward selection's

@@ -796,24 +796,24 @@ mod tests {
             "{named:?}"
         );
         assert!(named.contains(&Effect::Drift), "{named:?}");
-        assert!(d.outliers.is_empty());
+        assert!(d.run.outliers.is_empty());
         // Both nulls come from the re-simulations: one per candidate, every
         // draw, and the rank z is its own statistic.
-        let (g, r) = (&d.expected.gain_z, &d.expected.rank_z);
+        let (g, r) = (&d.decided.expected.gain_z, &d.decided.expected.rank_z);
         assert_eq!(g.len(), r.len());
         assert!(!r.is_empty());
         for ((eg, sg), (er, sr)) in g.iter().zip(r) {
             assert_eq!(eg, er);
-            assert_eq!(sr.n, d.expected.draws, "{er:?}");
+            assert_eq!(sr.n, d.decided.expected.draws, "{er:?}");
             assert_ne!((sg.mean, sg.sd), (sr.mean, sr.sd), "{er:?}");
         }
         // The floor is simulated at the noise left by both: the extended
         // model comes back to it.
         assert!(
-            d.extended.heldout_rms_mm < 1.15 * d.floor_mm,
+            d.scores.extended.heldout_rms_mm < 1.15 * d.decided.floor_mm,
             "{} vs {}",
-            d.extended.heldout_rms_mm,
-            d.floor_mm
+            d.scores.extended.heldout_rms_mm,
+            d.decided.floor_mm
         );
     }
 
