@@ -162,7 +162,7 @@ fn push_stores_and_pull_reads_the_same_values() {
     let before = pull(&mut r.node, &r.cancel).unwrap();
     assert_eq!(before.model, "base");
     let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
-    assert_eq!(rep.values, 4 * 27 + 1);
+    assert_eq!(rep.values, 4 * 29 + 1);
     assert!(rep.changed >= 4 * 3, "{rep:?}");
     assert!(rep
         .to_string()
@@ -218,7 +218,7 @@ fn an_interrupted_push_stores_nothing_and_resets_to_the_stored_calibration() {
         "{e}"
     );
     assert!(
-        e.contains("interrupted (Ctrl-C) after 20 of 109 writes"),
+        e.contains("interrupted (Ctrl-C) after 20 of 117 writes"),
         "{e}"
     );
     assert_eq!(r.board.lock().unwrap().app().stores(), 0);
@@ -339,7 +339,7 @@ fn a_table_the_board_would_refuse_is_named_before_any_write() {
     );
     // the same knots without coefficients: no table, nothing to refuse
     f.sensors[2].ext.linearity_table = table([-6.0, -3.0, 0.0, 2.0, 2.0 + 1e-9], [0.0; 3]);
-    assert_eq!(plan(&f).unwrap().len(), 4 * 27 + 1);
+    assert_eq!(plan(&f).unwrap().len(), 4 * 29 + 1);
 }
 
 /// The thermal time constant: out of the board's range it is named before
@@ -462,4 +462,63 @@ fn a_firmware_without_the_stamp_is_pushed_without_one() {
         .unwrap()
         .calibration_stamp
         .is_none());
+}
+
+/// Spot coefficients exact in `f32` [mm per unit of tan²γ].
+const SPOT: [f64; 2] = [0.375, -1.25];
+
+/// The spot coefficients go to the board (sub 24/25), are read back in
+/// the push's verification and come back in pull on their sensor only,
+/// with "incidence" among the model's effects and no linearity table made
+/// of them; a push without them clears the board's (the objects are what
+/// the board applies).
+#[test]
+fn spot_terms_push_and_pull() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut f = ParamFile::read(&path).unwrap();
+    f.sensors[2].ext.spot_mm = Some(SPOT);
+    f.write(&path).unwrap();
+    let mut r = rig(None);
+    push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert_eq!(back.sensors[2].ext.spot_mm, Some(SPOT));
+    assert!([0, 1, 3]
+        .iter()
+        .all(|&i| back.sensors[i].ext.spot_mm.is_none()));
+    assert!(back.sensors.iter().all(|s| s.ext.linearity_table.is_none()));
+    assert!(
+        back.model.split('+').any(|m| m == "incidence"),
+        "{}",
+        back.model
+    );
+    let p = r
+        .board
+        .lock()
+        .unwrap()
+        .app()
+        .device()
+        .params(&Params::factory());
+    assert_eq!(p.head.sensors[2].ext.spot, SPOT.map(|x| x as f32));
+    f.sensors[2].ext.spot_mm = None;
+    f.write(&path).unwrap();
+    // only the two spot objects differ from what the board holds
+    assert_eq!(
+        push(&mut r.node, &args(path), &r.cancel).unwrap().changed,
+        2
+    );
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert!(back.sensors.iter().all(|s| s.ext.spot_mm.is_none()));
+    assert!(!back.model.contains("incidence"), "{}", back.model);
+}
+
+/// A spot coefficient beyond the board's ±10 mm is named before any
+/// write.
+#[test]
+fn a_spot_term_beyond_the_board_range_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut f = ParamFile::read(&params_file(dir.path(), 4)).unwrap();
+    f.sensors[1].ext.spot_mm = Some([0.0, 10.5]);
+    let e = format!("{:#}", plan(&f).unwrap_err());
+    assert!(e.contains("sensor 2 spot sin"), "{e}");
 }
