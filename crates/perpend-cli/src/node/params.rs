@@ -385,7 +385,7 @@ fn fit_to_board(node: &mut Node, file: &ParamFile, values: &mut Vec<Value>) -> R
 /// whatever its stored record has).
 fn fit_spot(node: &mut Node, file: &ParamFile, values: &mut Vec<Value>) -> Result<()> {
     let highest = node.client.read_u32(node.id, 0x2101, 0)?;
-    if highest >= u32::from(CAL_SUB_SPOT) + 1 {
+    if highest > u32::from(CAL_SUB_SPOT) {
         return Ok(());
     }
     if let Some(s) = file.sensors.iter().find(|s| s.ext.spot_mm.is_some()) {

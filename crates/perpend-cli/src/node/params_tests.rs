@@ -31,6 +31,22 @@ struct BoardPeer {
     cal_writes: usize,
     /// Answer 0x2011 like a firmware without it (abort 0x06020000).
     no_stamp: bool,
+    /// Answer 0x2101..0x2104 like a firmware before the spot coefficients
+    /// (sub 0 = 23, sub 24/25 abort 0x06090011).
+    no_spot: bool,
+}
+
+/// The answer of a firmware before the spot coefficients to an SDO
+/// initiate `d` addressed to 0x2101..0x2104 (`None`: as the board).
+fn pre_spot_answer(d: &[u8; 8]) -> Option<[u8; 8]> {
+    if d[2] != 0x21 || !(1..=4).contains(&d[1]) {
+        return None;
+    }
+    match d[3] {
+        0 if d[0] >> 5 == 2 => Some([0x4F, d[1], d[2], 0, 23, 0, 0, 0]),
+        24.. => Some([0x80, d[1], d[2], d[3], 0x11, 0x00, 0x09, 0x06]),
+        _ => None,
+    }
 }
 
 impl Peer for BoardPeer {
@@ -47,6 +63,13 @@ impl Peer for BoardPeer {
         if self.no_stamp && f.id == 0x600 + NODE as u16 && initiate && d[1..3] == [0x11, 0x20] {
             let abort = [0x80, d[1], d[2], d[3], 0x00, 0x00, 0x02, 0x06];
             out.push(Frame::new(0x580 + NODE as u16, &abort));
+            return;
+        }
+        let old = (self.no_spot && f.id == 0x600 + NODE as u16 && initiate)
+            .then(|| pre_spot_answer(&d))
+            .flatten();
+        if let Some(r) = old {
+            out.push(Frame::new(0x580 + NODE as u16, &r));
             return;
         }
         self.board
@@ -69,10 +92,10 @@ struct Rig {
 }
 
 fn rig(cancel_after: Option<usize>) -> Rig {
-    rig_with(cancel_after, false)
+    rig_with(cancel_after, false, false)
 }
 
-fn rig_with(cancel_after: Option<usize>, no_stamp: bool) -> Rig {
+fn rig_with(cancel_after: Option<usize>, no_stamp: bool, no_spot: bool) -> Rig {
     let plane = Plane::from_abcd(0.02, -0.03, 1.0, -45.0).unwrap();
     let sim = SimHead::new(Params::factory().head.cast(), plane, 0.002, 3).unwrap();
     let cfg = BoardConfig {
@@ -90,6 +113,7 @@ fn rig_with(cancel_after: Option<usize>, no_stamp: bool) -> Rig {
         cancel_after,
         cal_writes: 0,
         no_stamp,
+        no_spot,
     };
     // Boot (the first poll sends the boot-up) and take a few samples.
     let mut early = Vec::new();
@@ -447,7 +471,7 @@ fn push_stamps_the_calibration_and_pull_reads_the_stamp() {
 fn a_firmware_without_the_stamp_is_pushed_without_one() {
     let dir = tempfile::tempdir().unwrap();
     let path = params_file(dir.path(), 4);
-    let mut r = rig_with(None, true);
+    let mut r = rig_with(None, true, false);
     let rep = push(&mut r.node, &args(path), &r.cancel).unwrap();
     assert_eq!(rep.stamp, None);
     assert_eq!(r.board.lock().unwrap().app().stores(), 1);
@@ -521,4 +545,32 @@ fn a_spot_term_beyond_the_board_range_is_named() {
     f.sensors[1].ext.spot_mm = Some([0.0, 10.5]);
     let e = format!("{:#}", plan(&f).unwrap_err());
     assert!(e.contains("sensor 2 spot sin"), "{e}");
+}
+
+/// A firmware before the spot objects (0x2101 sub 0 = 23): a file with
+/// spot terms is refused before any write, naming sensor and firmware;
+/// a file without them is pushed (sub 1..23) and pulled with none.
+#[test]
+fn spot_terms_for_a_firmware_without_them_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut f = ParamFile::read(&path).unwrap();
+    let mut r = rig_with(None, false, true);
+    f.sensors[3].ext.spot_mm = Some(SPOT);
+    let spot_path = dir.path().join("spot.json");
+    f.write(&spot_path).unwrap();
+    let e = format!(
+        "{:#}",
+        push(&mut r.node, &args(spot_path), &r.cancel).unwrap_err()
+    );
+    assert!(
+        e.contains("sensor 4") && e.contains("no spot objects"),
+        "{e}"
+    );
+    assert!(e.contains("Nothing was written"), "{e}");
+    assert_eq!(r.board.lock().unwrap().app().stores(), 0);
+    let rep = push(&mut r.node, &args(path), &r.cancel).unwrap();
+    assert_eq!(rep.values, 4 * 27 + 1);
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert!(back.sensors.iter().all(|s| s.ext.spot_mm.is_none()));
 }
