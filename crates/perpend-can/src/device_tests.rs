@@ -1259,10 +1259,7 @@ fn layout_4_image_loads() {
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     b.write_f32(0x2104, 7, 42.0).unwrap();
     write_table(&mut b, 0x2104);
-    let mut img = [0u8; IMAGE_LEN];
-    b.dev.persistent_image(&mut img);
-    let mut old = [0u8; IMAGE_LEN];
-    let n = image_as_layout(&img, 4, &mut old);
+    let (_, old, n) = image_and_layout(&b, 4);
     assert_eq!(n, IMAGE_LEN_V4);
     assert_eq!(IMAGE_LEN_V5 - IMAGE_LEN_V4, 4 * 4 * 8);
     let mut d = Device::new(NODE, &Defaults::nominal());
@@ -1391,10 +1388,7 @@ fn layout_5_image_loads_without_lag() {
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     b.write_f32(0x2103, 7, 41.0).unwrap();
     b.write_f32(0x2105, 0, 300.0).unwrap();
-    let mut img = [0u8; IMAGE_LEN];
-    b.dev.persistent_image(&mut img);
-    let mut old = [0u8; IMAGE_LEN];
-    let n = image_as_layout(&img, 5, &mut old);
+    let (img, old, n) = image_and_layout(&b, 5);
     assert_eq!(n, IMAGE_LEN_V5);
     assert_eq!(IMAGE_LEN_V6 - IMAGE_LEN_V5, 4);
     let mut d = Device::new(NODE, &Defaults::nominal());
@@ -1659,10 +1653,7 @@ fn layout_6_image_loads_with_a_zero_stamp() {
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     b.write_f32(0x2105, 0, 300.0).unwrap();
     b.write_u32(0x2011, 1, 0xDEAD_BEEF).unwrap();
-    let mut img = [0u8; IMAGE_LEN];
-    b.dev.persistent_image(&mut img);
-    let mut old = [0u8; IMAGE_LEN];
-    let n = image_as_layout(&img, 6, &mut old);
+    let (img, old, n) = image_and_layout(&b, 6);
     assert_eq!(n, IMAGE_LEN_V6);
     assert_eq!(IMAGE_LEN_V7 - IMAGE_LEN_V6, 3 * 4);
     let mut b = Bus::new();
@@ -1676,6 +1667,16 @@ fn layout_6_image_loads_with_a_zero_stamp() {
     let mut forged = img;
     forged[0..4].copy_from_slice(&old[0..4]);
     assert_eq!(b.dev.load_image(&forged), Err(Error::ImageLayout));
+}
+
+/// The device's current image and the same values in the image of the
+/// older layout `layout` (its length `n`), as older firmware stored them.
+fn image_and_layout(b: &Bus, layout: u8) -> ([u8; IMAGE_LEN], [u8; IMAGE_LEN], usize) {
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = image_as_layout(&img, layout, &mut old);
+    (img, old, n)
 }
 
 /// Spot coefficients used below [mm per unit of tan²γ]: exact in `f32`.
@@ -1742,10 +1743,7 @@ fn layout_7_image_loads_keeping_the_spot_terms() {
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     b.write_f32(0x2104, 1, 51.0).unwrap();
     b.write_f32(0x2104, 24, 4.0).unwrap();
-    let mut img = [0u8; IMAGE_LEN];
-    b.dev.persistent_image(&mut img);
-    let mut old = [0u8; IMAGE_LEN];
-    let n = image_as_layout(&img, 7, &mut old);
+    let (_, old, n) = image_and_layout(&b, 7);
     assert_eq!((n, IMAGE_LEN - n), (IMAGE_LEN_V7, 8 * 4));
     let mut base = perpend_core::params::Params::factory();
     base.head.sensors[3].ext.spot = [SPOT[0], SPOT[1]];
