@@ -161,6 +161,8 @@ def test_write_protection_attacks_change_nothing(board):
         expect_abort(board, index, 2, struct.pack("<f", 0.0), TOO_LOW)
         expect_abort(board, index, 4, struct.pack("<f", 1e6), TOO_HIGH)
     expect_abort(board, 0x2101, 4, struct.pack("<f", 1.5), TOO_HIGH)
+    expect_abort(board, 0x2102, 24, struct.pack("<f", 10.5), TOO_HIGH)
+    expect_abort(board, 0x2103, 25, struct.pack("<f", -10.5), TOO_LOW)
     expect_abort(board, 0x2104, 14, struct.pack("<f", -60.0), TOO_LOW)
     for bad in (F32_NAN, F32_SNAN, F32_INF, F32_NINF):
         expect_abort(board, 0x2105, 0, bad, RANGE)

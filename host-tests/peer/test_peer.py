@@ -279,9 +279,11 @@ def test_linearity_table_through_the_eds_store_and_reset(board):
     sdo = board.node.sdo
     od = board.node.object_dictionary
     for index in (0x2101, 0x2102, 0x2103, 0x2104):
-        assert sdo[index][0].raw == 23
+        assert sdo[index][0].raw == 25
         assert od[index][16].name == "Linearity table knot 0 mm"
         assert od[index][23].name == "Linearity table value 2 mm"
+        assert od[index][24].name == "Spot bias cos mm"
+        assert od[index][25].name == "Spot bias sin mm"
     sdo[0x2010].raw = UNLOCK
     # a value on the default knots (all zero) is refused
     assert abort_code(lambda: sdo.download(0x2103, 21, struct.pack("<f", 0.001))) == RANGE

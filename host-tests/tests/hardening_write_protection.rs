@@ -490,8 +490,8 @@ fn nan_and_infinity_into_every_real32_calibration_object() {
         .into_iter()
         .filter(|(_, e)| e.ty == DataType::Real32)
         .collect();
-    // 0x2101..0x2104 sub 1..23, 0x2105 (thermal time constant), 0x2201..0x2204 sub 2..4
-    assert_eq!(reals.len(), 4 * 23 + 1 + 4 * 3);
+    // 0x2101..0x2104 sub 1..25, 0x2105 (thermal time constant), 0x2201..0x2204 sub 2..4
+    assert_eq!(reals.len(), 4 * 25 + 1 + 4 * 3);
     for (index, e) in reals {
         for v in nans {
             refused(&mut b, RANGE, index, e.sub, |b| {
@@ -545,8 +545,8 @@ fn writes_to_read_only_objects_are_refused() {
     refused(&mut b, NO_OBJECT, 0x1FFF, 0, |b| {
         Some(b.write_u32(0x1FFF, 0, 1))
     });
-    refused(&mut b, NO_SUB, 0x2101, 24, |b| {
-        Some(b.write_u32(0x2101, 24, 1))
+    refused(&mut b, NO_SUB, 0x2101, 26, |b| {
+        Some(b.write_u32(0x2101, 26, 1))
     });
     refused(&mut b, NO_SUB, 0x2300, 5, |b| {
         Some(b.write_u32(0x2300, 5, 1))

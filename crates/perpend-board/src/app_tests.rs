@@ -150,6 +150,21 @@ fn factory_boot_measures_and_sends_pdos() {
     );
 }
 
+/// The spot coefficients written over SDO (0x2101..0x2104 sub 24/25)
+/// reach the pipeline's sensors, and zero again clears them.
+#[test]
+fn spot_terms_written_reach_the_pipeline() {
+    let mut b = Bench::new(HostFlash::new());
+    b.write(0x2010, 0, &UNLOCK.to_le_bytes()).unwrap();
+    b.write_f32(0x2103, 24, 0.375).unwrap();
+    b.write_f32(0x2103, 25, -1.25).unwrap();
+    let spot = |b: &Bench| b.app.pipeline().params().head.sensors[2].ext.spot;
+    assert_eq!(spot(&b), [0.375, -1.25]);
+    assert_eq!(b.app.pipeline().params().head.sensors[1].ext.spot, [0.0; 2]);
+    b.write_f32(0x2103, 24, 0.0).unwrap();
+    assert_eq!(spot(&b), [0.0, -1.25]);
+}
+
 #[test]
 fn calibration_write_store_reboot() {
     let mut b = Bench::new(HostFlash::new());

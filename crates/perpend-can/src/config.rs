@@ -109,19 +109,22 @@ pub struct Identity {
 }
 
 /// Number of values of a sensor calibration object (0x2101..0x2104 sub
-/// 1..=23).
-pub const CAL_VALUES: usize = 15 + TABLE_KNOTS + TABLE_COEFFS;
+/// 1..=25).
+pub const CAL_VALUES: usize = 15 + TABLE_KNOTS + TABLE_COEFFS + 2;
 
 /// First sub-index of the linearity table's knots in 0x2101..0x2104.
 pub const CAL_SUB_KNOTS: u8 = 16;
 /// First sub-index of the linearity table's values in
 /// 0x2101..0x2104.
 pub const CAL_SUB_COEFFS: u8 = CAL_SUB_KNOTS + TABLE_KNOTS as u8;
+/// First sub-index of the two spot coefficients (cos φ, sin φ) in
+/// 0x2101..0x2104: right after the linearity table's values.
+pub const CAL_SUB_SPOT: u8 = CAL_SUB_COEFFS + TABLE_COEFFS as u8;
 
 /// Calibration of one sensor: objects 0x2101..0x2104, one per sensor.
 /// Sub-index order is the field order below (sub 1 = `zero[0]` ...
 /// sub 15 = `drift`, sub 16..20 the table's knots, sub 21..23 its
-/// values). Units: mm, mm/°C, °C, mm/s, mm⁻¹ as in
+/// values, sub 24..25 the spot coefficients). Units: mm, mm/°C, °C, mm/s, mm⁻¹ as in
 /// [`perpend_core::ext::Extension`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SensorCalibration {
@@ -153,6 +156,11 @@ pub struct SensorCalibration {
     /// Sub 21-23: values `v_0..v_2` \[mm\] of the linearity table at its
     /// interior knots (all zero: no table, the knots are ignored).
     pub coeffs: [f32; TABLE_COEFFS],
+    /// Sub 24-25: spot coefficients of the incidence correction \[mm per
+    /// unit of tan²γ\]: the bias `spot[0]·tan²γ·cos φ + spot[1]·tan²γ·sin φ`
+    /// ([`perpend_core::ext::Extension::spot`]; |spot| ≤ 10 mm as the
+    /// stored record).
+    pub spot: [f32; 2],
 }
 
 impl SensorCalibration {
@@ -184,6 +192,8 @@ impl SensorCalibration {
             c0,
             c1,
             c2,
+            self.spot[0],
+            self.spot[1],
         ]
     }
 
@@ -203,6 +213,7 @@ impl SensorCalibration {
             drift: v[14],
             knots: [v[15], v[16], v[17], v[18], v[19]],
             coeffs: [v[20], v[21], v[22]],
+            spot: [v[23], v[24]],
         }
     }
 
@@ -223,6 +234,7 @@ impl SensorCalibration {
             drift: f(s.ext.drift),
             knots: s.ext.table.knots.map(f),
             coeffs: s.ext.table.coeffs.map(f),
+            spot: s.ext.spot.map(f),
         }
     }
 
@@ -261,7 +273,7 @@ impl SensorCalibration {
         !t.is_active() || t.knots_valid()
     }
 
-    /// The extension coefficients (sub 7..23) as the core's type.
+    /// The extension coefficients (sub 7..25) as the core's type.
     pub fn extension<T: Real>(&self) -> Extension<T> {
         let c = |x: f32| T::lit(x as f64);
         Extension {
@@ -270,9 +282,7 @@ impl SensorCalibration {
             nonlinearity: [c(self.nl2), c(self.nl3)],
             table: self.table(),
             incidence: c(self.incidence),
-            // no object carries the spot terms yet: zero here, kept from
-            // the stored record by `Device::params`
-            spot: [T::zero(); 2],
+            spot: self.spot.map(c),
             crosstalk: c(self.crosstalk),
             thermal: c(self.thermal),
             temp_ref: c(self.temp_ref),
@@ -698,7 +708,10 @@ mod tests {
         // sub 16..20 are the knots, 21..23 the coefficients
         assert_eq!(c.knots[0], a[CAL_SUB_KNOTS as usize - 1]);
         assert_eq!(c.coeffs[0], a[CAL_SUB_COEFFS as usize - 1]);
-        assert_eq!(c.coeffs[TABLE_COEFFS - 1], a[CAL_VALUES - 1]);
+        assert_eq!(c.coeffs[TABLE_COEFFS - 1], a[CAL_SUB_SPOT as usize - 2]);
+        // sub 24..25 the spot coefficients, the last values
+        assert_eq!(c.spot, [a[CAL_VALUES - 2], a[CAL_VALUES - 1]]);
+        assert_eq!(CAL_SUB_SPOT as usize + 1, CAL_VALUES);
     }
 
     fn table_sensor() -> Sensor<f64> {

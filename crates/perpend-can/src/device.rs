@@ -18,8 +18,8 @@ use perpend_core::params::Params;
 
 use crate::config::{
     bitrate_of, Acquisition, Communication, Defaults, Measurement, SensorCalibration, SurfaceModel,
-    TransferFunction, CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_VALUES, SURFACE_AXIS_MIN_LEN,
-    SURFACE_CYLINDER, SURFACE_RADIUS_MIN_MM,
+    TransferFunction, CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_SUB_SPOT, CAL_VALUES,
+    SURFACE_AXIS_MIN_LEN, SURFACE_CYLINDER, SURFACE_RADIUS_MIN_MM,
 };
 use crate::frame::Frame;
 pub use crate::od::Group;
@@ -177,6 +177,11 @@ pub const IMAGE_LEN_V5: usize = 8 + 4 * od::PERSISTENT_V5;
 /// Length of an image of layout 6 (firmware before the calibration stamp
 /// 0x2011): still accepted by [`Device::load_image`] (the stamp stays 0).
 pub const IMAGE_LEN_V6: usize = 8 + 4 * od::PERSISTENT_V6;
+
+/// Length of an image of layout 7 (firmware before the spot coefficients,
+/// 0x2101..0x2104 sub 24..25): still accepted by [`Device::load_image`]
+/// (the spot coefficients keep their current values).
+pub const IMAGE_LEN_V7: usize = 8 + 4 * od::PERSISTENT_V7;
 
 /// FNV-1a over (index, sub, type) of the entries persisted by image layout
 /// `layout` ([`od::Entry::since`]): changes when the persisted layout
@@ -1124,7 +1129,7 @@ impl Core {
     /// the knots before the coefficients, and zero the coefficients before
     /// changing the knots of an active table.
     fn check_table(&self, index: u16, sub: u8, v: u32) -> Result<(), SdoAbort> {
-        if sub < CAL_SUB_KNOTS {
+        if !(CAL_SUB_KNOTS..CAL_SUB_SPOT).contains(&sub) {
             return Ok(());
         }
         let value = |s: u8| {
@@ -1848,14 +1853,11 @@ impl Device {
         let mut p = *base;
         for (i, s) in p.head.sensors.iter_mut().enumerate() {
             if let Some(c) = self.calibration(i) {
-                // the spot terms have no object: kept from `base`
-                let spot = s.ext.spot;
                 *s = c.to_sensor::<f32>().unwrap_or(Sensor {
                     zero: nalgebra::Vector3::from(c.zero),
                     dir: nalgebra::Vector3::from(c.dir),
                     ext: c.extension(),
                 });
-                s.ext.spot = spot;
             }
         }
         for (i, t) in p.transfer.iter_mut().enumerate() {
@@ -1906,6 +1908,7 @@ impl Device {
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
         let layout = match img.len() {
             IMAGE_LEN => od::LAYOUT,
+            IMAGE_LEN_V7 => 7,
             IMAGE_LEN_V6 => 6,
             IMAGE_LEN_V5 => 5,
             IMAGE_LEN_V4 => 4,

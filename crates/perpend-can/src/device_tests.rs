@@ -1178,11 +1178,12 @@ fn write_table(b: &mut Bus, index: u16) {
 
 /// The linearity table (0x2101..0x2104 sub 16..23) goes in and out by
 /// SDO bit for bit, reaches the typed view, the stored record bridge and
-/// the persistence image, and sub 0 announces 23.
+/// the persistence image, and sub 0 announces 25 (the spot coefficients
+/// follow the table).
 #[test]
 fn linearity_table_round_trips_through_sdo() {
     let mut b = Bus::new();
-    assert_eq!(b.upload(0x2103, 0).unwrap(), vec![23]);
+    assert_eq!(b.upload(0x2103, 0).unwrap(), vec![25]);
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     write_table(&mut b, 0x2103);
     for (k, v) in KNOTS.iter().chain(COEFFS.iter()).enumerate() {
@@ -1258,10 +1259,7 @@ fn layout_4_image_loads() {
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     b.write_f32(0x2104, 7, 42.0).unwrap();
     write_table(&mut b, 0x2104);
-    let mut img = [0u8; IMAGE_LEN];
-    b.dev.persistent_image(&mut img);
-    let mut old = [0u8; IMAGE_LEN];
-    let n = image_as_layout(&img, 4, &mut old);
+    let (_, old, n) = image_and_layout(&b, 4);
     assert_eq!(n, IMAGE_LEN_V4);
     assert_eq!(IMAGE_LEN_V5 - IMAGE_LEN_V4, 4 * 4 * 8);
     let mut d = Device::new(NODE, &Defaults::nominal());
@@ -1390,10 +1388,7 @@ fn layout_5_image_loads_without_lag() {
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     b.write_f32(0x2103, 7, 41.0).unwrap();
     b.write_f32(0x2105, 0, 300.0).unwrap();
-    let mut img = [0u8; IMAGE_LEN];
-    b.dev.persistent_image(&mut img);
-    let mut old = [0u8; IMAGE_LEN];
-    let n = image_as_layout(&img, 5, &mut old);
+    let (img, old, n) = image_and_layout(&b, 5);
     assert_eq!(n, IMAGE_LEN_V5);
     assert_eq!(IMAGE_LEN_V6 - IMAGE_LEN_V5, 4);
     let mut d = Device::new(NODE, &Defaults::nominal());
@@ -1658,12 +1653,9 @@ fn layout_6_image_loads_with_a_zero_stamp() {
     b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
     b.write_f32(0x2105, 0, 300.0).unwrap();
     b.write_u32(0x2011, 1, 0xDEAD_BEEF).unwrap();
-    let mut img = [0u8; IMAGE_LEN];
-    b.dev.persistent_image(&mut img);
-    let mut old = [0u8; IMAGE_LEN];
-    let n = image_as_layout(&img, 6, &mut old);
+    let (img, old, n) = image_and_layout(&b, 6);
     assert_eq!(n, IMAGE_LEN_V6);
-    assert_eq!(IMAGE_LEN - IMAGE_LEN_V6, 3 * 4);
+    assert_eq!(IMAGE_LEN_V7 - IMAGE_LEN_V6, 3 * 4);
     let mut b = Bus::new();
     b.dev.load_image(&old[..n]).unwrap();
     assert_eq!(b.dev.thermal_tau_s(), 300.0);
@@ -1675,6 +1667,91 @@ fn layout_6_image_loads_with_a_zero_stamp() {
     let mut forged = img;
     forged[0..4].copy_from_slice(&old[0..4]);
     assert_eq!(b.dev.load_image(&forged), Err(Error::ImageLayout));
+}
+
+/// The device's current image and the same values in the image of the
+/// older layout `layout` (its length `n`), as older firmware stored them.
+fn image_and_layout(b: &Bus, layout: u8) -> ([u8; IMAGE_LEN], [u8; IMAGE_LEN], usize) {
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let mut old = [0u8; IMAGE_LEN];
+    let n = image_as_layout(&img, layout, &mut old);
+    (img, old, n)
+}
+
+/// Spot coefficients used below [mm per unit of tan²γ]: exact in `f32`.
+const SPOT: [f32; 2] = [0.375, -1.25];
+
+/// The spot coefficients (0x2101..0x2104 sub 24/25) go in and out by SDO
+/// bit for bit and reach the typed view and the stored record the device
+/// describes, over a base record whose own spot terms are different.
+#[test]
+fn spot_terms_round_trip_through_sdo_into_params() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    for (k, v) in SPOT.iter().enumerate() {
+        b.write_f32(0x2102, CAL_SUB_SPOT + k as u8, *v).unwrap();
+        let got = b.upload(0x2102, CAL_SUB_SPOT + k as u8).unwrap();
+        assert_eq!(got, v.to_le_bytes().to_vec(), "sub {}", 24 + k);
+    }
+    assert_eq!(b.dev.calibration(1).unwrap().spot, SPOT);
+    assert_eq!(b.dev.calibration(0).unwrap().spot, [0.0; 2]);
+    let mut base = perpend_core::params::Params::factory();
+    for s in base.head.sensors.iter_mut() {
+        s.ext.spot = [2.0, 3.0];
+    }
+    let p = b.dev.params(&base);
+    assert_eq!(p.head.sensors[1].ext.spot, SPOT);
+    // the objects are the truth: a zero object clears the base's terms
+    assert_eq!(p.head.sensors[0].ext.spot, [0.0; 2]);
+    assert!(p.validate().is_ok());
+    // and a record with spot terms loads into the objects
+    let mut d = Bus::new();
+    d.dev.load_params(&base).unwrap();
+    assert_eq!(d.dev.calibration(3).unwrap().spot, [2.0, 3.0]);
+}
+
+/// A spot coefficient beyond ±10 mm (the stored record's bound) or not
+/// finite is refused on write with the per-entry limit aborts, the value
+/// unchanged.
+#[test]
+fn spot_terms_out_of_bounds_are_refused() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2101, 24, 9.5).unwrap();
+    assert_eq!(b.write_f32(0x2101, 24, 10.5), Err(0x0609_0031));
+    assert_eq!(b.write_f32(0x2101, 25, -10.5), Err(0x0609_0032));
+    assert!(b.write_f32(0x2101, 25, f32::NAN).is_err());
+    assert_eq!(b.dev.calibration(0).unwrap().spot, [9.5, 0.0]);
+    let mut p = perpend_core::params::Params::factory();
+    p.head.sensors[0].ext.spot = [0.0, 10.5];
+    assert_eq!(
+        b.dev.load_params(&p),
+        Err(Error::Value {
+            index: 0x2101,
+            sub: 25
+        })
+    );
+}
+
+/// An image written before layout 8 (no spot objects) loads; the spot
+/// coefficients keep their current values (those of the stored record
+/// the board loaded first).
+#[test]
+fn layout_7_image_loads_keeping_the_spot_terms() {
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2104, 1, 51.0).unwrap();
+    b.write_f32(0x2104, 24, 4.0).unwrap();
+    let (_, old, n) = image_and_layout(&b, 7);
+    assert_eq!((n, IMAGE_LEN - n), (IMAGE_LEN_V7, 8 * 4));
+    let mut base = perpend_core::params::Params::factory();
+    base.head.sensors[3].ext.spot = [SPOT[0], SPOT[1]];
+    let mut b = Bus::new();
+    b.dev.load_params(&base).unwrap();
+    b.dev.load_image(&old[..n]).unwrap();
+    let c = b.dev.calibration(3).unwrap();
+    assert_eq!((c.zero[0], c.spot), (51.0, SPOT));
 }
 
 /// CiA 302-3 program download through the device: 0x1F50 by block

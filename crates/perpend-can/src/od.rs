@@ -168,7 +168,8 @@ pub struct Entry {
     /// the surface model 0x2310), 4 (issue 16: heartbeat consumer, SYNC
     /// counter, error behaviour, acquisition trigger, RPDO1, capture), 5
     /// (the linearity tables, 0x2101..0x2104 sub 16..23), 6 (the head's
-    /// thermal time constant 0x2105) or 7 (the calibration stamp 0x2011).
+    /// thermal time constant 0x2105), 7 (the calibration stamp 0x2011) or
+    /// 8 (the spot coefficients, 0x2101..0x2104 sub 24..25).
     /// Images of an older layout lack it and still load (the entry keeps
     /// its current value).
     pub since: u8,
@@ -231,6 +232,10 @@ impl Entry {
     }
     const fn v7(mut self) -> Self {
         self.since = 7;
+        self
+    }
+    const fn v8(mut self) -> Self {
+        self.since = 8;
         self
     }
 }
@@ -319,6 +324,11 @@ const fn cal(sensor: u8, sub: u8, name: &'static str, lo: f32, hi: f32) -> Entry
         .limits(Limits::Real(lo, hi))
         .init(Init::Calibration(sensor, sub - 1))
 }
+
+/// Largest magnitude of a spot coefficient, 0x2101..0x2104 sub 24..25
+/// \[mm per unit of tan²γ\] (`perpend_core::params::SPOT_MAX_MM`, the
+/// bound of the stored record).
+pub const SPOT_MAX_MM: f32 = perpend_core::params::SPOT_MAX_MM;
 
 /// Upper limit of 0x2105, the head's thermal time constant \[s\]
 /// (`perpend_core::params::THERMAL_TAU_MAX_S`).
@@ -452,7 +462,7 @@ pub const MAX_MAPPED: usize = 8;
 macro_rules! sensor_cal {
     ($s:expr) => {
         &[
-            sub0(23),
+            sub0(25),
             cal($s, 1, "Zero point x mm", -1000.0, 1000.0),
             cal($s, 2, "Zero point y mm", -1000.0, 1000.0),
             cal($s, 3, "Zero point z mm", -1000.0, 1000.0),
@@ -476,6 +486,8 @@ macro_rules! sensor_cal {
             cal($s, 21, "Linearity table value 0 mm", -1.0, 1.0).v5(),
             cal($s, 22, "Linearity table value 1 mm", -1.0, 1.0).v5(),
             cal($s, 23, "Linearity table value 2 mm", -1.0, 1.0).v5(),
+            cal($s, 24, "Spot bias cos mm", -SPOT_MAX_MM, SPOT_MAX_MM).v8(),
+            cal($s, 25, "Spot bias sin mm", -SPOT_MAX_MM, SPOT_MAX_MM).v8(),
         ]
     };
 }
@@ -1169,7 +1181,7 @@ const fn count_persist(layout: u8) -> usize {
 /// slots of a [`crate::Device`].
 pub const ENTRIES: usize = count_entries();
 /// The current image layout (see [`Entry::since`]).
-pub const LAYOUT: u8 = 7;
+pub const LAYOUT: u8 = 8;
 /// Number of entries stored by 0x1010.
 pub const PERSISTENT: usize = count_persist(LAYOUT);
 /// Number of entries an image of layout 1 (before issue 16) holds.
@@ -1189,6 +1201,9 @@ pub const PERSISTENT_V5: usize = count_persist(5);
 /// Number of entries an image of layout 6 (before the calibration stamp
 /// 0x2011 of layout 7) holds.
 pub const PERSISTENT_V6: usize = count_persist(6);
+/// Number of entries an image of layout 7 (before the spot coefficients,
+/// 0x2101..0x2104 sub 24..25, of layout 8) holds.
+pub const PERSISTENT_V7: usize = count_persist(7);
 
 /// The slot of 0x2011 sub 3, the store count of the calibration stamp:
 /// read-only, persisted, one more in the image of every 0x1010 store of the
@@ -1424,7 +1439,8 @@ mod tests {
                     && PERSISTENT_V3 < PERSISTENT_V4
                     && PERSISTENT_V4 < PERSISTENT_V5
                     && PERSISTENT_V5 + 1 == PERSISTENT_V6
-                    && PERSISTENT_V6 + 3 == PERSISTENT
+                    && PERSISTENT_V6 + 3 == PERSISTENT_V7
+                    && PERSISTENT_V7 + 4 * 2 == PERSISTENT
             )
         };
     }
@@ -1434,8 +1450,8 @@ mod tests {
         assert_eq!(find(0x1234, 0), Err(Lookup::NoObject));
         assert_eq!(find(0x1018, 5), Err(Lookup::NoSub));
         assert_eq!(find(0x1800, 4), Err(Lookup::NoSub));
-        assert!(find(0x2104, 23).is_ok());
-        assert_eq!(find(0x2104, 24), Err(Lookup::NoSub));
+        assert!(find(0x2104, 25).is_ok());
+        assert_eq!(find(0x2104, 26), Err(Lookup::NoSub));
         assert!(find(0x2105, 0).is_ok());
         assert_eq!(find(0x2105, 1), Err(Lookup::NoSub));
         assert_eq!(find(0x2106, 0), Err(Lookup::NoObject));

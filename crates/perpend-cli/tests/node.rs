@@ -216,11 +216,14 @@ fn push_reset_pull_round_trip() {
     let b = Board::start(&[]);
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("params.json");
-    let file = params_file(&p, 4);
+    let mut file = params_file(&p, 4);
+    // spot terms on one sensor (exact in REAL32): 0x2101.. sub 24/25
+    file.sensors[1].ext.spot_mm = Some([0.375, -1.25]);
+    file.write(&p).unwrap();
     let info = ok(&b.node(&["info"]));
     assert!(info.contains("stamp         none stored"), "{info}");
     let out = ok(&b.node(&["push", p.to_str().unwrap()]));
-    assert!(out.contains("109 values written"), "{out}");
+    assert!(out.contains("117 values written"), "{out}");
     assert!(
         out.contains("read back identical after the boot-up"),
         "{out}"
@@ -259,8 +262,15 @@ fn push_reset_pull_round_trip() {
         assert_eq!(g.zero_mm, a.zero_mm.map(f));
         assert_eq!(g.dir, a.dir.map(f));
         assert_eq!(g.ext.gain, f(a.ext.gain));
+        assert_eq!(g.ext.spot_mm, a.ext.spot_mm);
         assert_eq!(g.transfer, a.transfer);
     }
+    assert_eq!(got.sensors[1].ext.spot_mm, Some([0.375, -1.25]));
+    assert!(
+        got.model.split('+').any(|m| m == "incidence"),
+        "{}",
+        got.model
+    );
     // The pulled file is accepted by push and changes nothing.
     let out = ok(&b.node(&["push", back.to_str().unwrap()]));
     assert!(out.contains("(0 changed"), "{out}");

@@ -8,9 +8,12 @@
 //! 2. the NMT state from the heartbeat: a board in operational (or
 //!    stopped) is refused unless `--preop`, which switches it to
 //!    pre-operational (the robot controller may be using its PDOs);
-//! 3. unlock (0x2010 ← "ucal"), write every value of 0x2101.. (23 per
+//! 3. unlock (0x2010 ← "ucal"), write every value of 0x2101.. (25 per
 //!    sensor: sub 1..15, the linearity table's knots 16..20 and
-//!    values 21..23, zeros when the file has no table), the head's thermal
+//!    values 21..23, zeros when the file has no table, the spot
+//!    coefficients 24..25 from `ext.spot_mm`, zeros when absent; firmware
+//!    before them, sub 0 = 23, is refused when the file has spot terms and
+//!    gets sub 1..23 when not), the head's thermal
 //!    time constant 0x2105 (`thermal_tau_s`; firmware without the object
 //!    is refused when the file has τ > 0 and left alone when τ = 0) and,
 //!    when the file has them, 0x2201.. (4 per sensor), then read each one
@@ -51,7 +54,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_can::config::{CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_VALUES};
+use perpend_can::config::{CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_SUB_SPOT, CAL_VALUES};
 use perpend_can::od::{self, Limits, SAVE_SIGNATURE, UNLOCK_SIGNATURE};
 use perpend_lab::paramfile::{
     CalibrationStamp, ExtParams, ParamFile, SensorParams, TableParams, TransferParams,
@@ -87,7 +90,7 @@ pub struct PullArgs {
     pub out: Option<PathBuf>,
 }
 
-/// Names of the calibration sub-indices 1..23.
+/// Names of the calibration sub-indices 1..25.
 const CAL_NAMES: [&str; CAL_VALUES] = [
     "zero x",
     "zero y",
@@ -112,11 +115,15 @@ const CAL_NAMES: [&str; CAL_VALUES] = [
     "linearity table value 0",
     "linearity table value 1",
     "linearity table value 2",
+    "spot cos",
+    "spot sin",
 ];
 /// Index of the first knot and the first coefficient in the calibration
 /// values (sub-index − 1).
 const KNOT0: usize = CAL_SUB_KNOTS as usize - 1;
 const COEFF0: usize = CAL_SUB_COEFFS as usize - 1;
+/// Index of the first spot coefficient in the calibration values.
+const SPOT0: usize = CAL_SUB_SPOT as usize - 1;
 /// Names of the transfer-function sub-indices 1..4.
 const TF_NAMES: [&str; 4] = ["kind", "scale", "mm at 4 mA / 0 V", "mm at 20 mA / 10 V"];
 
@@ -254,7 +261,7 @@ fn real(index: u16, sub: u8, label: String, v: f64) -> Result<Value> {
     })
 }
 
-/// The values of sub 1..23 (a missing table as zeros: no table).
+/// The values of sub 1..25 (a missing table or spot as zeros: none).
 fn calibration_values(s: &SensorParams) -> [f64; CAL_VALUES] {
     let e = &s.ext;
     let t = e.linearity_table.unwrap_or(TableParams {
@@ -263,6 +270,7 @@ fn calibration_values(s: &SensorParams) -> [f64; CAL_VALUES] {
     });
     let [k0, k1, k2, k3, k4] = t.knots_mm;
     let [c0, c1, c2] = t.values_mm;
+    let [s0, s1] = e.spot_mm.unwrap_or([0.0; 2]);
     [
         s.zero_mm[0],
         s.zero_mm[1],
@@ -287,6 +295,8 @@ fn calibration_values(s: &SensorParams) -> [f64; CAL_VALUES] {
         c0,
         c1,
         c2,
+        s0,
+        s1,
     ]
 }
 
@@ -295,7 +305,7 @@ fn calibration_values(s: &SensorParams) -> [f64; CAL_VALUES] {
 /// `f32` resolves collapse).
 fn check_table(i: usize, c: &[f64; CAL_VALUES]) -> Result<()> {
     let f = |k: usize| c[k] as f32;
-    let active = (COEFF0..CAL_VALUES).any(|k| f(k) != 0.0);
+    let active = (COEFF0..SPOT0).any(|k| f(k) != 0.0);
     if active && !(KNOT0..COEFF0 - 1).all(|k| f(k + 1) > f(k)) {
         bail!(
             "sensor {} linearity table: the knots {:?} are not strictly ascending as the board \
@@ -349,8 +359,9 @@ pub fn plan(file: &ParamFile) -> Result<Vec<Value>> {
 
 /// Drops the thermal time constant from `values` when the board's
 /// firmware has no 0x2105 and the file asks for no lag; refuses a lag it
-/// cannot hold.
+/// cannot hold. The same for the spot coefficients ([`fit_spot`]).
 fn fit_to_board(node: &mut Node, file: &ParamFile, values: &mut Vec<Value>) -> Result<()> {
+    fit_spot(node, file, values)?;
     match node.client.upload(node.id, TAU_INDEX, 0) {
         Err(e) if e.abort_code() == Some(0x0602_0000) => {
             if file.thermal_tau_s != 0.0 {
@@ -366,6 +377,31 @@ fn fit_to_board(node: &mut Node, file: &ParamFile, values: &mut Vec<Value>) -> R
         }
         r => r.map(|_| ()).map_err(Into::into),
     }
+}
+
+/// Drops the spot coefficients (0x2101.. sub 24..25) from `values` when
+/// the board's firmware has none (0x2101 sub 0 below 25) and the file has
+/// none either; refuses spot terms the board cannot hold (it would keep
+/// whatever its stored record has).
+fn fit_spot(node: &mut Node, file: &ParamFile, values: &mut Vec<Value>) -> Result<()> {
+    let highest = node.client.read_u32(node.id, 0x2101, 0)?;
+    if highest > u32::from(CAL_SUB_SPOT) {
+        return Ok(());
+    }
+    if let Some(s) = file.sensors.iter().find(|s| s.ext.spot_mm.is_some()) {
+        bail!(
+            "sensor {} has ext.spot_mm {:?}, but {} has no spot objects (0x2101 sub 0 = \
+             {highest}: firmware before 0x2101..0x2104 sub 24/25) and would keep the spot \
+             terms of its stored record; update its firmware or drop the spot terms. Nothing \
+             was written",
+            s.sensor,
+            s.ext.spot_mm.unwrap_or_default(),
+            node.name()
+        );
+    }
+    let cal = 0x2101..=0x2104u16;
+    values.retain(|v| !(cal.contains(&v.index) && v.sub >= CAL_SUB_SPOT));
+    Ok(())
 }
 
 /// The calibration stamp object (record hash, UTC seconds, store count).
@@ -546,7 +582,7 @@ fn clear_table(node: &mut Node, values: &[Value], before: &[Vec<u8>], index: u16
     for (v, b) in values.iter().zip(before).filter(|(v, _)| v.index == index) {
         if (CAL_SUB_KNOTS..CAL_SUB_COEFFS).contains(&v.sub) {
             knots_change |= v.bytes != *b;
-        } else if v.sub >= CAL_SUB_COEFFS {
+        } else if (CAL_SUB_COEFFS..CAL_SUB_SPOT).contains(&v.sub) {
             active |= <[u8; 4]>::try_from(b.as_slice()).is_ok_and(|x| f32::from_le_bytes(x) != 0.0);
         }
     }
@@ -792,7 +828,8 @@ fn model_name(sensors: &[SensorParams]) -> String {
     for (name, f) in [
         (
             "incidence",
-            (|e: &ExtParams| e.incidence_mm != 0.0) as fn(&ExtParams) -> bool,
+            (|e: &ExtParams| e.incidence_mm != 0.0 || e.spot_mm.is_some())
+                as fn(&ExtParams) -> bool,
         ),
         ("crosstalk", |e| e.crosstalk != 0.0),
         ("thermal", |e| e.thermal_mm_per_c != 0.0),
@@ -809,9 +846,10 @@ fn model_name(sensors: &[SensorParams]) -> String {
     }
 }
 
-/// One sensor's parameters from its 23 calibration values and transfer
+/// One sensor's parameters from its 25 calibration values and transfer
 /// (a table only when a coefficient is non-zero: otherwise the board
-/// applies none and its knots mean nothing).
+/// applies none and its knots mean nothing; spot terms only when one is
+/// non-zero, as the lab writes them).
 fn sensor_params(i: usize, c: &[f64; CAL_VALUES], t: Option<TransferParams>) -> SensorParams {
     let mut dir = [c[3], c[4], c[5]];
     let len = dir.iter().map(|x| x * x).sum::<f64>().sqrt();
@@ -832,23 +870,27 @@ fn sensor_params(i: usize, c: &[f64; CAL_VALUES], t: Option<TransferParams>) -> 
             gain: c[7],
             nonlinearity: [c[8], c[9]],
             incidence_mm: c[10],
-            // no object carries the spot terms (0x2101.. sub 11 is the
-            // symmetric term only)
-            spot_mm: None,
+            spot_mm: c[SPOT0..]
+                .iter()
+                .any(|x| *x != 0.0)
+                .then(|| [c[SPOT0], c[SPOT0 + 1]]),
             crosstalk: c[11],
             thermal_mm_per_c: c[12],
             temp_ref_c: c[13],
             drift_mm_per_s: c[14],
-            linearity_table: c[COEFF0..].iter().any(|x| *x != 0.0).then(|| TableParams {
-                knots_mm: [
-                    c[KNOT0],
-                    c[KNOT0 + 1],
-                    c[KNOT0 + 2],
-                    c[KNOT0 + 3],
-                    c[KNOT0 + 4],
-                ],
-                values_mm: [c[COEFF0], c[COEFF0 + 1], c[COEFF0 + 2]],
-            }),
+            linearity_table: c[COEFF0..SPOT0]
+                .iter()
+                .any(|x| *x != 0.0)
+                .then(|| TableParams {
+                    knots_mm: [
+                        c[KNOT0],
+                        c[KNOT0 + 1],
+                        c[KNOT0 + 2],
+                        c[KNOT0 + 3],
+                        c[KNOT0 + 4],
+                    ],
+                    values_mm: [c[COEFF0], c[COEFF0 + 1], c[COEFF0 + 2]],
+                }),
         },
         correction: None,
         sigma: None,
@@ -857,6 +899,17 @@ fn sensor_params(i: usize, c: &[f64; CAL_VALUES], t: Option<TransferParams>) -> 
         readings: 0,
         identifiability: None,
         transfer: t,
+    }
+}
+
+/// Reads calibration value `sub` of sensor `i`; a spot coefficient the
+/// firmware has no object for (abort 0x06090011, before sub 24/25) reads
+/// as 0: no object shows what such a board applies.
+fn read_cal(node: &mut Node, i: usize, sub: u8) -> Result<f64> {
+    match node.client.read_f32(node.id, 0x2101 + i as u16, sub) {
+        Ok(v) => Ok(v as f64),
+        Err(e) if sub >= CAL_SUB_SPOT && e.abort_code() == Some(0x0609_0011) => Ok(0.0),
+        Err(e) => Err(e.into()),
     }
 }
 
@@ -876,7 +929,7 @@ pub fn pull(node: &mut Node, cancel: &AtomicBool) -> Result<ParamFile> {
             if cancel.load(Ordering::SeqCst) {
                 bail!("interrupted (Ctrl-C): nothing was written");
             }
-            *v = node.client.read_f32(id, 0x2101 + i as u16, k as u8 + 1)? as f64;
+            *v = read_cal(node, i, k as u8 + 1)?;
             bar.inc();
         }
         let tf = 0x2201 + i as u16;

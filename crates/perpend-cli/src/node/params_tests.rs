@@ -31,6 +31,22 @@ struct BoardPeer {
     cal_writes: usize,
     /// Answer 0x2011 like a firmware without it (abort 0x06020000).
     no_stamp: bool,
+    /// Answer 0x2101..0x2104 like a firmware before the spot coefficients
+    /// (sub 0 = 23, sub 24/25 abort 0x06090011).
+    no_spot: bool,
+}
+
+/// The answer of a firmware before the spot coefficients to an SDO
+/// initiate `d` addressed to 0x2101..0x2104 (`None`: as the board).
+fn pre_spot_answer(d: &[u8; 8]) -> Option<[u8; 8]> {
+    if d[2] != 0x21 || !(1..=4).contains(&d[1]) {
+        return None;
+    }
+    match d[3] {
+        0 if d[0] >> 5 == 2 => Some([0x4F, d[1], d[2], 0, 23, 0, 0, 0]),
+        24.. => Some([0x80, d[1], d[2], d[3], 0x11, 0x00, 0x09, 0x06]),
+        _ => None,
+    }
 }
 
 impl Peer for BoardPeer {
@@ -47,6 +63,13 @@ impl Peer for BoardPeer {
         if self.no_stamp && f.id == 0x600 + NODE as u16 && initiate && d[1..3] == [0x11, 0x20] {
             let abort = [0x80, d[1], d[2], d[3], 0x00, 0x00, 0x02, 0x06];
             out.push(Frame::new(0x580 + NODE as u16, &abort));
+            return;
+        }
+        let old = (self.no_spot && f.id == 0x600 + NODE as u16 && initiate)
+            .then(|| pre_spot_answer(&d))
+            .flatten();
+        if let Some(r) = old {
+            out.push(Frame::new(0x580 + NODE as u16, &r));
             return;
         }
         self.board
@@ -69,10 +92,10 @@ struct Rig {
 }
 
 fn rig(cancel_after: Option<usize>) -> Rig {
-    rig_with(cancel_after, false)
+    rig_with(cancel_after, false, false)
 }
 
-fn rig_with(cancel_after: Option<usize>, no_stamp: bool) -> Rig {
+fn rig_with(cancel_after: Option<usize>, no_stamp: bool, no_spot: bool) -> Rig {
     let plane = Plane::from_abcd(0.02, -0.03, 1.0, -45.0).unwrap();
     let sim = SimHead::new(Params::factory().head.cast(), plane, 0.002, 3).unwrap();
     let cfg = BoardConfig {
@@ -90,6 +113,7 @@ fn rig_with(cancel_after: Option<usize>, no_stamp: bool) -> Rig {
         cancel_after,
         cal_writes: 0,
         no_stamp,
+        no_spot,
     };
     // Boot (the first poll sends the boot-up) and take a few samples.
     let mut early = Vec::new();
@@ -162,7 +186,7 @@ fn push_stores_and_pull_reads_the_same_values() {
     let before = pull(&mut r.node, &r.cancel).unwrap();
     assert_eq!(before.model, "base");
     let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
-    assert_eq!(rep.values, 4 * 27 + 1);
+    assert_eq!(rep.values, 4 * 29 + 1);
     assert!(rep.changed >= 4 * 3, "{rep:?}");
     assert!(rep
         .to_string()
@@ -218,7 +242,7 @@ fn an_interrupted_push_stores_nothing_and_resets_to_the_stored_calibration() {
         "{e}"
     );
     assert!(
-        e.contains("interrupted (Ctrl-C) after 20 of 109 writes"),
+        e.contains("interrupted (Ctrl-C) after 20 of 117 writes"),
         "{e}"
     );
     assert_eq!(r.board.lock().unwrap().app().stores(), 0);
@@ -339,7 +363,7 @@ fn a_table_the_board_would_refuse_is_named_before_any_write() {
     );
     // the same knots without coefficients: no table, nothing to refuse
     f.sensors[2].ext.linearity_table = table([-6.0, -3.0, 0.0, 2.0, 2.0 + 1e-9], [0.0; 3]);
-    assert_eq!(plan(&f).unwrap().len(), 4 * 27 + 1);
+    assert_eq!(plan(&f).unwrap().len(), 4 * 29 + 1);
 }
 
 /// The thermal time constant: out of the board's range it is named before
@@ -447,7 +471,7 @@ fn push_stamps_the_calibration_and_pull_reads_the_stamp() {
 fn a_firmware_without_the_stamp_is_pushed_without_one() {
     let dir = tempfile::tempdir().unwrap();
     let path = params_file(dir.path(), 4);
-    let mut r = rig_with(None, true);
+    let mut r = rig_with(None, true, false);
     let rep = push(&mut r.node, &args(path), &r.cancel).unwrap();
     assert_eq!(rep.stamp, None);
     assert_eq!(r.board.lock().unwrap().app().stores(), 1);
@@ -462,4 +486,91 @@ fn a_firmware_without_the_stamp_is_pushed_without_one() {
         .unwrap()
         .calibration_stamp
         .is_none());
+}
+
+/// Spot coefficients exact in `f32` [mm per unit of tan²γ].
+const SPOT: [f64; 2] = [0.375, -1.25];
+
+/// The spot coefficients go to the board (sub 24/25), are read back in
+/// the push's verification and come back in pull on their sensor only,
+/// with "incidence" among the model's effects and no linearity table made
+/// of them; a push without them clears the board's (the objects are what
+/// the board applies).
+#[test]
+fn spot_terms_push_and_pull() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut f = ParamFile::read(&path).unwrap();
+    f.sensors[2].ext.spot_mm = Some(SPOT);
+    f.write(&path).unwrap();
+    let mut r = rig(None);
+    push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert_eq!(back.sensors[2].ext.spot_mm, Some(SPOT));
+    assert!([0, 1, 3]
+        .iter()
+        .all(|&i| back.sensors[i].ext.spot_mm.is_none()));
+    assert!(back.sensors.iter().all(|s| s.ext.linearity_table.is_none()));
+    assert!(
+        back.model.split('+').any(|m| m == "incidence"),
+        "{}",
+        back.model
+    );
+    let p = r
+        .board
+        .lock()
+        .unwrap()
+        .app()
+        .device()
+        .params(&Params::factory());
+    assert_eq!(p.head.sensors[2].ext.spot, SPOT.map(|x| x as f32));
+    f.sensors[2].ext.spot_mm = None;
+    f.write(&path).unwrap();
+    // only the two spot objects differ from what the board holds
+    assert_eq!(
+        push(&mut r.node, &args(path), &r.cancel).unwrap().changed,
+        2
+    );
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert!(back.sensors.iter().all(|s| s.ext.spot_mm.is_none()));
+    assert!(!back.model.contains("incidence"), "{}", back.model);
+}
+
+/// A spot coefficient beyond the board's ±10 mm is named before any
+/// write.
+#[test]
+fn a_spot_term_beyond_the_board_range_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut f = ParamFile::read(&params_file(dir.path(), 4)).unwrap();
+    f.sensors[1].ext.spot_mm = Some([0.0, 10.5]);
+    let e = format!("{:#}", plan(&f).unwrap_err());
+    assert!(e.contains("sensor 2 spot sin"), "{e}");
+}
+
+/// A firmware before the spot objects (0x2101 sub 0 = 23): a file with
+/// spot terms is refused before any write, naming sensor and firmware;
+/// a file without them is pushed (sub 1..23) and pulled with none.
+#[test]
+fn spot_terms_for_a_firmware_without_them_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = params_file(dir.path(), 4);
+    let mut f = ParamFile::read(&path).unwrap();
+    let mut r = rig_with(None, false, true);
+    f.sensors[3].ext.spot_mm = Some(SPOT);
+    let spot_path = dir.path().join("spot.json");
+    f.write(&spot_path).unwrap();
+    let e = format!(
+        "{:#}",
+        push(&mut r.node, &args(spot_path), &r.cancel).unwrap_err()
+    );
+    assert!(
+        e.contains("sensor 4") && e.contains("no spot objects"),
+        "{e}"
+    );
+    assert!(e.contains("Nothing was written"), "{e}");
+    assert_eq!(r.board.lock().unwrap().app().stores(), 0);
+    let rep = push(&mut r.node, &args(path), &r.cancel).unwrap();
+    assert_eq!(rep.values, 4 * 27 + 1);
+    let back = pull(&mut r.node, &r.cancel).unwrap();
+    assert!(back.sensors.iter().all(|s| s.ext.spot_mm.is_none()));
 }
