@@ -236,7 +236,7 @@ def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None, combined=False, 
         "sigma 0.03", "declared x0.5", "declared missing", "tracker x3", "spread 2 deg", "30 poses")]
     if combined:
         regimes = REGIMES[:1] + COMBINED
-    n_null = nulls if nulls is not None else (12 if quick else 20)
+    n_null = nulls if nulls is not None else (8 if quick else 20)
     n_eff = effects if effects is not None else (2 if quick else 5)
     jobs, seed = regime_jobs(regimes, SINGLES + PAIRS + ["blunders", "ripple"], n_null, n_eff, seed_base)
     if not quick and not combined:
@@ -286,7 +286,7 @@ def summarise(results):
 
 
 def pooled_check(cells):
-    """The CI gates on the reduced grid, pooled over its regimes (a dozen
+    """The CI gates on the reduced grid, pooled over its regimes (eight
     null runs per regime cannot resolve 5 % per cell): false positives
     <= 5 %, blunders found >= 90 %, ripple unexplained >= 75 %, graded
     singles named >= 80 %, graded pairs both named >= 75 %, no run that
@@ -484,7 +484,7 @@ def main():
     ap.add_argument("--seed-base", type=int, default=TUNE_SEEDS,
                     help="first seed of the grid (default: the tuning range; report with another)")
     ap.add_argument("--nulls", type=int,
-                    help="effect-free runs per regime (default 20, 12 with --quick)")
+                    help="effect-free runs per regime (default 20, 8 with --quick)")
     ap.add_argument("--effects", type=int,
                     help="runs per effect class and regime (default 5, 2 with --quick)")
     ap.add_argument("--runs", help="write one JSON line per run (case, truth, answer, grade) here")

@@ -25,7 +25,7 @@
 //! Limits: needs Python ≥ 3.9 and the `host-tests/blind` folder of the
 //! source tree (`--blind DIR` where the binary runs elsewhere); the full
 //! grid takes about an hour on two cores, the reduced grid (the default,
-//! what CI runs) about seven minutes. Seeds from 1000 (the default) were
+//! what CI runs) about ten minutes. Seeds from 1000 (the default) were
 //! used for tuning; report figures from another `--seed-base`.
 //! `perpend bench diagnose-self` is the older self-consistency check on
 //! perpend's own simulator ([`super::bench`]).

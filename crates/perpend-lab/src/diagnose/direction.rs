@@ -38,13 +38,11 @@
 use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
-use rand::rngs::StdRng;
-use rand::SeedableRng;
 
 use super::candidates::{fit, Effect, Refs};
-use super::expect::{null_table, NoiseModel, Spread};
+use super::expect::{null_draw, NoiseModel, Spread};
 use super::noise::residuals_of;
-use super::stats;
+use super::stats::{self, t_tail, P_MIN};
 use crate::exchange::PoseTable;
 
 /// Effect-free re-simulations behind the null of `T` (the diagnosis's own
@@ -322,12 +320,7 @@ pub struct NullPlan<'a> {
 fn null_stats(plan: &NullPlan<'_>, poses: &PoseTable, order: &[usize]) -> Vec<f64> {
     (0..NULL_DRAWS)
         .filter_map(|j| {
-            let mut rng = StdRng::seed_from_u64(
-                plan.seed
-                    .wrapping_add(j as u64)
-                    .wrapping_mul(0x9E37_79B9_7F4A_7C15),
-            );
-            let table = null_table(plan.truth, poses, plan.noise, &mut rng);
+            let table = null_draw(plan.truth, poses, plan.noise, plan.seed, j);
             let fits: Vec<_> = plan
                 .nominal
                 .iter()
@@ -339,27 +332,6 @@ fn null_stats(plan: &NullPlan<'_>, poses: &PoseTable, order: &[usize]) -> Vec<f6
             Some(pooled(&geom, &table, order, &resid).0)
         })
         .collect()
-}
-
-/// Smallest p reported (the re-simulations' spread says nothing finer).
-pub const P_MIN: f64 = 1e-16;
-
-/// One-sided tail `P(t_ν > z)` of Student's t, by inverting
-/// [`stats::t_quantile`] (bisection on `log p`), at least [`P_MIN`].
-pub(super) fn t_tail(z: f64, nu: f64) -> f64 {
-    if z <= 0.0 {
-        return 0.5;
-    }
-    let (mut lo, mut hi) = (P_MIN.ln(), 0.5f64.ln());
-    for _ in 0..80 {
-        let mid = 0.5 * (lo + hi);
-        if stats::t_quantile(1.0 - mid.exp(), nu) > z {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    hi.exp()
 }
 
 /// The test on the nominal fit `geom` with in-sample residuals `resid`
@@ -406,7 +378,8 @@ pub fn judge(
 #[allow(clippy::unwrap_used, clippy::panic)]
 mod tests {
     use super::*;
-    use rand::Rng;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
 
     /// Residuals `noise + f(d) − h·s` on a random walk of distances.
     fn synthetic(h: f64, f: impl Fn(f64) -> f64, seed: u64) -> (Vec<Option<f64>>, Moves) {
@@ -479,15 +452,5 @@ mod tests {
         );
         let shuffled = table(vec![row(2, None), row(1, None), row(3, None)]);
         assert!(measurement_order(&shuffled).is_err());
-    }
-
-    #[test]
-    fn t_tail_inverts_the_quantile() {
-        for (p, nu) in [(0.05, 10.0), (1e-3, 40.0), (1e-6, 47.0)] {
-            let z = stats::t_quantile(1.0 - p, nu);
-            let back = t_tail(z, nu);
-            assert!((back / p - 1.0).abs() < 1e-6, "{p} → {z} → {back}");
-        }
-        assert!((t_tail(-1.0, 5.0) - 0.5).abs() < 1e-12);
     }
 }

@@ -36,6 +36,24 @@ pub struct NoiseModel {
     pub tracker: Option<Tracker>,
 }
 
+/// The `j`-th effect-free re-simulation of a diagnosis seeded `seed`
+/// ([`null_table`] on its own seeded stream): the expectation, the
+/// direction test and the nested test draw the same runs.
+pub fn null_draw(
+    truth: &[Sensor<f64>],
+    poses: &PoseTable,
+    noise: &NoiseModel,
+    seed: u64,
+    j: usize,
+) -> PoseTable {
+    use rand::SeedableRng;
+    let mut rng = StdRng::seed_from_u64(
+        seed.wrapping_add(j as u64)
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15),
+    );
+    null_table(truth, poses, noise, &mut rng)
+}
+
 /// A run re-created with the paper's model: `truth` reads the planes of
 /// `poses` with noise `noise` where `poses` has a reading.
 pub fn null_table(
@@ -400,14 +418,9 @@ pub fn expect(
     draws: usize,
     seed: u64,
 ) -> Expectation {
-    use rand::SeedableRng;
     let mut analyses = Vec::with_capacity(draws);
     for j in 0..draws {
-        let mut rng = StdRng::seed_from_u64(
-            seed.wrapping_add(j as u64)
-                .wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        );
-        let table = null_table(truth, poses, noise, &mut rng);
+        let table = null_draw(truth, poses, noise, seed, j);
         if let Ok(a) = analyse(&table, plan, true) {
             analyses.push(a);
         }

@@ -34,12 +34,10 @@
 
 use perpend_core::calib::{LsqConfig, Regressors};
 use perpend_core::head::Sensor;
-use rand::rngs::StdRng;
-use rand::SeedableRng;
 
 use super::candidates::{fit, Effect, Refs};
-use super::direction::t_tail;
-use super::expect::{null_table, NoiseModel, Spread};
+use super::expect::{null_draw, NoiseModel, Spread};
+use super::stats::t_tail;
 use crate::exchange::PoseTable;
 
 /// Effect-free re-simulations behind the null of `T`.
@@ -129,12 +127,7 @@ pub fn judge(
     let t = stat(plan, poses, added)?;
     let nulls: Vec<f64> = (0..NULL_DRAWS)
         .filter_map(|j| {
-            let mut rng = StdRng::seed_from_u64(
-                plan.seed
-                    .wrapping_add(j as u64)
-                    .wrapping_mul(0x9E37_79B9_7F4A_7C15),
-            );
-            let table = null_table(plan.truth, poses, plan.noise, &mut rng);
+            let table = null_draw(plan.truth, poses, plan.noise, plan.seed, j);
             stat(plan, &table, added)
         })
         .collect();

@@ -306,6 +306,27 @@ pub fn explained(y: &[f64], xs: &[Vec<f64>]) -> (f64, f64) {
     (fit.norm_squared().min(total), total)
 }
 
+/// Smallest p reported (the re-simulations' spread says nothing finer).
+pub const P_MIN: f64 = 1e-16;
+
+/// One-sided tail `P(t_ν > z)` of Student's t, by inverting
+/// [`t_quantile`] (bisection on `log p`), at least [`P_MIN`].
+pub fn t_tail(z: f64, nu: f64) -> f64 {
+    if z <= 0.0 {
+        return 0.5;
+    }
+    let (mut lo, mut hi) = (P_MIN.ln(), 0.5f64.ln());
+    for _ in 0..80 {
+        let mid = 0.5 * (lo + hi);
+        if t_quantile(1.0 - mid.exp(), nu) > z {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    hi.exp()
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -403,5 +424,15 @@ mod tests {
         // Missing values break the chain.
         let gap = vec![Some(1.0), None, Some(-1.0), Some(1.0)];
         assert_eq!(lag1(&[gap]).1, 1);
+    }
+
+    #[test]
+    fn t_tail_inverts_the_quantile() {
+        for (p, nu) in [(0.05, 10.0), (1e-3, 40.0), (1e-6, 47.0)] {
+            let z = t_quantile(1.0 - p, nu);
+            let back = t_tail(z, nu);
+            assert!((back / p - 1.0).abs() < 1e-6, "{p} → {z} → {back}");
+        }
+        assert!((t_tail(-1.0, 5.0) - 0.5).abs() < 1e-12);
     }
 }
