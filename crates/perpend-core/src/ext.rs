@@ -259,18 +259,46 @@ impl<T: Real> LinTable<T> {
     }
 
     /// The cardinal functions `C_j(x)` (the table with `v_j = 1`, the
-    /// others 0): the regressors of a fit, `value = Σ_j v_j·C_j`.
+    /// others 0): the regressors of a fit, `value = Σ_j v_j·C_j`; zeros
+    /// for invalid knots. Solves the three splines on every call: a fit
+    /// evaluating many readings keeps a [`Cardinal`] instead.
     pub fn basis(&self, x: T) -> [T; TABLE_COEFFS] {
-        let mut out = [T::zero(); TABLE_COEFFS];
-        for (j, o) in out.iter_mut().enumerate() {
-            let mut unit = Self {
-                knots: self.knots,
-                coeffs: [T::zero(); TABLE_COEFFS],
-            };
-            unit.coeffs[j] = T::one();
-            *o = unit.value(x);
-        }
-        out
+        Cardinal::of(&self.knots).map_or([T::zero(); TABLE_COEFFS], |c| c.basis(x))
+    }
+}
+
+/// The cardinal functions of a set of knots (the splines of
+/// [`LinTable::basis`]) solved once, to evaluate at many readings: one
+/// search among the knots and a Horner scheme per function. The same
+/// arithmetic as [`LinTable::basis`], so the same values to the last bit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Cardinal<T: Real> {
+    s: [Spline<T>; TABLE_COEFFS],
+}
+
+impl<T: Real> Cardinal<T> {
+    /// The cardinal splines of `knots`; `None` for invalid knots
+    /// ([`LinTable::knots_valid`]).
+    pub fn of(knots: &[T; TABLE_KNOTS]) -> Option<Self> {
+        let unit = |j: usize| {
+            let mut coeffs = [T::zero(); TABLE_COEFFS];
+            coeffs[j] = T::one();
+            LinTable {
+                knots: *knots,
+                coeffs,
+            }
+            .spline()
+        };
+        Some(Self {
+            s: [unit(0)?, unit(1)?, unit(2)?],
+        })
+    }
+
+    /// `C_j(x)` for the three interior knots.
+    #[inline]
+    pub fn basis(&self, x: T) -> [T; TABLE_COEFFS] {
+        let i = self.s[0].piece(x);
+        core::array::from_fn(|j| self.s[j].value_in(i, x))
     }
 }
 
@@ -343,12 +371,12 @@ impl<T: Real> Spline<T> {
         (v, s)
     }
 
-    /// Value, slope and second derivative at `x`.
+    /// The piece of `x`: the number of knots at or below it (0..=5), by
+    /// bisection.
     #[inline]
-    fn eval2(&self, x: T) -> (T, T, T) {
-        // The number of knots at or below x (0..=5), by bisection.
+    fn piece(&self, x: T) -> usize {
         let k = &self.k;
-        let i = if x >= k[2] {
+        if x >= k[2] {
             if x >= k[3] {
                 4 + usize::from(x >= k[4])
             } else {
@@ -358,8 +386,22 @@ impl<T: Real> Spline<T> {
             2
         } else {
             usize::from(x >= k[0])
-        };
+        }
+    }
+
+    /// The value at `x` on piece `i` ([`Spline::piece`]): the value of
+    /// [`Spline::eval2`].
+    #[inline]
+    fn value_in(&self, i: usize, x: T) -> T {
         let [base, a, b, c, e] = self.p[i];
+        let t = x - base;
+        a + t * (b + t * (c + t * e))
+    }
+
+    /// Value, slope and second derivative at `x`.
+    #[inline]
+    fn eval2(&self, x: T) -> (T, T, T) {
+        let [base, a, b, c, e] = self.p[self.piece(x)];
         let t = x - base;
         let e3t = T::lit(3.0) * e * t;
         let half_curv = c + c + e3t;
@@ -1020,6 +1062,27 @@ mod tests {
         assert_relative_eq!(t.value(5.0), 3.0 / 7.0, epsilon = 1e-12);
         assert_relative_eq!(t.value(2.0), 1.0, epsilon = 1e-12);
         assert_eq!(t.basis(2.0), [0.0, 1.0, 0.0]);
+    }
+
+    /// The cardinal splines solved once give, to the last bit, the value
+    /// of the table with that one value 1 (the fit's regressors are the
+    /// same whichever way they are computed), on every piece and beyond
+    /// the ends; invalid knots give none.
+    #[test]
+    fn cardinal_is_the_unit_tables_value_bit_for_bit() {
+        let knots = table().knots;
+        let c = Cardinal::of(&knots).unwrap();
+        for x in [-9.0, -6.0, -4.4, -3.0, -0.1, 0.0, 1.3, 2.0, 4.7, 6.0, 8.5] {
+            let b = c.basis(x);
+            for (j, bj) in b.iter().enumerate() {
+                let mut coeffs = [0.0; TABLE_COEFFS];
+                coeffs[j] = 1.0;
+                let unit = LinTable { knots, coeffs };
+                assert_eq!(bj.to_bits(), unit.value(x).to_bits(), "x = {x}, j = {j}");
+            }
+        }
+        assert!(Cardinal::of(&[0.0, 1.0, 1.0, 2.0, 3.0]).is_none());
+        assert!(Cardinal::of(&[0.0, 1.0, f64::NAN, 2.0, 3.0]).is_none());
     }
 
     /// The table passes through its values (0 at the end knots), and its

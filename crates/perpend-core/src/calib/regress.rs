@@ -37,7 +37,7 @@
 //! geometry is first order in the coefficients).
 
 use super::Poses;
-use crate::ext::{Extension, Incidence, LinTable, TABLE_COEFFS, TABLE_KNOTS};
+use crate::ext::{Cardinal, Extension, Incidence, LinTable, TABLE_COEFFS, TABLE_KNOTS};
 use crate::head::Sensor;
 use crate::model::distance;
 use crate::Real;
@@ -189,8 +189,12 @@ pub struct ExtTerms<T: Real> {
     /// Reference temperature [°C] of the thermal term.
     pub temp_ref: T,
     /// Knots [mm] of the linearity table about `d_ref` (used by the
-    /// `Table*` terms only; strictly ascending for those).
-    pub knots: [T; TABLE_KNOTS],
+    /// `Table*` terms only; strictly ascending for those). Set by
+    /// [`ExtTerms::with_knots`], which solves their cardinal splines once.
+    knots: [T; TABLE_KNOTS],
+    /// The cardinal splines of `knots` (`None` for invalid knots: the
+    /// table's columns are then zero).
+    cardinal: Option<Cardinal<T>>,
     /// The affine part `(a_j, b_j)` taken off each table column:
     /// `C_j(x) − a_j − b_j·x` (e.g. `C_j`'s least-squares line over the
     /// run's readings; zeros by default). The slope `b_j` is taken off only
@@ -231,9 +235,15 @@ impl<T: Real> ExtTerms<T> {
             d_ref,
             temp_ref,
             knots: [T::zero(); TABLE_KNOTS],
+            cardinal: None,
             table_affine: [(T::zero(), T::zero()); TABLE_COEFFS],
             ridge: T::zero(),
         }
+    }
+
+    /// Knots [mm] of the linearity table about `d_ref`.
+    pub fn knots(&self) -> [T; TABLE_KNOTS] {
+        self.knots
     }
 
     /// The same terms with the relative ridge `ridge` on the table and the
@@ -249,7 +259,11 @@ impl<T: Real> ExtTerms<T> {
 
     /// The same terms with the linearity table's knots `knots`.
     pub fn with_knots(self, knots: [T; TABLE_KNOTS]) -> Self {
-        Self { knots, ..self }
+        Self {
+            knots,
+            cardinal: Cardinal::of(&knots),
+            ..self
+        }
     }
 
     /// The same terms with the affine part `(a_j, b_j)` taken off the
@@ -401,10 +415,9 @@ impl<T: Real> Regressors<T> for ExtTerms<T> {
             .or_else(|| poses.reading(k, sensor))
             .unwrap_or_else(T::zero);
         let x = d - self.d_ref;
-        let basis = if self.mask & Term::TABLE_BITS != 0 {
-            self.table([T::zero(); 3]).basis(x)
-        } else {
-            [T::zero(); 3]
+        let basis = match &self.cardinal {
+            Some(c) if self.mask & Term::TABLE_BITS != 0 => c.basis(x),
+            _ => [T::zero(); 3],
         };
         let n = poses.sensors().max(1);
         let ctx = poses.context(k);
