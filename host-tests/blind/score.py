@@ -232,12 +232,10 @@ def plan(quick, seed_base=TUNE_SEEDS, nulls=None, effects=None, combined=False, 
     if offcat:
         return plan_offcat(seed_base, nulls if nulls is not None else 20,
                            effects if effects is not None else 3)
-    # CI's reduced grid: the base and four regimes (CI's time budget; the
-    # whole grid, `--full`, runs every regime). They come first in REGIMES'
-    # order, so their seeds are those they had beside "spread 2 deg" and
-    # "30 poses", which left it when issue 35's diagnosis made a run dearer.
+    # CI's reduced grid: the base and six regimes (the whole grid, `--full`,
+    # runs every regime), 8 nulls and 2 effects of each kind a regime.
     regimes = REGIMES[:1] + [r for r in REGIMES[1:] if not quick or r[0] in (
-        "sigma 0.03", "declared x0.5", "declared missing", "tracker x3")]
+        "sigma 0.03", "declared x0.5", "declared missing", "tracker x3", "spread 2 deg", "30 poses")]
     if combined:
         regimes = REGIMES[:1] + COMBINED
     n_null = nulls if nulls is not None else (8 if quick else 20)
