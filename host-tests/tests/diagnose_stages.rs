@@ -7,7 +7,7 @@
 //! cross-validation, noise, the effect-free re-simulations, the
 //! calibrated decision), then the stages in the order the readings reach
 //! them, then the diagnosis they fill, the report and the pass itself
-//! (`mod.rs`). Three checks, each with a unit test that shows it fails:
+//! (`mod.rs`). Four checks, each shown to fail on a synthetic case:
 //!
 //! 1. every file under `diagnose/` is declared, in the pass or beside it
 //!    ([`BESIDE`]: other commands that share the toolbox);
@@ -16,7 +16,9 @@
 //!    beside it; test modules are held to a list that may only shrink;
 //! 3. `diagnose()` calls each stage's entry point exactly once, in the
 //!    declared order, and no other file of the pass that imports a stage
-//!    calls its entry.
+//!    calls its entry;
+//! 4. the readers of the diagnosis (report, plots, `json()`, `--out`)
+//!    call none of the toolbox's fitting functions ([`REFITS`]).
 //!
 //! Limits: the import graph is the lexical one of `common/mod.rs` (see
 //! there). Production code is `#[cfg(test)] mod x { .. }` blocks left
@@ -25,7 +27,8 @@
 //! method (`.x(`) nor a definition (`fn x(`); a stage entered through a
 //! closure, a function pointer or a macro is not seen, and a local
 //! function of the same name as an entry point elsewhere in the pass
-//! would be counted as a call of it.
+//! would be counted as a call of it (the refit check leaves out
+//! unqualified calls of a function defined in the same file).
 //!
 //! `MODULE_GRAPH=1 cargo test -p host-tests --test diagnose_stages --
 //! --nocapture` prints the walk of the readings: the stage entries as
@@ -409,6 +412,85 @@ fn print_walk(called: &[String]) {
     println!(
         "  then Diagnosis (diagnosis.rs) -> report.rs, plot.rs, json(), param_file(): read only"
     );
+}
+
+/// The toolbox functions that fit, cross-validate or simulate: what a
+/// reader of the diagnosis must not call (it would refit).
+const REFITS: [&str; 14] = [
+    "fit",
+    "fit_from",
+    "fit_all",
+    "cross_validate",
+    "analyse",
+    "expect",
+    "base_residuals",
+    "model_residuals",
+    "full_residuals",
+    "reject",
+    "decide",
+    "judge",
+    "measure_normal",
+    "normal_errors",
+];
+
+/// The calls of [`REFITS`] in `toks`, but unqualified calls of a
+/// function of that name defined in `toks` (a local `fn normal_errors`).
+fn refits(toks: &[Tok]) -> Vec<String> {
+    let fn_tok = Tok::Ident("fn".into());
+    let local: Vec<&Tok> = toks
+        .windows(2)
+        .filter(|w| w[0] == fn_tok)
+        .map(|w| &w[1])
+        .collect();
+    let mut out = Vec::new();
+    for (i, t) in toks.iter().enumerate() {
+        let Tok::Ident(name) = t else { continue };
+        let before = i.checked_sub(1).map(|k| &toks[k]);
+        let called = toks.get(i + 1) == Some(&Tok::Punct('('))
+            && !matches!(before, Some(Tok::Punct('.')))
+            && before != Some(&fn_tok);
+        let mine = local.contains(&t) && before != Some(&Tok::Path);
+        if called && !mine && REFITS.contains(&name.as_str()) {
+            out.push(name.clone());
+        }
+    }
+    out
+}
+
+/// The readers of the diagnosis (the report, the plots, the diagnosis
+/// itself, `json()`, `param_file` and the command around them in
+/// `mod.rs`) refit nothing: they call no function of [`REFITS`].
+#[test]
+fn the_readers_of_the_diagnosis_never_refit() {
+    let mut found = Vec::new();
+    for (file, role) in ORDER {
+        if matches!(role, Role::Output | Role::Report) {
+            found.extend(
+                refits(&source(file))
+                    .into_iter()
+                    .map(|c| format!("{file}: `{c}`")),
+            );
+        }
+    }
+    let pass = source("mod.rs");
+    for f in ["json", "param_file", "run_to", "write_record"] {
+        let body = body_of(&pass, f);
+        assert!(!body.is_empty(), "no `fn {f}` in {DIR}mod.rs");
+        found.extend(
+            refits(&body)
+                .into_iter()
+                .map(|c| format!("mod.rs {f}(): `{c}`")),
+        );
+    }
+    assert!(
+        found.is_empty(),
+        "the readers of the diagnosis refit: {found:?}; read what the stages computed (Diagnosis) instead"
+    );
+    let fake = tokens(
+        "fn text(d: &D) { candidates::fit_all(a); d.fit(b); analyse(c); cv::normal_errors(e); \
+         normal_errors(f) } fn normal_errors(x: X) {}",
+    );
+    assert_eq!(refits(&fake), ["fit_all", "analyse", "normal_errors"]);
 }
 
 /// The order check flags a toolbox file importing a stage, a stage
