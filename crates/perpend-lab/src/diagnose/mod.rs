@@ -1,37 +1,50 @@
 //! `perpend diagnose`: find what the paper's model misses in a calibration
 //! run, name the cause, extend the model and measure the gain.
 //!
-//! For any run in the exchange format (`sensors.csv` + `poses.csv`):
+//! For any run in the exchange format (`sensors.csv` + `poses.csv`),
+//! [`diagnose`] is one pass through the stages below, in the order the
+//! readings move, each called once, each a module with one input and one
+//! output type that reads only the stages before it and the toolbox
+//! (checked by `host-tests/tests/diagnose_stages.rs`):
 //!
-//! 1. **Base model.** Every sensor is fitted with the paper's model (Chen
-//!    eq. 1-9, zero point + beam direction, batch least squares) and
-//!    cross-validated by pose ([`cv`]): held-out residual RMS (overall and
-//!    per sensor) and held-out normal error.
-//! 2. **Expectation.** The simulator re-creates the run with the paper's
-//!    model only — the fitted head as the truth, the same planes and the
-//!    same missing readings, the datasheet reading noise σ (`sigma_mm` or
-//!    `--sigma-mm`) and the tracker's plane-fit noise — in several seeded
-//!    Monte-Carlo draws, each analysed exactly like the measured run
-//!    ([`expect`]). Measured and simulated statistics are compared: RMS
-//!    overall and per sensor, whiteness in acquisition order (lag-1
-//!    autocorrelation, runs test) and the share of the residual variance
-//!    each candidate's regressor explains. Statistics outside the
-//!    simulated spread are what the simulation gets wrong.
-//! 3. **Candidates** ([`candidates`]): gain, nonlinearity, incidence,
-//!    crosstalk, thermal (needs `temp_c`), drift (needs `t_s`), each an
-//!    extension with its own per-sensor coefficients, cross-validated on
-//!    the same folds; candidates whose inputs are absent are skipped.
-//! 4. **Selection** ([`select`]): paired held-out loss test with a
-//!    Bonferroni level, a minimum gain relative to the noise floor and the
-//!    one-standard-error parsimony rule; `unexplained` when the residuals
-//!    stay above the simulated floor and no candidate brings them down to
-//!    it.
-//! 5. **Gain.** The named extension's held-out RMS and held-out normal
-//!    error (normals through `perpend-core` with the extension applied, as
-//!    on the board) against the base model's.
-//! 6. **Storage.** `--out` writes the named model fitted on all poses as
-//!    the parameter JSON of [`crate::paramfile`], extension coefficients
-//!    and their 1σ included, for the board's stored calibration.
+//! * **1, read and check** ([`load`](load::load)): tables + [`Settings`]
+//!   → [`load::Loaded`]: the nominal head, the poses that disagree with
+//!   every model left out ([`noise::reject`]), the rest re-timed with the
+//!   time constants of [`lags`], the folds ([`folds_for`]), the models the
+//!   run's columns allow and the declared reading noise.
+//! * **2-3, nominal and candidate fits** ([`fits::fit`]): `Loaded` →
+//!   [`fits::Fitted`]: the paper's model (Chen eq. 1-9) and every
+//!   candidate ([`candidates`]: gain, nonlinearity, incidence, crosstalk,
+//!   thermal, drift) cross-validated by pose on the measured run
+//!   ([`expect::analyse`], [`cv`]); those outside their physical bounds.
+//! * **4-5, noise, held-out scores against their nulls, decision**
+//!   ([`decision::decide_run`]): `Loaded` + `Fitted` →
+//!   [`decision::Decided`]: the reading noise estimated from the run
+//!   ([`noise`]), the effect-free re-simulations at that noise
+//!   ([`expect`]: the fitted head as the truth, the same planes and
+//!   missing readings, seeded draws analysed like the measured run), the
+//!   calibrated decision ([`select`]: paired held-out tests, Bonferroni
+//!   level, minimum gain over the noise floor, one-standard-error rule;
+//!   `unexplained` when no candidate reaches the floor), the forward
+//!   selection of up to [`MAX_EFFECTS`] effects ([`Step`]), the direction
+//!   test ([`direction`]) and the named model fitted on all poses.
+//! * **6, held-out scores of the verdict** ([`scores::scores`]): the
+//!   verdict + `Analysis` + `Loaded` → [`scores::Scores`]: held-out RMS
+//!   and normal errors of the paper's and the named model (normals through
+//!   `perpend-core` with the extension applied, as on the board).
+//! * **7, checks and warnings** ([`checks::compare`]): `Loaded` +
+//!   `Fitted` + `Decided` → [`Checks`]: measured statistics against their
+//!   simulated spread (RMS, whiteness, structure, each candidate's R²)
+//!   and the warnings (excess white noise, thermal and drift confounded).
+//!
+//! Their outputs side by side are the [`Diagnosis`] ([`diagnosis`]), which
+//! the readers (stage 8) take without refitting: the text ([`report`]),
+//! the plots ([`plot`]), `--json` ([`Diagnosis::json`]) and `--out`
+//! ([`param_file`]: the named model with its extension coefficients and
+//! 1σ, as the parameter JSON of [`crate::paramfile`], and the calibration
+//! record). The toolbox the stages share: [`stats`], [`folds`],
+//! [`settings`], [`candidates`], [`cv`], [`moments`], [`noise`], [`lags`],
+//! [`expect`], [`select`], [`nested`], [`direction`].
 //!
 //! Limits: the expectation is only as good as the stated noise (datasheet
 //! σ, tracker ξ / points / patch: pass your tracker's with `--xi-mm`,
@@ -359,11 +372,11 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
 }
 
 /// Runs the diagnosis on a run read from the exchange format, in one pass
-/// through the stages (docs/diagnosis.md, "How the code is laid out"):
-/// read and check ([`load`](load::load)) → nominal and candidate fits
-/// ([`fits::fit`]) → noise, effect-free re-simulations and decision
-/// ([`decision::decide_run`]) → held-out scores ([`scores::scores`]) → the
-/// report's parts.
+/// through the stages (docs/diagnosis.md, "How the code is laid out"),
+/// each entered once: read and check ([`load`](load::load)) → nominal and
+/// candidate fits ([`fits::fit`]) → noise, effect-free re-simulations and
+/// decision ([`decision::decide_run`]) → held-out scores
+/// ([`scores::scores`]) → checks and warnings ([`checks::compare`]).
 ///
 /// # Errors
 /// A base model that cannot be fitted (the pose set does not identify it),
