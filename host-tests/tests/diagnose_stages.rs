@@ -254,8 +254,8 @@ fn each_file_of_the_pass_imports_only_earlier_ones() {
 }
 
 /// The calls in `toks`: identifiers followed by `(`, neither methods nor
-/// definitions.
-fn calls(toks: &[Tok]) -> Vec<String> {
+/// definitions, with their index.
+fn call_sites(toks: &[Tok]) -> Vec<(usize, String)> {
     let mut out = Vec::new();
     for (i, t) in toks.iter().enumerate() {
         if let (Tok::Ident(name), Some(Tok::Punct('('))) = (t, toks.get(i + 1)) {
@@ -263,19 +263,27 @@ fn calls(toks: &[Tok]) -> Vec<String> {
             let method_or_def =
                 matches!(before, Some(Tok::Punct('.'))) || before == Some(&Tok::Ident("fn".into()));
             if !method_or_def {
-                out.push(name.clone());
+                out.push((i, name.clone()));
             }
         }
     }
     out
 }
 
+/// The names [`call_sites`] calls, in order.
+fn calls(toks: &[Tok]) -> Vec<String> {
+    call_sites(toks).into_iter().map(|(_, n)| n).collect()
+}
+
+/// The index of `fn name` in `toks`.
+fn fn_at(toks: &[Tok], name: &str) -> Option<usize> {
+    toks.windows(2)
+        .position(|w| w[0] == Tok::Ident("fn".into()) && w[1] == Tok::Ident(name.into()))
+}
+
 /// The tokens of the body of `fn name` in `toks` (empty when absent).
 fn body_of(toks: &[Tok], name: &str) -> Vec<Tok> {
-    let Some(at) = toks
-        .windows(2)
-        .position(|w| w[0] == Tok::Ident("fn".into()) && w[1] == Tok::Ident(name.into()))
-    else {
+    let Some(at) = fn_at(toks, name) else {
         return Vec::new();
     };
     let Some(open) = toks[at..].iter().position(|t| *t == Tok::Punct('{')) else {
@@ -366,10 +374,7 @@ fn diagnose_enters_each_stage_once_in_order() {
 
 /// The return type of `fn name` in `toks`, its tokens joined.
 fn returns(toks: &[Tok], name: &str) -> String {
-    let Some(at) = toks
-        .windows(2)
-        .position(|w| w[0] == Tok::Ident("fn".into()) && w[1] == Tok::Ident(name.into()))
-    else {
+    let Some(at) = fn_at(toks, name) else {
         return "?".into();
     };
     let sig: Vec<&Tok> = toks[at..]
@@ -442,19 +447,15 @@ fn refits(toks: &[Tok]) -> Vec<String> {
         .filter(|w| w[0] == fn_tok)
         .map(|w| &w[1])
         .collect();
-    let mut out = Vec::new();
-    for (i, t) in toks.iter().enumerate() {
-        let Tok::Ident(name) = t else { continue };
-        let before = i.checked_sub(1).map(|k| &toks[k]);
-        let called = toks.get(i + 1) == Some(&Tok::Punct('('))
-            && !matches!(before, Some(Tok::Punct('.')))
-            && before != Some(&fn_tok);
-        let mine = local.contains(&t) && before != Some(&Tok::Path);
-        if called && !mine && REFITS.contains(&name.as_str()) {
-            out.push(name.clone());
-        }
-    }
-    out
+    call_sites(toks)
+        .into_iter()
+        .filter(|(i, name)| {
+            let qualified = i.checked_sub(1).map(|k| &toks[k]) == Some(&Tok::Path);
+            let mine = local.contains(&&toks[*i]) && !qualified;
+            !mine && REFITS.contains(&name.as_str())
+        })
+        .map(|(_, n)| n)
+        .collect()
 }
 
 /// The readers of the diagnosis (the report, the plots, the diagnosis
