@@ -1,37 +1,50 @@
 //! `perpend diagnose`: find what the paper's model misses in a calibration
 //! run, name the cause, extend the model and measure the gain.
 //!
-//! For any run in the exchange format (`sensors.csv` + `poses.csv`):
+//! For any run in the exchange format (`sensors.csv` + `poses.csv`),
+//! [`diagnose`] is one pass through the stages below, in the order the
+//! readings move, each called once, each a module with one input and one
+//! output type that reads only the stages before it and the toolbox
+//! (checked by `host-tests/tests/diagnose_stages.rs`):
 //!
-//! 1. **Base model.** Every sensor is fitted with the paper's model (Chen
-//!    eq. 1-9, zero point + beam direction, batch least squares) and
-//!    cross-validated by pose ([`cv`]): held-out residual RMS (overall and
-//!    per sensor) and held-out normal error.
-//! 2. **Expectation.** The simulator re-creates the run with the paper's
-//!    model only — the fitted head as the truth, the same planes and the
-//!    same missing readings, the datasheet reading noise σ (`sigma_mm` or
-//!    `--sigma-mm`) and the tracker's plane-fit noise — in several seeded
-//!    Monte-Carlo draws, each analysed exactly like the measured run
-//!    ([`expect`]). Measured and simulated statistics are compared: RMS
-//!    overall and per sensor, whiteness in acquisition order (lag-1
-//!    autocorrelation, runs test) and the share of the residual variance
-//!    each candidate's regressor explains. Statistics outside the
-//!    simulated spread are what the simulation gets wrong.
-//! 3. **Candidates** ([`candidates`]): gain, nonlinearity, incidence,
-//!    crosstalk, thermal (needs `temp_c`), drift (needs `t_s`), each an
-//!    extension with its own per-sensor coefficients, cross-validated on
-//!    the same folds; candidates whose inputs are absent are skipped.
-//! 4. **Selection** ([`select`]): paired held-out loss test with a
-//!    Bonferroni level, a minimum gain relative to the noise floor and the
-//!    one-standard-error parsimony rule; `unexplained` when the residuals
-//!    stay above the simulated floor and no candidate brings them down to
-//!    it.
-//! 5. **Gain.** The named extension's held-out RMS and held-out normal
-//!    error (normals through `perpend-core` with the extension applied, as
-//!    on the board) against the base model's.
-//! 6. **Storage.** `--out` writes the named model fitted on all poses as
-//!    the parameter JSON of [`crate::paramfile`], extension coefficients
-//!    and their 1σ included, for the board's stored calibration.
+//! * **1, read and check** ([`load`](load::load)): tables + [`Settings`]
+//!   → [`load::Loaded`]: the nominal head, the poses that disagree with
+//!   every model left out ([`noise::reject`]), the rest re-timed with the
+//!   time constants of [`lags`], the folds ([`folds_for`]), the models the
+//!   run's columns allow and the declared reading noise.
+//! * **2-3, nominal and candidate fits** ([`fits::fit`]): `Loaded` →
+//!   [`fits::Fitted`]: the paper's model (Chen eq. 1-9) and every
+//!   candidate ([`candidates`]: gain, nonlinearity, incidence, crosstalk,
+//!   thermal, drift) cross-validated by pose on the measured run
+//!   ([`expect::analyse`], [`cv`]); those outside their physical bounds.
+//! * **4-5, noise, held-out scores against their nulls, decision**
+//!   ([`decision::decide_run`]): `Loaded` + `Fitted` →
+//!   [`decision::Decided`]: the reading noise estimated from the run
+//!   ([`noise`]), the effect-free re-simulations at that noise
+//!   ([`expect`]: the fitted head as the truth, the same planes and
+//!   missing readings, seeded draws analysed like the measured run), the
+//!   calibrated decision ([`select`]: paired held-out tests, Bonferroni
+//!   level, minimum gain over the noise floor, one-standard-error rule;
+//!   `unexplained` when no candidate reaches the floor), the forward
+//!   selection of up to [`MAX_EFFECTS`] effects ([`Step`]), the direction
+//!   test ([`direction`]) and the named model fitted on all poses.
+//! * **6, held-out scores of the verdict** ([`scores::scores`]): the
+//!   verdict + `Analysis` + `Loaded` → [`scores::Scores`]: held-out RMS
+//!   and normal errors of the paper's and the named model (normals through
+//!   `perpend-core` with the extension applied, as on the board).
+//! * **7, checks and warnings** ([`checks::compare`]): `Loaded` +
+//!   `Fitted` + `Decided` → [`Checks`]: measured statistics against their
+//!   simulated spread (RMS, whiteness, structure, each candidate's R²)
+//!   and the warnings (excess white noise, thermal and drift confounded).
+//!
+//! Their outputs side by side are the [`Diagnosis`] ([`diagnosis`]), which
+//! the readers (stage 8) take without refitting: the text ([`report`]),
+//! the plots ([`plot`]), `--json` ([`Diagnosis::json`]) and `--out`
+//! ([`param_file`]: the named model with its extension coefficients and
+//! 1σ, as the parameter JSON of [`crate::paramfile`], and the calibration
+//! record). The toolbox the stages share: [`stats`], [`folds`],
+//! [`settings`], [`candidates`], [`cv`], [`moments`], [`noise`], [`lags`],
+//! [`expect`], [`select`], [`nested`], [`direction`].
 //!
 //! Limits: the expectation is only as good as the stated noise (datasheet
 //! σ, tracker ξ / points / patch: pass your tracker's with `--xi-mm`,
@@ -44,8 +57,10 @@
 pub mod bench;
 pub mod blind;
 pub mod candidates;
+pub mod checks;
 pub mod cv;
 pub mod decision;
+pub mod diagnosis;
 pub mod direction;
 pub mod expect;
 pub mod fits;
@@ -70,14 +85,16 @@ use serde::{Deserialize, Serialize};
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
 use candidates::{Effect, SensorFit};
-use decision::{decide_run, named};
+use checks::compare;
+pub use checks::{Check, Checks};
+use decision::decide_run;
 pub use decision::{Step, MAX_EFFECTS};
+pub use diagnosis::Diagnosis;
 use fits::fit;
 pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
 use load::load;
 pub(crate) use load::reading_span;
 pub use load::{available_models, declared_sigma};
-use noise::NoiseEstimate;
 use scores::scores;
 pub use scores::Perf;
 pub use settings::{draws_for, Args, NormalMethod, Settings, DRAWS, SMALL_RUN, SMALL_RUN_DRAWS};
@@ -243,65 +260,9 @@ impl DirectionJson {
     }
 }
 
-/// A comparison of a measured statistic with its simulated expectation.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Check {
-    /// What is compared.
-    pub what: String,
-    /// Measured value.
-    pub measured: f64,
-    /// Simulated mean.
-    pub expected: f64,
-    /// Simulated predictive spread (1σ).
-    pub spread: f64,
-    /// `(measured − expected) / spread`.
-    pub z: f64,
-    /// Outside the simulated spread at the diagnosis' level.
-    pub flagged: bool,
-}
-
-/// Everything a diagnosis found: the output of each stage, in the order
-/// the data move (docs/diagnosis.md, "How the code is laid out"), and the
-/// report's comparisons and warnings. The report, the plots, `--json` and
-/// `--out` read it; none of them refits.
-#[derive(Debug, Clone)]
-pub struct Diagnosis {
-    /// Stage 1, read and check: the head, the poses kept (re-timed with
-    /// the time constants of [`lags`]), the outliers left out, the folds,
-    /// the term references and the candidates skipped with the reason.
-    pub run: load::Loaded,
-    /// Stages 2-3, the nominal and candidate fits: the measured
-    /// [`expect::Analysis`] and the candidates fitted outside their physical bounds.
-    pub fits: fits::Fitted,
-    /// Stages 4-5, noise, held-out scores against their nulls and the
-    /// decision: the noise, the effect-free expectation, the [`select::Decision`],
-    /// the effects named, the direction test and the named model fitted on
-    /// all poses.
-    pub decided: decision::Decided,
-    /// Stage 6, held-out scores of the verdict.
-    pub scores: scores::Scores,
-    /// Comparisons of the measured run with the simulation.
-    pub checks: Vec<Check>,
-    /// Warnings for the user (excess white noise, ...).
-    pub warnings: Vec<String>,
-}
-
+/// The `--json` output of a diagnosis (kept beside the JSON types; the
+/// report's wording of each effect is [`report::physical`]).
 impl Diagnosis {
-    /// Every effect named, in the order selected (empty for `none` and
-    /// `unexplained`).
-    pub fn effects(&self) -> Vec<Effect> {
-        named(self.decided.effect, &self.decided.also)
-    }
-
-    /// The fitted time constant of `e` [s] ([`EffectJson::time_constant_s`]).
-    pub fn time_constant(&self, e: Effect) -> Option<f64> {
-        match e {
-            Effect::Thermal => Some(self.run.lags.thermal_tau_s).filter(|t| *t > 0.0),
-            Effect::Drift => Some(self.run.lags.drift_tau_s).filter(|t| t.is_finite()),
-            _ => None,
-        }
-    }
-
     /// The `--json` object.
     pub fn json(&self) -> DiagnoseJson {
         use noise::Source;
@@ -365,7 +326,7 @@ impl Diagnosis {
                 .iter()
                 .map(|(e, w)| (e.name().to_string(), w.clone()))
                 .collect(),
-            warnings: self.warnings.clone(),
+            warnings: self.checked.warnings.clone(),
             expected_rms_mm: self.decided.floor_mm,
             folds: self.run.folds.k,
             base: self.scores.base,
@@ -389,49 +350,7 @@ impl Diagnosis {
     }
 }
 
-/// Warnings about the noise: excess white noise over the declared value.
-fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
-    let mut w = Vec::new();
-    if let Some(decl) = &est.declared_mm {
-        let d = stats::mean(decl);
-        let e = stats::mean(&est.reading_mm);
-        if e > 1.5 * d && effect == Effect::None {
-            w.push(format!(
-                "the residuals carry no structure but their noise, {:.1} µm, is {:.1}× the declared {:.1} µm: white excess noise (sensor, electronics or vibration), not a model effect",
-                1000.0 * e,
-                e / d,
-                1000.0 * d
-            ));
-        } else if e > 1.5 * d {
-            w.push(format!(
-                "the run's reading noise, {:.1} µm, is {:.1}× the declared {:.1} µm",
-                1000.0 * e,
-                e / d,
-                1000.0 * d
-            ));
-        }
-        for (i, (&d, &e)) in decl.iter().zip(&est.reading_mm).enumerate() {
-            let who = format!("sensor {}", i + 1);
-            let how = "estimated from the run";
-            w.extend(crate::plausible::sigma_warning(&who, d, e, how, true));
-        }
-    }
-    w
-}
-
 pub use lags::CONFOUNDED_R;
-
-/// A warning when a time-like effect (thermal, drift) is named on a run
-/// whose temperature follows its time (a warm-up that only rises): the run
-/// cannot tell one from the other; which is named is the better fit of
-/// this run's pattern, not evidence for its cause.
-fn time_warning(poses: &PoseTable, named: &[Effect]) -> Option<String> {
-    lags::inseparable(poses, named).map(|r| {
-        format!(
-            "thermal and drift are confounded in this run: the temperature follows the time (r = {r:.2}), so the run cannot tell a temperature coefficient from a drift in time; the correction fits this run, but would extrapolate differently. A run in which the temperature falls or is held (a cool-down, a second warm-up after a pause) separates them"
-        )
-    })
-}
 
 /// The fit `f` (of several effects) reduced to the coefficients and 1σ of
 /// `e`'s own terms (columns in the extension's term order).
@@ -453,11 +372,11 @@ pub fn own_columns(e: Effect, f: &SensorFit) -> SensorFit {
 }
 
 /// Runs the diagnosis on a run read from the exchange format, in one pass
-/// through the stages (docs/diagnosis.md, "How the code is laid out"):
-/// read and check ([`load`](load::load)) → nominal and candidate fits
-/// ([`fits::fit`]) → noise, effect-free re-simulations and decision
-/// ([`decision::decide_run`]) → held-out scores ([`scores::scores`]) → the
-/// report's parts.
+/// through the stages (docs/diagnosis.md, "How the code is laid out"),
+/// each entered once: read and check ([`load`](load::load)) → nominal and
+/// candidate fits ([`fits::fit`]) → noise, effect-free re-simulations and
+/// decision ([`decision::decide_run`]) → held-out scores
+/// ([`scores::scores`]) → checks and warnings ([`checks::compare`]).
 ///
 /// # Errors
 /// A base model that cannot be fitted (the pose set does not identify it),
@@ -467,25 +386,14 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     let mut fits = fit(&run, s)?;
     let decided = decide_run(&run, &fits, s)?;
     let scores = scores(decided.effect, &decided.also, &fits.measured, &run, s);
-    let checks = report::checks(
-        &fits.measured,
-        &decided.expected,
-        &fits.fitted,
-        &decided.decision,
-    );
-    let mut warnings = noise_warnings(&decided.estimate, decided.effect);
-    warnings.extend(time_warning(
-        &run.poses,
-        &named(decided.effect, &decided.also),
-    ));
+    let checked = compare(&run, &fits, &decided);
     run.skipped.append(&mut fits.failed);
     Ok(Diagnosis {
         run,
         fits,
         decided,
         scores,
-        checks,
-        warnings,
+        checked,
     })
 }
 
@@ -564,8 +472,8 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
     let (poses, left, total) = crate::plausible::check_run(&file, &table, poses)?;
     let mut d = diagnose(&table, &poses, &settings)?;
     let mut first = crate::plausible::left_out_lines(&file, &left, total);
-    first.append(&mut d.warnings);
-    d.warnings = first;
+    first.append(&mut d.checked.warnings);
+    d.checked.warnings = first;
     if let Some(dir) = &a.plot {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         plot::write_all(&d, dir)?;
@@ -653,35 +561,8 @@ fn write_record(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::sim::{paper_head, simulate, SimConfig, TempProfile};
+    use crate::sim::{paper_head, simulate, SimConfig};
     use rand::SeedableRng;
-
-    fn run(swing_c: f64) -> PoseTable {
-        let head = paper_head().unwrap();
-        let mut cfg = SimConfig::paper();
-        cfg.dt_s = Some(30.0);
-        cfg.temp = Some(TempProfile {
-            start_c: 21.0,
-            rate_c_per_s: 0.003,
-            swing_c,
-            period_s: 300.0,
-        });
-        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-        simulate(&head, &cfg, &[], &mut rng).unwrap().poses
-    }
-
-    /// A warm-up (temperature following time) makes thermal and drift the
-    /// same pattern: named, either one is flagged; a temperature that swings
-    /// separates them, and nothing is said; nor when neither is named.
-    #[test]
-    fn thermal_and_drift_are_flagged_only_when_the_run_confounds_them() {
-        let warm = run(0.0);
-        assert!(time_warning(&warm, &[Effect::Thermal]).is_some());
-        assert!(time_warning(&warm, &[Effect::Gain, Effect::Drift]).is_some());
-        assert!(time_warning(&warm, &[Effect::Gain]).is_none());
-        let swing = run(3.0);
-        assert!(time_warning(&swing, &[Effect::Thermal]).is_none());
-    }
 
     /// A run below 100 poses is cross-validated with 10 folds (at most half
     /// its poses, at least 5), a larger one with 5, and `--folds` overrides

@@ -20,7 +20,7 @@ use plotters::prelude::*;
 
 use super::candidates::{regressor, Effect};
 use super::cv::CvResult;
-use super::Diagnosis;
+use super::diagnosis::Diagnosis;
 
 const COLOURS: [RGBColor; 8] = [
     RGBColor(31, 119, 180),

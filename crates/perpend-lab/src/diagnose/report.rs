@@ -1,117 +1,25 @@
-//! The readable report of `perpend diagnose` and the comparisons of
-//! measured statistics with the simulated expectation behind its first
-//! section ("what the simulation gets wrong").
+//! Stage 8 of `perpend diagnose`, the report: the readable text of a
+//! [`Diagnosis`] — the run, what the simulation gets wrong (the
+//! comparisons of [`super::checks`]), the candidates, the verdict, the
+//! coefficients in physical units and the gain.
 //!
-//! Every comparison is `z = (measured − simulated mean) / spread`, the
-//! spread being the predictive standard deviation over the Monte-Carlo
-//! draws, floored by the sampling spread of an ideal run (RMS:
-//! `rms/√(2n)`; lag-1 autocorrelation: `1/√pairs`; runs test: 1; R² of
-//! `p` regressors: `√(2p)/n`). A statistic is flagged when `|z|` exceeds
-//! the two-sided Student-t quantile at the diagnosis' level α split over
-//! all checks (Bonferroni), with `draws − 1` degrees of freedom.
+//! Input: the `Diagnosis` (the outputs of stages 1-7); output: text. It
+//! reads what the stages decided and never refits. Limits: the wording
+//! follows the verdict; the figures are those of the stages, rounded.
 
 use std::fmt::Write as _;
 use std::path::Path;
 
 use super::candidates::Effect;
-use super::expect::{Analysis, Expectation, Spread};
-use super::select::Decision;
+use super::checks::Check;
+use super::diagnosis::Diagnosis;
+use super::settings::Settings;
 use super::stats;
-use super::{Check, Diagnosis, Settings};
-
-fn check(what: String, measured: f64, exp: Spread, floor: f64, t: f64) -> Check {
-    let spread = exp.predictive_sd(floor);
-    let z = if spread > 0.0 {
-        (measured - exp.mean) / spread
-    } else {
-        0.0
-    };
-    Check {
-        what,
-        measured,
-        expected: exp.mean,
-        spread,
-        z,
-        flagged: z.abs() > t,
-    }
-}
-
-/// The comparisons of the measured run with the simulation.
-pub fn checks(m: &Analysis, e: &Expectation, models: &[Effect], dec: &Decision) -> Vec<Check> {
-    // Two-sided, Bonferroni over the checks, Student t with draws − 1
-    // degrees of freedom: a flag is a finding, not one of many chances.
-    let n_checks =
-        3 + m.insample.first().map_or(0, Vec::len) + models.len() + super::noise::AXES.len();
-    let alpha = dec.alpha / (2.0 * n_checks as f64);
-    let t = stats::t_quantile(1.0 - alpha, (e.draws.max(2) - 1) as f64);
-    let mut out = Vec::new();
-    if let (Some(b), Some(s)) = (m.cv_of(Effect::None), e.rms_of(Effect::None)) {
-        out.push(check(
-            "held-out RMS, all sensors [mm]".into(),
-            b.rms,
-            s,
-            s.mean / (2.0 * b.n.max(1) as f64).sqrt(),
-            t,
-        ));
-        for (i, (r, s)) in b.rms_sensor.iter().zip(&e.rms_sensor).enumerate() {
-            let n = b.resid.iter().filter(|row| row[i].is_some()).count();
-            out.push(check(
-                format!("held-out RMS, sensor {} [mm]", i + 1),
-                *r,
-                *s,
-                s.mean / (2.0 * n.max(1) as f64).sqrt(),
-                t,
-            ));
-        }
-    }
-    let pairs = m.lag1.1.max(1) as f64;
-    out.push(check(
-        "lag-1 autocorrelation (acquisition order)".into(),
-        m.lag1.0,
-        e.lag1,
-        1.0 / pairs.sqrt(),
-        t,
-    ));
-    out.push(check(
-        "runs test z (acquisition order)".into(),
-        m.runs_z,
-        e.runs_z,
-        1.0,
-        t,
-    ));
-    if let Some(z) = m.structure_of(Effect::None) {
-        for (x, v) in z.iter().enumerate() {
-            if let (Some(v), Some(sp)) = (v, e.structure_of(Effect::None).get(x)) {
-                out.push(check(
-                    format!("structure z along {}", super::noise::AXES[x]),
-                    *v,
-                    *sp,
-                    1.0,
-                    t,
-                ));
-            }
-        }
-    }
-    let n = m.insample.iter().flatten().flatten().count().max(1) as f64;
-    for &eff in models.iter().filter(|x| **x != Effect::None) {
-        if let (Some(r), Some(s)) = (m.r2_of(eff), e.r2_of(eff)) {
-            let p = eff.terms().len() as f64;
-            out.push(check(
-                format!("R² of residual on {} regressor", eff.name()),
-                r,
-                s,
-                (2.0 * p).sqrt() / n,
-                t,
-            ));
-        }
-    }
-    out
-}
 
 /// Plain-language statements of what the simulation gets wrong.
 pub fn statements(d: &Diagnosis) -> Vec<String> {
     let mut out = Vec::new();
-    let flagged: Vec<&Check> = d.checks.iter().filter(|c| c.flagged).collect();
+    let flagged: Vec<&Check> = d.checked.checks.iter().filter(|c| c.flagged).collect();
     if flagged.is_empty() {
         out.push(
             "Nothing measured lies outside the simulated spread: the paper's model with this run's own noise reproduces these residuals."
@@ -246,7 +154,7 @@ fn checks_section(o: &mut String, d: &Diagnosis) {
         "  {:<44} {:>10}  {:>20}  {:>6}",
         "statistic", "measured", "simulated ± 1σ", "z"
     );
-    for c in &d.checks {
+    for c in &d.checked.checks {
         let _ = writeln!(
             o,
             "  {:<44} {:>10.4}  {:>9.4} ± {:<8.4}  {:>6.1}{}",
@@ -403,7 +311,7 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
     for r in reconcile(d) {
         let _ = writeln!(o, "  {r}");
     }
-    for w in &d.warnings {
+    for w in &d.checked.warnings {
         let _ = writeln!(o, "  warning: {w}");
     }
     if let Some(f) = d.decided.decision.explained_fraction {
@@ -435,7 +343,7 @@ fn coefficients_section(
                 ""
             }
         );
-        let span = super::reading_span(&d.run.poses, &d.run.refs);
+        let span = super::load::reading_span(&d.run.poses, &d.run.refs);
         for (i, f) in fits.iter().enumerate() {
             let _ = writeln!(
                 o,
@@ -581,7 +489,7 @@ fn noise_lines(d: &Diagnosis, s: &Settings) -> Vec<String> {
 /// Sentences that reconcile flagged statistics with the verdict, so the
 /// report never says two things without saying how they fit.
 fn reconcile(d: &Diagnosis) -> Vec<String> {
-    let flagged: Vec<&Check> = d.checks.iter().filter(|c| c.flagged).collect();
+    let flagged: Vec<&Check> = d.checked.checks.iter().filter(|c| c.flagged).collect();
     if flagged.is_empty() || d.decided.effect == Effect::Unexplained {
         return Vec::new();
     }
