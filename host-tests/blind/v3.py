@@ -209,6 +209,32 @@ def check(cells):
     return fails
 
 
+def pooled_check(cells):
+    """CI's gates on the quick block (six null runs a regime and two runs
+    a case and size cannot resolve 5 % or 90 % per cell): false positives
+    pooled over the regimes <= 5 %, graded runs named pooled over the
+    cases >= 90 %, and no case with fewer than half its graded runs named."""
+    fails = []
+    nulls = [c for (name, _, _), c in cells.items() if name == "none"]
+    n_null = sum(c["n"] for c in nulls)
+    fp = sum(c["n"] - c["ok"] for c in nulls)
+    if n_null and fp / n_null > 0.05:
+        fails.append("false positives %d/%d pooled (> 5 %%)" % (fp, n_null))
+    per_case = {}
+    for (name, _, _), c in cells.items():
+        if name != "none":
+            t = per_case.setdefault(name, [0, 0])
+            t[0] += c["ok_graded"]
+            t[1] += c["graded"]
+    ok, n = sum(t[0] for t in per_case.values()), sum(t[1] for t in per_case.values())
+    if n and ok / n < 0.90:
+        fails.append("graded runs named %d/%d pooled (< 90 %%)" % (ok, n))
+    for name, (k, m) in per_case.items():
+        if m and k / m < 0.5:
+            fails.append("%s: named in %d of %d graded runs (< 50 %%)" % (name, k, m))
+    return fails
+
+
 def only_cases(text):
     """The case names in `--only`'s comma-separated list. Some names hold
     a comma themselves ("gain, two sensors"): at each place the longest
@@ -233,15 +259,19 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description="the v3 block of the blind check (issue 35)")
     ap.add_argument("--perpend", required=True)
     ap.add_argument("--seed-base", type=int, default=V3_SEEDS)
-    ap.add_argument("--nulls", type=int, default=20, help="effect-free runs per regime")
-    ap.add_argument("--effects", type=int, default=5, help="runs per case and size")
+    ap.add_argument("--nulls", type=int, help="effect-free runs per regime (default 20; --quick 6)")
+    ap.add_argument("--effects", type=int, help="runs per case and size (default 5; --quick 2)")
+    ap.add_argument("--quick", action="store_true",
+                    help="CI's block: fewer runs, goals pooled (pooled_check)")
     ap.add_argument("--only", help="comma-separated cases to run (`none` for the effect-free runs)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     ap.add_argument("--md", help="also write the table here")
     ap.add_argument("--runs", help="write one JSON line per run (case, grade, truth, answer) here")
     ap.add_argument("--check", action="store_true", help="exit 1 when a goal is missed")
     a = ap.parse_args(argv)
-    jobs = plan(a.seed_base, a.nulls, a.effects)
+    n_null = a.nulls if a.nulls is not None else (6 if a.quick else 20)
+    n_eff = a.effects if a.effects is not None else (2 if a.quick else 5)
+    jobs = plan(a.seed_base, n_null, n_eff)
     if a.only:
         keep = only_cases(a.only)
         jobs = [j for j in jobs if j[0] in keep]
@@ -257,7 +287,7 @@ def main(argv=None):
     if a.md:
         with open(a.md, "w") as f:
             f.write(md + "\n")
-    fails = check(summarise(rows))
+    fails = (pooled_check if a.quick else check)(summarise(rows))
     print("blind v3: %d runs, %d goals missed" % (len(rows), len(fails)))
     for f in fails:
         print("  missed: " + f)

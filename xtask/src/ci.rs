@@ -290,7 +290,7 @@ pub fn ci(args: &[String]) -> Result<()> {
         logs,
         verbose,
         n: 0,
-        total: if no_fuzz { 10 } else { 11 },
+        total: if no_fuzz { 11 } else { 12 },
         passed: 0,
         failed: 0,
     };
@@ -377,6 +377,17 @@ pub fn ci(args: &[String]) -> Result<()> {
         "blind diagnosis",
         cmd("bash", &["host-tests/blind/run.sh"]).env("PERPEND_BIN", crate::cell::perpend()),
         line_starting("blind:"),
+    )?;
+    // Issue 35's cases (v3.py), six nulls a regime and two runs a case
+    // and size, goals pooled: ≈ 80 s on two cores.
+    r.step(
+        "blind v3 (quick)",
+        cmd(
+            "bash",
+            &["host-tests/blind/run.sh", "--v3", "--quick", "--check"],
+        )
+        .env("PERPEND_BIN", crate::cell::perpend()),
+        line_starting("blind v3:"),
     )?;
     if !no_fuzz {
         let secs = std::env::var("PERPEND_FUZZ_SECONDS").unwrap_or_else(|_| "10".to_string());
