@@ -64,6 +64,24 @@ class V3(unittest.TestCase):
         with self.assertRaises(SystemExit):
             v3.only_cases("gain")
 
+    def test_quick_gates_pool_the_null_runs_and_the_graded_cases(self):
+        def rows(case, regime, n, ok, graded=True):
+            return [{"case": case, "regime": regime, "size": 1.0, "cost": 1.5, "graded": graded,
+                     "ok": k < ok, "said": "x"} for k in range(n)]
+        # one false positive in 36 null runs (2.8 %) passes pooled; the
+        # per-regime rule would fail its regime (1/6)
+        good = rows("none", "base", 6, 5) + rows("none", "spread 15 deg", 30, 30)
+        good += rows("hysteresis", "base", 10, 9) + rows("incidence spot", "base", 10, 10)
+        self.assertEqual(v3.pooled_check(v3.summarise(good)), [])
+        self.assertTrue(v3.check(v3.summarise(good)))
+        # two in 36 (5.6 %) fail, as does a case named in fewer than half
+        bad = rows("none", "base", 6, 4) + rows("none", "spread 15 deg", 30, 30)
+        bad += rows("hysteresis", "base", 30, 30) + rows("incidence spot", "base", 4, 1)
+        fails = v3.pooled_check(v3.summarise(bad))
+        self.assertEqual(len(fails), 2, fails)
+        self.assertTrue(fails[0].startswith("false positives 2/36"), fails)
+        self.assertTrue(fails[1].startswith("incidence spot: named in 1 of 4"), fails)
+
     def test_tracker_tilt_turns_against_the_head(self):
         eps = [0.05, -0.03]
         case = quiet({"seed": 3, "geometry": "ring45", "declared": 1.0, "spread_deg": 8.0,
