@@ -62,21 +62,36 @@ pub fn distance<T: Real>(sensor: &Sensor<T>, plane: &Plane<T>, idx: usize) -> Re
 ///
 /// # Errors
 /// As [`distance`].
+#[inline]
 pub fn jacobian<T: Real>(
     sensor: &Sensor<T>,
     plane: &Plane<T>,
     idx: usize,
 ) -> Result<(T, SVector<T, DOF>)> {
+    jacobian_in(sensor, &sensor.basis(), plane, idx)
+}
+
+/// [`jacobian`] with the sensor's tangent basis `(e₁, e₂)`
+/// ([`Sensor::basis`]) given: a solver pass over many planes with one
+/// geometry computes it once. The same arithmetic, the same result.
+///
+/// # Errors
+/// As [`distance`].
+pub fn jacobian_in<T: Real>(
+    sensor: &Sensor<T>,
+    (e1, e2): &(Vector3<T>, Vector3<T>),
+    plane: &Plane<T>,
+    idx: usize,
+) -> Result<(T, SVector<T, DOF>)> {
     let nu = plane.n.dot(&sensor.dir);
     let d = distance(sensor, plane, idx)?;
-    let (e1, e2) = sensor.basis();
     let k = -T::one() / nu;
     let j = SVector::<T, DOF>::from([
         k * plane.n.x,
         k * plane.n.y,
         k * plane.n.z,
-        k * d * plane.n.dot(&e1),
-        k * d * plane.n.dot(&e2),
+        k * d * plane.n.dot(e1),
+        k * d * plane.n.dot(e2),
     ]);
     Ok((d, j))
 }

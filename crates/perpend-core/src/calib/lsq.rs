@@ -55,7 +55,7 @@ use super::linalg::{cholesky, cholesky_inverse, cholesky_solve};
 use super::regress::{NoExtra, Regressors};
 use super::{Poses, Thresholds};
 use crate::head::{Head, Sensor, DOF};
-use crate::model::jacobian;
+use crate::model::jacobian_in;
 use crate::{finite, Error, Real};
 
 /// Solver settings.
@@ -225,7 +225,8 @@ where
         m: 0,
         skipped: 0,
     };
-    let (e1, e2) = geom.basis();
+    let basis = geom.basis();
+    let (e1, e2) = basis;
     for k in 0..poses.len() {
         let Some(d) = poses.reading(k, idx) else {
             continue;
@@ -234,7 +235,7 @@ where
         if d < T::zero() {
             return Err(Error::NegativeDistance(idx));
         }
-        let (f, j5) = match jacobian(geom, &poses.plane(k), idx) {
+        let (f, j5) = match jacobian_in(geom, &basis, &poses.plane(k), idx) {
             Ok(v) => v,
             Err(Error::BeamParallelToPlane(_) | Error::PlaneBehindSensor(_)) => {
                 ne.skipped += 1;
