@@ -279,43 +279,40 @@ impl Refs {
         let n = poses.rows.len();
         let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 1);
         let mut best = vec![f64::INFINITY; nominal.len()];
-        for rule in KnotRule::ALL {
-            let trial = self.with_rule(poses, rule);
-            for (i, (s, b)) in nominal.iter().zip(best.iter_mut()).enumerate() {
-                let sse = heldout_sse(s, i, poses, trial.terms(effect, i), &folds, cfg);
-                // A sensor the references do not cover keeps its defaults.
-                let (Some(ko), Some(ao), Some(k), Some(a)) = (
-                    out.knots.get_mut(i),
-                    out.table_affine.get_mut(i),
-                    trial.knots.get(i),
-                    trial.table_affine.get(i),
-                ) else {
-                    continue;
-                };
-                if sse < *b {
-                    (*b, *ko, *ao) = (sse, *k, *a);
-                }
-            }
-        }
+        let sses = |t: &Refs| t.heldout_sses(nominal, poses, effect, &folds, cfg);
+        let rules = KnotRule::ALL
+            .into_iter()
+            .map(|rule| self.with_rule(poses, rule));
+        choose_per_sensor(rules, &mut best, sses, |trial, i| {
+            // A sensor the references do not cover keeps its defaults.
+            let (Some(ko), Some(ao), Some(k), Some(a)) = (
+                out.knots.get_mut(i),
+                out.table_affine.get_mut(i),
+                trial.knots.get(i),
+                trial.table_affine.get(i),
+            ) else {
+                return false;
+            };
+            (*ko, *ao) = (*k, *a);
+            true
+        });
         // Then the ridge, on the knots chosen (one cross-validation per
         // ridge instead of one per pair: the diagnosis makes this choice
         // in every re-simulation).
-        for ridge in TABLE_RIDGES.into_iter().skip(1) {
+        let on_knots = out.clone();
+        let ridges = TABLE_RIDGES.into_iter().skip(1).map(|ridge| {
             let trial = Refs {
-                ridge: vec![ridge; out.ridge.len()],
-                ..out.clone()
+                ridge: vec![ridge; on_knots.ridge.len()],
+                ..on_knots.clone()
             };
-            let sses = trial.heldout_sses(nominal, poses, effect, &folds, cfg);
-            for ((sse, b), r) in sses
-                .into_iter()
-                .zip(best.iter_mut())
-                .zip(out.ridge.iter_mut())
-            {
-                if sse < *b {
-                    (*b, *r) = (sse, ridge);
-                }
-            }
-        }
+            (ridge, trial)
+        });
+        choose_per_sensor(
+            ridges,
+            &mut best,
+            |(_, t)| sses(t),
+            |(ridge, _), i| out.ridge.get_mut(i).map(|r| *r = *ridge).is_some(),
+        );
         out
     }
 
@@ -345,24 +342,20 @@ impl Refs {
         // low.
         let n = poses.rows.len();
         let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 2);
-        let mut best = vec![f64::INFINITY; nominal.len()];
-        for form in IncidenceForm::ALL {
+        let forms = IncidenceForm::ALL.into_iter().map(|form| {
             let trial = Refs {
                 incidence: vec![form; nominal.len()],
                 ..self.clone()
             };
-            let sses = trial.heldout_sses(nominal, poses, effect, &folds, cfg);
-            for (i, ((sse, b), f)) in sses
-                .into_iter()
-                .zip(best.iter_mut())
-                .zip(out.incidence.iter_mut())
-                .enumerate()
-            {
-                if sse < *b && trial.incidence_in_bounds(nominal, poses, effect, i, cfg) {
-                    (*b, *f) = (sse, form);
-                }
-            }
-        }
+            (form, trial)
+        });
+        let mut best = vec![f64::INFINITY; nominal.len()];
+        let sses =
+            |(_, t): &(IncidenceForm, Refs)| t.heldout_sses(nominal, poses, effect, &folds, cfg);
+        choose_per_sensor(forms, &mut best, sses, |(form, trial), i| {
+            trial.incidence_in_bounds(nominal, poses, effect, i, cfg)
+                && out.incidence.get_mut(i).map(|f| *f = *form).is_some()
+        });
         out
     }
 
@@ -450,6 +443,28 @@ impl Refs {
                 .unwrap_or([(0.0, 0.0); TABLE_COEFFS]),
         )
         .with_ridge(self.ridge.get(idx).copied().unwrap_or(0.0))
+    }
+}
+
+/// Per sensor, the trial with the lowest held-out error (the choices of
+/// [`Refs::with_table_choice`] and [`Refs::with_incidence_choice`]): for
+/// each of `trials` in order, `sses` gives every sensor's held-out squared
+/// error, and where it is strictly below that sensor's best so far (`best`,
+/// updated; the earlier trial wins a tie) `take` adopts the trial for the
+/// sensor and says whether it did (a sensor the trial does not cover, or a
+/// form outside its physical bounds, keeps what it has).
+fn choose_per_sensor<T>(
+    trials: impl IntoIterator<Item = T>,
+    best: &mut [f64],
+    mut sses: impl FnMut(&T) -> Vec<f64>,
+    mut take: impl FnMut(&T, usize) -> bool,
+) {
+    for trial in trials {
+        for (i, (sse, b)) in sses(&trial).into_iter().zip(best.iter_mut()).enumerate() {
+            if sse < *b && take(&trial, i) {
+                *b = sse;
+            }
+        }
     }
 }
 
@@ -1140,7 +1155,7 @@ pub fn line_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// The physical words of a spot fit: size per tan²γ, at 30° and the
@@ -1194,6 +1209,23 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let run = crate::sim::simulate(&head, &cfg, &[], &mut rng).unwrap();
         (head, run)
+    }
+
+    /// The paper's head and the simulator's settings for a run of `poses`
+    /// poses tilted over a range of `range_deg` about both axes.
+    pub(crate) fn paper_tilted(
+        poses: usize,
+        range_deg: f64,
+    ) -> (crate::sim::SimHead, crate::sim::SimConfig) {
+        let head = crate::sim::paper_head().unwrap();
+        let mut cfg = crate::sim::SimConfig::paper();
+        cfg.poses = poses;
+        cfg.spread = crate::sim::PoseSpread {
+            tilt_x_range_deg: range_deg,
+            tilt_y_range_deg: range_deg,
+            ..crate::sim::PoseSpread::cell(crate::sim::PAPER_STANDOFF_MM)
+        };
+        (head, cfg)
     }
 
     /// A linearity error of a shape no candidate has (one sine period over
@@ -1357,14 +1389,7 @@ mod tests {
     #[test]
     fn a_spot_bias_is_fitted_in_the_spot_form() {
         use rand::SeedableRng;
-        let head = crate::sim::paper_head().unwrap();
-        let mut cfg = crate::sim::SimConfig::paper();
-        cfg.poses = 80;
-        cfg.spread = crate::sim::PoseSpread {
-            tilt_x_range_deg: 30.0,
-            tilt_y_range_deg: 30.0,
-            ..crate::sim::PoseSpread::cell(crate::sim::PAPER_STANDOFF_MM)
-        };
+        let (head, cfg) = paper_tilted(80, 30.0);
         let psi = [0.3f64, 2.0, -2.6, -1.0];
         let k = 0.4;
         let ext: Vec<Extension<f64>> = psi

@@ -767,14 +767,7 @@ mod tests {
         use perpend_core::calib::LsqConfig;
         use perpend_core::ext::Extension;
         use rand::SeedableRng;
-        let head = crate::sim::paper_head().unwrap();
-        let mut cfg = crate::sim::SimConfig::paper();
-        cfg.poses = 60;
-        cfg.spread = crate::sim::PoseSpread {
-            tilt_x_range_deg: 15.0,
-            tilt_y_range_deg: 15.0,
-            ..crate::sim::PoseSpread::cell(crate::sim::PAPER_STANDOFF_MM)
-        };
+        let (head, cfg) = crate::diagnose::candidates::tests::paper_tilted(60, 15.0);
         let ext = [0.3f64, 2.0, -2.6, -1.0]
             .iter()
             .map(|p| Extension {
