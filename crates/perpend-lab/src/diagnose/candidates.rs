@@ -11,7 +11,7 @@
 //! | `gain` | `d − d_ref` | scale error of the analog chain |
 //! | `nonlinearity` | `d − d_ref`, `(d − d_ref)²`, `(d − d_ref)³` | polynomial linearity error (the linear term keeps the polynomial independent of the reference `d_ref`) |
 //! | `linearity_table` | `d − d_ref`, `C_0..C_2(d − d_ref)` | linearity error of any smooth shape: a natural cubic spline with 5 knots, its values at the 3 interior knots fitted ([`perpend_core::ext::LinTable`]); an alternative to `nonlinearity`, never selected with it |
-//! | `incidence` | `1/cos γ − 1`, and/or `tan²γ·cos φ`, `tan²γ·sin φ` | spot/speckle bias growing with the angle between beam and surface normal: symmetric, or with the azimuth `φ` of the surface's tilt about the beam (a triangulation receiver at azimuth `ψ` sees `k·tan²γ·cos(φ − ψ)`, [`perpend_core::ext`], "Incidence"); one form or the other per sensor by held-out error ([`Refs::with_incidence_choice`]) |
+//! | `incidence` | `1/cos γ − 1`, and/or `tan²γ·cos φ`, `tan²γ·sin φ` | spot/speckle bias growing with the angle between beam and surface normal: symmetric, or with the azimuth `φ` of the surface's tilt about the beam (a triangulation receiver at azimuth `ψ` sees `k·tan²γ·cos(φ − ψ)`, [`perpend_core::ext`], "Incidence"); one form or the other per sensor by held-out error, among the forms whose fit stays within its physical bounds ([`Refs::with_incidence_choice`]) |
 //! | `crosstalk` | `d_src − d` | ADC sample-and-hold carry-over from the channel converted just before: the previous one in sensor order unless another fits the run better ([`sources`]) |
 //! | `thermal` | `T − T_ref` | drift with the head temperature (`temp_c`) |
 //! | `drift` | `t` | drift with time since the start of the run (`t_s`) |
@@ -320,7 +320,9 @@ impl Refs {
     /// model `effect` on `poses` (unchanged without an incidence term): the
     /// form with the lowest held-out error of that sensor, cross-validated
     /// as [`Refs::with_table_choice`] does but on folds of seed 2 (the
-    /// symmetric form on ties).
+    /// symmetric form on ties), among the forms whose fit on all poses is
+    /// within its physical bounds ([`incidence_bound`]; the symmetric form
+    /// when neither is, and the candidate is then implausible).
     /// The spot form costs two coefficients where the symmetric one costs
     /// one: chosen held out, it is taken only where the azimuth pays for
     /// them, and on the table analysed, so the effect-free re-simulations
