@@ -11,7 +11,7 @@
 //! | `gain` | `d − d_ref` | scale error of the analog chain |
 //! | `nonlinearity` | `d − d_ref`, `(d − d_ref)²`, `(d − d_ref)³` | polynomial linearity error (the linear term keeps the polynomial independent of the reference `d_ref`) |
 //! | `linearity_table` | `d − d_ref`, `C_0..C_2(d − d_ref)` | linearity error of any smooth shape: a natural cubic spline with 5 knots, its values at the 3 interior knots fitted ([`perpend_core::ext::LinTable`]); an alternative to `nonlinearity`, never selected with it |
-//! | `incidence` | `1/cos γ − 1`, and/or `tan²γ·cos φ`, `tan²γ·sin φ` | spot/speckle bias growing with the angle between beam and surface normal: symmetric, or with the azimuth `φ` of the surface's tilt about the beam (a triangulation receiver at azimuth `ψ` sees `k·tan²γ·cos(φ − ψ)`, [`perpend_core::ext`], "Incidence"); one form or the other per sensor by held-out error ([`Refs::with_incidence_choice`]) |
+//! | `incidence` | `1/cos γ − 1`, and/or `tan²γ·cos φ`, `tan²γ·sin φ` | spot/speckle bias growing with the angle between beam and surface normal: symmetric, or with the azimuth `φ` of the surface's tilt about the beam (a triangulation receiver at azimuth `ψ` sees `k·tan²γ·cos(φ − ψ)`, [`perpend_core::ext`], "Incidence"); one form or the other per sensor by held-out error, among the forms whose fit stays within its physical bounds ([`Refs::with_incidence_choice`]) |
 //! | `crosstalk` | `d_src − d` | ADC sample-and-hold carry-over from the channel converted just before: the previous one in sensor order unless another fits the run better ([`sources`]) |
 //! | `thermal` | `T − T_ref` | drift with the head temperature (`temp_c`) |
 //! | `drift` | `t` | drift with time since the start of the run (`t_s`) |
@@ -279,43 +279,40 @@ impl Refs {
         let n = poses.rows.len();
         let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 1);
         let mut best = vec![f64::INFINITY; nominal.len()];
-        for rule in KnotRule::ALL {
-            let trial = self.with_rule(poses, rule);
-            for (i, (s, b)) in nominal.iter().zip(best.iter_mut()).enumerate() {
-                let sse = heldout_sse(s, i, poses, trial.terms(effect, i), &folds, cfg);
-                // A sensor the references do not cover keeps its defaults.
-                let (Some(ko), Some(ao), Some(k), Some(a)) = (
-                    out.knots.get_mut(i),
-                    out.table_affine.get_mut(i),
-                    trial.knots.get(i),
-                    trial.table_affine.get(i),
-                ) else {
-                    continue;
-                };
-                if sse < *b {
-                    (*b, *ko, *ao) = (sse, *k, *a);
-                }
-            }
-        }
+        let sses = |t: &Refs| t.heldout_sses(nominal, poses, effect, &folds, cfg);
+        let rules = KnotRule::ALL
+            .into_iter()
+            .map(|rule| self.with_rule(poses, rule));
+        choose_per_sensor(rules, &mut best, sses, |trial, i| {
+            // A sensor the references do not cover keeps its defaults.
+            let (Some(ko), Some(ao), Some(k), Some(a)) = (
+                out.knots.get_mut(i),
+                out.table_affine.get_mut(i),
+                trial.knots.get(i),
+                trial.table_affine.get(i),
+            ) else {
+                return false;
+            };
+            (*ko, *ao) = (*k, *a);
+            true
+        });
         // Then the ridge, on the knots chosen (one cross-validation per
         // ridge instead of one per pair: the diagnosis makes this choice
         // in every re-simulation).
-        for ridge in TABLE_RIDGES.into_iter().skip(1) {
+        let on_knots = out.clone();
+        let ridges = TABLE_RIDGES.into_iter().skip(1).map(|ridge| {
             let trial = Refs {
-                ridge: vec![ridge; out.ridge.len()],
-                ..out.clone()
+                ridge: vec![ridge; on_knots.ridge.len()],
+                ..on_knots.clone()
             };
-            let sses = trial.heldout_sses(nominal, poses, effect, &folds, cfg);
-            for ((sse, b), r) in sses
-                .into_iter()
-                .zip(best.iter_mut())
-                .zip(out.ridge.iter_mut())
-            {
-                if sse < *b {
-                    (*b, *r) = (sse, ridge);
-                }
-            }
-        }
+            (ridge, trial)
+        });
+        choose_per_sensor(
+            ridges,
+            &mut best,
+            |(_, t)| sses(t),
+            |(ridge, _), i| out.ridge.get_mut(i).map(|r| *r = *ridge).is_some(),
+        );
         out
     }
 
@@ -323,7 +320,9 @@ impl Refs {
     /// model `effect` on `poses` (unchanged without an incidence term): the
     /// form with the lowest held-out error of that sensor, cross-validated
     /// as [`Refs::with_table_choice`] does but on folds of seed 2 (the
-    /// symmetric form on ties).
+    /// symmetric form on ties), among the forms whose fit on all poses is
+    /// within its physical bounds ([`incidence_bound`]; the symmetric form
+    /// when neither is, and the candidate is then implausible).
     /// The spot form costs two coefficients where the symmetric one costs
     /// one: chosen held out, it is taken only where the azimuth pays for
     /// them, and on the table analysed, so the effect-free re-simulations
@@ -345,24 +344,43 @@ impl Refs {
         // low.
         let n = poses.rows.len();
         let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 2);
-        let mut best = vec![f64::INFINITY; nominal.len()];
-        for form in IncidenceForm::ALL {
+        let forms = IncidenceForm::ALL.into_iter().map(|form| {
             let trial = Refs {
                 incidence: vec![form; nominal.len()],
                 ..self.clone()
             };
-            let sses = trial.heldout_sses(nominal, poses, effect, &folds, cfg);
-            for ((sse, b), f) in sses
-                .into_iter()
-                .zip(best.iter_mut())
-                .zip(out.incidence.iter_mut())
-            {
-                if sse < *b {
-                    (*b, *f) = (sse, form);
-                }
-            }
-        }
+            (form, trial)
+        });
+        let mut best = vec![f64::INFINITY; nominal.len()];
+        let sses =
+            |(_, t): &(IncidenceForm, Refs)| t.heldout_sses(nominal, poses, effect, &folds, cfg);
+        choose_per_sensor(forms, &mut best, sses, |(form, trial), i| {
+            trial.incidence_in_bounds(nominal, poses, effect, i, cfg)
+                && out.incidence.get_mut(i).map(|f| *f = *form).is_some()
+        });
         out
+    }
+
+    /// Whether sensor `idx`'s incidence coefficients, fitted on all of
+    /// `poses` with these references' terms of `effect`, are within their
+    /// physical bounds ([`incidence_bound`]); `false` when it cannot be
+    /// fitted. A form outside them is never named ([`plausible`]), so the
+    /// form choice does not take it: on a narrow pose spread (±5°) a spot
+    /// bias projects onto `1/cos γ − 1` with a coefficient beyond the
+    /// symmetric bound where the spot form's own stays within its bound.
+    fn incidence_in_bounds(
+        &self,
+        nominal: &[Sensor<f64>],
+        poses: &PoseTable,
+        effect: Effect,
+        idx: usize,
+        cfg: &LsqConfig<f64>,
+    ) -> bool {
+        let Some(s) = nominal.get(idx) else {
+            return false;
+        };
+        fit(s, idx, poses, self.terms(effect, idx), cfg)
+            .is_ok_and(|f| incidence_bound(&f.sensor.ext).is_none())
     }
 
     /// Each sensor's held-out squared error ([`heldout_sse`]) with these
@@ -427,6 +445,28 @@ impl Refs {
                 .unwrap_or([(0.0, 0.0); TABLE_COEFFS]),
         )
         .with_ridge(self.ridge.get(idx).copied().unwrap_or(0.0))
+    }
+}
+
+/// Per sensor, the trial with the lowest held-out error (the choices of
+/// [`Refs::with_table_choice`] and [`Refs::with_incidence_choice`]): for
+/// each of `trials` in order, `sses` gives every sensor's held-out squared
+/// error, and where it is strictly below that sensor's best so far (`best`,
+/// updated; the earlier trial wins a tie) `take` adopts the trial for the
+/// sensor and says whether it did (a sensor the trial does not cover, or a
+/// form outside its physical bounds, keeps what it has).
+fn choose_per_sensor<T>(
+    trials: impl IntoIterator<Item = T>,
+    best: &mut [f64],
+    mut sses: impl FnMut(&T) -> Vec<f64>,
+    mut take: impl FnMut(&T, usize) -> bool,
+) {
+    for trial in trials {
+        for (i, (sse, b)) in sses(&trial).into_iter().zip(best.iter_mut()).enumerate() {
+            if sse < *b && take(&trial, i) {
+                *b = sse;
+            }
+        }
     }
 }
 
@@ -635,14 +675,7 @@ pub fn plausible(effect: Effect, fits: &[SensorFit], span: f64) -> Result<(), St
                     .fold(0.0, f64::max);
                 (peak > 1.0).then(|| format!("table excess {peak:.3} mm (bound 1 mm)"))
             }
-            Effect::Incidence if e.incidence.abs() > 5.0 => Some(format!(
-                "incidence bias {:+.3} mm per unit (bound ±5 mm)",
-                e.incidence
-            )),
-            Effect::Incidence if e.spot_polar().0 > SPOT_BOUND_MM => Some(format!(
-                "spot bias {:.3} mm per unit of tan²γ (bound {SPOT_BOUND_MM} mm)",
-                e.spot_polar().0
-            )),
+            Effect::Incidence => incidence_bound(e),
             Effect::Crosstalk if e.crosstalk >= 0.5 || e.crosstalk < -2.0 * sd(0) => Some(format!(
                 "carry-over {:+.2} % ± {:.2} % (bound [0, 50 %))",
                 100.0 * e.crosstalk,
@@ -663,6 +696,25 @@ pub fn plausible(effect: Effect, fits: &[SensorFit], span: f64) -> Result<(), St
         }
     }
     Ok(())
+}
+
+/// Bound of the symmetric incidence coefficient [mm per unit of
+/// `1/cos γ − 1`] ([`plausible`]; 0.8 mm at 30°).
+pub const INCIDENCE_BOUND_MM: f64 = 5.0;
+
+/// Which incidence coefficient of `e` leaves its physical bound
+/// ([`plausible`]: the symmetric [`INCIDENCE_BOUND_MM`], the spot
+/// [`SPOT_BOUND_MM`]), in words; `None` within both.
+pub fn incidence_bound(e: &Extension<f64>) -> Option<String> {
+    if e.incidence.abs() > INCIDENCE_BOUND_MM {
+        return Some(format!(
+            "incidence bias {:+.3} mm per unit (bound ±{INCIDENCE_BOUND_MM} mm)",
+            e.incidence
+        ));
+    }
+    let k = e.spot_polar().0;
+    (k > SPOT_BOUND_MM)
+        .then(|| format!("spot bias {k:.3} mm per unit of tan²γ (bound {SPOT_BOUND_MM} mm)"))
 }
 
 /// A fitted incidence correction in physical words: the symmetric term
@@ -1105,7 +1157,7 @@ pub fn line_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// The physical words of a spot fit: size per tan²γ, at 30° and the
@@ -1159,6 +1211,23 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let run = crate::sim::simulate(&head, &cfg, &[], &mut rng).unwrap();
         (head, run)
+    }
+
+    /// The paper's head and the simulator's settings for a run of `poses`
+    /// poses tilted over a range of `range_deg` about both axes.
+    pub(crate) fn paper_tilted(
+        poses: usize,
+        range_deg: f64,
+    ) -> (crate::sim::SimHead, crate::sim::SimConfig) {
+        let head = crate::sim::paper_head().unwrap();
+        let mut cfg = crate::sim::SimConfig::paper();
+        cfg.poses = poses;
+        cfg.spread = crate::sim::PoseSpread {
+            tilt_x_range_deg: range_deg,
+            tilt_y_range_deg: range_deg,
+            ..crate::sim::PoseSpread::cell(crate::sim::PAPER_STANDOFF_MM)
+        };
+        (head, cfg)
     }
 
     /// A linearity error of a shape no candidate has (one sine period over
@@ -1322,14 +1391,7 @@ mod tests {
     #[test]
     fn a_spot_bias_is_fitted_in_the_spot_form() {
         use rand::SeedableRng;
-        let head = crate::sim::paper_head().unwrap();
-        let mut cfg = crate::sim::SimConfig::paper();
-        cfg.poses = 80;
-        cfg.spread = crate::sim::PoseSpread {
-            tilt_x_range_deg: 30.0,
-            tilt_y_range_deg: 30.0,
-            ..crate::sim::PoseSpread::cell(crate::sim::PAPER_STANDOFF_MM)
-        };
+        let (head, cfg) = paper_tilted(80, 30.0);
         let psi = [0.3f64, 2.0, -2.6, -1.0];
         let k = 0.4;
         let ext: Vec<Extension<f64>> = psi
@@ -1392,6 +1454,56 @@ mod tests {
         );
         assert!(spot < 0.9 * sym, "spot {spot} vs symmetric {sym}");
         assert!(spot < 1.1 * 1.1 * floor, "spot {spot} vs clean {floor}");
+    }
+
+    /// A v3 blind run (`host-tests/blind/gen.py`, case `incidence spot, 5
+    /// deg`, tuning seed 3000141: ±5°, a spot bias capped at 1 mm, files in
+    /// `tests/golden/v3/spot5deg`): on sensor 3 the symmetric form predicts
+    /// the held-out readings better than the spot form, but only with a
+    /// coefficient beyond its ±5 mm bound (the spot bias projected onto
+    /// `1/cos γ − 1`). The choice takes the spot form there, and the
+    /// incidence fit on all poses stays within its bounds: the candidate
+    /// can be named (before, it was refused as implausible and the run
+    /// said `none`).
+    #[test]
+    fn the_form_choice_takes_only_forms_within_their_bounds() {
+        use crate::exchange::{read_poses, read_sensors};
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/v3/spot5deg");
+        let nominal = read_sensors(&dir.join("sensors.csv"))
+            .unwrap()
+            .sensors()
+            .unwrap();
+        let poses = read_poses(&dir.join("poses.csv"), Some(4)).unwrap();
+        let lsq = LsqConfig::default();
+        let refs = Refs::of(&poses);
+        let all = |form| Refs {
+            incidence: vec![form; 4],
+            ..refs.clone()
+        };
+        let (sym, spot) = (all(IncidenceForm::Symmetric), all(IncidenceForm::Spot));
+        let n = poses.rows.len();
+        let folds = super::super::folds::Folds::new(n, super::super::folds::folds_for(n, None), 2);
+        let sse = |r: &Refs| {
+            heldout_sse(
+                &nominal[2],
+                2,
+                &poses,
+                r.terms(Effect::Incidence, 2),
+                &folds,
+                &lsq,
+            )
+        };
+        assert!(sse(&sym) < sse(&spot), "{} vs {}", sse(&sym), sse(&spot));
+        assert!(!sym.incidence_in_bounds(&nominal, &poses, Effect::Incidence, 2, &lsq));
+        let chosen = refs.with_incidence_choice(&nominal, &poses, Effect::Incidence, &lsq);
+        assert_eq!(
+            chosen.incidence[2],
+            IncidenceForm::Spot,
+            "{:?}",
+            chosen.incidence
+        );
+        let fits = fit_all(&nominal, &poses, &chosen, Effect::Incidence, &lsq).unwrap();
+        assert_eq!(plausible(Effect::Incidence, &fits, 1.0), Ok(()));
     }
 
     /// No target leakage (issue 10): a pose's held-out prediction comes

@@ -48,6 +48,28 @@ pub struct CvResult {
     pub n: usize,
 }
 
+/// Parameters of the paper's model per sensor (zero point and beam
+/// direction, Chen eq. 1-3).
+pub const BASE_PARAMS: usize = 5;
+
+impl CvResult {
+    /// Parameters of the whole head as fitted: per sensor the paper's
+    /// [`BASE_PARAMS`] and the extension terms its fits carry (those of the
+    /// effects already selected included). Per sensor, not per model: the
+    /// incidence candidate fits one coefficient where the symmetric form
+    /// was chosen and two where the spot form was
+    /// ([`super::candidates::Refs::with_incidence_choice`]). Every fold fits
+    /// the same terms, so the first is counted; `None` without fits.
+    pub fn fitted_params(&self) -> Option<usize> {
+        let head = self.heads.first().filter(|h| !h.is_empty())?;
+        Some(
+            head.iter()
+                .map(|s| BASE_PARAMS + s.terms.mask.count_ones() as usize)
+                .sum(),
+        )
+    }
+}
+
 /// The per-pose held-out loss differences `base − cand` [mm²].
 fn loss_differences(base: &CvResult, cand: &CvResult) -> Vec<f64> {
     base.pose_loss

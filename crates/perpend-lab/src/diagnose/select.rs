@@ -73,7 +73,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::candidates::Effect;
-use super::cv::{paired, paired_rank, CvResult, NormalGain};
+use super::cv::{paired, paired_rank, CvResult, NormalGain, BASE_PARAMS};
 use super::expect::{Analysis, Expectation, Spread};
 use super::stats;
 
@@ -93,7 +93,9 @@ pub struct Verdict {
     pub effect: Effect,
     /// Held-out RMS [mm].
     pub rms: f64,
-    /// Parameters of the whole head (5 per sensor + the extension's).
+    /// Parameters of the whole head as fitted ([`CvResult::fitted_params`]:
+    /// 5 per sensor + the extension terms each sensor's fit carries; the
+    /// incidence candidate's per-sensor form decides between one and two).
     pub n_params: usize,
     /// Paired z of its gain over the base model (mean of `D_k`).
     pub z: f64,
@@ -311,7 +313,7 @@ fn verdicts(
         out.push(Verdict {
             effect: Effect::None,
             rms: b.rms,
-            n_params: 5 * n_sensors,
+            n_params: b.fitted_params().unwrap_or(BASE_PARAMS * n_sensors),
             z: 0.0,
             z_rank: 0.0,
             z_threshold: z_star,
@@ -339,7 +341,9 @@ fn verdicts(
         out.push(Verdict {
             effect: c.effect,
             rms: c.rms,
-            n_params: (5 + c.effect.terms().len()) * n_sensors,
+            n_params: c
+                .fitted_params()
+                .unwrap_or((BASE_PARAMS + c.effect.terms().len()) * n_sensors),
             z,
             z_rank,
             z_threshold: thr,
@@ -749,6 +753,62 @@ mod tests {
                 4.0 * level * level * (0.5 + u)
             })
             .collect()
+    }
+
+    /// The incidence candidate counts the parameters its fits carry: on a
+    /// run with a spot bias (±15°, receivers at four azimuths) at least one
+    /// sensor takes the two-term spot form, and its verdict counts 5 + 2
+    /// there and 5 + 1 where the symmetric form was kept, not 5 + 1 on
+    /// every sensor; the gain's count stays 5 + 1 per sensor.
+    #[test]
+    fn incidence_counts_the_parameters_of_its_forms() {
+        use crate::diagnose::candidates::{IncidenceForm, Refs};
+        use crate::diagnose::cv::{cross_validate, Folds};
+        use perpend_core::calib::LsqConfig;
+        use perpend_core::ext::Extension;
+        use rand::SeedableRng;
+        let (head, cfg) = crate::diagnose::candidates::tests::paper_tilted(60, 15.0);
+        let ext = [0.3f64, 2.0, -2.6, -1.0]
+            .iter()
+            .map(|p| Extension {
+                spot: [0.6 * p.cos(), 0.6 * p.sin()],
+                ..Extension::identity()
+            })
+            .collect();
+        let effect = crate::sim::ExtensionEffect { ext };
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let run = crate::sim::simulate(&head, &cfg, &[&effect], &mut rng)
+            .unwrap()
+            .poses;
+        let (lsq, refs) = (LsqConfig::default(), Refs::of(&run));
+        let folds = Folds::new(run.rows.len(), 10, 1);
+        let cv = |e| cross_validate(e, &head.nominal, &run, &refs, &folds, &lsq).unwrap();
+        let forms = refs
+            .with_incidence_choice(&head.nominal, &run, Effect::Incidence, &lsq)
+            .incidence;
+        let spot = forms.iter().filter(|f| **f == IncidenceForm::Spot).count();
+        assert!(spot >= 1, "{forms:?}");
+        let a = analysis(vec![
+            (cv(Effect::None), 0.0),
+            (cv(Effect::Gain), 0.0),
+            (cv(Effect::Incidence), 0.0),
+        ]);
+        let e = expectation(&[
+            (Effect::None, 0.01),
+            (Effect::Gain, 0.01),
+            (Effect::Incidence, 0.01),
+        ]);
+        let d = decide(&a, &e, 4, &Rule::default(), &[]);
+        let n_of = |eff| {
+            d.verdicts
+                .iter()
+                .find(|v| v.effect == eff)
+                .unwrap()
+                .n_params
+        };
+        assert_eq!(n_of(Effect::None), 20);
+        assert_eq!(n_of(Effect::Gain), 24);
+        assert_eq!(n_of(Effect::Incidence), 24 + spot, "{forms:?}");
     }
 
     /// Two effects at once, neither in the exact form of a candidate: a
