@@ -108,10 +108,17 @@ fn without_test_mods(toks: Vec<Tok>) -> Vec<Tok> {
     let mut i = 0;
     while i < toks.len() {
         if toks[i..].starts_with(&attr) {
-            // Further attributes, then `mod name {`.
+            // Further attributes, a visibility (`pub`, `pub(crate)`), then
+            // `mod name {`.
             let mut j = i + attr.len();
             while toks.get(j) == Some(&Tok::Punct('#')) {
                 j = block_end(&toks, j + 1, '[', ']');
+            }
+            if toks.get(j) == Some(&Tok::Ident("pub".into())) {
+                j += 1;
+                if toks.get(j) == Some(&Tok::Punct('(')) {
+                    j = block_end(&toks, j, '(', ')');
+                }
             }
             let is_mod = toks.get(j) == Some(&Tok::Ident("mod".into()))
                 && toks.get(j + 2) == Some(&Tok::Punct('{'));
@@ -540,4 +547,28 @@ fn the_walk_check_fails_on_twice_skipped_and_out_of_order() {
         "fn a() {} #[cfg(test)] #[allow(x)] mod tests { fn b() { fit(1) } } fn c() { load(2) }",
     ));
     assert_eq!(calls(&t), vec!["load".to_string()]);
+}
+
+/// Test modules are left out whatever their attributes and visibility
+/// (`pub(crate) mod tests` shares fixtures with other test modules);
+/// code around them stays.
+#[test]
+fn test_modules_are_left_out_with_any_visibility() {
+    let kept = |src: &str| {
+        without_test_mods(tokens(src))
+            .into_iter()
+            .filter_map(|t| match t {
+                Tok::Ident(s) => Some(s),
+                _ => None,
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    for vis in ["", "pub", "pub(crate)", "pub(super)"] {
+        let src = format!(
+            "fn a() {{}} #[cfg(test)] #[allow(x)] {vis} mod tests {{ use super::later; }} fn b() {{}}"
+        );
+        assert_eq!(kept(&src), "fn a fn b", "{vis}");
+    }
+    assert_eq!(kept("#[cfg(test)] fn c() {}"), "cfg test fn c");
 }
