@@ -1230,41 +1230,6 @@ pub(crate) mod tests {
         (head, cfg)
     }
 
-    /// A linearity error of a shape no candidate has (one sine period over
-    /// each sensor's range, as a triangulation sensor's residual
-    /// linearity often is), added to a simulated run: the table is named,
-    /// the held-out RMS comes within 10 % of the same run without the
-    /// error, and the cubic is refused as implausible.
-    #[test]
-    fn an_s_shaped_linearity_error_is_followed_by_the_table() {
-        let (_, mut run) = paper_run(120, 11);
-        let clean = run.clone();
-        crate::sim::add_sine_linearity(&mut run.poses, &[0.06, -0.05, 0.055, -0.06]);
-        let d = crate::diagnose::diagnose(&run.sensors, &run.poses, &Default::default()).unwrap();
-        assert_eq!(d.effects(), vec![Effect::LinearityTable]);
-        let floor = crate::diagnose::diagnose(&clean.sensors, &clean.poses, &Default::default())
-            .unwrap()
-            .scores
-            .base
-            .heldout_rms_mm;
-        assert!(
-            d.scores.extended.heldout_rms_mm < 1.1 * floor,
-            "{} vs {floor}",
-            d.scores.extended.heldout_rms_mm
-        );
-        // The polynomial follows the sine inside the run about as well on
-        // held-out poses, but bends away beyond it: more than 1 mm at the
-        // range ends, which no sensor does; the table is linear there.
-        assert!(
-            d.fits
-                .implausible
-                .iter()
-                .any(|(e, _)| *e == Effect::Nonlinearity),
-            "{:?}",
-            d.fits.implausible
-        );
-    }
-
     /// The table's columns are fitted centred: the same predictions as the
     /// uncentred columns, with a lower condition number (here by ~20 %; on
     /// the blind run of seed 1200128, whose readings crowd the middle more,
