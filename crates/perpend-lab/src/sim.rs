@@ -127,6 +127,27 @@ fn head_from_table(
     })
 }
 
+/// An effect-free run of the paper head for the time-like checks: 60 poses
+/// 30 s apart, the temperature column held at 21 °C (a caller writes its
+/// own warm-up or drift into the readings).
+///
+/// # Errors
+/// Those of [`paper_head`] and [`simulate`].
+pub fn timed_paper_run(seed: u64) -> Result<(SimHead, PoseTable)> {
+    let head = paper_head()?;
+    let mut cfg = SimConfig::paper();
+    cfg.poses = 60;
+    cfg.dt_s = Some(30.0);
+    cfg.temp = Some(TempProfile {
+        start_c: 21.0,
+        rate_c_per_s: 0.0,
+        swing_c: 0.0,
+        period_s: 300.0,
+    });
+    let run = simulate(&head, &cfg, &[], &mut StdRng::seed_from_u64(seed))?.poses;
+    Ok((head, run))
+}
+
 /// Chen Table 2: the simulated head (nominal + parameter errors), rotated
 /// into our +z-feed TCS. Standoff: [`PAPER_STANDOFF_MM`] (the Table 1 plane
 /// crosses the axis at z = 34.1218 / 0.9515 = 35.861 mm).

@@ -11,8 +11,7 @@ use perpend_lab::diagnose::candidates::Effect;
 use perpend_lab::diagnose::lags::{separable, CONFOUNDED_R};
 use perpend_lab::diagnose::{diagnose, Settings};
 use perpend_lab::exchange::{PoseTable, SensorTable};
-use perpend_lab::sim::{paper_head, simulate, SimConfig, TempProfile};
-use rand::SeedableRng;
+use perpend_lab::sim::timed_paper_run;
 
 /// A simulated run (paper head, 60 poses 30 s apart) with a linear
 /// drift `A_i·t/t_end` and a reading tied to a head temperature that
@@ -20,18 +19,7 @@ use rand::SeedableRng;
 /// of the run: 0.12 reaches the plateau by 36 % of the run, 1.2 ends on
 /// the rise.
 fn warm_drift_run(tau_frac: f64, seed: u64) -> (SensorTable, PoseTable) {
-    let head = paper_head().unwrap();
-    let mut cfg = SimConfig::paper();
-    cfg.poses = 60;
-    cfg.dt_s = Some(30.0);
-    cfg.temp = Some(TempProfile {
-        start_c: 21.0,
-        rate_c_per_s: 0.0,
-        swing_c: 0.0,
-        period_s: 300.0,
-    });
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let mut run = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
+    let (head, mut run) = timed_paper_run(seed).unwrap();
     let t_end = run.rows.iter().filter_map(|r| r.t_s).fold(0.0, f64::max);
     let (a, k) = ([0.03, -0.025, 0.02, -0.03], [0.005, 0.006, -0.005, 0.004]);
     for row in &mut run.rows {

@@ -301,32 +301,6 @@ pub fn select(
     }
 }
 
-/// A simulated effect-free run for the tests: the paper head, 60 poses
-/// 30 s apart, the temperature column held at 21 °C (a test writes its own
-/// warm-up).
-///
-/// # Panics
-/// When the simulator fails on the paper head (a test failure).
-#[cfg(test)]
-#[allow(clippy::unwrap_used)]
-pub(super) fn timed_run(seed: u64) -> (crate::sim::SimHead, PoseTable) {
-    use crate::sim::{paper_head, simulate, SimConfig, TempProfile};
-    use rand::SeedableRng;
-    let head = paper_head().unwrap();
-    let mut cfg = SimConfig::paper();
-    cfg.poses = 60;
-    cfg.dt_s = Some(30.0);
-    cfg.temp = Some(TempProfile {
-        start_c: 21.0,
-        rate_c_per_s: 0.0,
-        swing_c: 0.0,
-        period_s: 300.0,
-    });
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let run = simulate(&head, &cfg, &[], &mut rng).unwrap().poses;
-    (head, run)
-}
-
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -341,7 +315,7 @@ mod tests {
     /// e^{−t/τ_h})`, `T_s = T0 + ΔT(1 − (τ_h e^{−t/τ_h} − τ_l
     /// e^{−t/τ_l})/(τ_h − τ_l))`.
     fn warm_run(tau_l: f64, k: [f64; 4], seed: u64) -> (Vec<Sensor<f64>>, PoseTable) {
-        let (head, mut run) = timed_run(seed);
+        let (head, mut run) = crate::sim::timed_paper_run(seed).unwrap();
         let (t0, dt, tau_h) = (21.0, 8.0, 900.0);
         for row in &mut run.rows {
             let t = row.t_s.unwrap();
@@ -461,7 +435,7 @@ mod tests {
     fn a_drift_beside_a_plateau_keeps_the_defaults() {
         let cfg = LsqConfig::default();
         for seed in [5, 6, 7] {
-            let (head, mut run) = timed_run(seed);
+            let (head, mut run) = crate::sim::timed_paper_run(seed).unwrap();
             let t_end = run_end_s(&run);
             let (a, k) = ([0.03, -0.025, 0.02, -0.03], [0.005, 0.006, -0.005, 0.004]);
             for row in &mut run.rows {
