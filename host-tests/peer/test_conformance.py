@@ -40,6 +40,14 @@ def emcy_codes(frames):
     return [struct.unpack_from("<H", d)[0] for i, d in frames if i == EMCY]
 
 
+def after_bootup(frames):
+    """The frames after the board's last boot-up message: EMCYs it sent
+    before an NMT reset can reach a loaded master after the recorder
+    started (seen in CI), and the bus keeps their order."""
+    boots = [k for k, (i, d) in enumerate(frames) if i == 0x700 + NODE_ID and d == b"\x00"]
+    return frames[boots[-1] + 1 :] if boots else []
+
+
 @pytest.mark.board_args(
     "--fault", "1:open", "--fault", "2:overcurrent", "--fault", "3:open", "--fault", "4:overcurrent"
 )
@@ -72,11 +80,12 @@ def test_one_emcy_per_error_with_thirteen_active(board):
 
     def resets():
         frames.extend(rec.drain())
-        return [d for i, d in frames if i == EMCY and d[:2] == b"\x00\x00"]
+        return [d for i, d in after_bootup(frames) if i == EMCY and d[:2] == b"\x00\x00"]
 
     assert wait_until(lambda: len(resets()) >= 4, 10.0), emcy_codes(frames)
     time.sleep(0.5)  # a flood would show here
-    codes = [c for c in emcy_codes(frames + rec.drain()) if c != 0]
+    frames.extend(rec.drain())
+    codes = [c for c in emcy_codes(after_bootup(frames)) if c != 0]
     currents = {0x2111, 0x2112, 0x2113, 0x2114}
     want = currents | {0xFF11, 0xFF12, 0xFF13, 0xFF14, 0xFF02, 0x6300, 0x8130, 0x8240, 0x8210}
     assert sorted(codes) == sorted(want), [hex(c) for c in codes]
