@@ -88,7 +88,8 @@ def test_one_emcy_per_error_with_thirteen_active(board):
     codes = [c for c in emcy_codes(after_bootup(frames)) if c != 0]
     currents = {0x2111, 0x2112, 0x2113, 0x2114}
     want = currents | {0xFF11, 0xFF12, 0xFF13, 0xFF14, 0xFF02, 0x6300, 0x8130, 0x8240, 0x8210}
-    assert sorted(codes) == sorted(want), [hex(c) for c in codes]
+    trace = [(hex(i), d.hex()) for i, d in frames if i != TPDO1]
+    assert sorted(codes) == sorted(want), ([hex(c) for c in codes], trace)
     cleared = {struct.unpack_from("<H", d, 3)[0] for d in resets()}
     assert len(resets()) == 4 and cleared == currents, resets()
     # generic | communication | manufacturer (the current bit is gone)

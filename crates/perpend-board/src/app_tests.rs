@@ -32,6 +32,8 @@ impl Bench {
             sent: Vec::new(),
             node: NODE,
         };
+        // the boot-up, then what the boot raised (EMCYs wait a poll)
+        b.poll();
         b.poll();
         b
     }

@@ -172,7 +172,9 @@ fn app_boot_over_an_ecc_word_raises_data_set_emcy_with_the_count() {
         assert_eq!(app.boot(), Boot::Stored, "cut {cut}");
         let faults = app.boot_read_faults();
         let mut frames = Vec::new();
+        // the boot-up, then (a poll later) what the boot raised
         app.poll(0, &mut |f| frames.push(f));
+        app.poll(100, &mut |f| frames.push(f));
         let emcy = frames.iter().find(|f| f.id == 0xA0);
         if faults == 0 {
             assert!(emcy.is_none(), "cut {cut}");

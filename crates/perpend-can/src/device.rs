@@ -1383,7 +1383,15 @@ impl Device {
                 *v = s as u32;
             }
         }
-        if c.state == NmtState::Initialising {
+        // The boot-up is the node's first frame: the poll that sends it
+        // sends no EMCY (raised while initialising, they wait for the next
+        // poll). A transmit queue in CAN priority order (perpend-board's
+        // `txq`, the FDCAN's buffers) would otherwise put a same-poll EMCY
+        // (0x080 + id) ahead of it (0x700 + id): seen on the virtual board.
+        // CANopenNode does the same: `CO_process` decides whether EMCYs may
+        // go from the NMT state before its NMT step.
+        let booting = c.state == NmtState::Initialising;
+        if booting {
             out(Frame::new(0x700 + node, &[0]));
             c.set_state(NmtState::PreOperational);
             c.hb_restart = true;
@@ -1408,8 +1416,9 @@ impl Device {
         // Heartbeats consumed and TPDOs waiting for a SYNC's sample.
         self.poll_sync(now_us, out);
         let c = &mut self.core;
-        // Emergencies (not in stopped), at most one per inhibit time.
-        if c.state != NmtState::Stopped {
+        // Emergencies (not in stopped, not with the boot-up), at most one
+        // per inhibit time.
+        if c.state != NmtState::Stopped && !booting {
             c.send_emcys(now_us, out);
         }
         // Event-driven TPDOs.

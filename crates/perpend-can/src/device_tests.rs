@@ -164,6 +164,32 @@ fn boot_up_then_heartbeat_with_state_codes() {
     assert_eq!(b.take(), vec![Frame::new(0x710, &[0x7F])]);
 }
 
+/// The boot-up is the node's first frame: an error raised while the node
+/// initialises (after power-on or an NMT reset) is sent by the poll after
+/// the one that sends the boot-up, so no transmit queue in CAN priority
+/// order can put the EMCY (0x090) ahead of it (0x710). Seen on the virtual
+/// board before the fix (peer test `test_one_emcy_per_error_with_thirteen_active`).
+#[test]
+fn no_emcy_before_the_boot_up() {
+    for reset in [None, Some(0x81u8), Some(0x82)] {
+        let mut b = Bus::new();
+        b.take();
+        if let Some(cs) = reset {
+            b.nmt(cs, NODE);
+            assert_eq!(b.dev.nmt_state(), NmtState::Initialising);
+        } else {
+            b.dev = Device::new(NODE, &Defaults::nominal());
+        }
+        assert!(b.dev.signal_emcy(0x2111, error_register::GENERIC, [0; 5]));
+        b.advance(10);
+        assert_eq!(b.take(), vec![Frame::new(0x710, &[0])], "{reset:?}");
+        b.advance(1_000);
+        let out = b.take();
+        assert_eq!(out.len(), 1, "{reset:?}: {out:?}");
+        assert_eq!((out[0].id, &out[0].data[..2]), (0x090, &[0x11, 0x21][..]));
+    }
+}
+
 #[test]
 fn nmt_commands_and_addressing() {
     let mut b = Bus::new();
