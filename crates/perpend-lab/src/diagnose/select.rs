@@ -30,8 +30,20 @@
 //! [`super::cv::normal_errors`]) are paired per pose,
 //! `N_k = e_base(k) − e_c(k)`, and the mean reduction is tested with its
 //! paired z (`mean(N)/(sd(N)/√K)`), against the same statistic on the
-//! effect-free re-simulations at the same level `α/m` and by the same rule
-//! as the residual z (`μ + z*·max(s, 1)·√(1 + 1/n)`, never below `z*`).
+//! effect-free re-simulations at the same level `α/m`: its predictive
+//! point `μ + z*·max(s, 1)·√(1 + 1/n)`, and at least the one-sided
+//! normal quantile at `α` itself (2.33 at α = 0.01: the reduction is
+//! significant on its own, whatever the candidate loses on the null). Unlike
+//! the residual tests it is not clamped at `z*`: an extension that costs
+//! normal accuracy on effect-free data (`μ < 0`, the usual case of a
+//! held-out fit with more parameters) has to overcome that cost, no more.
+//! Measured on the tuning seeds (v3 block, seed base 3000000, 20 nulls a
+//! regime, 10 runs a case and size: 290 runs): false positives 0/120 with
+//! and without the clamp; two ungraded two-sensor gain runs (costs 1.23
+//! and 1.25× the floor) named instead of `none`, no verdict lost. Without
+//! the floor at `α` a hysteresis run (3.04×) was named `nonlinearity` at
+//! z = 1.9 instead of `unexplained` (direction-dependent): the floor
+//! keeps that out.
 //! The normals are against the planes as the tracker reported them, on
 //! the measured run as on the draws (whose tracker noise is drawn anew),
 //! so the null carries the same plane noise. When no candidate beats the
@@ -40,7 +52,7 @@
 //! parameters within one standard error of it), judged like any winner,
 //! with the reason "costs X× the floor; named at p = …": `X` the base
 //! model's mean held-out normal error over its effect-free expectation,
-//! `p` the larger of the one-sided p of `z` and of `z` against its null.
+//! `p` the one-sided p of `z` against its null's predictive spread.
 //!
 //! **Structure.** The residuals of a model that captures the run are
 //! white along every axis of [`super::noise::AXES`]; the structure z of a
@@ -126,8 +138,7 @@ pub struct NormalTest {
     pub gain: NormalGain,
     /// The threshold its z had to pass (`z*` or its effect-free null).
     pub threshold: f64,
-    /// One-sided p of its z (the larger of `P(Z > z)` and of z against its
-    /// null's predictive spread).
+    /// One-sided p of its z against its null's predictive spread.
     pub p: f64,
     /// Whether it passes (`z > threshold`, equivalently `p < α/m`) and the
     /// candidate is plausible.
@@ -306,6 +317,9 @@ fn verdicts(
         .collect();
     let m = cands.len().max(1);
     let z_star = stats::normal_quantile(1.0 - rule.alpha / m as f64);
+    // The normal-cost test's floor: the reduction significant on its own
+    // at the family level α (module docs).
+    let z_own = stats::normal_quantile(1.0 - rule.alpha);
     let base_exp = exp.rms_of(Effect::None).unwrap_or_default();
     let floor_ms = base_exp.mean * base_exp.mean;
     let mut out = Vec::new();
@@ -352,7 +366,7 @@ fn verdicts(
             beats_base: significant && gain >= rule.min_gain * floor_ms && plausible,
             plausible,
             expected: exp.rms_of(c.effect).unwrap_or_default(),
-            normal: normal_test(measured, exp, c.effect, z_star, plausible),
+            normal: normal_test(measured, exp, c.effect, (z_star, z_own), plausible),
         });
     }
     (out, z_star)
@@ -364,8 +378,15 @@ fn verdicts(
 /// `z*`; with no effect-free values at all (every draw failed to fit the
 /// candidate) it is `√2·z*`, on the safe side.
 fn threshold(z_star: f64, null: &Spread) -> f64 {
+    z_star.max(null_quantile(z_star, null))
+}
+
+/// The predictive `z*` point of a z statistic whose effect-free spread
+/// over the re-simulations is `null`: `μ + z*·max(s, 1)·√(1 + 1/n)` (the
+/// spread at least that of a z, widened for the draws' own mean).
+fn null_quantile(z_star: f64, null: &Spread) -> f64 {
     let n = null.n.max(1) as f64;
-    z_star.max(null.mean + z_star * null.sd.max(1.0) * (1.0 + 1.0 / n).sqrt())
+    null.mean + z_star * null.sd.max(1.0) * (1.0 + 1.0 / n).sqrt()
 }
 
 /// The normal-cost test of candidate `e` (module docs): its paired
@@ -375,15 +396,18 @@ fn normal_test(
     measured: &Analysis,
     exp: &Expectation,
     e: Effect,
-    z_star: f64,
+    (z_star, z_own): (f64, f64),
     plausible: bool,
 ) -> Option<NormalTest> {
     let gain = measured.normal_gain_of(e).filter(|g| g.poses > 0)?;
     let null = exp.normal_z_of(e).unwrap_or_default();
-    let threshold = threshold(z_star, &null);
+    // Calibrated on the null alone, not clamped at z* like the residual
+    // tests: a candidate that loses normal accuracy on effect-free data
+    // (its null mean below 0) has to overcome that loss, no more.
+    let threshold = null_quantile(z_star, &null).max(z_own);
     let n = null.n.max(1) as f64;
     let against_null = (gain.z - null.mean) / (null.sd.max(1.0) * (1.0 + 1.0 / n).sqrt());
-    let p = stats::normal_upper_tail(gain.z).max(stats::normal_upper_tail(against_null));
+    let p = stats::normal_upper_tail(against_null);
     Some(NormalTest {
         gain,
         threshold,
@@ -820,6 +844,65 @@ mod tests {
                 Some(level * (0.75 + 0.5 * u))
             })
             .collect()
+    }
+
+    /// The normal-cost threshold is its null's predictive point, not
+    /// clamped at `z*`, and never below the one-sided quantile at `α`: a
+    /// reduction with paired z ≈ 2.7 (between 2.33 and `z*` = 2.88, five
+    /// candidates at α = 0.01) names the candidate against a null that
+    /// loses normal accuracy (mean −1), not
+    /// against one that does not (mean 0); a weaker reduction (z ≈ 1.9)
+    /// is not named whatever the null loses (mean −3).
+    #[test]
+    fn the_normal_threshold_is_its_null_quantile_and_at_least_the_level() {
+        let floor = 0.01;
+        let k = 100;
+        let base = cv(Effect::None, &losses(floor, k, 1));
+        let worse: Vec<f64> = base.pose_loss.iter().map(|l| l * 1.01).collect();
+        let named = |mean_reduction: f64, null_mean: f64| {
+            // five candidates: z* = 2.88 at α/5
+            let others = [
+                Effect::Drift,
+                Effect::Thermal,
+                Effect::Crosstalk,
+                Effect::Incidence,
+            ];
+            let mut cvs = vec![(base.clone(), 0.0), (cv(Effect::Gain, &worse), 0.0)];
+            cvs.extend(others.iter().map(|&o| (cv(o, &worse), 0.0)));
+            let mut a = analysis(cvs);
+            a.base_normal = vec![Some(0.03); k];
+            // reductions mean ± 0.001°, alternating: sd ≈ 0.001, z ≈ 10·mean/0.001
+            a.normals = vec![(
+                Effect::Gain,
+                (0..k)
+                    .map(|i| Some(0.03 - mean_reduction + if i % 2 == 0 { 0.001 } else { -0.001 }))
+                    .collect(),
+            )];
+            let mut models = vec![(Effect::None, floor), (Effect::Gain, floor)];
+            models.extend(others.iter().map(|&o| (o, floor)));
+            let mut e = expectation(&models);
+            e.normal_err_deg = spread(0.02, 0.001);
+            e.normal_z = vec![(Effect::Gain, spread(null_mean, 1.0))];
+            let d = decide(&a, &e, 4, &Rule::default(), &[]);
+            let t = d.verdicts[1].normal.unwrap();
+            (d.effect == Effect::Gain, t.gain.z, t.threshold, d.z_star)
+        };
+        let (yes, z, thr, z_star) = named(0.00027, -1.0);
+        assert!(z < z_star && z > 2.33, "z {z}, z* {z_star}");
+        let null_point = -1.0 + z_star * (1.0f64 + 1.0 / 8.0).sqrt();
+        assert!(
+            (thr - null_point.max(2.326)).abs() < 1e-3,
+            "{thr} {null_point}"
+        );
+        assert!(yes, "z {z} > {thr}");
+        let (yes, z, thr, _) = named(0.00027, 0.0);
+        assert!(!yes && z < thr, "z {z}, thr {thr}");
+        let (yes, z, thr, _) = named(0.00019, -3.0);
+        assert!(
+            (1.5..2.33).contains(&z) && (thr - 2.326).abs() < 1e-3,
+            "z {z}, thr {thr}"
+        );
+        assert!(!yes);
     }
 
     /// The normal-cost test on constructed inputs: a gain that fails the
