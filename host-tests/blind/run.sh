@@ -13,12 +13,13 @@
 # directly, since `perpend bench diagnose` has no option for it. CI runs
 # `--v3 --quick --check` (70 runs, goals pooled: v3.py pooled_check) as a
 # step of its own; the whole block (290 runs) is docs/diagnosis.md's.
-# Every mode first runs the generator's own checks (test_v3.py, 2 s); the
+# Every mode first runs the generator's and the grader's own checks
+# (test_v3.py, test_score.py, 2 s); the
 # default (CI) mode also the frame-error check (frames_check.py).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
-(cd "$here" && "${PYTHON:-python3}" -m unittest -q test_v3)
+(cd "$here" && "${PYTHON:-python3}" -m unittest -q test_v3 test_score)
 # PERPEND_BIN set (CI: the binary `cargo xtask test` built): used as is.
 if [ -z "${PERPEND_BIN:-}" ]; then
     (cd "$root" && cargo build --quiet -p perpend-cli --bin perpend)

@@ -21,7 +21,9 @@ tuning, with --nulls 200 effect-free runs per regime (enough to bound a 5 %
 false-positive rate per cell). --quick runs a reduced grid (CI); --check exits 1 when a goal is missed:
 false positives <= 5 % per regime, singles named >= 90 %, pairs both named
 >= 80 %, blunders found >= 95 %, extended held-out RMS <= 1.15x the
-same-draw floor where effects are named. The same-draw floor is gen.py's
+same-draw floor where effects are named, over the least cost of estimating
+the named model's extra coefficients (`estimation_cost`: 1.02-1.06 at 30
+poses, less with more; the table shows the ratio with and without it). The same-draw floor is gen.py's
 `oracle_heldout_mm`: what a calibration that knew the effects exactly
 achieves on these very readings, held out by k-fold cross-validation as
 the diagnosis holds out (the guide's "noise floor": perfect calibration on
@@ -158,18 +160,45 @@ def run_one(args):
     return {"case": case, "out": json.loads(p.stdout), "truth": truth}
 
 
-def same_draw_floor(r):
-    """The noise floor on the same draws, held out: RMS of gen.py's
-    `oracle_heldout_mm` (zero points and directions fitted by k-fold
-    cross-validation, k as the diagnosis chooses it, to the readings with
-    the true effects removed) over
-    the poses the diagnosis kept."""
+def same_draw_residuals(r):
+    """gen.py's `oracle_heldout_mm` (zero points and directions fitted by
+    k-fold cross-validation, k as the diagnosis chooses it, to the readings
+    with the true effects removed) on the poses the diagnosis kept."""
     res = r["truth"].get("oracle_heldout_mm")
     if not res:
-        return 0.0
+        return []
     out = {o["pose"] for o in r["out"].get("outlier_poses", [])}
-    xs = [x for k, row in enumerate(res) if k + 1 not in out for x in row if x is not None]
+    return [x for k, row in enumerate(res) if k + 1 not in out for x in row if x is not None]
+
+
+def same_draw_floor(r):
+    """The noise floor on the same draws, held out: RMS of
+    `same_draw_residuals`."""
+    xs = same_draw_residuals(r)
     return math.sqrt(sum(x * x for x in xs) / len(xs)) if xs else 0.0
+
+
+def estimation_cost(r, named):
+    """What estimating the named model's extra coefficients adds, at least,
+    to the held-out RMS over the same-draw floor (which fits only the paper's
+    5 per sensor): for least squares with p coefficients trained on n'
+    readings, the held-out mean square is sigma^2 (1 + p/n') (fixed design,
+    independent noise), so the named model's floor is the same-draw floor
+    times sqrt((1 + p_e/n') / (1 + p_0/n')), n' = n (k-1)/k for k folds of
+    n readings; p_0 and p_e from the diagnosis's `n_params` (a pair's
+    extras add). A lower bound, and the goal divides by it: the effect-free
+    runs of overhead.py measure about twice it (docs/diagnosis.md). 1.0
+    where the counts are not in the answer."""
+    out = r["out"]
+    params = {c["effect"]: c.get("n_params") for c in out.get("candidates", [])}
+    p0 = params.get("none")
+    n = len(same_draw_residuals(r))
+    k = out.get("folds") or 0
+    if not p0 or not n or k < 2 or any(not params.get(e) for e in named):
+        return 1.0
+    pe = p0 + sum(params[e] - p0 for e in named)
+    n_train = n * (k - 1) / k
+    return math.sqrt((1 + pe / n_train) / (1 + p0 / n_train))
 
 
 def grade(r):
@@ -212,6 +241,8 @@ def grade(r):
     if same > 0:
         g["base_same"] = out["base"]["heldout_rms_mm"] / same
         g["ext_same"] = ext / same
+        if effect not in ("none", "unexplained"):
+            g["ext_same_adj"] = g["ext_same"] / estimation_cost(r, named)
     if effect not in ("none", "unexplained") and floor > 0:
         g["rms_ratio"] = ext / floor
         # against the named model's own floor (its held-out RMS on
@@ -266,7 +297,7 @@ def summarise(results):
             reg = "limit %.2f" % min((0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0), key=lambda b: abs(math.log(max(v, 1e-3) / b)))
         c = cells.setdefault(reg, {})
         k = c.setdefault(cls, {"n": 0, "ok": 0, "found": 0, "rms_max": 0.0, "own_max": 0.0,
-                               "same_max": 0.0, "wrong": []})
+                               "same_max": 0.0, "adj_max": 0.0, "wrong": []})
         if g.get("own_ratio"):
             k["own_max"] = max(k["own_max"], g["own_ratio"])
         k["n"] += 1
@@ -280,6 +311,7 @@ def summarise(results):
         if g.get("rms_ratio"):
             k["rms_max"] = max(k["rms_max"], g["rms_ratio"])
             k["same_max"] = max(k["same_max"], g.get("ext_same", 0.0))
+            k["adj_max"] = max(k["adj_max"], g.get("ext_same_adj", 0.0))
         if not g.get("ok", False):
             t = truth if isinstance(truth, str) else "+".join(truth)
             k["wrong"].append("%s (seed %d) -> %s %s" % (t, r["case"]["seed"], g.get("effect"),
@@ -338,8 +370,9 @@ def check(cells):
                 fails.append("%s: pairs both named %.0f %% (< 80 %%)" % (reg, 100 * rate))
             if cls == "blunders" and k["found"] / k["n"] < 0.95:
                 fails.append("%s: blunders found %.0f %% (< 95 %%)" % (reg, 100 * k["found"] / k["n"]))
-            if cls in ("single", "pair") and k["same_max"] > 1.15:
-                fails.append("%s: %s extended RMS %.2fx the same-draw floor (> 1.15)" % (reg, cls, k["same_max"]))
+            if cls in ("single", "pair") and k["adj_max"] > 1.15:
+                fails.append("%s: %s extended RMS %.2fx the same-draw floor, %.2fx over the estimation cost (> 1.15)"
+                             % (reg, cls, k["same_max"], k["adj_max"]))
     return fails
 
 
@@ -365,7 +398,7 @@ def json_grid(cells):
 
 
 def markdown(cells):
-    lines = ["| regime | false positives (none) | singles named | pairs both named | blunders found (verdict none) | ripple unexplained | max ext. RMS / same-draw floor | max ext. RMS / diagnosis's floor | diagnosis's floor / same-draw floor: median (range) | small singles / pairs named (not graded) |",
+    lines = ["| regime | false positives (none) | singles named | pairs both named | blunders found (verdict none) | ripple unexplained | max ext. RMS / same-draw floor (÷ estimation cost) | max ext. RMS / diagnosis's floor | diagnosis's floor / same-draw floor: median (range) | small singles / pairs named (not graded) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
 
     def cell(c, cls, key="ok"):
@@ -379,6 +412,7 @@ def markdown(cells):
         fps = "–" if not fp else "%d/%d" % (fp["n"] - fp["ok"], fp["n"])
         rm = max(c.get("single", {}).get("rms_max", 0), c.get("pair", {}).get("rms_max", 0))
         same = max(c.get("single", {}).get("same_max", 0), c.get("pair", {}).get("same_max", 0))
+        adj = max(c.get("single", {}).get("adj_max", 0), c.get("pair", {}).get("adj_max", 0))
         fl = sorted(c.get("_floor", {}).get("ratios", []))
         fls = "–" if not fl else "%.2f (%.2f-%.2f)" % (fl[len(fl) // 2], fl[0], fl[-1])
         def ratio(x):
@@ -386,7 +420,8 @@ def markdown(cells):
 
         lines.append("| %s | %s | %s | %s | %s (%s) | %s | %s | %s | %s | %s / %s |" % (
             reg, fps, cell(c, "single"), cell(c, "pair"), cell(c, "blunders", "found"),
-            cell(c, "blunders"), cell(c, "ripple"), ratio(same), ratio(rm), fls,
+            cell(c, "blunders"), cell(c, "ripple"),
+            ratio(same) if adj <= 0 else "%s (%s)" % (ratio(same), ratio(adj)), ratio(rm), fls,
             cell(c, "small single"), cell(c, "small pair")))
     lim = [(reg, c) for reg, c in cells.items() if reg.startswith("limit")]
     if lim:
