@@ -20,8 +20,9 @@
 //! block over the effect's visible size. Per cell: false-positive rate,
 //! singles named, pairs both named, blunders found, extended held-out RMS
 //! over the same-draw floor (and over the least cost of estimating the
-//! named model's coefficients, which the goal reads). `--combined` and `--offcat` run the blocks off
-//! the grid (two factors at once; other noise, spatter, other shapes).
+//! named model's coefficients, which the goal reads). `--combined` and
+//! `--offcat` run the blocks off the grid (two factors at once; other
+//! noise, spatter, other shapes).
 //!
 //! Limits: needs Python ≥ 3.9 and the `host-tests/blind` folder of the
 //! source tree (`--blind DIR` where the binary runs elsewhere); the full
