@@ -124,7 +124,7 @@ fn comparisons(m: &Analysis, e: &Expectation, models: &[Effect], level: f64) -> 
         t,
     ));
     if let Some(z) = m.structure_of(Effect::None) {
-        for (x, v) in z.iter().enumerate() {
+        for (x, v) in z.iter().take(noise::AXES.len()).enumerate() {
             if let (Some(v), Some(sp)) = (v, e.structure_of(Effect::None).get(x)) {
                 out.push(check(
                     format!("structure z along {}", noise::AXES[x]),

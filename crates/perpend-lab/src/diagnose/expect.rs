@@ -272,12 +272,13 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         false => Vec::new(),
     };
     let geom: Vec<Sensor<f64>> = base_fit.iter().map(|f| f.sensor).collect();
+    let sources = carry_sources(&cv);
     let structure = cv
         .iter()
         .filter_map(|(e, r)| {
             Some((
                 *e,
-                super::noise::structure(&geom, poses, &r.as_ref().ok()?.resid),
+                super::noise::structure(&geom, poses, &sources, &r.as_ref().ok()?.resid),
             ))
         })
         .collect();
@@ -292,6 +293,17 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         normals,
         structure,
     })
+}
+
+/// The channel each sensor's carry-over reads, as the crosstalk candidate
+/// chose it on this table ([`super::candidates::sources`]; empty without
+/// that candidate: the previous channel in sensor order).
+fn carry_sources(cv: &[(Effect, Result<CvResult, String>)]) -> Vec<usize> {
+    cv.iter()
+        .find(|(e, _)| *e == Effect::Crosstalk)
+        .and_then(|(_, r)| r.as_ref().ok()?.heads.first())
+        .map(|h| h.iter().map(|s| s.source).collect())
+        .unwrap_or_default()
 }
 
 /// Held-out normal errors of every candidate that could be
@@ -461,7 +473,7 @@ fn structure_spreads(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Vec
     plan.models
         .iter()
         .map(|&e| {
-            let per_axis = (0..super::noise::AXES.len())
+            let per_axis = (0..=super::noise::STEP_AXIS)
                 .map(|x| {
                     let v: Vec<f64> = analyses
                         .iter()

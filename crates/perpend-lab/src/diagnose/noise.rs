@@ -585,11 +585,30 @@ pub const AXES: [&str; 4] = [
     "incidence",
 ];
 
+/// The index, after [`AXES`], of the structure z along the step from the
+/// channel converted before (the carry-over's regressor): computed for
+/// every model, but read only by the carry-over test of a named incidence
+/// ([`super::select`], "Carry-over"), not by the structure test.
+pub const STEP_AXIS: usize = AXES.len();
+
+/// The name of axis `x` of [`structure`]'s output.
+pub fn axis_name(x: usize) -> &'static str {
+    AXES.get(x)
+        .copied()
+        .unwrap_or("step from the channel converted before")
+}
+
 /// Structure z of residuals `resid[pose][sensor]` along each axis of
-/// [`AXES`] (`None` where the run lacks the axis).
+/// [`AXES`], then along the step ([`STEP_AXIS`]) (`None` where the run
+/// lacks the axis). The step axis reads
+/// sensor `i`'s carry-over source `sources[i]` (the crosstalk candidate's
+/// choice, [`super::candidates::sources`]; the previous channel in sensor
+/// order where `sources` has no entry): the measured reading of the source
+/// minus the sensor's own, per pose.
 pub fn structure(
     geom: &[Sensor<f64>],
     poses: &PoseTable,
+    sources: &[usize],
     resid: &[Vec<Option<f64>>],
 ) -> Vec<Option<f64>> {
     let ns = geom.len();
@@ -599,13 +618,18 @@ pub fn structure(
             0 => distance(&geom[i], &plane, i).ok(),
             1 => Some(k as f64),
             2 => poses.rows[k].temp_c,
-            _ => {
+            3 => {
                 let c = plane.n.dot(&geom[i].dir).abs();
                 (c > 0.0).then(|| 1.0 / c)
             }
+            _ => {
+                let r = &poses.rows[k].readings;
+                let p = sources.get(i).copied().unwrap_or((i + ns - 1) % ns);
+                Some(r.get(p).copied().flatten()? - r.get(i).copied().flatten()?)
+            }
         }
     };
-    (0..AXES.len())
+    (0..=STEP_AXIS)
         .map(|axis| {
             let seqs: Vec<Vec<Option<f64>>> = (0..ns)
                 .map(|i| {
@@ -795,7 +819,7 @@ mod tests {
         let lsq = LsqConfig::default();
         let (fits, resid) = base_residuals(&nominal, &poses, &refs, &lsq).unwrap();
         let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
-        let z = structure(&geom, &poses, &resid);
+        let z = structure(&geom, &poses, &[], &resid);
         assert!(z[2].is_none(), "no temperature column");
         assert!(z.iter().flatten().all(|z| z.abs() < 4.0), "{z:?}");
         let mut rippled = poses.clone();
@@ -809,7 +833,7 @@ mod tests {
         }
         let (fits, resid) = base_residuals(&nominal, &rippled, &refs, &lsq).unwrap();
         let geom: Vec<Sensor<f64>> = fits.iter().map(|f| f.sensor).collect();
-        let z = structure(&geom, &rippled, &resid);
+        let z = structure(&geom, &rippled, &[], &resid);
         assert!(z[0].unwrap() > 4.0, "{z:?}");
     }
 
