@@ -624,7 +624,10 @@ pub fn structure(
             }
             _ => {
                 let r = &poses.rows[k].readings;
-                let p = sources.get(i).copied().unwrap_or((i + ns - 1) % ns);
+                let p = sources
+                    .get(i)
+                    .copied()
+                    .unwrap_or_else(|| super::candidates::previous(i, ns));
                 Some(r.get(p).copied().flatten()? - r.get(i).copied().flatten()?)
             }
         }

@@ -308,14 +308,18 @@ pub fn structured(
         .enumerate()
         .filter_map(|(x, v)| {
             let v = (*v)?;
-            let null = nulls.get(x).copied().unwrap_or_default();
-            // White residuals have a lag-1 z near 0 (slightly below); a
-            // negative mean from a few draws is their scatter, not a
-            // looser threshold.
-            let thr = null.mean.max(0.0) + z_star * null.predictive_sd(1.0);
+            let thr = structure_threshold(z_star, &nulls.get(x).copied().unwrap_or_default());
             (v > thr).then_some((x, v, thr))
         })
         .collect()
+}
+
+/// The point a structure z must pass, from its effect-free spread `null`
+/// at the one-sided quantile `z_star`. White residuals have a lag-1 z near
+/// 0 (slightly below); a negative mean from a few draws is their scatter,
+/// not a looser threshold.
+fn structure_threshold(z_star: f64, null: &Spread) -> f64 {
+    null.mean.max(0.0) + z_star * null.predictive_sd(1.0)
 }
 
 /// Evaluates every candidate against the base model (module docs, 1-3).
@@ -631,7 +635,7 @@ fn carry_over_left(
     let x = super::noise::STEP_AXIS;
     let z = measured.structure_of(e)?.get(x).copied().flatten()?;
     let null = exp.structure_of(e).get(x).copied()?;
-    let thr = null.mean.max(0.0) + stats::normal_quantile(1.0 - alpha) * null.predictive_sd(1.0);
+    let thr = structure_threshold(stats::normal_quantile(1.0 - alpha), &null);
     (z > thr).then_some((x, z, thr))
 }
 
