@@ -32,11 +32,16 @@
 //!    for a simulation; without it the calibrated head stands in for it)
 //!    with the reading noise the captures measured (pooled `s_mm`), fitted
 //!    like the board fits them and compared with the same tracker planes;
-//! 5. the **verdict**: the new calibration is kept unless the after error
-//!    is worse than the before error or more than 1.5× what it should be
-//!    (the calibration's expected error and the floor, in quadrature); then
-//!    `previous.json` is pushed back (the same verified push) and the run
-//!    fails, unless `--keep-worse`.
+//! 5. the **decision** (issue 45, [`perpend_lab::conformity`]): at every
+//!    fresh pose the error of the board's averaged normal against the
+//!    tolerance (`--tolerance-deg`, else the `--config` file's, else 0.05°)
+//!    with its expanded uncertainty (k = 2, from the tracker's plane
+//!    uncertainty and the pose's own reading scatter): PASS, FAIL or
+//!    INCONCLUSIVE with what would decide it. The new calibration is
+//!    applied unless the decision is FAIL or the after error is worse than
+//!    the before error; then `previous.json` is pushed back (the same
+//!    verified push) and the run fails, unless `--keep-worse`. The record's
+//!    outcome, the certificate's verdict and cell.json say the same.
 //!
 //! Fail safe: whatever stops the run (an error, end of input, Ctrl-C), what
 //! it changed is put back before it reports, in this order: the link (one
@@ -45,8 +50,11 @@
 //! calibration or the new verified one, never a mix), the residual limit
 //! (written and read back), the lock (0x2010), the NMT state found at the
 //! start. The report names the first cause first, then any restore problem.
-//! `DIR/cell.json` holds the figures and `outcome` (`kept`, `reverted`,
-//! `kept-worse`, `failed`), `reason`, `first_cause` and `restored`.
+//! `DIR/cell.json` holds the figures and `outcome` (`applied`, `reverted`,
+//! `failed, restored`, `failed, board state unknown`), `reason`,
+//! `first_cause` and `restored`; `DIR/record.json` the same outcome, and
+//! `DIR/cert.html` is written only for an applied calibration (else
+//! `DIR/report.html`, marked as no certificate).
 //!
 //! Robots: `sim:HOST:PORT` moves the virtual board's plane through its
 //! world channel (`perpend board --world`) and simulates the tracker
@@ -61,25 +69,22 @@
 //! a heartbeat-less board is left pre-operational (its state is unknown);
 //! when the bus cannot be reached again, the report says what to push.
 
-use std::io::{BufRead, BufReader, Write as _};
-use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::ext::Context;
-use perpend_core::geometry::Plane;
-use perpend_core::head::{Head4, Sensor};
-use perpend_core::model::distance;
-use perpend_core::normal::{plane as fit_plane, Method as FitMethod};
-use perpend_lab::calibrate::angle_deg;
+use perpend_core::head::Head4;
+use perpend_lab::conformity::{Decision, Verdict};
 use perpend_lab::plan::PlannedPose;
-use perpend_lab::sim::{gauss, Tracker};
-use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
+use perpend_lab::record::BoardStamp;
 
 use crate::canopen::{Nmt, NodeState};
+use crate::cell_robot::{abcd, check_cancel, ManualCheck, Robot};
+use crate::cell_verify::{
+    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
+    write_csv, Reference, Sampling, Verified,
+};
 use crate::node::{capture, params, Node};
 
 /// Arguments of `perpend cell`. The link's options are global: they may
@@ -102,6 +107,9 @@ pub enum Cmd {
     Run(RunArgs),
     /// Write the paper's simulated head: nominal.csv and truth.csv.
     SimHead(SimHeadArgs),
+    /// Interim check: the stored calibration at a few fresh poses against
+    /// the last record and the tolerance.
+    Check(crate::cell_check::CheckArgs),
 }
 
 /// Options of `cell run`.
@@ -133,9 +141,19 @@ pub struct RunArgs {
     /// Fresh verification poses.
     #[arg(long, default_value_t = 8)]
     pub verify: usize,
-    /// SYNCs (board samples) per verification pose.
+    /// SYNCs (board samples) per verification pose (at least 2: their
+    /// scatter is the readings' share of the uncertainty).
     #[arg(long, default_value_t = 20)]
     pub verify_samples: usize,
+    /// Maximum permissible normal error at every fresh pose [deg]
+    /// (default: the --config file's, else 0.05).
+    #[arg(long)]
+    pub tolerance_deg: Option<f64>,
+    /// The cell configuration (JSON, docs/record.md): site, operator,
+    /// approver, tolerance, the tracker (model, serial, calibration due
+    /// date, traceability, point noise), for the record and certificate.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
     /// How long the robot settles after a move before measuring [ms].
     #[arg(long, default_value_t = 300)]
     pub settle_ms: u64,
@@ -148,7 +166,7 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Keep the new calibration even when the after pass finds it worse
-    /// than the previous one or than expected (default: push
+    /// than the previous one or the decision is FAIL (default: push
     /// `previous.json` back and fail).
     #[arg(long)]
     pub keep_worse: bool,
@@ -171,11 +189,12 @@ pub struct SimHeadArgs {
 /// What `cell run` measured (`cell.json`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Figures {
-    /// Mean normal error before the calibration [deg].
+    /// Mean over the fresh poses of the board's averaged normal's error
+    /// before the calibration [deg].
     pub before_deg: f64,
-    /// Mean normal error after it [deg].
+    /// The same after it [deg].
     pub after_deg: f64,
-    /// Mean normal error of the true head at the same poses [deg].
+    /// The same for the true head at the same poses [deg].
     pub floor_deg: f64,
     /// `after / floor`.
     pub ratio: f64,
@@ -192,459 +211,14 @@ pub struct Figures {
     /// The calibration's expected normal error [deg RMS] (bootstrap over
     /// the captured poses, no reading noise).
     pub expected_deg: f64,
-    /// The after error beyond which the calibration is not kept [deg]:
-    /// 1.5 × (expected ⊕ floor).
-    pub limit_deg: f64,
     /// Wall time of the run [s].
     pub seconds: f64,
-    /// Each fresh pose's mean normal error after the calibration [deg].
-    pub after_per_pose_deg: Vec<f64>,
     /// The 95th percentile of the expected normal error [deg].
     pub expected_p95_deg: f64,
+    /// The after pass decided against the tolerance.
+    pub decision: Decision,
 }
 
-/// One presented pose: the tracker's plane and, in a simulation, the
-/// true one (else the tracker's again).
-#[derive(Debug, Clone, Copy)]
-struct Presented {
-    tracker: Plane<f64>,
-    truth: Plane<f64>,
-}
-
-/// The simulated robot and tracker.
-struct SimRobot {
-    stream: BufReader<TcpStream>,
-    tracker: Tracker,
-    rng: StdRng,
-    turns: crate::cell_frames::Turns,
-}
-
-/// The robot (with its tracker) that presents the datum plane.
-enum Robot {
-    /// The virtual board's world channel and a simulated tracker.
-    Sim(Box<SimRobot>),
-    /// An operator moves the robot and types the tracker's plane.
-    Manual(Lines),
-}
-
-impl Robot {
-    fn open(spec: &str, seed: u64) -> Result<Self> {
-        if spec == "manual" {
-            return Ok(Robot::Manual(Lines::stdin()));
-        }
-        let Some(addr) = spec.strip_prefix("sim:") else {
-            bail!("--robot '{spec}': expected sim:HOST:PORT or manual");
-        };
-        let s = TcpStream::connect(addr)
-            .with_context(|| format!("--robot {spec}: cannot reach the world channel"))?;
-        s.set_read_timeout(Some(Duration::from_secs(5)))?;
-        Ok(Robot::Sim(Box::new(SimRobot {
-            stream: BufReader::new(s),
-            tracker: Tracker::paper(),
-            rng: StdRng::seed_from_u64(seed ^ 0x7472_6163),
-            turns: Default::default(),
-        })))
-    }
-
-    /// The last joint of a `--reversal` run (`None` for a manual robot).
-    fn turns(&mut self) -> Option<&mut crate::cell_frames::Turns> {
-        match self {
-            Robot::Sim(sim) => Some(&mut sim.turns).filter(|t| t.active()),
-            Robot::Manual(_) => None,
-        }
-    }
-
-    /// Presents `pose` (called `label`) and measures it.
-    fn present(
-        &mut self,
-        label: &str,
-        pose: &PlannedPose,
-        cancel: &AtomicBool,
-    ) -> Result<Presented> {
-        let truth = pose.plane();
-        match self {
-            Robot::Sim(sim) => {
-                let SimRobot {
-                    stream,
-                    tracker,
-                    rng,
-                    turns,
-                } = sim.as_mut();
-                world(stream, &turns.command(&truth), label)?;
-                let seen = match turns.active() {
-                    true => parse_tracker_plane(&world(stream, "seen\n", label)?)
-                        .map_err(|e| anyhow!("the world's plane: {e}"))?,
-                    false => truth,
-                };
-                Ok(Presented {
-                    tracker: turns.correct(&tracker.measure(&truth, rng)),
-                    truth: seen,
-                })
-            }
-            Robot::Manual(lines) => {
-                println!(
-                    "{label}: move the datum plane to θ1 {:.3}°, θ2 {:.3}°, standoff {:.3} mm \
-                     (plane {}), measure it with the tracker and type its A,B,C,D:",
-                    pose.tilt_x_deg,
-                    pose.tilt_y_deg,
-                    pose.standoff_mm,
-                    abcd(&truth)
-                );
-                let tracker = read_plane(label, &mut || lines.next(cancel, label))?;
-                Ok(Presented {
-                    tracker,
-                    truth: tracker,
-                })
-            }
-        }
-    }
-}
-
-/// Sends `line` to the world channel; the reply after `ok`.
-fn world(stream: &mut BufReader<TcpStream>, line: &str, label: &str) -> Result<String> {
-    stream.get_mut().write_all(line.as_bytes())?;
-    let mut reply = String::new();
-    stream
-        .read_line(&mut reply)
-        .context("the world channel did not answer")?;
-    match reply.trim().strip_prefix("ok") {
-        Some(rest) => Ok(rest.trim().to_string()),
-        None => bail!("the world channel refused {label}: {}", reply.trim()),
-    }
-}
-
-/// The lines of standard input, read by a thread so that a Ctrl-C is
-/// seen while the operator has not typed anything yet.
-struct Lines(std::sync::mpsc::Receiver<std::io::Result<String>>);
-
-impl Lines {
-    /// Starts reading standard input.
-    fn stdin() -> Self {
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let mut input = std::io::stdin().lock();
-            loop {
-                let mut line = String::new();
-                match input.read_line(&mut line) {
-                    Ok(0) => break,
-                    Ok(_) => {
-                        if tx.send(Ok(line)).is_err() {
-                            break;
-                        }
-                    }
-                    Err(e) => {
-                        let _ = tx.send(Err(e));
-                        break;
-                    }
-                }
-            }
-        });
-        Self(rx)
-    }
-
-    /// The next line; `None` at the end of input; an error on Ctrl-C.
-    fn next(&self, cancel: &AtomicBool, label: &str) -> Result<Option<String>> {
-        use std::sync::mpsc::RecvTimeoutError;
-        loop {
-            check_cancel(cancel, label)?;
-            match self.0.recv_timeout(Duration::from_millis(100)) {
-                Ok(line) => {
-                    return Ok(Some(line.with_context(|| {
-                        format!("reading the tracker's plane at {label}")
-                    })?))
-                }
-                Err(RecvTimeoutError::Timeout) => {}
-                Err(RecvTimeoutError::Disconnected) => return Ok(None),
-            }
-        }
-    }
-}
-
-/// Reads the tracker's plane for `label` from `next` (a line, `None` at
-/// the end of input): a line it cannot read is asked again (saying why),
-/// the end of input is an error.
-fn read_plane(label: &str, next: &mut dyn FnMut() -> Result<Option<String>>) -> Result<Plane<f64>> {
-    loop {
-        let Some(line) = next()? else {
-            bail!("reading the tracker's plane: end of input at {label}");
-        };
-        match parse_tracker_plane(line.trim()) {
-            Ok(p) => return Ok(p),
-            Err(why) => println!(
-                "{label}: '{}' is {why}; type the tracker's plane A,B,C,D again:",
-                line.trim()
-            ),
-        }
-    }
-}
-
-/// The tracker's plane from `A,B,C,D`, or why the line is not one.
-fn parse_tracker_plane(t: &str) -> std::result::Result<Plane<f64>, String> {
-    let v: Vec<f64> = t
-        .split(',')
-        .map(|x| x.trim().parse::<f64>().ok().filter(|x| x.is_finite()))
-        .collect::<Option<_>>()
-        .filter(|v: &Vec<f64>| v.len() == 4)
-        .ok_or("not four numbers A,B,C,D")?;
-    let norm = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    if norm == 0.0 {
-        return Err("not a plane: |(A,B,C)| = 0".into());
-    }
-    Plane::from_abcd(v[0], v[1], v[2], v[3]).map_err(|e| format!("not a plane: {e}"))
-}
-
-/// `A,B,C,D` of a plane with enough digits.
-fn abcd(p: &Plane<f64>) -> String {
-    format!("{:.12},{:.12},{:.12},{:.9}", p.n.x, p.n.y, p.n.z, p.d)
-}
-
-/// Reads plan.csv (`pose, tilt_x_deg, tilt_y_deg, standoff_mm`, …).
-fn read_plan(path: &Path) -> Result<Vec<(i64, PlannedPose)>> {
-    let name = path.display().to_string();
-    let mut rd = csv::ReaderBuilder::new()
-        .comment(Some(b'#'))
-        .from_path(path)
-        .with_context(|| format!("{name}: cannot read"))?;
-    let header: Vec<String> = rd.headers()?.iter().map(|h| h.trim().into()).collect();
-    let col = |c: &str| {
-        header
-            .iter()
-            .position(|h| h == c)
-            .ok_or_else(|| anyhow!("{name}: no column '{c}' (write it with `perpend plan`)"))
-    };
-    let cols = [
-        col("pose")?,
-        col("tilt_x_deg")?,
-        col("tilt_y_deg")?,
-        col("standoff_mm")?,
-    ];
-    let mut out = Vec::new();
-    for rec in rd.records() {
-        let rec = rec.with_context(|| format!("{name}: unreadable row"))?;
-        let line = rec.position().map_or(0, |p| p.line());
-        let v: Vec<f64> = cols
-            .iter()
-            .map(|&c| rec.get(c).and_then(|t| t.trim().parse::<f64>().ok()))
-            .collect::<Option<_>>()
-            .ok_or_else(|| anyhow!("{name}, line {line}: expected numbers"))?;
-        let pose = PlannedPose {
-            tilt_x_deg: v[1],
-            tilt_y_deg: v[2],
-            standoff_mm: v[3],
-        };
-        out.push((v[0] as i64, pose));
-    }
-    if out.len() < 6 {
-        bail!(
-            "{name}: {} poses; a calibration needs at least 6",
-            out.len()
-        );
-    }
-    Ok(out)
-}
-
-/// `count` random poses inside the bounding box of the plan.
-fn fresh_poses(plan: &[(i64, PlannedPose)], count: usize, seed: u64) -> Vec<PlannedPose> {
-    let range = |f: fn(&PlannedPose) -> f64| {
-        plan.iter()
-            .map(|(_, p)| f(p))
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| {
-                (lo.min(x), hi.max(x))
-            })
-    };
-    let (tx, ty, s) = (
-        range(|p| p.tilt_x_deg),
-        range(|p| p.tilt_y_deg),
-        range(|p| p.standoff_mm),
-    );
-    let mut rng = StdRng::seed_from_u64(seed);
-    let mut draw = |(lo, hi): (f64, f64)| lo + (hi - lo) * rng.gen_range(0.0..=1.0);
-    (0..count)
-        .map(|_| PlannedPose {
-            tilt_x_deg: draw(tx),
-            tilt_y_deg: draw(ty),
-            standoff_mm: draw(s),
-        })
-        .collect()
-}
-
-/// Angle [deg] between two normals, whatever their sign.
-fn normal_error(a: &nalgebra::Vector3<f64>, b: &nalgebra::Vector3<f64>) -> f64 {
-    let e = angle_deg(a, b);
-    e.min(180.0 - e)
-}
-
-/// The board's normal from θ1/θ2 [deg] (Tian eq. 1-3 inverted).
-fn normal_from_angles(th1: f64, th2: f64) -> nalgebra::Vector3<f64> {
-    nalgebra::Vector3::new(-th2.to_radians().tan(), th1.to_radians().tan(), -1.0).normalize()
-}
-
-/// The synchronous TPDOs carrying θ1 and θ2 (0x2002 sub 1, 2, together)
-/// and the status word (0x2005).
-fn angle_pdos(node: &mut Node) -> Result<[crate::canopen::pdo::Tpdo; 2]> {
-    let tpdos = node.client.read_tpdos(node.id, 4)?;
-    let find = |subs: &[(u16, u8)]| {
-        tpdos
-            .iter()
-            .find(|t| {
-                let has = |i: u16, s: u8| t.mapped.iter().any(|m| m.index == i && m.sub == s);
-                t.valid && t.synchronous() && subs.iter().all(|&(i, s)| has(i, s))
-            })
-            .cloned()
-    };
-    match (find(&[(0x2002, 1), (0x2002, 2)]), find(&[(0x2005, 0)])) {
-        (Some(a), Some(s)) => Ok([a, s]),
-        _ => bail!(
-            "{}: no synchronous TPDOs with θ1 and θ2 (0x2002 sub 1, 2, in one) and the status \
-             (0x2005); the default TPDOs 1 and 2 have them",
-            node.name()
-        ),
-    }
-}
-
-/// The board's normal at one SYNC (θ1/θ2 from one frame); `None` when its
-/// status says it has no plane.
-fn board_normal(
-    node: &mut Node,
-    pdos: &[crate::canopen::pdo::Tpdo; 2],
-) -> Result<Option<nalgebra::Vector3<f64>>> {
-    node.client.sync()?;
-    let mut values = std::collections::BTreeMap::new();
-    for _ in 0..2 {
-        let f = node
-            .client
-            .wait_for(Duration::from_secs(1), |f| {
-                pdos.iter().any(|p| p.cob_id == f.id)
-            })?
-            .ok_or_else(|| anyhow!("{}: no TPDO after SYNC within 1 s", node.name()))?;
-        for p in pdos.iter().filter(|p| p.cob_id == f.id) {
-            for (m, v) in p.decode(f.payload()) {
-                values.insert((m.index, m.sub), v.as_f64());
-            }
-        }
-    }
-    let get = |i, s| values.get(&(i, s)).copied();
-    match (get(0x2002, 1), get(0x2002, 2), get(0x2005, 0)) {
-        (Some(a), Some(b), Some(st)) if st as u32 & perpend_can::status::NO_PLANE == 0 => {
-            Ok(Some(normal_from_angles(a, b)))
-        }
-        _ => Ok(None),
-    }
-}
-
-/// Takes every frame waiting from the bus; `true` when a boot-up
-/// message of the node was among them (it reset since the last look).
-fn drain_saw_bootup(node: &mut Node) -> Result<bool> {
-    let id = 0x700 + node.id as u16;
-    let mut boot = false;
-    while let Some((_, f)) = node.client.recv(Duration::ZERO)? {
-        boot |= f.id == id && f.len == 1 && f.data[0] == 0 && !f.rtr;
-    }
-    Ok(boot)
-}
-
-/// The error for a node that reset itself (boot-up message) during `what`.
-fn reset_error(node: &Node, what: &str) -> anyhow::Error {
-    anyhow!(
-        "{} reset itself during {what} (boot-up message): power or firmware trouble; its \
-         readings from before the reset are not trusted, the run stops",
-        node.name()
-    )
-}
-
-/// Stops the run on Ctrl-C.
-fn check_cancel(cancel: &AtomicBool, what: &str) -> Result<()> {
-    if cancel.load(Ordering::SeqCst) {
-        bail!("interrupted (Ctrl-C) during {what}");
-    }
-    Ok(())
-}
-
-/// The board's normals at one pose over `n` SYNCs, and how many SYNCs had
-/// no plane.
-fn board_normals(
-    node: &mut Node,
-    pdos: &[crate::canopen::pdo::Tpdo; 2],
-    n: usize,
-    what: &str,
-) -> Result<(Vec<nalgebra::Vector3<f64>>, usize)> {
-    let mut out = Vec::with_capacity(n);
-    if drain_saw_bootup(node)? {
-        return Err(reset_error(node, what));
-    }
-    for _ in 0..n {
-        if let Some(v) = board_normal(node, pdos)? {
-            out.push(v);
-        }
-        // Spread the samples over the board's noise, not one sample twice.
-        std::thread::sleep(Duration::from_millis(3));
-    }
-    let missing = n - out.len();
-    Ok((out, missing))
-}
-
-/// One verification pass: the mean normal error [deg] and the presented
-/// planes. The node runs operational during it (the guard of [`run_cell`]
-/// returns it to pre-operational if the pass stops).
-fn verify(
-    node: &mut Node,
-    robot: &mut Robot,
-    poses: &[PlannedPose],
-    a: &RunArgs,
-    what: &str,
-    cancel: &AtomicBool,
-) -> Result<Verified> {
-    let pdos = angle_pdos(node)?;
-    node.client.nmt(node.id, Nmt::Start)?;
-    let (mut sum, mut count, mut seen, mut missing) = (0.0, 0usize, Vec::new(), 0);
-    let mut per_pose = Vec::new();
-    for (k, pose) in poses.iter().enumerate() {
-        check_cancel(cancel, what)?;
-        let label = format!("{what}: verification pose {}", k + 1);
-        let p = robot.present(&label, pose, cancel)?;
-        std::thread::sleep(Duration::from_millis(a.settle_ms));
-        let (normals, miss) = board_normals(node, &pdos, a.verify_samples, &label)?;
-        let errors: Vec<f64> = normals
-            .iter()
-            .map(|n| normal_error(n, &p.tracker.n))
-            .collect();
-        if !errors.is_empty() {
-            per_pose.push(errors.iter().sum::<f64>() / errors.len() as f64);
-        }
-        sum += errors.iter().sum::<f64>();
-        count += errors.len();
-        missing += miss;
-        seen.push(p);
-    }
-    node.client.nmt(node.id, Nmt::Preop)?;
-    if count == 0 {
-        bail!(
-            "{what}: {} reported no plane at any verification pose",
-            node.name()
-        );
-    }
-    if missing > 0 {
-        eprintln!(
-            "warning: {what}: {missing} of {} samples without a plane, left out",
-            count + missing
-        );
-    }
-    Ok(Verified {
-        mean_deg: sum / count as f64,
-        seen,
-        per_pose_deg: per_pose,
-    })
-}
-
-/// What one verification pass measured.
-struct Verified {
-    /// Mean normal error over every sample [deg].
-    mean_deg: f64,
-    /// The poses as presented.
-    seen: Vec<Presented>,
-    /// Each pose's mean normal error [deg] (poses with a plane).
-    per_pose_deg: Vec<f64>,
-}
 
 /// Captures every planned pose into `poses`; a reset of the node in
 /// between (its boot-up message) stops it.
@@ -709,35 +283,6 @@ fn pooled_sigma(poses: &Path) -> Result<f64> {
     Ok((sd.iter().map(|s| s * s).sum::<f64>() / sd.len() as f64).sqrt())
 }
 
-fn head4(v: Vec<Sensor<f64>>, what: &str) -> Result<Head4<f64>> {
-    let n = v.len();
-    let arr: [Sensor<f64>; 4] = v
-        .try_into()
-        .map_err(|_| anyhow!("{what}: 4 sensors expected, {n} found"))?;
-    Ok(Head4::new(arr))
-}
-
-/// The floor: the mean normal error of `head` reading the true planes
-/// with noise `sigma`, against the tracker's planes.
-fn floor(head: &Head4<f64>, seen: &[Presented], sigma: f64, n: usize, seed: u64) -> Result<f64> {
-    let mut rng = StdRng::seed_from_u64(seed ^ 0x666c_6f6f);
-    let (mut sum, mut count) = (0.0, 0usize);
-    for p in seen {
-        for _ in 0..n {
-            let mut r = [None; 4];
-            for (i, x) in r.iter_mut().enumerate() {
-                let d = distance(&head.sensors[i], &p.truth, i)
-                    .map_err(|e| anyhow!("floor: sensor {} misses the plane: {e}", i + 1))?;
-                *x = Some(d + sigma * gauss(&mut rng));
-            }
-            let fit = fit_plane(head, &r, &Context::default(), FitMethod::LeastSquares)
-                .map_err(|e| anyhow!("floor: {e}"))?;
-            sum += normal_error(&fit.normal, &p.tracker.n);
-            count += 1;
-        }
-    }
-    Ok(sum / count.max(1) as f64)
-}
 
 /// The head the floor is computed with, and where it came from.
 fn floor_head(a: &RunArgs, params: &Path) -> Result<(Head4<f64>, String)> {
@@ -825,6 +370,13 @@ struct Session<'a> {
     serial: String,
     /// Its software version (0x100A), for the record.
     firmware: String,
+    /// The stamp the board carries after the push (`None`: not pushed, or
+    /// pushed back).
+    stamp: Option<BoardStamp>,
+    /// The board's die temperature at the start and the end [°C].
+    die_temp_c: [Option<f64>; 2],
+    /// The tolerance and the tracker.
+    reference: Reference,
 }
 
 /// What [`Session::restore`] put back, and what it could not.
@@ -839,12 +391,18 @@ struct Restored {
 impl<'a> Session<'a> {
     /// Notes the NMT state and the residual limit, keeps the calibration
     /// in `DIR/previous.json`. Changes nothing on the board.
-    fn begin(mut node: Node, args: &'a RunArgs, cancel: &'a AtomicBool) -> Result<Self> {
+    fn begin(
+        mut node: Node,
+        args: &'a RunArgs,
+        cancel: &'a AtomicBool,
+        reference: Reference,
+    ) -> Result<Self> {
         let heartbeat_ms = node.heartbeat_ms()?;
         let nmt = node.state(heartbeat_ms)?;
         let residual = node.client.read_f32(node.id, 0x2300, 4)?;
         let serial = format!("{:#010x}", node.client.read_u32(node.id, 0x1018, 4)?);
         let firmware = node.client.read_string(node.id, 0x100A, 0)?;
+        let die = die_temp(&mut node);
         let previous = args.out.join("previous.json");
         params::pull(&mut node, cancel)
             .and_then(|f| f.write(&previous))
@@ -874,11 +432,22 @@ impl<'a> Session<'a> {
             before_deg: None,
             serial,
             firmware,
+            stamp: None,
+            die_temp_c: [die, None],
+            reference,
         })
     }
 
+    /// The verification's sampling.
+    fn sampling(&self) -> Sampling {
+        Sampling {
+            samples: self.args.verify_samples,
+            settle_ms: self.args.settle_ms,
+        }
+    }
+
     /// The before pass with the residual limit raised, put back after it.
-    fn before(&mut self, robot: &mut Robot, fresh: &[PlannedPose]) -> Result<f64> {
+    fn before(&mut self, robot: &mut Robot, fresh: &[PlannedPose]) -> Result<Verified> {
         let (id, a) = (self.node.id, self.args);
         let raised = (a.before_residual_mm as f32).max(self.residual);
         // Raised from the request on: a lost answer may hide a done write.
@@ -887,9 +456,10 @@ impl<'a> Session<'a> {
             .client
             .download(id, 0x2300, 4, &raised.to_le_bytes())
             .context("raising the residual limit (0x2300 sub 4) for the before pass")?;
-        let v = verify(&mut self.node, robot, fresh, a, "before", self.cancel)?;
+        let sampling = self.sampling();
+        let v = verify(&mut self.node, robot, fresh, sampling, "before", self.cancel)?;
         self.put_back_residual()?;
-        Ok(v.mean_deg)
+        Ok(v)
     }
 
     /// Writes the residual limit found back and reads it back.
@@ -914,6 +484,7 @@ impl<'a> Session<'a> {
             preop: true,
             record: None,
         };
+        let stamped = perpend_lab::record::record_path(params);
         let report = params::push(&mut self.node, &push, self.cancel).map_err(|e| {
             // What push says the board is left with is superseded by the
             // restore: its cause comes first.
@@ -927,6 +498,14 @@ impl<'a> Session<'a> {
         })?;
         println!("{report}");
         self.push = PushStage::Verified;
+        if let (Some(st), true) = (&report.stamp, stamped.exists()) {
+            self.stamp = Some(BoardStamp {
+                record_hash: format!("{:08x}", st.record_hash),
+                stamped_record: perpend_lab::record::FileHash::of(&stamped)?,
+                utc: crate::record::iso(f64::from(st.utc_s)),
+                store_count: st.store_count,
+            });
+        }
         Ok(())
     }
 
@@ -991,6 +570,7 @@ impl<'a> Session<'a> {
         match params::push(&mut self.node, &push, &quiet) {
             Ok(_) => {
                 self.push = PushStage::NotBegun;
+                self.stamp = None;
                 r.reverted = true;
                 r.done.push(format!(
                     "the previous calibration ({}) pushed back: written, stored, reset, read \
@@ -1080,7 +660,10 @@ fn steps(
     // A board found operational takes no configuration writes.
     s.node.client.nmt(s.node.id, Nmt::Preop)?;
     let fresh = fresh_poses(plan, a.verify, a.seed);
-    let before = s.before(robot, &fresh)?;
+    let csv = a.out.join("verify.csv");
+    let before_pass = s.before(robot, &fresh)?;
+    write_csv(&csv, "before", &before_pass)?;
+    let before = before_pass.mean_deg();
     s.before_deg = Some(before);
     println!("cell: before calibration, normal error {before:.4}° (mean)");
     capture_all(s, robot, plan, &poses)?;
@@ -1091,11 +674,14 @@ fn steps(
     }
     check_cancel(s.cancel, "the calibration")?;
     s.push_new(&params)?;
-    let v = verify(&mut s.node, robot, &fresh, a, "after", s.cancel)?;
-    let (after, seen) = (v.mean_deg, v.seen);
+    let sampling = s.sampling();
+    let v = verify(&mut s.node, robot, &fresh, sampling, "after", s.cancel)?;
+    write_csv(&csv, "after", &v)?;
+    s.die_temp_c[1] = die_temp(&mut s.node);
+    let after = v.mean_deg();
     let sigma = pooled_sigma(&poses)?;
     let (head, from) = floor_head(a, &params)?;
-    let floor = floor(&head, &seen, sigma, a.verify_samples, a.seed)?;
+    let floor = floor(&head, &v.seen(), sigma, a.verify_samples, a.seed)?;
     Ok(Figures {
         before_deg: before,
         after_deg: after,
@@ -1107,34 +693,34 @@ fn steps(
         verify_poses: fresh.len(),
         verify_samples: a.verify_samples,
         expected_deg: expected,
-        limit_deg: 1.5 * expected.hypot(floor),
         seconds: started.elapsed().as_secs_f64(),
-        after_per_pose_deg: v.per_pose_deg,
         expected_p95_deg: expected_p95,
+        decision: s.reference.decide(&v),
     })
 }
 
-/// How a run ended (`outcome` in cell.json).
+/// How a run ended (`outcome` in cell.json and the record).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Outcome {
-    /// The new calibration is better and kept.
-    Kept,
-    /// It was worse: the previous one was pushed back.
+    /// The new calibration is on the board, verified there.
+    Applied,
+    /// It was pushed, then the previous one was pushed back.
     Reverted,
-    /// It was worse and kept (`--keep-worse`).
-    KeptWorse,
-    /// The run stopped before its verdict.
-    Failed,
+    /// The run failed; the board holds what it held, all put back.
+    FailedRestored,
+    /// The run failed and something could not be put back.
+    FailedUnknown,
 }
 
 impl Outcome {
-    /// The word in cell.json.
+    /// The word in cell.json and the record.
     pub fn word(self) -> &'static str {
+        use perpend_lab::record as r;
         match self {
-            Outcome::Kept => "kept",
-            Outcome::Reverted => "reverted",
-            Outcome::KeptWorse => "kept-worse",
-            Outcome::Failed => "failed",
+            Outcome::Applied => r::OUTCOME_APPLIED,
+            Outcome::Reverted => r::OUTCOME_REVERTED,
+            Outcome::FailedRestored => r::OUTCOME_FAILED_RESTORED,
+            Outcome::FailedUnknown => r::OUTCOME_FAILED_UNKNOWN,
         }
     }
 }
@@ -1160,22 +746,16 @@ pub struct Report {
     pub record: Option<PathBuf>,
 }
 
-/// Why a calibration is not good enough, if it is not.
+/// Why the new calibration is not applied, if it is not: the after error
+/// worse than the before error, or the decision FAIL.
 fn worse(f: &Figures) -> Option<String> {
     if f.after_deg > f.before_deg {
         Some(format!(
-            "after {:.4}° is worse than before {:.4}°",
+            "after {:.4}° is worse than before {:.4}° (mean over the fresh poses)",
             f.after_deg, f.before_deg
         ))
-    } else if f.after_deg > f.limit_deg {
-        Some(format!(
-            "after {:.4}° is more than 1.5× what the calibration should give ({:.4}°: its \
-             expected error {:.4}° and the floor {:.4}° in quadrature)",
-            f.after_deg,
-            f.limit_deg / 1.5,
-            f.expected_deg,
-            f.floor_deg
-        ))
+    } else if f.decision.verdict == Verdict::Fail {
+        Some(decision_words(&f.decision))
     } else {
         None
     }
@@ -1188,15 +768,17 @@ fn judge(s: &mut Session<'_>, f: Figures) -> Report {
     let r = s.restore(why.is_some() && !keep_worse);
     let (outcome, reason, first_cause) = match why {
         None => (
-            Outcome::Kept,
+            Outcome::Applied,
             format!(
-                "after {:.4}° is better than before {:.4}° and within {:.4}° (1.5× expected)",
-                f.after_deg, f.before_deg, f.limit_deg
+                "{}; after {:.4}° against before {:.4}° (mean)",
+                decision_words(&f.decision),
+                f.after_deg,
+                f.before_deg
             ),
             None,
         ),
         Some(w) if keep_worse => (
-            Outcome::KeptWorse,
+            Outcome::Applied,
             format!("{w}; the new calibration is kept (--keep-worse)"),
             None,
         ),
@@ -1206,7 +788,7 @@ fn judge(s: &mut Session<'_>, f: Figures) -> Report {
             Some(w),
         ),
         Some(w) => (
-            Outcome::Failed,
+            Outcome::FailedUnknown,
             format!("{w}, and the previous calibration could not be pushed back"),
             Some(w),
         ),
@@ -1235,8 +817,13 @@ fn failed(s: &mut Session<'_>, e: &anyhow::Error) -> Report {
         (true, true) => "the board holds its previous calibration again".into(),
         (true, false) => "the board's calibration could not be put back".into(),
     };
+    let restored = r.problems.is_empty() && (!revert || r.reverted);
     Report {
-        outcome: Outcome::Failed,
+        outcome: if restored {
+            Outcome::FailedRestored
+        } else {
+            Outcome::FailedUnknown
+        },
         reason: format!("the run stopped; {holds}"),
         first_cause: Some(format!("{e:#}")),
         restored: r.done,
@@ -1245,6 +832,12 @@ fn failed(s: &mut Session<'_>, e: &anyhow::Error) -> Report {
         figures: None,
         record: None,
     }
+}
+
+/// The board's die temperature (0x200A) [°C], `None` when it has none.
+fn die_temp(node: &mut Node) -> Option<f64> {
+    let t = node.client.read_f32(node.id, 0x200A, 0).ok()?;
+    (t > perpend_can::od::DIE_TEMP_UNKNOWN).then_some(f64::from(t))
 }
 
 /// `perpend cell run`.
@@ -1256,10 +849,15 @@ fn failed(s: &mut Session<'_>, e: &anyhow::Error) -> Report {
 /// `failed`, after what the run changed was put back.
 pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
     let started = Instant::now();
-    if a.verify == 0 || a.verify_samples == 0 {
-        bail!("--verify and --verify-samples must be at least 1");
+    if a.verify == 0 || a.verify_samples < 2 {
+        bail!(
+            "--verify must be at least 1 and --verify-samples at least 2 (their scatter is the \
+             readings' share of the verification's uncertainty)"
+        );
     }
     let plan = read_plan(&a.plan)?;
+    let simulated = a.robot.starts_with("sim:");
+    let reference = Reference::new(a.config.as_deref(), a.tolerance_deg, simulated)?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create", a.out.display()))?;
     let poses = a.out.join("poses.csv");
@@ -1269,7 +867,7 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
             poses.display()
         );
     }
-    let mut robot = Robot::open(&a.robot, a.seed)?;
+    let mut robot = Robot::open(&a.robot, a.seed, reference.sim_tracker())?;
     if a.reversal {
         let Robot::Sim(sim) = &mut robot else {
             bail!("--reversal: only with --robot sim:HOST:PORT for now (a manual robot cannot be told the joint angle yet)");
@@ -1278,7 +876,10 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
     }
     let mut node = Node::connect(&a.link)?;
     node.hello()?;
-    let mut s = Session::begin(node, a, cancel)?;
+    let mut s = Session::begin(node, a, cancel, reference)?;
+    if let Ok(f) = perpend_lab::paramfile::ParamFile::read(&s.previous) {
+        robot.check_manual(ManualCheck::from_params(&f)?);
+    }
     let mut report = match steps(&mut s, &mut robot, &plan, started) {
         Ok(f) => judge(&mut s, f),
         Err(e) => failed(&mut s, &e),
@@ -1292,15 +893,16 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
     Ok(report)
 }
 
-/// `DIR/record.json` and `DIR/cert.html` of a run that calibrated: the
-/// calibration's record (`params.record.json`, written by `perpend
-/// calibrate`) with the plan among its inputs, the board's serial and
-/// firmware, the board's previous calibration (`previous.json`) as
-/// `previous`, the verification at the fresh poses after the push (when
-/// the run got that far) and what the run did as events. A run that
-/// stopped before it calibrated has nothing to record (cell.json says
-/// why). The certificate is `perpend record cert` at its default
-/// tolerance.
+/// `DIR/record.json` of a run that calibrated: the calibration's record
+/// (`params.record.json`, written by `perpend calibrate`) with the plan,
+/// the verification file and the true head among its inputs, the
+/// outcome, the board's serial, firmware and stamp, the board's previous
+/// calibration (`previous.json`) as `previous`, the verification at the
+/// fresh poses after the push and its decision (when the run got that
+/// far), the certificate's fields and what the run did as events. Then
+/// `DIR/cert.html` when the calibration is applied and verified, else
+/// `DIR/report.html` (marked: no certificate). A run that stopped before it
+/// calibrated has nothing to record (cell.json says why).
 fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<PathBuf>> {
     use perpend_lab::record::{self as rec, FileHash, Previous, Record};
     let params = a.out.join("params.json");
@@ -1314,14 +916,26 @@ fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<
         let file = perpend_lab::paramfile::ParamFile::read(&params)?;
         Record::new(&[&a.sensors, &a.out.join("poses.csv")], &file)?
     };
-    r.inputs.push(FileHash::of(&a.plan)?);
+    let csv = a.out.join("verify.csv");
+    for f in [Some(&a.plan), Some(&csv).filter(|c| c.exists()), a.truth.as_ref()]
+        .into_iter()
+        .flatten()
+    {
+        r.inputs.push(FileHash::of(f)?);
+    }
     r = crate::cell_frames::into_record(r, &a.out, &params)?;
     r = r
         .with_board(&s.serial, &s.firmware)
         .with_previous(Previous::of(&s.previous)?);
+    r.outcome = Some(report.outcome.word().into());
+    if report.outcome == Outcome::Applied {
+        r.stamp = s.stamp.clone();
+    }
     if let Some(f) = &report.figures {
         r = r.with_verification(fresh_verification(f, a));
+        r.decision = Some(f.decision.clone());
     }
+    r.certification = Some(certification(s, &r.utc));
     r.push_event(&format!(
         "perpend cell run: {}: {}",
         report.outcome.word(),
@@ -1335,37 +949,57 @@ fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<
     }
     let path = a.out.join("record.json");
     r.write(&path)?;
-    let cert = a.out.join("cert.html");
-    std::fs::write(
-        &cert,
-        crate::record::cert_html(&r, crate::record::TOLERANCE_DEG),
-    )
-    .with_context(|| format!("{}: cannot write", cert.display()))?;
+    crate::record::write_document(&r, &a.out)?;
     Ok(Some(path))
 }
 
-/// The after pass as the record's verification: each fresh pose's mean
-/// normal error, against the calibration's expected error.
+/// The certificate's fields of this run: the configuration's (or what
+/// stands for it), the number, the die temperatures.
+fn certification(s: &Session<'_>, utc: &str) -> perpend_lab::record::Certification {
+    let cfg = s.reference.config.as_ref();
+    let given = |f: fn(&perpend_lab::cellconfig::CellConfig) -> &String| {
+        cfg.map_or_else(|| "not given (no --config)".to_string(), |c| f(&c.0).clone())
+    };
+    let stamp: String = utc.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
+    perpend_lab::record::Certification {
+        number: format!(
+            "PPD-{}-{stamp}",
+            s.serial.trim_start_matches("0x").to_uppercase()
+        ),
+        operator: given(|c| &c.operator),
+        approver: given(|c| &c.approver),
+        site: given(|c| &c.site),
+        tracker: s.reference.tracker.clone(),
+        die_temp_c: s.die_temp_c,
+        ambient_c: cfg.and_then(|c| c.0.ambient_c),
+        config: cfg.map(|c| c.1.clone()),
+    }
+}
+
+/// The after pass as the record's verification: each fresh pose's error,
+/// against the calibration's expected error, with the before figure.
 fn fresh_verification(f: &Figures, a: &RunArgs) -> perpend_lab::record::Verification {
     use perpend_lab::record::{PoseError, Verification, KIND_FRESH};
     let poses = f
-        .after_per_pose_deg
+        .decision
+        .poses
         .iter()
-        .enumerate()
-        .map(|(k, e)| PoseError {
-            pose: k as i64 + 1,
-            error_deg: *e,
+        .map(|p| PoseError {
+            pose: p.pose,
+            error_deg: p.error_deg,
         })
         .collect();
     let note = format!(
-        "the board's own normal (θ1/θ2 from its TPDO, {} samples a pose, after the push and \
-         reset) against the tracker's plane at {} fresh poses inside the plan's reach (seed \
-         {}); before the calibration {:.4}°, the floor ({} head at the measured reading noise) \
-         {:.4}°",
+        "the board's own normal (θ1/θ2 from its TPDO, averaged over {} samples a pose, after \
+         the push and reset) against the tracker's plane at {} fresh poses inside the plan's \
+         reach (seed {}; planes and normals in verify.csv); before the calibration {:.4}°, the \
+         floor ({} head at the measured reading noise) {:.4}°",
         f.verify_samples, f.verify_poses, a.seed, f.before_deg, f.floor_head, f.floor_deg
     );
-    Verification::from_errors(KIND_FRESH, &note, poses)
-        .with_expected(Some((f.expected_deg, f.expected_p95_deg)))
+    let mut v = Verification::from_errors(KIND_FRESH, &note, poses)
+        .with_expected(Some((f.expected_deg, f.expected_p95_deg)));
+    v.before_mean_deg = Some(f.before_deg);
+    v
 }
 
 impl Report {
@@ -1402,7 +1036,10 @@ impl Figures {
             "verify_poses": self.verify_poses,
             "verify_samples": self.verify_samples,
             "expected_deg": self.expected_deg,
-            "limit_deg": self.limit_deg,
+            "tolerance_deg": self.decision.tolerance_deg,
+            "decision": self.decision.verdict.word(),
+            "max_expanded_uncertainty_deg": self.decision.max_expanded_deg,
+            "decide_by": self.decision.decide_by,
             "seconds": self.seconds,
         })
     }
@@ -1479,7 +1116,7 @@ fn run_and_report(x: &RunArgs) -> Result<()> {
             // Nothing was changed on the board.
             if x.out.is_dir() {
                 let v = serde_json::json!({
-                    "outcome": "failed",
+                    "outcome": perpend_lab::record::OUTCOME_FAILED_RESTORED,
                     "reason": "the run stopped before it changed anything on the board",
                     "first_cause": format!("{e:#}"),
                     "restored": [],
@@ -1498,16 +1135,19 @@ fn run_and_report(x: &RunArgs) -> Result<()> {
         println!("cell: put back: {d}");
     }
     if let Some(r) = &report.record {
+        let doc = match report.outcome {
+            Outcome::Applied => "certificate cert.html",
+            _ => "report.html (no certificate: the calibration is not applied)",
+        };
         println!(
-            "cell: calibration record {} and certificate {} (perpend record show|cert)",
-            r.display(),
-            r.with_file_name("cert.html").display()
+            "cell: calibration record {} and {doc} (perpend record show|find|history)",
+            r.display()
         );
     }
     println!("cell: {}: {}", report.outcome.word(), report.reason);
     match report.outcome {
-        Outcome::Kept | Outcome::KeptWorse => Ok(()),
-        Outcome::Reverted | Outcome::Failed => {
+        Outcome::Applied => Ok(()),
+        Outcome::Reverted | Outcome::FailedRestored | Outcome::FailedUnknown => {
             let mut msg = report.first_cause.clone().unwrap_or_default();
             msg.push_str(&format!("\n  {}", report.reason));
             for p in &report.problems {
@@ -1530,6 +1170,16 @@ pub fn run(a: &Args) -> Result<()> {
             link: a.link.clone(),
             ..x.clone()
         }),
+        Cmd::Check(x) => {
+            install_ctrlc();
+            crate::cell_check::run_and_report(
+                &crate::cell_check::CheckArgs {
+                    link: a.link.clone(),
+                    ..x.clone()
+                },
+                &CANCEL,
+            )
+        }
     }
 }
 
@@ -1537,18 +1187,6 @@ pub fn run(a: &Args) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn angles_give_back_the_normal() {
-        let pose = PlannedPose {
-            tilt_x_deg: 3.0,
-            tilt_y_deg: -2.0,
-            standoff_mm: 28.0,
-        };
-        let n = normal_from_angles(3.0, -2.0);
-        assert!(normal_error(&n, &pose.plane().n) < 1e-9);
-        assert!(normal_error(&-n, &pose.plane().n) < 1e-9);
-    }
 
     #[test]
     fn fresh_poses_stay_in_the_plan_box() {
@@ -1563,32 +1201,6 @@ mod tests {
             assert!((-4.0..=4.0).contains(&q.tilt_y_deg));
             assert!((26.0..=30.0).contains(&q.standoff_mm));
         }
-        assert!(Robot::open("robot", 1).is_err());
-    }
-
-    #[test]
-    fn manual_lines_are_asked_again_until_a_plane_or_the_end() {
-        assert_eq!(
-            parse_tracker_plane("hello").unwrap_err(),
-            "not four numbers A,B,C,D"
-        );
-        assert_eq!(
-            parse_tracker_plane("").unwrap_err(),
-            "not four numbers A,B,C,D"
-        );
-        assert_eq!(
-            parse_tracker_plane("1,2,3").unwrap_err(),
-            "not four numbers A,B,C,D"
-        );
-        assert_eq!(
-            parse_tracker_plane("0,0,0,5").unwrap_err(),
-            "not a plane: |(A,B,C)| = 0"
-        );
-        let mut input = ["hello\n", "\n", "0,0,1,-28\n"].into_iter();
-        let mut next = || Ok(input.next().map(String::from));
-        let p = read_plane("pose 1", &mut next).unwrap();
-        assert!((p.d + 28.0).abs() < 1e-12);
-        let e = read_plane("pose 2", &mut next).unwrap_err().to_string();
-        assert_eq!(e, "reading the tracker's plane: end of input at pose 2");
+        assert!(Robot::open("robot", 1, perpend_lab::sim::Tracker::paper()).is_err());
     }
 }

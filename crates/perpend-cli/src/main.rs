@@ -24,7 +24,7 @@ Files (CSV, header names in any order, `#` comments, empty or NaN = missing; doc
                plane_rms_mm [mm], plane_points";
 
 #[derive(Parser)]
-#[command(name = "perpend", version, about, long_about = None, after_help = CONVENTIONS)]
+#[command(name = "perpend", version = perpend_lab::record::VERSION, about, long_about = None, after_help = CONVENTIONS)]
 struct Cli {
     /// No progress bars (they are drawn on stderr, and only on a terminal).
     #[arg(long, global = true)]

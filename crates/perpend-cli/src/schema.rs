@@ -22,11 +22,11 @@ pub const LSS_SCAN: &str = "perpend.lss-scan/1";
 /// `perpend node lss inquire --json`.
 pub const LSS_INQUIRE: &str = "perpend.lss-inquire/1";
 /// `perpend record history --json`.
-pub const RECORD_HISTORY: &str = "perpend.record-history/1";
+pub const RECORD_HISTORY: &str = "perpend.record-history/2";
 /// The error object of any command run with `--json`.
 pub const ERROR: &str = "perpend.error/1";
 /// `DIR/cell.json`, the figures and outcome of `perpend cell run`.
-pub const CELL: &str = "perpend.cell/1";
+pub const CELL: &str = "perpend.cell/2";
 /// `perpend frames --json`: the frame errors of a reversal run.
 pub const FRAMES: &str = "perpend.frames/1";
 
@@ -97,7 +97,7 @@ mod tests {
         let v = json!({"b": [1, 2], "schema": "old", "a": {"k": "\"q\""}});
         let s = tagged_pretty(CELL, &v);
         assert!(
-            s.starts_with("{\n  \"schema\": \"perpend.cell/1\",\n  \"a\""),
+            s.starts_with("{\n  \"schema\": \"perpend.cell/2\",\n  \"a\""),
             "{s}"
         );
         let back: Value = serde_json::from_str(&s).unwrap();

@@ -1,14 +1,21 @@
 //! `perpend record`: the certificate is well-formed XHTML whose figures
-//! are the record's and whose strings are escaped; the history finds a
-//! known drift and its recalibration date, and says "no trend" on series
-//! without one (at a 2σ threshold); a mix of heads is refused.
+//! are the record's and whose strings are escaped, and it is issued only
+//! for an applied, decided calibration: every other outcome gets a report
+//! that says it is none and shows no PASS; the history finds a known drift
+//! and its recalibration date, says "no trend" on series without one (at
+//! a 2σ threshold), reports each head of a mix and puts checks with the
+//! calibrations.
 #![allow(clippy::unwrap_used, missing_docs)]
 
-use perpend_cli::record::{cert_html, deg, history, sigma, value, TREND_SIGMAS};
-use perpend_lab::record::{PoseError, Record, Verification, KIND_FRESH};
+use perpend_cli::record::{cert_html, deg, history, report_html, sigma, value, TREND_SIGMAS};
+use perpend_lab::conformity::{decide, Measured};
+use perpend_lab::record::{
+    BoardStamp, Certification, FileHash, PoseError, Record, Verification, KIND_FRESH,
+    OUTCOME_APPLIED, OUTCOME_COMPUTED, OUTCOME_FAILED_RESTORED, OUTCOME_FAILED_UNKNOWN,
+    OUTCOME_REVERTED,
+};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
-
 fn example() -> Record {
     let doc = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/record.md"))
         .unwrap();
@@ -50,30 +57,96 @@ fn balanced(html: &str) -> Result<(), String> {
     }
 }
 
+/// The example as a cell run records an applied calibration: fresh
+/// poses decided against 0.05°, a stamp, the certificate's fields.
+fn applied() -> Record {
+    let mut r = example().with_board("0xb143eae7", "perpend 0.1.0");
+    let measured: Vec<Measured> = r
+        .verification
+        .poses
+        .iter()
+        .take(8)
+        .map(|p| Measured {
+            pose: p.pose,
+            error_deg: p.error_deg,
+            readings_u_deg: 0.002,
+            samples: 20,
+        })
+        .collect();
+    let poses = measured
+        .iter()
+        .map(|m| PoseError {
+            pose: m.pose,
+            error_deg: m.error_deg,
+        })
+        .collect();
+    r = r.with_verification(Verification::from_errors(KIND_FRESH, "fresh", poses));
+    r.decision = Some(decide(&measured, 0.05, 0.006, "test tracker"));
+    r.outcome = Some(OUTCOME_APPLIED.into());
+    r.stamp = Some(BoardStamp {
+        record_hash: "0507bf5a".into(),
+        stamped_record: FileHash {
+            path: "run/params.record.json".into(),
+            sha256: format!("0507bf5a{}", "0".repeat(56)),
+        },
+        utc: "2026-12-01T10:00:00Z".into(),
+        store_count: 3,
+    });
+    r.certification = Some(Certification {
+        number: "PPD-B143EAE7-20261201T100000Z".into(),
+        operator: "A. Operator".into(),
+        approver: "Q. Engineer".into(),
+        site: "Plant 2, cell 4".into(),
+        tracker: perpend_lab::cellconfig::paper_tracker("Tracker T1"),
+        die_temp_c: [Some(31.5), Some(32.0)],
+        ambient_c: Some(21.5),
+        config: None,
+    });
+    r
+}
+
 #[test]
 fn the_certificate_is_well_formed_and_shows_the_records_figures() {
-    let r = example();
-    let html = cert_html(&r, 0.05);
+    let r = applied();
+    let html = cert_html(&r).unwrap();
     balanced(&html).unwrap();
     assert!(
         !html.contains("http://") || !html.contains("src="),
         "no external resources"
     );
-    assert!(html.contains("PASS"));
+    let d = r.decision.as_ref().unwrap();
+    assert!(html.contains(&format!("id=\"verdict\">{}</h2>", d.verdict.word())));
+    assert!(html.contains("Outcome: applied"));
+    assert!(!html.contains("NOT A CERTIFICATE"));
     let v = &r.verification;
-    for x in [
-        v.mean_deg,
-        v.p95_deg,
-        v.max_deg,
-        v.expected_deg,
-        v.expected_p95_deg,
-    ] {
+    for x in [v.mean_deg, v.p95_deg, v.max_deg] {
         assert!(html.contains(&format!("<td>{}</td>", deg(x.unwrap()))));
     }
-    for p in &v.poses {
-        let row = format!("<tr><td>{}</td><td>{}</td>", p.pose, deg(p.error_deg));
+    for p in &d.poses {
+        let row = format!(
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            p.pose,
+            deg(p.error_deg),
+            deg(p.readings_u_deg),
+            deg(p.u_deg),
+            deg(p.expanded_deg),
+            p.samples,
+            p.verdict.word()
+        );
         assert!(html.contains(&row), "{row}");
     }
+    for want in [
+        "0507bf5a",
+        "perpend record find 0507bf5a DIR",
+        "PPD-B143EAE7-20261201T100000Z",
+        "Q. Engineer",
+        "Tracker T1",
+        "31.5 °C / 32.0 °C",
+        "Approval",
+    ] {
+        assert!(html.contains(want), "{want}");
+    }
+    assert!(html.contains(&deg(d.max_expanded_deg)));
     for f in &r.inputs {
         assert!(html.contains(&f.sha256));
     }
@@ -89,15 +162,44 @@ fn the_certificate_is_well_formed_and_shows_the_records_figures() {
 }
 
 #[test]
-fn strings_are_escaped_and_unverified_records_fail() {
-    let r = example()
+fn strings_are_escaped_and_unverified_records_get_no_certificate() {
+    let mut r = applied()
         .with_board("<script>alert(1)</script>&", "1.2 \"x\"")
         .with_verification(Verification::expected_only("none"));
-    let html = cert_html(&r, 0.05);
+    r.decision = None;
+    let e = format!("{:#}", cert_html(&r).unwrap_err());
+    assert!(e.contains("no certificate"), "{e}");
+    let html = report_html(&r);
     balanced(&html).unwrap();
     assert!(!html.contains("<script>"));
     assert!(html.contains("&lt;script&gt;alert(1)&lt;/script&gt;&amp;"));
-    assert!(html.contains("FAIL") && html.contains("not verified"));
+    assert!(html.contains("NOT A CERTIFICATE"));
+}
+
+/// A failed, reverted or file-only calibration: no certificate, and its
+/// report carries no PASS anywhere, whatever its cross-validated figures.
+#[test]
+fn no_pass_for_a_calibration_that_is_not_on_the_board() {
+    for outcome in [
+        OUTCOME_REVERTED,
+        OUTCOME_FAILED_RESTORED,
+        OUTCOME_FAILED_UNKNOWN,
+        OUTCOME_COMPUTED,
+    ] {
+        let mut r = applied();
+        r.outcome = Some(outcome.into());
+        let e = format!("{:#}", cert_html(&r).unwrap_err());
+        assert!(e.contains("no certificate"), "{outcome}: {e}");
+        let html = report_html(&r);
+        balanced(&html).unwrap();
+        assert!(html.contains("NOT A CERTIFICATE"), "{outcome}");
+        assert!(html.contains(&format!("Outcome: {outcome}")), "{outcome}");
+        assert!(!html.contains("PASS"), "{outcome}: PASS in the report");
+        assert!(!html.contains("Approval"), "{outcome}: an approval block");
+    }
+    // The doc's example, a calibrate record (cross-validated p95 within
+    // 0.05°), was a PASS certificate before outcomes: no more.
+    assert!(cert_html(&example()).is_err());
 }
 
 /// A series of `n` weekly records of head `serial` whose per-pose errors
@@ -133,7 +235,8 @@ fn a_known_drift_gives_its_recalibration_date() {
         let dir = tempfile::tempdir().unwrap();
         series(dir.path(), seed, 8, |d| 0.010 + 0.0005 * d);
         let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
-        let h = history(&files, None, 0.05).unwrap();
+        let h = history(&files, None, 0.05).unwrap().remove(0);
+        assert_eq!(h.unit, "day");
         let l = h.verification.unwrap();
         assert!(l.resolved(), "seed {seed}: {l:?}");
         assert!(
@@ -161,7 +264,7 @@ fn no_drift_says_no_trend_at_2_sigma() {
         let dir = tempfile::tempdir().unwrap();
         series(dir.path(), seed, 12, |_| 0.02);
         let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
-        let h = history(&files, None, 0.05).unwrap();
+        let h = history(&files, None, 0.05).unwrap().remove(0);
         if h.verdict.starts_with("no trend") {
             quiet += 1;
         }
@@ -170,14 +273,33 @@ fn no_drift_says_no_trend_at_2_sigma() {
 }
 
 #[test]
-fn a_mix_of_heads_is_refused_unless_one_is_picked() {
+fn each_head_of_a_mix_gets_its_section_and_serials_match_as_typed() {
     let dir = tempfile::tempdir().unwrap();
     series(dir.path(), 1, 3, |_| 0.02);
-    let other = example().with_board("H-99", "1.0");
+    let other = example().with_board("0xB143EAE7", "1.0");
     other.write(&dir.path().join("o.record.json")).unwrap();
     let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
-    let e = format!("{:#}", history(&files, None, 0.05).unwrap_err());
-    assert!(e.contains("--serial") && e.contains("H-99"), "{e}");
+    let hs = history(&files, None, 0.05).unwrap();
+    assert_eq!(hs.len(), 2);
+    let text = perpend_cli::record::history_text(&hs);
+    assert!(text.contains("history of head 0xb143eae7 (1 records)"), "{text}");
+    assert!(text.contains("history of head h-17 (3 records)"), "{text}");
     let h = history(&files, Some("H-17"), 0.05).unwrap();
-    assert_eq!(h.entries.len(), 3);
+    assert_eq!((h.len(), h[0].entries.len()), (1, 3));
+    let h = history(&files, Some("b143eae7"), 0.05).unwrap();
+    assert_eq!(h[0].entries.len(), 1);
+    let e = format!("{:#}", history(&files, Some("0x1"), 0.05).unwrap_err());
+    assert!(e.contains("no record of head 0x1"), "{e}");
+    let svg = perpend_cli::record::history_svg(&hs);
+    assert!(svg.contains("height=\"600\""), "a panel per head");
+}
+
+/// Records minutes apart get slopes per minute, not per day.
+#[test]
+fn the_slope_unit_fits_the_span() {
+    use perpend_cli::record_history::unit_for;
+    assert_eq!(unit_for(600.0).0, "minute");
+    assert_eq!(unit_for(3.0 * 3600.0).0, "hour");
+    assert_eq!(unit_for(5.0 * 86400.0).0, "day");
+    assert_eq!(unit_for(200.0 * 86400.0).0, "week");
 }

@@ -12,10 +12,13 @@
 pub mod accuracy;
 pub mod bench;
 pub mod calibrate;
+pub mod cellconfig;
+pub mod conformity;
 pub mod curvature;
 pub mod diagnose;
 pub mod exchange;
 pub mod frames;
+pub mod interim;
 pub mod measure;
 pub mod paramfile;
 pub mod plan;

@@ -28,7 +28,21 @@ use sha2::{Digest, Sha256};
 use crate::paramfile::{ParamFile, SensorParams};
 
 /// Value of the `schema` field.
-pub const SCHEMA: &str = "perpend.record/1";
+pub const SCHEMA: &str = "perpend.record/2";
+/// The schema before outcomes, stamps and decisions (read, never written).
+pub const SCHEMA_V1: &str = "perpend.record/1";
+
+/// `outcome`: the calibration is on the board and was verified there.
+pub const OUTCOME_APPLIED: &str = "applied";
+/// `outcome`: it was pushed, then the previous one was pushed back.
+pub const OUTCOME_REVERTED: &str = "reverted";
+/// `outcome`: the run failed; the board holds its previous calibration.
+pub const OUTCOME_FAILED_RESTORED: &str = "failed, restored";
+/// `outcome`: the run failed and what the board holds is not known.
+pub const OUTCOME_FAILED_UNKNOWN: &str = "failed, board state unknown";
+/// `outcome`: parameters computed from files (`calibrate`, `diagnose`),
+/// applied to no board by this record.
+pub const OUTCOME_COMPUTED: &str = "computed";
 
 /// `verification.kind`: held-out poses of a k-fold cross-validation by pose.
 pub const KIND_CROSS_VALIDATED: &str = "cross-validated";
@@ -40,12 +54,17 @@ pub const KIND_EXPECTED_ONLY: &str = "expected only";
 /// The version of the tool that wrote a record: crate version and the git
 /// commit it was built from (`unknown` outside a checkout).
 pub fn tool_version() -> String {
-    format!(
-        "perpend {} ({})",
-        env!("CARGO_PKG_VERSION"),
-        env!("PERPEND_GIT_HASH")
-    )
+    format!("perpend {VERSION}")
 }
+
+/// The version `perpend --version` prints after the name, the same as in
+/// [`tool_version`]: crate version and git commit.
+pub const VERSION: &str = concat!(
+    env!("CARGO_PKG_VERSION"),
+    " (",
+    env!("PERPEND_GIT_HASH"),
+    ")"
+);
 
 /// Lower-case hex SHA-256 of `bytes`.
 pub fn sha256_hex(bytes: &[u8]) -> String {
@@ -143,6 +162,10 @@ pub struct Verification {
     pub expected_deg: Option<f64>,
     /// Its 95th percentile [deg].
     pub expected_p95_deg: Option<f64>,
+    /// The same fresh poses' mean normal error before the calibration
+    /// [deg] (cell runs; absent otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub before_mean_deg: Option<f64>,
 }
 
 /// The 95th percentile by nearest rank of `x` (`None` when empty).
@@ -171,6 +194,7 @@ impl Verification {
             poses,
             expected_deg: None,
             expected_p95_deg: None,
+            before_mean_deg: None,
         }
     }
 
@@ -236,6 +260,70 @@ impl Previous {
     }
 }
 
+/// The calibration stamp the board carries after the push (0x2011,
+/// docs/can.md): it leads from a board on the line to this record
+/// (`perpend record find STAMP`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoardStamp {
+    /// Sub 1: the first 4 bytes of the stamped record file's SHA-256, as
+    /// `node info` prints them (8 hex digits).
+    pub record_hash: String,
+    /// The record file whose hash it is (the calibration's
+    /// `params.record.json`, written before the push), with its SHA-256.
+    pub stamped_record: FileHash,
+    /// Sub 2: when it was stamped, ISO 8601 UTC.
+    pub utc: String,
+    /// Sub 3: the board's store count after the push.
+    pub store_count: u32,
+}
+
+/// The reference standard: the tracker that measured the datum planes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Tracker {
+    /// Make and model.
+    pub model: String,
+    /// Serial number.
+    pub serial: String,
+    /// When its own calibration falls due (ISO 8601 date).
+    pub calibration_due: String,
+    /// Its traceability (calibration certificate and laboratory).
+    pub traceability: String,
+    /// Point noise ξ, 1σ per coordinate [mm].
+    pub xi_mm: f64,
+    /// Points measured per datum plane.
+    pub points: usize,
+    /// Side of the patch the points are spread over [mm].
+    pub patch_mm: f64,
+}
+
+/// What a certificate states beyond the calibration (ISO/IEC 17025:2017
+/// §7.8.2 and §7.8.4): its number, who, where, the reference standard,
+/// the environment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Certification {
+    /// Unique certificate number: `PPD-<head serial>-<UTC of the record>`.
+    pub number: String,
+    /// Who calibrated.
+    pub operator: String,
+    /// Who approves (name only; the signature is on paper).
+    pub approver: String,
+    /// Where (site, cell).
+    pub site: String,
+    /// The reference standard.
+    pub tracker: Tracker,
+    /// The board's die temperature at the start and end of the run [°C]
+    /// (`null`: not measured).
+    pub die_temp_c: [Option<f64>; 2],
+    /// The cell's air temperature as the configuration states it [°C].
+    pub ambient_c: Option<f64>,
+    /// The configuration file the fields came from, with its SHA-256
+    /// (`null`: none given, the defaults stated).
+    pub config: Option<FileHash>,
+}
+
 /// The calibration record.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -246,6 +334,11 @@ pub struct Record {
     pub utc: String,
     /// [`tool_version`].
     pub tool_version: String,
+    /// How it ended: [`OUTCOME_APPLIED`], [`OUTCOME_REVERTED`],
+    /// [`OUTCOME_FAILED_RESTORED`], [`OUTCOME_FAILED_UNKNOWN`] or
+    /// [`OUTCOME_COMPUTED`] (`null`: a `perpend.record/1` record).
+    #[serde(default)]
+    pub outcome: Option<String>,
     /// The files calibrated from, with their SHA-256.
     pub inputs: Vec<FileHash>,
     /// The parameter file this record describes, with its SHA-256.
@@ -275,6 +368,15 @@ pub struct Record {
     /// --reversal`, issue 36; absent otherwise, so older records read).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frames: Option<crate::frames::report::FrameEstimates>,
+    /// The stamp the board carries (cell runs that applied it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stamp: Option<BoardStamp>,
+    /// The verification's decision against the tolerance (cell runs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decision: Option<crate::conformity::Decision>,
+    /// Certificate fields (cell runs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub certification: Option<Certification>,
 }
 
 /// The record path beside a parameter file: `dir/params.json` →
@@ -298,6 +400,7 @@ impl Record {
             schema: SCHEMA.into(),
             utc: utc_now(),
             tool_version: tool_version(),
+            outcome: Some(OUTCOME_COMPUTED.into()),
             inputs: inputs
                 .iter()
                 .map(|p| FileHash::of(p))
@@ -314,6 +417,9 @@ impl Record {
             previous: None,
             events: Vec::new(),
             frames: None,
+            stamp: None,
+            decision: None,
+            certification: None,
         })
     }
 
@@ -367,7 +473,7 @@ impl Record {
     /// # Errors
     /// The field and the problem.
     pub fn validate(&self) -> Result<()> {
-        if self.schema != SCHEMA {
+        if self.schema != SCHEMA && self.schema != SCHEMA_V1 {
             bail!(
                 "schema = {:?}: this tool reads {SCHEMA:?} records (a newer tool wrote it?)",
                 self.schema
@@ -412,6 +518,23 @@ impl Record {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read {}", path.display()))?;
         Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Whether this record describes a calibration applied to a board and
+    /// verified there (fresh poses, decided against a tolerance): the only
+    /// kind a certificate is issued for.
+    pub fn is_certifiable(&self) -> bool {
+        self.outcome.as_deref() == Some(OUTCOME_APPLIED)
+            && self.verification.kind == KIND_FRESH
+            && self.verification.is_verified()
+            && self.decision.is_some()
+    }
+
+    /// The outcome in words, for people.
+    pub fn outcome_words(&self) -> &str {
+        self.outcome
+            .as_deref()
+            .unwrap_or("not recorded (a perpend.record/1 record, written before outcomes)")
     }
 
     /// Writes the record (pretty JSON) to `path`.

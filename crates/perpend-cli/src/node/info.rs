@@ -174,9 +174,10 @@ fn print_health(v: &serde_json::Value) {
     } else if st["utc_s"].as_u64() == Some(0) {
         println!("  stamp         none stored (the calibration was never pushed with a record)");
     } else {
+        let hash = st["record_hash"].as_str().unwrap_or("?");
         println!(
-            "  stamp         record {} stored {} (store #{})",
-            st["record_hash"].as_str().unwrap_or("?"),
+            "  stamp         record {hash} stored {} (store #{}); its record: perpend record \
+             find {hash} DIR",
             utc_words(st["utc_s"].as_u64().unwrap_or(0)),
             st["store_count"].as_u64().unwrap_or(0)
         );
