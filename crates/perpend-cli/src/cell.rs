@@ -217,6 +217,9 @@ pub struct Figures {
     pub expected_p95_deg: f64,
     /// The after pass decided against the tolerance.
     pub decision: Decision,
+    /// Each fresh pose's error before the calibration [deg] (`None`: no
+    /// plane), in the order of `decision.poses`' pose numbers.
+    pub before_per_pose_deg: Vec<Option<f64>>,
 }
 
 
@@ -696,6 +699,7 @@ fn steps(
         seconds: started.elapsed().as_secs_f64(),
         expected_p95_deg: expected_p95,
         decision: s.reference.decide(&v),
+        before_per_pose_deg: before_pass.poses.iter().map(|p| p.error_deg).collect(),
     })
 }
 
@@ -746,13 +750,33 @@ pub struct Report {
     pub record: Option<PathBuf>,
 }
 
+/// The mean of after − before over the fresh poses with both, and its
+/// standard uncertainty (the paired differences' scatter / √n).
+fn paired_change(f: &Figures) -> Option<(f64, f64)> {
+    let d: Vec<f64> = f
+        .decision
+        .poses
+        .iter()
+        .filter_map(|p| {
+            let k = usize::try_from(p.pose - 1).ok()?;
+            Some(p.error_deg - (*f.before_per_pose_deg.get(k)?)?)
+        })
+        .collect();
+    perpend_lab::interim::mean_u(&d)
+}
+
 /// Why the new calibration is not applied, if it is not: the after error
-/// worse than the before error, or the decision FAIL.
+/// worse than the before error beyond the uncertainty of their difference
+/// (k = 2, paired over the same fresh poses), or the decision FAIL.
 fn worse(f: &Figures) -> Option<String> {
-    if f.after_deg > f.before_deg {
+    let change = paired_change(f);
+    if let Some((diff, u)) = change.filter(|(d, u)| *d > 2.0 * u) {
         Some(format!(
-            "after {:.4}° is worse than before {:.4}° (mean over the fresh poses)",
-            f.after_deg, f.before_deg
+            "after {:.4}° is worse than before {:.4}° (mean over the fresh poses; the \
+             difference {diff:+.4}° exceeds its expanded uncertainty {:.4}°, k = 2)",
+            f.after_deg,
+            f.before_deg,
+            2.0 * u
         ))
     } else if f.decision.verdict == Verdict::Fail {
         Some(decision_words(&f.decision))
@@ -770,10 +794,14 @@ fn judge(s: &mut Session<'_>, f: Figures) -> Report {
         None => (
             Outcome::Applied,
             format!(
-                "{}; after {:.4}° against before {:.4}° (mean)",
+                "{}; after {:.4}° against before {:.4}° (mean{})",
                 decision_words(&f.decision),
                 f.after_deg,
-                f.before_deg
+                f.before_deg,
+                paired_change(&f).map_or(String::new(), |(d, u)| format!(
+                    ", change {d:+.4}° ± {:.4}° (k = 2)",
+                    2.0 * u
+                ))
             ),
             None,
         ),

@@ -1,4 +1,4 @@
-//! The calibration record (`perpend.record/1`): `calibrate --out` writes
+//! The calibration record (`perpend.record/2`): `calibrate --out` writes
 //! one beside the parameters whose every field reads back as the run made
 //! it, a second `--out` names the first as `previous`, and the example in
 //! docs/record.md parses as a record.
@@ -111,7 +111,7 @@ fn calibrate_out_writes_a_record_that_reads_back() {
 fn read_names_the_file_on_a_wrong_schema() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("bad.record.json");
-    let text = doc_example().replace("perpend.record/1", "perpend.record/9");
+    let text = doc_example().replace("perpend.record/2", "perpend.record/9");
     std::fs::write(&f, text).unwrap();
     let e = format!("{:#}", Record::read(&f).unwrap_err());
     assert!(e.contains("bad.record.json") && e.contains("schema"), "{e}");

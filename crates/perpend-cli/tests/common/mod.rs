@@ -220,3 +220,51 @@ pub fn same_geometry(a: &serde_json::Value, b: &serde_json::Value) -> bool {
             .zip(&b)
             .all(|(x, y)| (x - y).abs() <= 1e-6 * x.abs().max(1.0))
 }
+
+/// The text of an HTML page as headless Chromium renders it (`innerText`
+/// of the body: table cells separated by tabs, rows by newlines); `None`
+/// when there is no `chromium` on this machine.
+pub fn chromium_text(page: &Path) -> Option<String> {
+    let bin = ["chromium", "chromium-browser"]
+        .into_iter()
+        .find(|b| Command::new(b).arg("--version").output().is_ok_and(|o| o.status.success()))?;
+    let dir = tempfile::tempdir().unwrap();
+    let html = std::fs::read_to_string(page).unwrap();
+    // The page's own text, written into its title by a script Chromium
+    // runs: --dump-dom then carries it out.
+    let probe = html.replace(
+        "</body>",
+        "<script>document.title = 'RENDERED:' + encodeURIComponent(document.body.innerText);</script></body>",
+    );
+    let file = dir.path().join("page.html");
+    std::fs::write(&file, probe).unwrap();
+    let out = Command::new(bin)
+        .args(["--headless", "--no-sandbox", "--disable-gpu", "--dump-dom"])
+        .arg(format!("--user-data-dir={}", dir.path().join("profile").display()))
+        .arg(format!("file://{}", file.display()))
+        .output()
+        .unwrap();
+    let dom = String::from_utf8_lossy(&out.stdout);
+    let start = dom.find("RENDERED:")? + "RENDERED:".len();
+    let end = start + dom[start..].find("</title>")?;
+    Some(percent_decode(&dom[start..end]))
+}
+
+/// Undoes `encodeURIComponent` (UTF-8 percent escapes).
+fn percent_decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%' && i + 2 < b.len() {
+            if let Ok(v) = u8::from_str_radix(&s[i + 1..i + 3], 16) {
+                out.push(v);
+                i += 3;
+                continue;
+            }
+        }
+        out.push(b[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
