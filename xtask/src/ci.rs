@@ -420,6 +420,7 @@ fn preflight(no_fuzz: bool) -> Result<()> {
         ("toolchain", setup::toolchain),
         ("python", setup::python),
         ("qemu", setup::qemu),
+        ("chromium", setup::chromium),
         ("flip-link", setup::flip_link),
     ];
     if !no_fuzz {

@@ -8,6 +8,8 @@
 //! * Python ≥ 3.9 with `venv` and `ensurepip` (the peer tests make their
 //!   own virtual environment);
 //! * `qemu-system-arm` (instruction counts on an emulated Cortex-M4F);
+//! * `chromium` (headless: the calibration certificate as a browser
+//!   renders it, `crates/perpend-cli/tests/cell.rs`);
 //! * `flip-link` (the firmware's linker, `.cargo/config.toml`), installed
 //!   with `cargo install` at [`FLIP_LINK_VERSION`] when missing;
 //! * a nightly toolchain (the fuzz smoke; skipped only with `--no-fuzz`).
@@ -159,6 +161,17 @@ pub fn qemu() -> Result<String> {
     let out = quiet(Command::new("qemu-system-arm").arg("--version"))?;
     let text = String::from_utf8_lossy(&out.stdout);
     Ok(text.lines().next().unwrap_or("qemu-system-arm").to_string())
+}
+
+/// Headless `chromium`, from Debian when missing: the certificate's
+/// rendering test reads the page as the browser lays it out.
+pub fn chromium() -> Result<String> {
+    if !have("chromium") {
+        apt_install(&["chromium"])?;
+    }
+    let out = quiet(Command::new("chromium").arg("--version"))?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    Ok(text.lines().next().unwrap_or("chromium").trim().to_string())
 }
 
 /// The flip-link version installed when it is missing (knurling-rs; 0.1.12

@@ -303,3 +303,16 @@ fn the_slope_unit_fits_the_span() {
     assert_eq!(unit_for(5.0 * 86400.0).0, "day");
     assert_eq!(unit_for(200.0 * 86400.0).0, "week");
 }
+
+/// `perpend --version` prints the version string every record carries.
+#[test]
+fn the_version_is_the_records_version() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .arg("--version")
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let v = String::from_utf8(out.stdout).unwrap();
+    assert_eq!(v.trim(), perpend_lab::record::tool_version());
+    assert!(v.contains(" ("), "{v}");
+}
