@@ -222,7 +222,6 @@ pub struct Figures {
     pub before_per_pose_deg: Vec<Option<f64>>,
 }
 
-
 /// Captures every planned pose into `poses`; a reset of the node in
 /// between (its boot-up message) stops it.
 fn capture_all(
@@ -285,7 +284,6 @@ fn pooled_sigma(poses: &Path) -> Result<f64> {
     }
     Ok((sd.iter().map(|s| s * s).sum::<f64>() / sd.len() as f64).sqrt())
 }
-
 
 /// The head the floor is computed with, and where it came from.
 fn floor_head(a: &RunArgs, params: &Path) -> Result<(Head4<f64>, String)> {
@@ -460,7 +458,14 @@ impl<'a> Session<'a> {
             .download(id, 0x2300, 4, &raised.to_le_bytes())
             .context("raising the residual limit (0x2300 sub 4) for the before pass")?;
         let sampling = self.sampling();
-        let v = verify(&mut self.node, robot, fresh, sampling, "before", self.cancel)?;
+        let v = verify(
+            &mut self.node,
+            robot,
+            fresh,
+            sampling,
+            "before",
+            self.cancel,
+        )?;
         self.put_back_residual()?;
         Ok(v)
     }
@@ -945,9 +950,13 @@ fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<
         Record::new(&[&a.sensors, &a.out.join("poses.csv")], &file)?
     };
     let csv = a.out.join("verify.csv");
-    for f in [Some(&a.plan), Some(&csv).filter(|c| c.exists()), a.truth.as_ref()]
-        .into_iter()
-        .flatten()
+    for f in [
+        Some(&a.plan),
+        Some(&csv).filter(|c| c.exists()),
+        a.truth.as_ref(),
+    ]
+    .into_iter()
+    .flatten()
     {
         r.inputs.push(FileHash::of(f)?);
     }
@@ -986,7 +995,10 @@ fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<
 fn certification(s: &Session<'_>, utc: &str) -> perpend_lab::record::Certification {
     let cfg = s.reference.config.as_ref();
     let given = |f: fn(&perpend_lab::cellconfig::CellConfig) -> &String| {
-        cfg.map_or_else(|| "not given (no --config)".to_string(), |c| f(&c.0).clone())
+        cfg.map_or_else(
+            || "not given (no --config)".to_string(),
+            |c| f(&c.0).clone(),
+        )
     };
     let stamp: String = utc.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
     perpend_lab::record::Certification {

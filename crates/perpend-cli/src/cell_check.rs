@@ -120,7 +120,9 @@ pub fn run_check(a: &CheckArgs, cancel: &AtomicBool) -> Result<CheckRecord> {
         bail!("{} exists: a check writes a new record", a.out.display());
     }
     let (last, against) = against(&a.record)?;
-    let tol = a.tolerance_deg.or(last.decision.as_ref().map(|d| d.tolerance_deg));
+    let tol = a
+        .tolerance_deg
+        .or(last.decision.as_ref().map(|d| d.tolerance_deg));
     let reference = Reference::new(a.config.as_deref(), tol, a.robot.starts_with("sim:"))?;
     let plan = read_plan(&a.plan)?;
     let mut robot = Robot::open(&a.robot, a.seed, reference.sim_tracker())?;

@@ -363,7 +363,9 @@ mod tests {
         let ok = |p: &Plane<f64>| plausible(p, &pose(), None);
         let p = read_plane("pose 1", &mut next, &ok).unwrap();
         assert!((p.d + 28.0).abs() < 1e-12);
-        let e = read_plane("pose 2", &mut next, &ok).unwrap_err().to_string();
+        let e = read_plane("pose 2", &mut next, &ok)
+            .unwrap_err()
+            .to_string();
         assert_eq!(e, "reading the tracker's plane: end of input at pose 2");
     }
 
@@ -382,10 +384,20 @@ mod tests {
         let inch = at("0,0,1,-1.1024").unwrap_err();
         assert!(inch.contains("inches"), "{inch}");
         let e = at("1,2,3,4").unwrap_err();
-        assert!(e.contains("measuring range") || e.contains("planned pose"), "{e}");
-        let tilted = at(&format!("{},0,{},-28", 3f64.to_radians().sin(), 3f64.to_radians().cos()))
-            .unwrap_err();
-        assert!(tilted.contains("from the planned pose's normal"), "{tilted}");
+        assert!(
+            e.contains("measuring range") || e.contains("planned pose"),
+            "{e}"
+        );
+        let tilted = at(&format!(
+            "{},0,{},-28",
+            3f64.to_radians().sin(),
+            3f64.to_radians().cos()
+        ))
+        .unwrap_err();
+        assert!(
+            tilted.contains("from the planned pose's normal"),
+            "{tilted}"
+        );
         // Without ranges, the standoff still catches a far plane.
         let far = plausible(&p("0,0,1,-31"), &pose(), None).unwrap_err();
         assert!(far.contains("standoff 31.00 mm"), "{far}");

@@ -121,7 +121,6 @@ pub fn reset_error(node: &Node, what: &str) -> anyhow::Error {
     )
 }
 
-
 /// The board's normals at one pose over `n` SYNCs, and how many SYNCs had
 /// no plane.
 fn board_normals(
@@ -162,7 +161,10 @@ pub struct Reference {
     /// Where that figure comes from, in words.
     pub source: String,
     /// The cell configuration read, with its hash.
-    pub config: Option<(perpend_lab::cellconfig::CellConfig, perpend_lab::record::FileHash)>,
+    pub config: Option<(
+        perpend_lab::cellconfig::CellConfig,
+        perpend_lab::record::FileHash,
+    )>,
 }
 
 impl Reference {
@@ -199,8 +201,9 @@ impl Reference {
                     .into(),
             ),
         };
-        let u = perpend_lab::conformity::tracker_u_rad(tracker.xi_mm, tracker.points, tracker.patch_mm)
-            .ok_or_else(|| anyhow!("the tracker's figures give no uncertainty"))?;
+        let u =
+            perpend_lab::conformity::tracker_u_rad(tracker.xi_mm, tracker.points, tracker.patch_mm)
+                .ok_or_else(|| anyhow!("the tracker's figures give no uncertainty"))?;
         Ok(Self {
             tolerance_deg,
             tracker_u_deg: u.to_degrees(),
@@ -221,7 +224,12 @@ impl Reference {
 
     /// The decision of `v` against this reference.
     pub fn decide(&self, v: &Verified) -> perpend_lab::conformity::Decision {
-        perpend_lab::conformity::decide(&v.measured(), self.tolerance_deg, self.tracker_u_deg, &self.source)
+        perpend_lab::conformity::decide(
+            &v.measured(),
+            self.tolerance_deg,
+            self.tracker_u_deg,
+            &self.source,
+        )
     }
 }
 
@@ -501,7 +509,6 @@ pub fn fresh_poses(plan: &[(i64, PlannedPose)], count: usize, seed: u64) -> Vec<
         .collect()
 }
 
-
 /// The decision in one sentence whose figures are the decision's.
 pub fn decision_words(d: &Decision) -> String {
     let worst = d
@@ -559,7 +566,13 @@ pub fn head4(v: Vec<Sensor<f64>>, what: &str) -> Result<Head4<f64>> {
 ///
 /// # Errors
 /// A beam that misses a plane, a fit that fails.
-pub fn floor(head: &Head4<f64>, seen: &[Presented], sigma: f64, n: usize, seed: u64) -> Result<f64> {
+pub fn floor(
+    head: &Head4<f64>,
+    seen: &[Presented],
+    sigma: f64,
+    n: usize,
+    seed: u64,
+) -> Result<f64> {
     let mut rng = StdRng::seed_from_u64(seed ^ 0x666c_6f6f);
     let mut sum = 0.0;
     for p in seen {
@@ -575,7 +588,8 @@ pub fn floor(head: &Head4<f64>, seen: &[Presented], sigma: f64, n: usize, seed: 
                 .map_err(|e| anyhow!("floor: {e}"))?;
             normals.push(fit.normal);
         }
-        let (mean, _) = average(&normals, &p.tracker.n).ok_or_else(|| anyhow!("floor: no normal"))?;
+        let (mean, _) =
+            average(&normals, &p.tracker.n).ok_or_else(|| anyhow!("floor: no normal"))?;
         sum += normal_error(&mean, &p.tracker.n);
     }
     Ok(sum / seen.len().max(1) as f64)

@@ -26,11 +26,10 @@ use perpend_lab::record::{sha256_hex, Record};
 
 pub use crate::record_cert::{cert_html, report_html, write_document};
 pub use crate::record_fmt::{deg, esc, iso, sigma, value};
-pub use crate::record_history::{
-    find_records, fit_line, history, history_svg, history_text, History, Item, Line,
-    TREND_SIGMAS,
-};
 use crate::record_fmt::{geometry, opt_deg};
+pub use crate::record_history::{
+    find_records, fit_line, history, history_svg, history_text, History, Item, Line, TREND_SIGMAS,
+};
 
 /// Default tolerance of `record history` [deg].
 pub const TOLERANCE_DEG: f64 = 0.05;
@@ -117,7 +116,9 @@ pub fn run(a: &Args) -> Result<()> {
             println!(
                 "{}: {} ({}); certificate written to {}",
                 c.file.display(),
-                r.decision.as_ref().map_or("not decided", |d| d.verdict.word()),
+                r.decision
+                    .as_ref()
+                    .map_or("not decided", |d| d.verdict.word()),
                 r.outcome_words(),
                 c.out.display()
             );
@@ -329,10 +330,18 @@ pub fn find(stamp: &str, dirs: &[PathBuf]) -> Result<Vec<(PathBuf, String, Item)
             continue;
         };
         if sha256_hex(&bytes).starts_with(&want) {
-            out.push((f, "its SHA-256 begins with the stamp: the stamped record".into(), item));
+            out.push((
+                f,
+                "its SHA-256 begins with the stamp: the stamped record".into(),
+                item,
+            ));
         } else if let Item::Calibration(r) = &item {
             if r.stamp.as_ref().is_some_and(|s| s.record_hash == want) {
-                out.push((f, "the cell run that stamped the board with it".into(), item));
+                out.push((
+                    f,
+                    "the cell run that stamped the board with it".into(),
+                    item,
+                ));
             }
         }
     }

@@ -136,15 +136,18 @@ fn document(r: &Record, not_cert: Option<&str>) -> String {
 fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
     let d = r.decision.as_ref();
     let (word, class) = verdict_class(d);
-    let _ = match not_cert {
-        false => write!(h, "<h2 class=\"{class}\" id=\"verdict\">{word}</h2>"),
-        true => write!(
+    let _ =
+        match not_cert {
+            false => write!(h, "<h2 class=\"{class}\" id=\"verdict\">{word}</h2>"),
+            true => {
+                write!(
             h,
             "<h2 class=\"open\" id=\"verdict\">Verification decision of a calibration that is \
              not on the board: {}</h2>",
             if d.is_some() { word.to_lowercase() } else { "none".into() }
-        ),
-    };
+        )
+            }
+        };
     match d {
         Some(d) => {
             let _ = write!(
@@ -160,7 +163,11 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
                 esc(&d.tracker_u_source)
             );
             if let Some(by) = &d.decide_by {
-                let _ = write!(h, "<p class=\"open\">What would decide it: {}.</p>", esc(by));
+                let _ = write!(
+                    h,
+                    "<p class=\"open\">What would decide it: {}.</p>",
+                    esc(by)
+                );
             }
         }
         None => h.push_str("<p>No conformity decision: the record has no tolerance.</p>"),
@@ -173,7 +180,11 @@ fn row(h: &mut String, k: &str, v: &str) {
 
 fn doc_item(r: &Record, h: &mut String) {
     h.push_str("<h2>Item, place and people</h2><table>");
-    row(h, "head serial", r.head_serial.as_deref().unwrap_or("no board"));
+    row(
+        h,
+        "head serial",
+        r.head_serial.as_deref().unwrap_or("no board"),
+    );
     row(h, "firmware", r.firmware.as_deref().unwrap_or("-"));
     match &r.stamp {
         Some(s) => {
@@ -186,7 +197,10 @@ fn doc_item(r: &Record, h: &mut String) {
             row(
                 h,
                 "stamped record",
-                &format!("{} sha256 {}", s.stamped_record.path, s.stamped_record.sha256),
+                &format!(
+                    "{} sha256 {}",
+                    s.stamped_record.path, s.stamped_record.sha256
+                ),
             );
             row(
                 h,
@@ -231,8 +245,16 @@ fn doc_reference(r: &Record, h: &mut String) {
         &format!("{} mm, {}, {} mm", t.xi_mm, t.points, t.patch_mm),
     );
     match &c.config {
-        Some(f) => row(h, "cell configuration", &format!("{} sha256 {}", f.path, f.sha256)),
-        None => row(h, "cell configuration", "none given: the figures above are stated defaults"),
+        Some(f) => row(
+            h,
+            "cell configuration",
+            &format!("{} sha256 {}", f.path, f.sha256),
+        ),
+        None => row(
+            h,
+            "cell configuration",
+            "none given: the figures above are stated defaults",
+        ),
     }
     h.push_str("</table>");
 }
@@ -413,7 +435,10 @@ fn cert_decision_table(d: &Decision, lower: bool, h: &mut String) {
 fn bars_svg(v: &perpend_lab::record::Verification, d: Option<&Decision>) -> String {
     let (w, ht, m) = (640.0, 220.0, 40.0);
     let tol = d.map_or(0.0, |d| d.tolerance_deg);
-    let big_u = |k: usize| d.and_then(|d| d.poses.get(k)).map_or(0.0, |p| p.expanded_deg);
+    let big_u = |k: usize| {
+        d.and_then(|d| d.poses.get(k))
+            .map_or(0.0, |p| p.expanded_deg)
+    };
     let top = v
         .poses
         .iter()
@@ -428,7 +453,11 @@ fn bars_svg(v: &perpend_lab::record::Verification, d: Option<&Decision>) -> Stri
          viewBox=\"0 0 {w} {ht}\"><rect x=\"0\" y=\"0\" width=\"{w}\" height=\"{ht}\" fill=\"white\"/>"
     );
     for (i, p) in v.poses.iter().enumerate() {
-        let fill = if d.is_none() || p.error_deg <= tol { "#48a" } else { "#c33" };
+        let fill = if d.is_none() || p.error_deg <= tol {
+            "#48a"
+        } else {
+            "#c33"
+        };
         let x = m + i as f64 * bw;
         let _ = write!(
             s,
@@ -482,4 +511,3 @@ fn cert_dropped(r: &Record, h: &mut String) {
     }
     h.push_str("</table>");
 }
-

@@ -84,4 +84,3 @@ pub fn iso(s: f64) -> String {
     };
     humantime::format_rfc3339_seconds(t).to_string()
 }
-

@@ -125,8 +125,13 @@ pub fn find_records(roots: &[PathBuf]) -> Result<Vec<PathBuf>> {
 }
 
 fn is_record_name(p: &Path) -> bool {
-    let n = p.file_name().map_or(String::new(), |n| n.to_string_lossy().into_owned());
-    n.ends_with(".record.json") || n == "record.json" || n == "check.json" || n.ends_with(".check.json")
+    let n = p
+        .file_name()
+        .map_or(String::new(), |n| n.to_string_lossy().into_owned());
+    n.ends_with(".record.json")
+        || n == "record.json"
+        || n == "check.json"
+        || n.ends_with(".check.json")
 }
 
 /// A record of either kind, as read.
@@ -282,7 +287,13 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
                 _ => "cell calibration",
             };
             let fresh = kind != "calibration";
-            (kind, r.outcome_words().to_string(), v.before_mean_deg, errors, fresh)
+            (
+                kind,
+                r.outcome_words().to_string(),
+                v.before_mean_deg,
+                errors,
+                fresh,
+            )
         }
         Item::Check(c) => {
             let errors: Vec<f64> = c.decision.poses.iter().map(|p| p.error_deg).collect();
@@ -359,7 +370,8 @@ pub fn history(files: &[PathBuf], serial: Option<&str>, tol: f64) -> Result<Vec<
     heads
         .into_iter()
         .map(|h| {
-            let mine: Vec<&(PathBuf, Item)> = items.iter().filter(|(_, i)| i.serial() == h).collect();
+            let mine: Vec<&(PathBuf, Item)> =
+                items.iter().filter(|(_, i)| i.serial() == h).collect();
             one_history(&mine, h, tol)
         })
         .collect()
@@ -368,7 +380,11 @@ pub fn history(files: &[PathBuf], serial: Option<&str>, tol: f64) -> Result<Vec<
 fn one_history(items: &[&(PathBuf, Item)], serial: Option<String>, tol: f64) -> Result<History> {
     let mut timed = Vec::with_capacity(items.len());
     for (f, i) in items {
-        timed.push((epoch_s(i.utc()).with_context(|| f.display().to_string())?, f, i));
+        timed.push((
+            epoch_s(i.utc()).with_context(|| f.display().to_string())?,
+            f,
+            i,
+        ));
     }
     timed.sort_by(|a, b| a.0.total_cmp(&b.0));
     let t0 = timed.first().map_or(0.0, |x| x.0);
@@ -551,7 +567,11 @@ fn panel(h: &History, top: f64) -> String {
     let line = h.verification.map(|l| (l.a, l.a + l.b * tmax));
     let ends = line.map_or(0.0, |(a, b)| a.max(b));
     let lows = line.map_or(0.0, |(a, b)| a.min(b));
-    let ymax = pts.iter().map(|p| p.1).fold(h.tolerance_deg.max(ends), f64::max) * 1.15;
+    let ymax = pts
+        .iter()
+        .map(|p| p.1)
+        .fold(h.tolerance_deg.max(ends), f64::max)
+        * 1.15;
     let ymin = lows.min(0.0);
     let x = |t: f64| m + (w - 2.0 * m) * t / tmax;
     let y = |v: f64| top + ht - m - (ht - 2.0 * m) * (v - ymin) / (ymax - ymin);

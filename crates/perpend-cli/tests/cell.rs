@@ -93,7 +93,13 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
         .iter()
         .map(|i| i["path"].as_str().unwrap())
         .collect();
-    for want in ["nominal.csv", "poses.csv", "plan.csv", "verify.csv", "truth.csv"] {
+    for want in [
+        "nominal.csv",
+        "poses.csv",
+        "plan.csv",
+        "verify.csv",
+        "truth.csv",
+    ] {
         assert!(inputs.iter().any(|p| p.ends_with(want)), "{inputs:?}");
     }
     assert!(rec["head_serial"].as_str().unwrap().starts_with("0x"));
@@ -116,9 +122,10 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     );
     let events = rec["events"].as_array().unwrap();
     assert!(
-        events
-            .iter()
-            .any(|e| e.as_str().unwrap().contains("perpend cell run: applied: PASS")),
+        events.iter().any(|e| e
+            .as_str()
+            .unwrap()
+            .contains("perpend cell run: applied: PASS")),
         "{rec_text}"
     );
     let cert = std::fs::read_to_string(d.join("run/cert.html")).unwrap();
@@ -147,9 +154,15 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     assert_eq!(rec["stamp"]["store_count"], stamp["store_count"]);
     let found = common::ok(&["record", "find", hash, "run"], d);
     assert!(found.contains("run/record.json: the cell run"), "{found}");
-    assert!(found.contains("run/params.record.json: its SHA-256"), "{found}");
+    assert!(
+        found.contains("run/params.record.json: its SHA-256"),
+        "{found}"
+    );
     let shown = common::ok(&["record", "show", "run/record.json"], d);
-    assert!(shown.starts_with("outcome: applied\ndecision: PASS"), "{shown}");
+    assert!(
+        shown.starts_with("outcome: applied\ndecision: PASS"),
+        "{shown}"
+    );
     rendered(&d.join("run/cert.html"), &rec);
     checked_and_in_history(d, &bus, &world);
 }
@@ -168,7 +181,11 @@ fn checked_and_in_history(d: &std::path::Path, bus: &str, world: &str) {
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let c: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d.join("check.json")).unwrap()).unwrap();
     assert_eq!(c["schema"], "perpend.check/1");
@@ -190,7 +207,10 @@ fn checked_and_in_history(d: &std::path::Path, bus: &str, world: &str) {
         .collect();
     // params.record.json is superseded by the cell's record.json.
     assert_eq!(kinds, ["cell calibration", "check"], "{h}");
-    assert!(heads[0]["entries"][0]["before_deg"].as_f64().unwrap() > 0.5, "{h}");
+    assert!(
+        heads[0]["entries"][0]["before_deg"].as_f64().unwrap() > 0.5,
+        "{h}"
+    );
 }
 
 /// The certificate as headless Chromium renders it (Debian's `chromium`;
@@ -203,10 +223,19 @@ fn rendered(cert: &std::path::Path, rec: &serde_json::Value) {
     };
     let d = &rec["decision"];
     assert!(text.contains("Outcome: applied"), "{text}");
-    assert!(text.contains(&format!("\n{}\n", d["verdict"].as_str().unwrap())), "{text}");
-    assert!(text.contains(rec["stamp"]["record_hash"].as_str().unwrap()), "{text}");
+    assert!(
+        text.contains(&format!("\n{}\n", d["verdict"].as_str().unwrap())),
+        "{text}"
+    );
+    assert!(
+        text.contains(rec["stamp"]["record_hash"].as_str().unwrap()),
+        "{text}"
+    );
     let deg = |v: &serde_json::Value| format!("{:.4}", v.as_f64().unwrap());
-    assert!(text.contains(&format!("U = {}°", deg(&d["max_expanded_deg"]))), "{text}");
+    assert!(
+        text.contains(&format!("U = {}°", deg(&d["max_expanded_deg"]))),
+        "{text}"
+    );
     for p in d["poses"].as_array().unwrap() {
         let row = format!(
             "{}\t{}\t{}\t{}\t{}\t{}\t{}",
@@ -221,7 +250,13 @@ fn rendered(cert: &std::path::Path, rec: &serde_json::Value) {
         assert!(text.contains(&row), "{row} not in\n{text}");
     }
     let v = &rec["verification"];
-    for k in ["mean_deg", "p95_deg", "max_deg", "expected_deg", "before_mean_deg"] {
+    for k in [
+        "mean_deg",
+        "p95_deg",
+        "max_deg",
+        "expected_deg",
+        "before_mean_deg",
+    ] {
         assert!(text.contains(&deg(&v[k])), "{k}");
     }
 }
@@ -259,8 +294,14 @@ fn a_tolerance_the_verification_cannot_resolve_is_inconclusive() {
     assert_eq!(f["tolerance_deg"], 0.02);
     let by = f["decide_by"].as_str().unwrap();
     assert!(by.contains("undecided"), "{by}");
-    assert!(by.contains("tracker") || by.contains("samples per pose"), "{by}");
-    assert!(out.contains("applied: INCONCLUSIVE against the tolerance 0.02°"), "{out}");
+    assert!(
+        by.contains("tracker") || by.contains("samples per pose"),
+        "{by}"
+    );
+    assert!(
+        out.contains("applied: INCONCLUSIVE against the tolerance 0.02°"),
+        "{out}"
+    );
     let rec: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d.join("run/record.json")).unwrap()).unwrap();
     assert_eq!(rec["decision"]["verdict"], "INCONCLUSIVE");

@@ -71,10 +71,19 @@ fn no_certificate(d: &Path, out: &str, outcome: &str) {
     assert!(report.contains(&format!("Outcome: {outcome}")));
     assert!(!report.contains("PASS"), "{report}");
     let shown = common::ok(&["record", "show", &format!("{out}/record.json")], d);
-    assert!(shown.starts_with(&format!("outcome: {outcome}\n")), "{shown}");
+    assert!(
+        shown.starts_with(&format!("outcome: {outcome}\n")),
+        "{shown}"
+    );
     assert!(!shown.contains("PASS"), "{shown}");
     let cert = std::process::Command::new(common::BIN)
-        .args(["record", "cert", &format!("{out}/record.json"), "--out", "c.html"])
+        .args([
+            "record",
+            "cert",
+            &format!("{out}/record.json"),
+            "--out",
+            "c.html",
+        ])
         .current_dir(d)
         .output()
         .unwrap();
@@ -111,10 +120,7 @@ fn manual_entries_are_asked_again_and_the_end_of_input_stops_safely() {
     // off the plan's standoff, then the planned plane; then the end.
     let out = answer_prompts(
         &mut run,
-        &[
-            &["hello", "", "INCH"],
-            &["0,0,0,5", "1,2,3,4", "FAR"],
-        ],
+        &[&["hello", "", "INCH"], &["0,0,0,5", "1,2,3,4", "FAR"]],
     );
     let (status, _, err) = finish(run, 120);
     assert!(!status.success(), "{out}");

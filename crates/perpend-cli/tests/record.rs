@@ -282,7 +282,10 @@ fn each_head_of_a_mix_gets_its_section_and_serials_match_as_typed() {
     let hs = history(&files, None, 0.05).unwrap();
     assert_eq!(hs.len(), 2);
     let text = perpend_cli::record::history_text(&hs);
-    assert!(text.contains("history of head 0xb143eae7 (1 records)"), "{text}");
+    assert!(
+        text.contains("history of head 0xb143eae7 (1 records)"),
+        "{text}"
+    );
     assert!(text.contains("history of head h-17 (3 records)"), "{text}");
     let h = history(&files, Some("H-17"), 0.05).unwrap();
     assert_eq!((h.len(), h[0].entries.len()), (1, 3));

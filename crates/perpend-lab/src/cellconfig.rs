@@ -66,17 +66,25 @@ impl CellConfig {
     /// Unreadable file, syntax (line, column), a field out of its physics.
     pub fn read(path: &Path) -> Result<(Self, FileHash)> {
         let name = path.display().to_string();
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("{name}: cannot read"))?;
-        let c: Self = serde_json::from_str(&crate::exchange::json_text(&text)).map_err(|e| {
+        let text = std::fs::read_to_string(path).with_context(|| format!("{name}: cannot read"))?;
+        Ok((Self::parse(&text, &name)?, FileHash::of(path)?))
+    }
+
+    /// Parses and checks a configuration; `name` is the file named in
+    /// errors.
+    ///
+    /// # Errors
+    /// Syntax (line, column), a field out of its physics.
+    pub fn parse(text: &str, name: &str) -> Result<Self> {
+        let c: Self = serde_json::from_str(&crate::exchange::json_text(text)).map_err(|e| {
             anyhow!(
                 "{name}: line {}, column {}: {e} (a cell configuration, {SCHEMA}: docs/record.md)",
                 e.line(),
                 e.column()
             )
         })?;
-        c.check().with_context(|| name.clone())?;
-        Ok((c, FileHash::of(path)?))
+        c.check().with_context(|| name.to_string())?;
+        Ok(c)
     }
 
     /// The physics checks of [`CellConfig::read`], against today's date.
@@ -128,7 +136,10 @@ pub fn check_tracker(t: &Tracker, now: std::time::SystemTime) -> Result<()> {
         );
     }
     if !(3..=100_000).contains(&t.points) {
-        bail!("tracker.points = {}: a plane takes 3 to 100000 points", t.points);
+        bail!(
+            "tracker.points = {}: a plane takes 3 to 100000 points",
+            t.points
+        );
     }
     if !(10.0..=10_000.0).contains(&t.patch_mm) {
         bail!(
@@ -136,8 +147,8 @@ pub fn check_tracker(t: &Tracker, now: std::time::SystemTime) -> Result<()> {
             t.patch_mm
         );
     }
-    let due = humantime::parse_rfc3339_weak(&format!("{}T23:59:59", t.calibration_due))
-        .map_err(|e| {
+    let due =
+        humantime::parse_rfc3339_weak(&format!("{}T23:59:59", t.calibration_due)).map_err(|e| {
             anyhow!(
                 "tracker.calibration_due = {:?}: not a date ({e}); write e.g. 2027-06-30",
                 t.calibration_due
@@ -189,18 +200,33 @@ mod tests {
     fn figures_out_of_their_physics_are_refused_by_name() {
         let cases = [
             ("\"xi_mm\": 0.02", "\"xi_mm\": 20", "micrometres"),
-            ("\"tolerance_deg\": 0.05", "\"tolerance_deg\": 0", "tolerance 0"),
+            (
+                "\"tolerance_deg\": 0.05",
+                "\"tolerance_deg\": 0",
+                "tolerance 0",
+            ),
             ("\"patch_mm\": 150", "\"patch_mm\": 1", "patch_mm = 1"),
             ("\"points\": 20", "\"points\": 2", "points = 2"),
-            ("2099-06-30", "2001-01-31", "due for calibration on 2001-01-31"),
+            (
+                "2099-06-30",
+                "2001-01-31",
+                "due for calibration on 2001-01-31",
+            ),
             ("2099-06-30", "soon", "not a date"),
-            ("\"ambient_c\": 21.5", "\"ambient_c\": 295", "ambient_c = 295"),
+            (
+                "\"ambient_c\": 21.5",
+                "\"ambient_c\": 295",
+                "ambient_c = 295",
+            ),
         ];
         for (from, to, want) in cases {
             let e = format!("{:#}", read(&good().replace(from, to)).unwrap_err());
             assert!(e.contains(want), "{to}: {e}");
         }
-        let e = format!("{:#}", read(&good().replace("\"site\"", "\"sight\"")).unwrap_err());
+        let e = format!(
+            "{:#}",
+            read(&good().replace("\"site\"", "\"sight\"")).unwrap_err()
+        );
         assert!(e.contains("line 1") && e.contains("sight"), "{e}");
     }
 }

@@ -322,7 +322,11 @@ mod tests {
         let d = decide(&[p], t, ut, "t");
         assert_eq!(d.verdict, Verdict::Inconclusive);
         let n = d.samples_needed.unwrap();
-        assert!(d.decide_by.as_ref().unwrap().contains(&format!("{n} samples")));
+        assert!(d
+            .decide_by
+            .as_ref()
+            .unwrap()
+            .contains(&format!("{n} samples")));
         // The readings' share with n samples: u_r·√(20/n).
         let with = |k: usize| Measured {
             readings_u_deg: p.readings_u_deg * (20.0 / k as f64).sqrt(),
@@ -330,7 +334,10 @@ mod tests {
             ..p
         };
         assert_eq!(decide(&[with(n)], t, ut, "t").verdict, Verdict::Pass);
-        assert_eq!(decide(&[with(n - 1)], t, ut, "t").verdict, Verdict::Inconclusive);
+        assert_eq!(
+            decide(&[with(n - 1)], t, ut, "t").verdict,
+            Verdict::Inconclusive
+        );
     }
 
     #[test]

@@ -225,9 +225,12 @@ pub fn same_geometry(a: &serde_json::Value, b: &serde_json::Value) -> bool {
 /// of the body: table cells separated by tabs, rows by newlines); `None`
 /// when there is no `chromium` on this machine.
 pub fn chromium_text(page: &Path) -> Option<String> {
-    let bin = ["chromium", "chromium-browser"]
-        .into_iter()
-        .find(|b| Command::new(b).arg("--version").output().is_ok_and(|o| o.status.success()))?;
+    let bin = ["chromium", "chromium-browser"].into_iter().find(|b| {
+        Command::new(b)
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    })?;
     let dir = tempfile::tempdir().unwrap();
     let html = std::fs::read_to_string(page).unwrap();
     // The page's own text, written into its title by a script Chromium
@@ -240,7 +243,10 @@ pub fn chromium_text(page: &Path) -> Option<String> {
     std::fs::write(&file, probe).unwrap();
     let out = Command::new(bin)
         .args(["--headless", "--no-sandbox", "--disable-gpu", "--dump-dom"])
-        .arg(format!("--user-data-dir={}", dir.path().join("profile").display()))
+        .arg(format!(
+            "--user-data-dir={}",
+            dir.path().join("profile").display()
+        ))
         .arg(format!("file://{}", file.display()))
         .output()
         .unwrap();
