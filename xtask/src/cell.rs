@@ -106,6 +106,10 @@ pub fn cell_demo() -> Result<()> {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     step(&dir, &["cell", "sim-head", "--out", "."])?;
+    // The reference standard a certificate names (docs/record.md): the
+    // simulated tracker's figures under a demo model and serial.
+    let config = dir.join("cell-config.json");
+    std::fs::write(&config, DEMO_CONFIG).map_err(|e| format!("{}: {e}", config.display()))?;
     step(
         &dir,
         &[
@@ -147,6 +151,16 @@ pub fn cell_demo() -> Result<()> {
             "truth.csv",
             "--out",
             "run",
+            "--config",
+            "cell-config.json",
         ],
     )
 }
+
+/// The demo's cell configuration.
+const DEMO_CONFIG: &str = r#"{"schema": "perpend.cell-config/1", "site": "cell-demo (virtual board)",
+ "operator": "demo operator", "approver": "demo approver", "tolerance_deg": 0.05,
+ "tracker": {"model": "simulated tracker (Chen 2018 section 5)", "serial": "SIM-1",
+ "calibration_due": "2099-12-31", "traceability": "simulation: none",
+ "xi_mm": 0.02, "points": 20, "patch_mm": 150}}
+"#;

@@ -162,9 +162,11 @@ pub struct RunArgs {
     /// default; put back afterwards.
     #[arg(long, default_value_t = 1.0)]
     pub before_residual_mm: f64,
-    /// Seed of the verification poses and the simulated tracker.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
+    /// Seed of the verification poses and the simulated tracker (default:
+    /// from the clock, so that every run verifies at other poses; the
+    /// record's verification note names it).
+    #[arg(long)]
+    pub seed: Option<u64>,
     /// Keep the new calibration even when the after pass finds it worse
     /// than the previous one or the decision is FAIL (default: push
     /// `previous.json` back and fail).
@@ -176,6 +178,20 @@ pub struct RunArgs {
     /// one is above the calibration's expected error. `--robot sim:` only.
     #[arg(long)]
     pub reversal: bool,
+}
+
+impl RunArgs {
+    /// The seed in force (`run` fills a missing one from the clock).
+    pub fn seed(&self) -> u64 {
+        self.seed.unwrap_or(1)
+    }
+}
+
+/// A seed from the clock (nanoseconds since the epoch, folded).
+fn clock_seed() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(1, |d| d.as_nanos() as u64 ^ (d.as_secs() << 20))
 }
 
 /// Options of `cell sim-head`.
@@ -522,6 +538,15 @@ impl<'a> Session<'a> {
         if self.node.hello().is_ok() {
             return Ok(());
         }
+        // The old connection goes first: a board (the virtual one, an
+        // slcan adapter) takes one client, and our own would lock us out.
+        let mut closed = crate::bus::fake::FakeBus::new(crate::bus::fake::FnPeer(
+            |_: &perpend_can::Frame, _: &mut Vec<perpend_can::Frame>| {},
+        ));
+        closed.closed = true;
+        let id = self.node.id;
+        let placeholder = Node::new(crate::canopen::Client::new(Box::new(closed)), id);
+        drop(std::mem::replace(&mut self.node, placeholder));
         let mut node = Node::connect(&self.args.link)?;
         node.hello()?;
         self.node = node;
@@ -667,7 +692,7 @@ fn steps(
     let (poses, params) = (a.out.join("poses.csv"), a.out.join("params.json"));
     // A board found operational takes no configuration writes.
     s.node.client.nmt(s.node.id, Nmt::Preop)?;
-    let fresh = fresh_poses(plan, a.verify, a.seed);
+    let fresh = fresh_poses(plan, a.verify, a.seed());
     let csv = a.out.join("verify.csv");
     let before_pass = s.before(robot, &fresh)?;
     write_csv(&csv, "before", &before_pass)?;
@@ -677,6 +702,16 @@ fn steps(
     capture_all(s, robot, plan, &poses)?;
     calibrate(&a.sensors, &poses, &params)?;
     let (expected, expected_p95) = expected_deg(&a.sensors, &poses, &params)?;
+    if expected > s.reference.tolerance_deg {
+        bail!(
+            "the new calibration's expected normal error {expected:.4}° (from its own parameter \
+             uncertainty, no reading noise) exceeds the tolerance {}°: it cannot verify and was \
+             not pushed; check the captures in {} (did the readings follow the planes? is the \
+             plan's reach wide enough?)",
+            s.reference.tolerance_deg,
+            poses.display()
+        );
+    }
     if let Some(t) = robot.turns() {
         crate::cell_frames::after_calibration(&a.sensors, &a.out, t, expected)?;
     }
@@ -689,7 +724,7 @@ fn steps(
     let after = v.mean_deg();
     let sigma = pooled_sigma(&poses)?;
     let (head, from) = floor_head(a, &params)?;
-    let floor = floor(&head, &v.seen(), sigma, a.verify_samples, a.seed)?;
+    let floor = floor(&head, &v.seen(), sigma, a.verify_samples, a.seed())?;
     Ok(Figures {
         before_deg: before,
         after_deg: after,
@@ -900,7 +935,7 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
             poses.display()
         );
     }
-    let mut robot = Robot::open(&a.robot, a.seed, reference.sim_tracker())?;
+    let mut robot = Robot::open(&a.robot, a.seed(), reference.sim_tracker())?;
     if a.reversal {
         let Robot::Sim(sim) = &mut robot else {
             bail!("--reversal: only with --robot sim:HOST:PORT for now (a manual robot cannot be told the joint angle yet)");
@@ -973,6 +1008,14 @@ fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<
         r.decision = Some(f.decision.clone());
     }
     r.certification = Some(certification(s, &r.utc));
+    if !r.is_certifiable() {
+        if let Some(c) = r.certification.as_mut() {
+            c.number = None;
+        }
+    }
+    if let Some(c) = &report.first_cause {
+        r.push_event(&format!("first cause: {c}"));
+    }
     r.push_event(&format!(
         "perpend cell run: {}: {}",
         report.outcome.word(),
@@ -1002,10 +1045,10 @@ fn certification(s: &Session<'_>, utc: &str) -> perpend_lab::record::Certificati
     };
     let stamp: String = utc.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
     perpend_lab::record::Certification {
-        number: format!(
+        number: Some(format!(
             "PPD-{}-{stamp}",
             s.serial.trim_start_matches("0x").to_uppercase()
-        ),
+        )),
         operator: given(|c| &c.operator),
         approver: given(|c| &c.approver),
         site: given(|c| &c.site),
@@ -1034,7 +1077,12 @@ fn fresh_verification(f: &Figures, a: &RunArgs) -> perpend_lab::record::Verifica
          the push and reset) against the tracker's plane at {} fresh poses inside the plan's \
          reach (seed {}; planes and normals in verify.csv); before the calibration {:.4}°, the \
          floor ({} head at the measured reading noise) {:.4}°",
-        f.verify_samples, f.verify_poses, a.seed, f.before_deg, f.floor_head, f.floor_deg
+        f.verify_samples,
+        f.verify_poses,
+        a.seed(),
+        f.before_deg,
+        f.floor_head,
+        f.floor_deg
     );
     let mut v = Verification::from_errors(KIND_FRESH, &note, poses)
         .with_expected(Some((f.expected_deg, f.expected_p95_deg)));
@@ -1171,13 +1219,19 @@ fn run_and_report(x: &RunArgs) -> Result<()> {
     if let Some(f) = &report.figures {
         print_figures(f, &json);
     }
+    if let Some(c) = &report.first_cause {
+        println!("cell: first cause: {c}");
+    }
     for d in &report.restored {
         println!("cell: put back: {d}");
     }
     if let Some(r) = &report.record {
-        let doc = match report.outcome {
-            Outcome::Applied => "certificate cert.html",
-            _ => "report.html (no certificate: the calibration is not applied)",
+        let doc = match r.with_file_name("cert.html").exists() {
+            true => format!("certificate {}", r.with_file_name("cert.html").display()),
+            false => format!(
+                "{} (no certificate)",
+                r.with_file_name("report.html").display()
+            ),
         };
         println!(
             "cell: calibration record {} and {doc} (perpend record show|find|history)",
@@ -1208,6 +1262,7 @@ pub fn run(a: &Args) -> Result<()> {
         Cmd::SimHead(x) => sim_head(x),
         Cmd::Run(x) => run_and_report(&RunArgs {
             link: a.link.clone(),
+            seed: Some(x.seed.unwrap_or_else(clock_seed)),
             ..x.clone()
         }),
         Cmd::Check(x) => {

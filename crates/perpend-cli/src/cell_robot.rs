@@ -77,6 +77,18 @@ fn plausible(
     pose: &PlannedPose,
     check: Option<&ManualCheck>,
 ) -> std::result::Result<(), String> {
+    let planned = pose.plane();
+    if let (Some(s), Some(w)) = (standoff(p), standoff(&planned)) {
+        for (k, unit) in [(25.4, "inches"), (0.001, "micrometres")] {
+            if (s * k - w).abs() <= MANUAL_STANDOFF_MM && (s - w).abs() > MANUAL_STANDOFF_MM {
+                return Err(format!(
+                    "a plane in {unit}: D = {} is {:.4} mm; type it in mm",
+                    p.d,
+                    p.d * k
+                ));
+            }
+        }
+    }
     if let Some(c) = check {
         let abcd = [p.n.x, p.n.y, p.n.z, p.d];
         if let Some(why) = crate::node::capture::plane_outside(&c.sensors, &c.ranges, abcd)
@@ -85,16 +97,15 @@ fn plausible(
             return Err(why);
         }
     }
-    let planned = pose.plane();
     let tilt = normal_error(&p.n, &planned.n);
     if tilt > MANUAL_TILT_DEG {
         return Err(format!(
-            "{tilt:.2}° from the planned pose's normal (at most {MANUAL_TILT_DEG}°): a typo,              or the robot is not at this pose"
+            "{tilt:.2}° from the planned pose's normal (at most {MANUAL_TILT_DEG}°): a typo, or the robot is not at this pose"
         ));
     }
     match (standoff(p), standoff(&planned)) {
         (Some(s), Some(w)) if (s - w).abs() > MANUAL_STANDOFF_MM => Err(format!(
-            "at standoff {s:.2} mm, the plan's is {w:.2} mm (at most {MANUAL_STANDOFF_MM} mm              apart): a typo, a plane in other units, or the robot is not at this pose"
+            "at standoff {s:.2} mm, the plan's is {w:.2} mm (at most {MANUAL_STANDOFF_MM} mm apart): a typo, a plane in other units, or the robot is not at this pose"
         )),
         _ => Ok(()),
     }
@@ -196,8 +207,9 @@ impl Robot {
             }
             Robot::Manual(lines, check) => {
                 println!(
-                    "{label}: move the datum plane to θ1 {:.3}°, θ2 {:.3}°, standoff {:.3} mm \
-                     (plane {}), measure it with the tracker and type its A,B,C,D:",
+                    "{label}: move the datum plane to tilt x {:.3}°, tilt y {:.3}°, standoff \
+                     {:.3} mm (planned plane {}), measure it with the tracker and type the \
+                     measured A,B,C,D:",
                     pose.tilt_x_deg,
                     pose.tilt_y_deg,
                     pose.standoff_mm,
@@ -289,7 +301,7 @@ fn read_plane(
         match parse_tracker_plane(line.trim()).and_then(|p| ok(&p).map(|()| p)) {
             Ok(p) => return Ok(p),
             Err(why) => println!(
-                "{label}: '{}' is {why}; type the tracker's plane A,B,C,D again:",
+                "{label}: '{}' refused: {why}; type the tracker's plane A,B,C,D again:",
                 line.trim()
             ),
         }
@@ -382,7 +394,10 @@ mod tests {
         let at = |s: &str| plausible(&p(s), &pose(), Some(&check));
         assert_eq!(at("0,0,1,-28"), Ok(()));
         let inch = at("0,0,1,-1.1024").unwrap_err();
-        assert!(inch.contains("inches"), "{inch}");
+        assert!(
+            inch.starts_with("a plane in inches: D = -1.1024 is -28.0010 mm"),
+            "{inch}"
+        );
         let e = at("1,2,3,4").unwrap_err();
         assert!(
             e.contains("measuring range") || e.contains("planned pose"),

@@ -173,10 +173,11 @@ pub fn show_text(r: &Record) -> String {
     );
     show_stamp(r, &mut o);
     if let Some(c) = &r.certification {
-        let _ = writeln!(
+        let _ =
+            writeln!(
             o,
             "certificate {}: site {}, operator {}, approver {}; tracker {} serial {} (due {}, {})",
-            c.number,
+            c.number.as_deref().unwrap_or("none (no certificate for this record)"),
             c.site,
             c.operator,
             c.approver,
@@ -292,16 +293,21 @@ fn show_verification(r: &Record, o: &mut String) {
         opt_deg(v.expected_p95_deg),
         opt_deg(v.before_mean_deg)
     );
+    let applied = r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_APPLIED);
     if let Some(d) = &r.decision {
         for p in &d.poses {
+            // No PASS in words about a calibration that is not on the board.
+            let word = match applied {
+                true => p.verdict.word().to_string(),
+                false => p.verdict.word().to_lowercase(),
+            };
             let _ = writeln!(
                 o,
-                "  pose {}: {} ± {} deg (U, k = 2; {} samples): {}",
+                "  pose {}: {} ± {} deg (U, k = 2; {} samples): {word}",
                 p.pose,
                 deg(p.error_deg),
                 deg(p.expanded_deg),
-                p.samples,
-                p.verdict.word()
+                p.samples
             );
         }
     }
@@ -321,7 +327,7 @@ pub fn find(stamp: &str, dirs: &[PathBuf]) -> Result<Vec<(PathBuf, String, Item)
     } else {
         dirs.to_vec()
     };
-    let mut out = Vec::new();
+    let mut out: Vec<(PathBuf, String, Item)> = Vec::new();
     for f in find_records(&roots)? {
         let Ok(bytes) = std::fs::read(&f) else {
             continue;
@@ -332,7 +338,9 @@ pub fn find(stamp: &str, dirs: &[PathBuf]) -> Result<Vec<(PathBuf, String, Item)
         if sha256_hex(&bytes).starts_with(&want) {
             out.push((
                 f,
-                "its SHA-256 begins with the stamp: the stamped record".into(),
+                "its SHA-256 begins with the stamp: the calibration's own record, written \
+                 before the push (the cell record names the board)"
+                    .into(),
                 item,
             ));
         } else if let Item::Calibration(r) = &item {
@@ -345,6 +353,8 @@ pub fn find(stamp: &str, dirs: &[PathBuf]) -> Result<Vec<(PathBuf, String, Item)
             }
         }
     }
+    // The cell record (board, outcome, decision) first.
+    out.sort_by_key(|(_, why, _)| !why.starts_with("the cell run"));
     Ok(out)
 }
 

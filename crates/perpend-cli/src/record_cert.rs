@@ -38,6 +38,12 @@ pub fn refusal(r: &Record) -> Option<String> {
     }
     let outcome = r.outcome_words();
     Some(match r.outcome.as_deref() {
+        Some(perpend_lab::record::OUTCOME_APPLIED) if r.decision.is_some() => {
+            "no cell configuration named the reference standard (the tracker's serial, \
+             calibration due date and traceability, who calibrated and who approves): run \
+             with --config"
+                .into()
+        }
         Some(perpend_lab::record::OUTCOME_APPLIED) => format!(
             "the calibration was applied but its verification was not decided against a \
              tolerance (outcome {outcome}, verification {})",
@@ -95,7 +101,7 @@ fn verdict_class(d: Option<&Decision>) -> (&'static str, &'static str) {
 fn document(r: &Record, not_cert: Option<&str>) -> String {
     let mut h = String::new();
     let c = r.certification.as_ref();
-    let number = c.map_or("-", |c| c.number.as_str());
+    let number = c.and_then(|c| c.number.as_deref()).unwrap_or("-");
     let title = match not_cert {
         None => format!("Calibration certificate No. {}", esc(number)),
         Some(_) => "Calibration report (not a certificate)".into(),
@@ -129,7 +135,10 @@ fn document(r: &Record, not_cert: Option<&str>) -> String {
     if not_cert.is_none() {
         doc_approval(r, &mut h);
     }
-    h.push_str("</body></html>\n");
+    h.push_str(
+        "<p>The results relate only to the item calibrated, at the poses verified. The 1σ of \
+         the parameters are standard uncertainties (k = 1).</p></body></html>\n",
+    );
     h
 }
 
@@ -153,8 +162,9 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
             let _ = write!(
                 h,
                 "<p>Tolerance (maximum permissible normal error at every verified pose): \
-                 <b>{}°</b>. Largest expanded uncertainty U = {}° (k = 2, about 95 % \
-                 coverage). Decision rule: {}. The tracker's standard uncertainty per axis \
+                 <b>{}°</b>. Largest expanded uncertainty U = {}° (k = 2: about 95 % \
+                 coverage of the error along its own direction, which decides near the \
+                 tolerance). Decision rule: {}. The tracker's standard uncertainty per axis \
                  of a plane normal: {}° ({}).</p>",
                 esc(&d.tolerance_deg.to_string()),
                 deg(d.max_expanded_deg),
@@ -170,7 +180,15 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
                 );
             }
         }
-        None => h.push_str("<p>No conformity decision: the record has no tolerance.</p>"),
+        None => {
+            let why = match r.outcome.as_deref() {
+                Some(perpend_lab::record::OUTCOME_COMPUTED) | None => {
+                    "the parameters were not verified on a board against a tolerance"
+                }
+                _ => "the run stopped before the calibration was verified on the board",
+            };
+            let _ = write!(h, "<p>No conformity decision: {why}.</p>");
+        }
     }
 }
 
@@ -211,11 +229,26 @@ fn doc_item(r: &Record, h: &mut String) {
         None => row(h, "stamp on the board (0x2011)", "none from this record"),
     }
     row(h, "date of calibration (UTC)", &r.utc);
+    row(h, "date of issue (UTC)", &perpend_lab::record::utc_now());
     row(h, "tool", &r.tool_version);
-    row(h, "method, model", &format!("{}, {}", r.method, r.model));
+    row(
+        h,
+        "method, model",
+        &format!(
+            "{}, {}: Chen et al. 2018 (the reading model of eq. 3-9 by least squares; spot \
+             points eq. 17, then the micro-plane normal), the cell run of docs/record.md",
+            r.method, r.model
+        ),
+    );
     row(h, "poses used", &r.poses_used.to_string());
     if let Some(c) = &r.certification {
-        row(h, "certificate number", &c.number);
+        row(
+            h,
+            "certificate number",
+            c.number
+                .as_deref()
+                .unwrap_or("none: no certificate for this record"),
+        );
         row(h, "site", &c.site);
         row(h, "calibrated by", &c.operator);
         let t = |x: Option<f64>| x.map_or("not measured".to_string(), |t| format!("{t:.1} °C"));
@@ -224,7 +257,7 @@ fn doc_item(r: &Record, h: &mut String) {
             "board die temperature (0x200A), start / end",
             &format!("{} / {}", t(c.die_temp_c[0]), t(c.die_temp_c[1])),
         );
-        row(h, "cell air temperature", &t(c.ambient_c));
+        row(h, "cell air temperature (as configured)", &t(c.ambient_c));
     }
     h.push_str("</table>");
 }
@@ -434,7 +467,7 @@ fn cert_decision_table(d: &Decision, lower: bool, h: &mut String) {
 /// line (inline SVG).
 fn bars_svg(v: &perpend_lab::record::Verification, d: Option<&Decision>) -> String {
     let (w, ht, m) = (640.0, 220.0, 40.0);
-    let tol = d.map_or(0.0, |d| d.tolerance_deg);
+    let tol = d.map_or(f64::NAN, |d| d.tolerance_deg);
     let big_u = |k: usize| {
         d.and_then(|d| d.poses.get(k))
             .map_or(0.0, |p| p.expanded_deg)
@@ -444,7 +477,7 @@ fn bars_svg(v: &perpend_lab::record::Verification, d: Option<&Decision>) -> Stri
         .iter()
         .enumerate()
         .map(|(k, p)| p.error_deg + big_u(k))
-        .fold(tol, f64::max)
+        .fold(if tol.is_nan() { 0.0 } else { tol }, f64::max)
         * 1.1;
     let y = |e: f64| ht - m - (ht - 2.0 * m) * e / top;
     let bw = (w - 2.0 * m) / v.poses.len() as f64;
@@ -477,16 +510,30 @@ fn bars_svg(v: &perpend_lab::record::Verification, d: Option<&Decision>) -> Stri
             );
         }
     }
+    if d.is_some() {
+        let _ = write!(
+            s,
+            "<line x1=\"{m}\" y1=\"{ty:.1}\" x2=\"{x2}\" y2=\"{ty:.1}\" stroke=\"#b00\" \
+             stroke-dasharray=\"6 3\"/><text x=\"{m}\" y=\"{tl:.1}\" font-size=\"11\" \
+             fill=\"#b00\">tolerance {}°</text>",
+            tol,
+            ty = y(tol),
+            x2 = w - m,
+            tl = y(tol) - 3.0,
+        );
+    }
+    let whiskers = if d.is_some() {
+        "; whiskers: ± U (k = 2)"
+    } else {
+        ""
+    };
     let _ = write!(
         s,
-        "<line x1=\"{m}\" y1=\"{ty:.1}\" x2=\"{x2}\" y2=\"{ty:.1}\" stroke=\"#b00\" stroke-dasharray=\"6 3\"/>\
-         <text x=\"{m}\" y=\"{tl:.1}\" font-size=\"11\" fill=\"#b00\">tolerance</text>\
-         <line x1=\"{m}\" y1=\"{b}\" x2=\"{x2}\" y2=\"{b}\" stroke=\"black\"/>\
-         <text x=\"{m}\" y=\"{bl:.1}\" font-size=\"11\">normal error per verification pose [deg], 0 to {top}; whiskers: ± U (k = 2)</text></svg>",
-        ty = y(tol),
+        "<line x1=\"{m}\" y1=\"{b}\" x2=\"{x2}\" y2=\"{b}\" stroke=\"black\"/>\
+         <text x=\"{m}\" y=\"{bl:.1}\" font-size=\"11\">normal error per verification pose \
+         [deg], 0 to {top}{whiskers}</text></svg>",
         x2 = w - m,
         b = ht - m,
-        tl = y(tol) - 3.0,
         bl = ht - m + 16.0,
         top = deg(top)
     );

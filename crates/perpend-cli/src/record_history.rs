@@ -2,10 +2,11 @@
 //! head against time, and their trend (issue 45).
 //!
 //! Reads every calibration record (`*.record.json`, a cell run's
-//! `record.json`) and interim check record (`check.json`, `*.check.json`)
-//! under the directories given; a calibration's own `params.record.json`
-//! is left out where a cell record of the same parameter file (same
-//! output SHA-256) supersedes it. Groups them by head serial (one section
+//! `record.json`) and interim check record (`perpend cell check --out`)
+//! under the directories given (by their `schema`, whatever their
+//! names); a calibration's own `params.record.json` is left out where a
+//! cell record of the same parameter file (same output SHA-256)
+//! supersedes it. Groups them by head serial (one section
 //! per head, `--serial` to pick one; records without a board are the
 //! head "no board") and per head lists each entry's kind, outcome, the
 //! error before the calibration and the verified p95 after it.
@@ -97,8 +98,8 @@ pub fn fit_line(t: &[f64], y: &[f64], sig: Option<&[f64]>) -> Option<Line> {
     })
 }
 
-/// Every record under `roots` (recursively: `*.record.json`,
-/// `record.json`, `check.json`, `*.check.json`; a file named is taken as
+/// Every record under `roots` (recursively: every `.json` file whose
+/// `schema` is a calibration or check record's; a file named is taken as
 /// is).
 ///
 /// # Errors
@@ -124,14 +125,18 @@ pub fn find_records(roots: &[PathBuf]) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
+/// A JSON file whose `schema` (its first field, as the tool writes it) is
+/// a calibration or check record's, whatever its name.
 fn is_record_name(p: &Path) -> bool {
-    let n = p
-        .file_name()
-        .map_or(String::new(), |n| n.to_string_lossy().into_owned());
-    n.ends_with(".record.json")
-        || n == "record.json"
-        || n == "check.json"
-        || n.ends_with(".check.json")
+    if p.extension().is_none_or(|e| e != "json") {
+        return false;
+    }
+    let mut head = [0u8; 96];
+    let n = std::fs::File::open(p)
+        .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+        .unwrap_or(0);
+    let text = String::from_utf8_lossy(&head[..n]);
+    text.contains("\"perpend.record/") || text.contains("\"perpend.check/")
 }
 
 /// A record of either kind, as read.
@@ -277,7 +282,7 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
     let (kind, outcome, before, errors, fresh) = match item {
         Item::Calibration(r) => {
             let v = &r.verification;
-            let errors: Vec<f64> = if v.is_verified() {
+            let errors: Vec<f64> = if v.is_verified() && on_board_or_file(r) {
                 v.poses.iter().map(|p| p.error_deg).collect()
             } else {
                 Vec::new()
@@ -311,6 +316,17 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
         p95_sigma_deg: p95_sigma(&errors),
         fresh,
     }
+}
+
+/// Whether `r`'s parameters are a head's calibration in force: applied to
+/// its board, or computed from files (no board involved). A reverted or
+/// failed run's parameters never were.
+fn on_board_or_file(r: &Record) -> bool {
+    use perpend_lab::record::{OUTCOME_APPLIED, OUTCOME_COMPUTED};
+    matches!(
+        r.outcome.as_deref(),
+        None | Some(OUTCOME_APPLIED | OUTCOME_COMPUTED)
+    )
 }
 
 /// Reads `files`, leaving out calibration records a cell record of the
@@ -397,8 +413,8 @@ fn one_history(items: &[&(PathBuf, Item)], serial: Option<String>, tol: f64) -> 
     let cals: Vec<(f64, &Record)> = timed
         .iter()
         .filter_map(|(t, _, i)| match i {
-            Item::Calibration(r) => Some(((t - t0) / unit_s, r.as_ref())),
-            Item::Check(_) => None,
+            Item::Calibration(r) if on_board_or_file(r) => Some(((t - t0) / unit_s, r.as_ref())),
+            _ => None,
         })
         .collect();
     let verification = verification_line(&entries);

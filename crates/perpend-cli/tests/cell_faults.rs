@@ -125,11 +125,11 @@ fn manual_entries_are_asked_again_and_the_end_of_input_stops_safely() {
     let (status, _, err) = finish(run, 120);
     assert!(!status.success(), "{out}");
     for why in [
-        "'hello' is not four numbers A,B,C,D",
-        "'' is not four numbers A,B,C,D",
-        "the plane looks like inches",
-        "'0,0,0,5' is not a plane: |(A,B,C)| = 0",
-        "'1,2,3,4' is ",
+        "'hello' refused: not four numbers A,B,C,D",
+        "'' refused: not four numbers A,B,C,D",
+        "refused: a plane in inches: D = ",
+        "'0,0,0,5' refused: not a plane: |(A,B,C)| = 0",
+        "'1,2,3,4' refused: ",
         "mm, the plan's is",
         "before calibration, normal error",
     ] {
@@ -176,7 +176,7 @@ fn answer_prompts(run: &mut common::Killed, bad: &[&[&str]]) -> String {
         seen.push_str(&line);
         seen.push('\n');
         let Some(plane) = line
-            .split("(plane ")
+            .split("(planned plane ")
             .nth(1)
             .and_then(|t| t.split(')').next())
         else {
@@ -214,7 +214,7 @@ fn lying_tracker(run: &mut common::Killed, world: &str) {
     let stdout = BufReader::new(run.0.stdout.take().unwrap());
     for (k, line) in stdout.lines().map_while(Result::ok).enumerate() {
         let Some(plane) = line
-            .split("(plane ")
+            .split("(planned plane ")
             .nth(1)
             .and_then(|t| t.split(')').next())
         else {
@@ -320,7 +320,7 @@ fn ctrl_c_at_a_manual_prompt_puts_back_what_the_run_changed() {
     let _stdin = run.0.stdin.take().unwrap();
     let mut lines = BufReader::new(run.0.stdout.take().unwrap()).lines();
     for line in lines.by_ref().map_while(Result::ok) {
-        if line.contains("type its A,B,C,D") {
+        if line.contains("type the measured A,B,C,D") {
             break;
         }
     }

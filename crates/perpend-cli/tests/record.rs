@@ -93,14 +93,17 @@ fn applied() -> Record {
         store_count: 3,
     });
     r.certification = Some(Certification {
-        number: "PPD-B143EAE7-20261201T100000Z".into(),
+        number: Some("PPD-B143EAE7-20261201T100000Z".into()),
         operator: "A. Operator".into(),
         approver: "Q. Engineer".into(),
         site: "Plant 2, cell 4".into(),
         tracker: perpend_lab::cellconfig::paper_tracker("Tracker T1"),
         die_temp_c: [Some(31.5), Some(32.0)],
         ambient_c: Some(21.5),
-        config: None,
+        config: Some(FileHash {
+            path: "cell-config.json".into(),
+            sha256: "1".repeat(64),
+        }),
     });
     r
 }
@@ -196,6 +199,12 @@ fn no_pass_for_a_calibration_that_is_not_on_the_board() {
         assert!(html.contains(&format!("Outcome: {outcome}")), "{outcome}");
         assert!(!html.contains("PASS"), "{outcome}: PASS in the report");
         assert!(!html.contains("Approval"), "{outcome}: an approval block");
+        let shown = perpend_cli::record::show_text(&r);
+        assert!(
+            shown.starts_with(&format!("outcome: {outcome}\n")),
+            "{shown}"
+        );
+        assert!(!shown.contains("PASS"), "{outcome}: {shown}");
     }
     // The doc's example, a calibrate record (cross-validated p95 within
     // 0.05°), was a PASS certificate before outcomes: no more.

@@ -96,6 +96,26 @@ impl CellConfig {
             bail!("schema = {:?}: expected {SCHEMA:?}", self.schema);
         }
         check_tolerance(self.tolerance_deg)?;
+        let t = &self.tracker;
+        for (field, v) in [
+            ("site", &self.site),
+            ("operator", &self.operator),
+            ("approver", &self.approver),
+            ("tracker.model", &t.model),
+            ("tracker.serial", &t.serial),
+            ("tracker.traceability", &t.traceability),
+        ] {
+            if v.trim().is_empty() {
+                bail!("{field} is empty: a certificate names it");
+            }
+        }
+        if self.operator.trim() == self.approver.trim() {
+            bail!(
+                "operator and approver are both {:?}: the approver checks the operator's work, \
+                 name another person",
+                self.operator
+            );
+        }
         if let Some(t) = self.ambient_c {
             if !(-10.0..=60.0).contains(&t) {
                 bail!("ambient_c = {t}: not an air temperature of a cell in °C (-10 to 60)");
@@ -217,6 +237,12 @@ mod tests {
                 "\"ambient_c\": 21.5",
                 "\"ambient_c\": 295",
                 "ambient_c = 295",
+            ),
+            ("\"T1-0042\"", "\" \"", "tracker.serial is empty"),
+            (
+                "Q. Engineer",
+                "A. Operator",
+                "operator and approver are both",
             ),
         ];
         for (from, to, want) in cases {

@@ -17,10 +17,14 @@
 //! - `u_r`, the board's readings': the scatter of the pose's sample
 //!   normals per axis over √samples (type A, from the pose itself).
 //!
-//! The sensitivity of `|d|` to `d` is 1 along `d`, so `u(e) = u`. Near
-//! `e = 0` the norm is biased upwards by up to 1.25 u: that makes PASS
-//! harder, never easier. Expanded uncertainty `U = k·u`, `k = 2`
-//! (≈ 95 % for a normal distribution).
+//! The sensitivity of `|d|` to `d` is 1 along `d`, so `u(e) = u`.
+//! Expanded uncertainty `U = k·u`, `k = 2`: about 95 % coverage of the
+//! error's component along its own direction, which is what decides near
+//! the tolerance whenever the error there is much larger than `u` (the
+//! tolerances of a cell, 0.02-0.1°, against u ≈ 0.006-0.015°). As a
+//! radius around an error near zero, 2u covers only 86 % of a 2-D normal
+//! spread, but there the norm is also biased upwards (by up to 1.25 u),
+//! which makes PASS harder, never easier.
 //!
 //! **Decision rule** (ISO 14253-1:2017 §5, ILAC-G8:09/2019 §4.2.3,
 //! guarded acceptance and rejection with guard band `w = U`): a pose

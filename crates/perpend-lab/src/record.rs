@@ -304,8 +304,9 @@ pub struct Tracker {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Certification {
-    /// Unique certificate number: `PPD-<head serial>-<UTC of the record>`.
-    pub number: String,
+    /// Unique certificate number, `PPD-<head serial>-<UTC of the record>`
+    /// (`null`: no certificate was issued for this record).
+    pub number: Option<String>,
     /// Who calibrated.
     pub operator: String,
     /// Who approves (name only; the signature is on paper).
@@ -499,6 +500,16 @@ impl Record {
     /// Syntax (with line and column), unknown or missing fields, wrong
     /// schema.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
+        let json = crate::exchange::json_text(text);
+        if let Ok(v) = serde_json::from_str::<serde_json::Value>(&json) {
+            match v.get("schema").and_then(|s| s.as_str()) {
+                Some(s) if !s.starts_with("perpend.record/") && s.starts_with("perpend.") => bail!(
+                    "{name}: a {s} file, not a calibration record ({SCHEMA}): a cell run's \
+                     record is record.json beside its cell.json"
+                ),
+                _ => {}
+            }
+        }
         let r: Self = serde_json::from_str(&crate::exchange::json_text(text)).map_err(|e| {
             anyhow::anyhow!(
                 "{name}: line {}, column {}: {e} (a calibration record, {SCHEMA}: docs/record.md)",
@@ -521,13 +532,19 @@ impl Record {
     }
 
     /// Whether this record describes a calibration applied to a board and
-    /// verified there (fresh poses, decided against a tolerance): the only
-    /// kind a certificate is issued for.
+    /// verified there (fresh poses, decided against a tolerance: PASS,
+    /// INCONCLUSIVE, or FAIL kept with `--keep-worse`, each stated), with
+    /// its reference standard named by a cell configuration: the only kind
+    /// a certificate is issued for.
     pub fn is_certifiable(&self) -> bool {
         self.outcome.as_deref() == Some(OUTCOME_APPLIED)
             && self.verification.kind == KIND_FRESH
             && self.verification.is_verified()
             && self.decision.is_some()
+            && self
+                .certification
+                .as_ref()
+                .is_some_and(|c| c.config.is_some())
     }
 
     /// The outcome in words, for people.

@@ -40,10 +40,19 @@ pub fn ok(args: &[&str], dir: &Path) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// A cell configuration (docs/record.md): the simulated tracker's
+/// figures (Chen §5) under a named model and serial.
+pub const CELL_CONFIG: &str = r#"{"schema": "perpend.cell-config/1", "site": "test cell",
+ "operator": "A. Operator", "approver": "Q. Engineer", "tolerance_deg": 0.05,
+ "ambient_c": 21.0, "tracker": {"model": "Tracker T1", "serial": "T1-0042",
+ "calibration_due": "2099-12-31", "traceability": "cert 17-123",
+ "xi_mm": 0.02, "points": 20, "patch_mm": 150}}"#;
+
 /// The paper's head (nominal.csv, truth.csv) and a plan of `n` poses
 /// around the paper's orientation (plan.csv) in `d`.
 pub fn head_and_plan(d: &Path, n: usize) {
     ok(&["cell", "sim-head", "--out", "."], d);
+    std::fs::write(d.join("cell-config.json"), CELL_CONFIG).unwrap();
     let n = n.to_string();
     ok(
         &[
