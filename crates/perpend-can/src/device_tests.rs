@@ -370,9 +370,15 @@ fn failed_store_aborts_and_keeps_boot_values() {
     let mut b = Bus::new();
     b.write_u32(0x2300, 1, 7000).unwrap();
     assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
-    // second request while pending is refused
+    // second request while pending is refused: the abort names the store
+    // and ends its transfer (issue 49), so its outcome is sent to nobody
     let r = b.sdo([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]).unwrap();
+    assert_eq!(&r[..4], &[0x80, 0x10, 0x10, 1]);
     assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 0x0800_0020);
+    let r = b.finish(false);
+    assert!(r.is_empty(), "{r:?}");
+    // without a request meanwhile the failure is the store's abort
+    assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
     let r = b.finish(false);
     assert_eq!(r.len(), 1);
     assert_eq!(&r[0].data[..4], &[0x80, 0x10, 0x10, 1]);
