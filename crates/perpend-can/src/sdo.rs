@@ -8,7 +8,11 @@
 //! response (an answer or an abort) except a client's abort, which is
 //! unconfirmed by definition. A write whose effect needs the application
 //! (0x1010 store, 0x1011 restore) is answered when the application reports
-//! the outcome ([`crate::Device::finish_request`]).
+//! the outcome ([`crate::Device::finish_request`]); a request meanwhile is
+//! answered with the abort 0x08000020 that ends that transfer (CiA 301: an
+//! abort ends a transfer on both sides), so the outcome is then sent to
+//! nobody. A segment that fits no transfer in progress is aborted with
+//! that transfer's object.
 //!
 //! Block download with CRC (CiA 301 §7.2.4.3.10-16) is in
 //! [`crate::sdo::block`] (feature `sdo-block`, which sizes the transfer
