@@ -36,7 +36,7 @@
 //! comes to end such a sub-block early, and at 0.7 s every master that
 //! waits less for the acknowledgement (python-canopen 2.4 waits 0.3 s,
 //! `perpend` waited 0.5 s) aborted before the ackseq could help.
-//! CiA 301 §7.2.4.3.12 fixes no time for this acknowledgement. A client
+//! CiA 301 (§7.2.4.3.10-16) fixes no time for this acknowledgement. A client
 //! sends a sub-block back to back (a frame takes 0.13-1 ms at 1000-125
 //! kbit/s), so 20 ms is far above a sane gap inside one and below any
 //! sane client's wait; a client that does pause longer mid sub-block gets
@@ -54,8 +54,9 @@
 //! sub-block only after the end request and its CRC check. A non-DOMAIN
 //! object (≤ 8 bytes) is written whole at the end.
 //!
-//! Limits: server-chosen blksize 127 (less when a non-DOMAIN download has
-//! data in the buffer); no block upload.
+//! Limits: server-chosen blksize 127 (less when data wait in the buffer: a
+//! non-DOMAIN download, or a stalled sub-block acknowledged by a timer,
+//! whose next sub-block fills the buffer's room); no block upload.
 
 use super::{abort_payload, Dictionary, SdoAbort, SdoServer, Transfer, Written};
 
