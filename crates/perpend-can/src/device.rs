@@ -147,11 +147,34 @@ pub const IMAGE_LEN: usize = 8 + 4 * PERSISTENT;
 /// four sensors during its clear delay, no plane, data set, heartbeat,
 /// SYNC length, PDO length) plus one raised-and-cleared bus or reset event:
 /// 16 leaves a margin. Beyond it an overflow bucket still sends one EMCY
-/// per code and never a repeat ([`Device::signal_emcy`]).
+/// per code and never a repeat, and [`EMCY_TABLE_FULL`] stands for the
+/// codes beyond the bucket ([`Device::signal_emcy`]).
 pub const MAX_ACTIVE_ERRORS: usize = 16;
-/// EMCYs waiting for the next poll: every code of a full table and the
-/// overflow bucket at once.
-const EMCY_QUEUE: usize = MAX_ACTIVE_ERRORS + 1;
+/// EMCY code sent once when a code is raised while the table and the
+/// overflow bucket are both taken: 0x6100 "internal software", the code
+/// CANopenNode reports for an error it cannot record
+/// (`CO_EM_WRONG_ERROR_REPORT`), with the first such code in manufacturer
+/// bytes 0-1. It stays active, with the register bits of every code it
+/// stands for, until nothing recorded is active any more.
+pub const EMCY_TABLE_FULL: u16 = 0x6100;
+/// EMCYs waiting for the next poll. In stopped they wait (CANopenNode
+/// keeps its EMCY FIFO through stopped), a raise and the error reset of
+/// the same code cancelling out, so each code holds at most an error
+/// reset and a raise: two per code of a full table, the bucket and
+/// [`EMCY_TABLE_FULL`].
+const EMCY_QUEUE: usize = 2 * (MAX_ACTIVE_ERRORS + 2);
+
+/// Codes raised while the table of active codes was full.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct Overflow {
+    /// The bucket: the first code raised while the table was full (sent,
+    /// active) and its error-register bits.
+    code: Option<(u16, u8)>,
+    /// The error-register bits of the codes raised while the bucket was
+    /// taken (not recorded, not sent one by one); non-zero while
+    /// [`EMCY_TABLE_FULL`] is active.
+    lost: u8,
+}
 
 /// Length of an image of layout 1 (firmware before issue 16, without the
 /// entries of layout 2 and 3): still accepted by [`Device::load_image`].
@@ -267,10 +290,8 @@ struct Core {
     tpdo: [TpdoRt; TPDOS],
     active: [(u16, u8); MAX_ACTIVE_ERRORS],
     n_active: usize,
-    /// Overflow bucket: the first code raised while `active` was full (it
-    /// is active and was sent) and the error-register bits of it and of
-    /// the codes raised after it while still full (suppressed).
-    overflow: Option<(u16, u8)>,
+    /// Codes beyond `active`: the bucket and the lost ones.
+    overflow: Overflow,
     emcy_queue: [[u8; 8]; EMCY_QUEUE],
     emcy_len: usize,
     /// Time of the last EMCY sent (the inhibit time 0x1015 counts from it).
@@ -513,10 +534,6 @@ impl Core {
             self.unlocked = false;
             self.set(0x2010, 0, 0);
             self.event(Events::STATE_CHANGED);
-            if s == NmtState::Stopped {
-                // Nothing queued before the stop is sent after it.
-                self.emcy_len = 0;
-            }
             if s == NmtState::Operational {
                 self.tpdo = [TpdoRt::default(); TPDOS];
                 self.arm_event_timers(None);
@@ -674,11 +691,12 @@ impl Core {
     fn is_active(&self, code: u16) -> bool {
         // Every sample asks this for each of the application's ten
         // conditions: the usual case (nothing active) costs one test.
-        if self.n_active == 0 && self.overflow.is_none() {
+        if self.n_active == 0 && self.overflow == Overflow::default() {
             return false;
         }
         self.active[..self.n_active].iter().any(|&(k, _)| k == code)
-            || self.overflow.is_some_and(|(k, _)| k == code)
+            || self.overflow.code.is_some_and(|(k, _)| k == code)
+            || (code == EMCY_TABLE_FULL && self.overflow.lost != 0)
     }
 
     /// Raises emergency `code` (see [`Device::signal_emcy`]); `false` if it
@@ -687,12 +705,15 @@ impl Core {
     /// Each code is recorded in `active`, so a repeat is never sent again
     /// (CANopenNode keeps one status bit per error condition to the same
     /// end). A code raised while the table is full goes to the overflow
-    /// bucket and is sent; codes raised while the bucket is taken cannot
-    /// be told from repeats, so they are suppressed (their register bits
-    /// still show in 0x1001) until a slot or the bucket frees up, when
-    /// their next raise is sent: still one EMCY per code, never a flood.
-    /// (CANopenNode reports an error bit beyond its table once as
-    /// 0x6100 `CO_EM_WRONG_ERROR_REPORT`; the bucket sends the real code.)
+    /// bucket and is sent with its own code. Codes raised while the bucket
+    /// is taken cannot be told from repeats (nothing records them): the
+    /// first of them sends [`EMCY_TABLE_FULL`] once, naming it, and all
+    /// of them keep their register bits in 0x1001 (`lost`) while any
+    /// recorded code is active; each is sent with its own code at its
+    /// first raise after a slot or the bucket frees up. Still one EMCY per
+    /// code, never a flood. (CANopenNode reports every error bit beyond
+    /// its table as 0x6100 `CO_EM_WRONG_ERROR_REPORT`, one status bit for
+    /// all; the bucket sends the first one's own code.)
     fn raise(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
         if self.is_active(code) {
             return false;
@@ -700,12 +721,10 @@ impl Core {
         if self.n_active < MAX_ACTIVE_ERRORS {
             self.active[self.n_active] = (code, reg);
             self.n_active += 1;
-        } else if let Some((_, bits)) = &mut self.overflow {
-            *bits |= reg;
-            self.update_error_register();
-            return false;
+        } else if self.overflow.code.is_none() {
+            self.overflow.code = Some((code, reg));
         } else {
-            self.overflow = Some((code, reg));
+            return self.lose(code, reg);
         }
         self.update_error_register();
         let info = u16::from_le_bytes([mfr[0], mfr[1]]) as u32;
@@ -718,10 +737,28 @@ impl Core {
         true
     }
 
+    /// A code raised while the table and the bucket are taken: its
+    /// register bits stay in 0x1001; the first such code since the last
+    /// time nothing was lost sends [`EMCY_TABLE_FULL`] (manufacturer bytes
+    /// 0-1: the code) and records it in 0x1003. `true` when sent.
+    fn lose(&mut self, code: u16, reg: u8) -> bool {
+        let first = self.overflow.lost == 0;
+        self.overflow.lost |= reg | error_register::GENERIC;
+        self.update_error_register();
+        if !first {
+            return false;
+        }
+        self.record_error(EMCY_TABLE_FULL, u32::from(code));
+        let reg_now = self.get(0x1001, 0) as u8;
+        let (t, cb) = (EMCY_TABLE_FULL.to_le_bytes(), code.to_le_bytes());
+        self.queue_emcy([t[0], t[1], reg_now, cb[0], cb[1], 0, 0, 0]);
+        true
+    }
+
     /// Clears emergency `code` (see [`Device::clear_emcy`]); `false` if it
-    /// was not active.
-    /// Clearing the bucket's code empties the bucket (the register bits
-    /// of suppressed codes with it, until they are raised again).
+    /// was not active. Clearing the bucket's code empties the bucket; the
+    /// lost codes' bits stay in 0x1001 until no recorded code is active,
+    /// when [`EMCY_TABLE_FULL`] is reset too (after the code's own reset).
     fn clear(&mut self, code: u16) -> bool {
         let pos = self.active[..self.n_active]
             .iter()
@@ -729,16 +766,26 @@ impl Core {
         if let Some(pos) = pos {
             self.active.copy_within(pos + 1..self.n_active, pos);
             self.n_active -= 1;
-        } else if self.overflow.is_some_and(|(k, _)| k == code) {
-            self.overflow = None;
+        } else if self.overflow.code.is_some_and(|(k, _)| k == code) {
+            self.overflow.code = None;
         } else {
             return false;
         }
         self.update_error_register();
+        self.queue_reset(code);
+        if self.n_active == 0 && self.overflow.code.is_none() && self.overflow.lost != 0 {
+            self.overflow.lost = 0;
+            self.update_error_register();
+            self.queue_reset(EMCY_TABLE_FULL);
+        }
+        true
+    }
+
+    /// Queues the error reset of `code`, with the register as it is now.
+    fn queue_reset(&mut self, code: u16) {
         let reg_now = self.get(0x1001, 0) as u8;
         let cb = code.to_le_bytes();
         self.queue_emcy([0, 0, reg_now, cb[0], cb[1], 0, 0, 0]);
-        true
     }
 
     /// Sends TPDO `k` at `now_us` (nothing if it is empty or unusable) and
@@ -800,7 +847,7 @@ impl Core {
         self.set(0x2400, 1, comm[0]);
         self.set(0x2400, 2, comm[1]);
         self.n_active = 0;
-        self.overflow = None;
+        self.overflow = Overflow::default();
         self.emcy_len = 0;
         let from = self.boot_node();
         self.apply_node_id(from);
@@ -879,17 +926,33 @@ impl Core {
 
     fn update_error_register(&mut self) {
         let mut reg = 0u8;
-        for &(_, r) in self.active[..self.n_active].iter().chain(&self.overflow) {
+        for &(_, r) in self.active[..self.n_active]
+            .iter()
+            .chain(&self.overflow.code)
+        {
             reg |= r | error_register::GENERIC;
         }
+        reg |= self.overflow.lost;
         self.set(0x1001, 0, reg as u32);
     }
 
-    /// Queues an EMCY for the next poll; in stopped nothing is queued (the
-    /// error register and 0x1003 still follow).
+    /// Queues an EMCY for the next poll. In stopped EMCYs wait for the
+    /// next pre-operational or operational (CiA 301 allows no EMCY in
+    /// stopped; CANopenNode's `CO_EM_process` keeps its FIFO and sends it
+    /// then), so the master sees every code raised meanwhile and never an
+    /// error reset without its raise; a condition that came and went
+    /// while stopped cancels out (its raise is still queued: both are
+    /// dropped) and is only in 0x1003.
     fn queue_emcy(&mut self, payload: [u8; 8]) {
-        if self.state == NmtState::Stopped {
-            return;
+        if self.state == NmtState::Stopped && payload[..2] == [0, 0] {
+            let raised = self.emcy_queue[..self.emcy_len]
+                .iter()
+                .rposition(|q| q[..2] == payload[3..5]);
+            if let Some(k) = raised {
+                self.emcy_queue.copy_within(k + 1..self.emcy_len, k);
+                self.emcy_len -= 1;
+                return;
+            }
         }
         if self.emcy_len == EMCY_QUEUE {
             // Drop the oldest: the newest state matters most.
@@ -1277,7 +1340,7 @@ impl Device {
             tpdo: [TpdoRt::default(); TPDOS],
             active: [(0, 0); MAX_ACTIVE_ERRORS],
             n_active: 0,
-            overflow: None,
+            overflow: Overflow::default(),
             emcy_queue: [[0; 8]; EMCY_QUEUE],
             emcy_len: 0,
             emcy_last_tx: None,
@@ -1706,18 +1769,22 @@ impl Device {
 
     /// Raises emergency `code` with error-register bits `reg` and 5 bytes of
     /// manufacturer data: sends one EMCY (at the next poll after the
-    /// inhibit time 0x1015; nothing in stopped, and nothing queued before a
-    /// stop is sent after it), sets 0x1001 and records the code in 0x1003
+    /// inhibit time 0x1015; in stopped it waits for pre-operational or
+    /// operational, and is dropped with its error reset when the code
+    /// clears before), sets 0x1001 and records the code in 0x1003
     /// (newest at sub 1; bits 16-31 = `mfr[0..2]`; a code already in the
     /// history moves to sub 1). Returns `false` (and sends nothing) if
     /// `code` is already active.
     ///
     /// With [`MAX_ACTIVE_ERRORS`] codes active, the next new code is
-    /// still sent and active; codes raised after it while the table stays
-    /// full only add their error-register bits to 0x1001 and return
-    /// `false` (nothing is recorded to tell them from repeats). Once a
-    /// code clears, the next raise of such a code is sent and recorded:
-    /// one EMCY per code, never a flood.
+    /// still sent and active (the overflow bucket); codes raised after it
+    /// while the table stays full are not recorded (nothing tells them
+    /// from repeats): the first of them sends [`EMCY_TABLE_FULL`] with its
+    /// code in manufacturer bytes 0-1, and the error-register bits of all
+    /// of them stay in 0x1001 until no recorded code is active (then
+    /// [`EMCY_TABLE_FULL`]'s error reset). Once a slot or the bucket frees
+    /// up, the next raise of such a code is sent and recorded with its own
+    /// code: one EMCY per code, never a flood.
     pub fn signal_emcy(&mut self, code: u16, reg: u8, mfr: [u8; 5]) -> bool {
         self.core.raise(code, reg, mfr)
     }

@@ -370,9 +370,15 @@ fn failed_store_aborts_and_keeps_boot_values() {
     let mut b = Bus::new();
     b.write_u32(0x2300, 1, 7000).unwrap();
     assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
-    // second request while pending is refused
+    // second request while pending is refused: the abort names the store
+    // and ends its transfer (issue 49), so its outcome is sent to nobody
     let r = b.sdo([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]).unwrap();
+    assert_eq!(&r[..4], &[0x80, 0x10, 0x10, 1]);
     assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 0x0800_0020);
+    let r = b.finish(false);
+    assert!(r.is_empty(), "{r:?}");
+    // without a request meanwhile the failure is the store's abort
+    assert_eq!(b.write_u32(0x1010, 1, od::SAVE_SIGNATURE), Err(0));
     let r = b.finish(false);
     assert_eq!(r.len(), 1);
     assert_eq!(&r[0].data[..4], &[0x80, 0x10, 0x10, 1]);
@@ -736,19 +742,21 @@ fn emergency_producer_and_error_history() {
     b.download(0x1003, 0, &[0]).unwrap();
     assert_eq!(b.read32(0x1003, 0), 0);
     assert_eq!(b.read32(0x1003, 1), 0);
-    // not sent while stopped, nor anything stale after it: a queued EMCY
-    // is dropped by the stop; the state (0x1001, active set) still follows
+    // not sent while stopped: raised just before the stop or in it, the
+    // EMCYs wait for pre-operational (issue 49; CANopenNode keeps its
+    // FIFO); the state (0x1001, active set) follows meanwhile
     b.dev.signal_emcy(status::emcy::NO_PLANE, 0x80, [0; 5]);
     b.nmt(0x02, 0);
     b.take();
     b.dev.signal_emcy(status::emcy::DATA_SET, 1, [0; 5]);
     b.poll();
     assert!(b.take().is_empty());
-    b.nmt(0x80, 0);
-    b.poll();
-    assert!(b.take().is_empty());
     assert!(b.dev.emcy_active(status::emcy::DATA_SET));
     assert_eq!(b.dev.error_register(), 0x81);
+    b.nmt(0x80, 0);
+    b.poll();
+    let sent: Vec<u16> = emcys_of(&b.take()).iter().map(|e| e.0).collect();
+    assert_eq!(sent, [status::emcy::NO_PLANE, status::emcy::DATA_SET]);
     // reset node clears errors
     b.nmt(0x81, 0);
     b.poll();
@@ -1536,10 +1544,11 @@ fn tpdo_cob_id_without_bit_30_is_refused() {
 
 /// More codes than [`MAX_ACTIVE_ERRORS`], raised on every sample while
 /// their condition lasts: the first beyond the table is sent (the
-/// overflow bucket), the later ones are suppressed but show in 0x1001; as
-/// conditions end and their codes clear, each suppressed one is sent at
-/// its next raise. Over the whole run every code is sent exactly once and
-/// every clear of an active code sends one error reset.
+/// overflow bucket), the later ones are announced once by
+/// [`EMCY_TABLE_FULL`] and show in 0x1001; as conditions end and their
+/// codes clear, each suppressed one is sent at its next raise. Over the
+/// whole run every code is sent exactly once and every clear of an active
+/// code sends one error reset.
 #[test]
 fn emcy_beyond_the_table_never_floods() {
     use status::error_register as r;
@@ -1571,8 +1580,10 @@ fn emcy_beyond_the_table_never_floods() {
         sample(&mut b, &mut emcys, &ended);
     }
     let sent: Vec<u16> = emcys.iter().map(|e| e.0).collect();
-    let want: Vec<u16> = codes[..=MAX_ACTIVE_ERRORS].iter().map(|c| c.0).collect();
-    assert_eq!(sent, want, "the table and the bucket, once");
+    let mut want: Vec<u16> = codes[..=MAX_ACTIVE_ERRORS].iter().map(|c| c.0).collect();
+    want.push(EMCY_TABLE_FULL);
+    assert_eq!(sent, want, "the table and the bucket, once, then 0x6100");
+    assert_eq!(emcys.last().unwrap().2, codes[MAX_ACTIVE_ERRORS + 1].0);
     assert_eq!(
         b.dev.error_register(),
         r::GENERIC | r::VOLTAGE | r::TEMPERATURE
@@ -1593,7 +1604,11 @@ fn emcy_beyond_the_table_never_floods() {
             sample(&mut b, &mut emcys, &ended);
         }
     }
-    let mut sent: Vec<u16> = emcys.iter().filter(|e| e.0 != 0).map(|e| e.0).collect();
+    let mut sent: Vec<u16> = emcys
+        .iter()
+        .filter(|e| e.0 != 0 && e.0 != EMCY_TABLE_FULL)
+        .map(|e| e.0)
+        .collect();
     sent.sort_unstable();
     let want: Vec<u16> = codes.iter().map(|c| c.0).collect();
     assert_eq!(sent, want, "every code once");
@@ -1601,14 +1616,103 @@ fn emcy_beyond_the_table_never_floods() {
         b.dev.error_register(),
         r::GENERIC | r::VOLTAGE | r::TEMPERATURE
     );
-    // Clear everything: one error reset per active code, register 0.
+    // Clear everything: one error reset per active code, and one for
+    // 0x6100 when the last recorded code clears; register 0.
     for &(c, _) in &codes {
         resets += usize::from(b.dev.clear_emcy(c));
     }
     b.advance(1_000);
     emcys.extend(emcys_of(&b.take()));
-    assert_eq!(emcys.iter().filter(|e| e.0 == 0).count(), resets);
+    assert_eq!(emcys.iter().filter(|e| e.0 == 0).count(), resets + 1);
+    assert_eq!(emcys.last().unwrap(), &(0, 0, EMCY_TABLE_FULL));
     assert_eq!(b.dev.error_register(), 0);
+}
+
+/// Issue 49, point 4: past the table and the bucket a new code is
+/// announced (0x6100 naming it, once, not once per code), and when the
+/// bucket's code clears the lost codes' register bits stay in 0x1001
+/// while they may still be active; 0x6100 resets once nothing recorded is
+/// active.
+#[test]
+fn codes_past_the_table_and_the_bucket_are_announced_and_keep_their_bits() {
+    use status::error_register as r;
+    let mut b = Bus::new();
+    b.take();
+    for k in 0..=MAX_ACTIVE_ERRORS {
+        assert!(b.dev.signal_emcy(0x5000 + k as u16, r::VOLTAGE, [0; 5]));
+    }
+    b.advance(1_000);
+    assert_eq!(emcys_of(&b.take()).len(), MAX_ACTIVE_ERRORS + 1);
+    // Beyond the bucket: one 0x6100 naming the first lost code.
+    assert!(b.dev.signal_emcy(0x4210, r::TEMPERATURE, [0; 5]));
+    assert!(
+        !b.dev.signal_emcy(0x4210, r::TEMPERATURE, [0; 5]),
+        "no repeat"
+    );
+    assert!(
+        !b.dev.signal_emcy(0x4220, r::CURRENT, [0; 5]),
+        "announced already"
+    );
+    b.advance(1_000);
+    let reg = r::GENERIC | r::VOLTAGE | r::TEMPERATURE | r::CURRENT;
+    assert_eq!(
+        emcys_of(&b.take()),
+        [(EMCY_TABLE_FULL, reg & !r::CURRENT, 0x4210)]
+    );
+    assert_eq!(
+        b.read32(0x1003, 1),
+        0x4210 << 16 | u32::from(EMCY_TABLE_FULL)
+    );
+    assert_eq!(b.dev.error_register(), reg);
+    // The bucket's code clears: the lost bits stay.
+    let bucket = 0x5000 + MAX_ACTIVE_ERRORS as u16;
+    assert!(b.dev.clear_emcy(bucket));
+    b.advance(1_000);
+    assert_eq!(emcys_of(&b.take()), [(0, reg, bucket)]);
+    assert_eq!(b.dev.error_register(), reg);
+    // The bucket is free: the next raise of a lost code is sent as itself.
+    assert!(b.dev.signal_emcy(0x4220, r::CURRENT, [0; 5]));
+    // Every recorded code clears: 0x6100 resets after the last one.
+    for k in 0..MAX_ACTIVE_ERRORS {
+        assert!(b.dev.clear_emcy(0x5000 + k as u16));
+    }
+    assert!(b.dev.clear_emcy(0x4220));
+    b.advance(1_000);
+    let e = emcys_of(&b.take());
+    assert_eq!(e[0].0, 0x4220);
+    assert_eq!(e.last().unwrap(), &(0, 0, EMCY_TABLE_FULL));
+    assert_eq!(e.len(), 1 + MAX_ACTIVE_ERRORS + 2);
+    assert_eq!(b.dev.error_register(), 0);
+}
+
+/// Issue 49, point 3: an EMCY raised just before or in stopped is sent
+/// at the next pre-operational/operational, so its later error reset is
+/// never one for a code the master did not see; a condition that came
+/// and went while stopped sends neither.
+#[test]
+fn emcys_wait_through_stopped() {
+    let mut b = Bus::new();
+    b.take();
+    b.dev.signal_emcy(0x5001, 0x80, [0; 5]);
+    b.nmt(0x02, 0);
+    b.dev.signal_emcy(0x5002, 0x80, [0; 5]);
+    b.dev.signal_emcy(0x5003, 0x80, [0; 5]);
+    b.dev.clear_emcy(0x5003);
+    b.advance(1_000);
+    assert!(emcys_of(&b.take()).is_empty(), "nothing in stopped");
+    b.nmt(0x01, 0);
+    b.advance(1_000);
+    let e = emcys_of(&b.take());
+    assert_eq!(e, [(0x5001, 0x81, 0), (0x5002, 0x81, 0)]);
+    assert_eq!(b.read32(0x1003, 1) & 0xFFFF, 0x5003, "in the history");
+    // Raised before the stop and sent, cleared in stopped: the reset waits.
+    b.nmt(0x02, 0);
+    b.dev.clear_emcy(0x5001);
+    b.advance(1_000);
+    assert!(emcys_of(&b.take()).is_empty());
+    b.nmt(0x80, 0);
+    b.advance(1_000);
+    assert_eq!(emcys_of(&b.take()), [(0, 0x81, 0x5001)]);
 }
 
 /// The calibration stamp 0x2011: sub 1/2 written like calibration (pre-op

@@ -8,7 +8,11 @@
 //! response (an answer or an abort) except a client's abort, which is
 //! unconfirmed by definition. A write whose effect needs the application
 //! (0x1010 store, 0x1011 restore) is answered when the application reports
-//! the outcome ([`crate::Device::finish_request`]).
+//! the outcome ([`crate::Device::finish_request`]); a request meanwhile is
+//! answered with the abort 0x08000020 that ends that transfer (CiA 301: an
+//! abort ends a transfer on both sides), so the outcome is then sent to
+//! nobody. A segment that fits no transfer in progress is aborted with
+//! that transfer's object.
 //!
 //! Block download with CRC (CiA 301 §7.2.4.3.10-16) is in
 //! [`crate::sdo::block`] (feature `sdo-block`, which sizes the transfer
@@ -268,12 +272,28 @@ pub(crate) enum Transfer {
     #[cfg(feature = "sdo-block")]
     BlockDown(crate::sdo::block::BlockDown),
     /// A write handed to the application; `resp` is the confirmation to
-    /// send on success.
+    /// send on success, `None` once the transfer was aborted meanwhile
+    /// (the application still holds the write, which cannot be recalled;
+    /// its outcome is then sent to nobody).
     Deferred {
         index: u16,
         sub: u8,
-        resp: [u8; 8],
+        resp: Option<[u8; 8]>,
     },
+}
+
+impl Transfer {
+    /// The object of the transfer in progress: what its aborts carry.
+    fn addr(&self) -> Option<(u16, u8)> {
+        match *self {
+            Transfer::Idle => None,
+            Transfer::Upload { index, sub, .. }
+            | Transfer::Download { index, sub, .. }
+            | Transfer::Deferred { index, sub, .. } => Some((index, sub)),
+            #[cfg(feature = "sdo-block")]
+            Transfer::BlockDown(b) => Some(b.addr()),
+        }
+    }
 }
 
 /// The SDO server state (one server, default SDO channel).
@@ -357,9 +377,11 @@ impl SdoServer {
             return r;
         }
         let ccs = cmd >> 5;
+        if let Some(r) = self.while_deferred(req, ccs) {
+            return r;
+        }
         if ccs == 4 {
-            // Client abort: unconfirmed; a deferred write stays with the
-            // application (it cannot be recalled) but is not confirmed.
+            // Client abort: unconfirmed.
             self.reset();
             return None;
         }
@@ -369,12 +391,11 @@ impl SdoServer {
         ]);
         let sub = req.get(3).copied().unwrap_or(0);
         if req.len() < 8 {
+            // A malformed request ends the transfer in progress (its
+            // object in the abort), or is refused with its own.
+            let (index, sub) = self.transfer.addr().unwrap_or((index, sub));
             self.reset();
             return Some(abort_payload(index, sub, SdoAbort::Command));
-        }
-        if let Transfer::Deferred { index, sub, .. } = self.transfer {
-            // The previous write is still with the application.
-            return Some(abort_payload(index, sub, SdoAbort::Store));
         }
         let mut data = [0u8; 8];
         data.copy_from_slice(&req[..8]);
@@ -390,6 +411,41 @@ impl SdoServer {
                 Some(abort_payload(index, sub, SdoAbort::Command))
             }
         }
+    }
+
+    /// A request while a write is with the application (`Some(answer)`,
+    /// `None` when there is none). CiA 301 §7.2.4.3.17: an abort ends the
+    /// transfer on both sides, so the abort 0x08000020 that answers the
+    /// first request meanwhile (carrying the deferred transfer's object,
+    /// like a client's abort) ends that transfer: its confirmation, or a
+    /// DOMAIN download's next acknowledgement, is never sent. The write
+    /// itself stays with the application (it cannot be recalled), and
+    /// every further request until it is done is refused with 0x08000020
+    /// on its own object: the transfer buffer still holds the part being
+    /// written. A client's abort ends the transfer the same way, without
+    /// an answer.
+    fn while_deferred(&mut self, req: &[u8], ccs: u8) -> Option<Option<[u8; 8]>> {
+        let Transfer::Deferred { index, sub, resp } = self.transfer else {
+            return None;
+        };
+        self.resume = Transfer::Idle;
+        self.transfer = Transfer::Deferred {
+            index,
+            sub,
+            resp: None,
+        };
+        if ccs == 4 {
+            return Some(None);
+        }
+        if resp.is_some() {
+            return Some(Some(abort_payload(index, sub, SdoAbort::Store)));
+        }
+        let own = u16::from_le_bytes([
+            req.get(1).copied().unwrap_or(0),
+            req.get(2).copied().unwrap_or(0),
+        ]);
+        let own_sub = req.get(3).copied().unwrap_or(0);
+        Some(Some(abort_payload(own, own_sub, SdoAbort::Store)))
     }
 
     /// Ends a write step with the dictionary's answer `r`: on success
@@ -411,7 +467,11 @@ impl SdoServer {
             }
             Ok(Written::Deferred) => {
                 // Nothing to send yet: `complete` answers.
-                self.transfer = Transfer::Deferred { index, sub, resp };
+                self.transfer = Transfer::Deferred {
+                    index,
+                    sub,
+                    resp: Some(resp),
+                };
                 self.resume = next;
                 None
             }
@@ -496,8 +556,7 @@ impl SdoServer {
             ..
         } = self.transfer
         else {
-            self.reset();
-            return Some(abort_payload(0, 0, SdoAbort::Command));
+            return Some(self.stray_segment());
         };
         let t = req[0] & 0x10 != 0;
         if t != toggle {
@@ -614,6 +673,17 @@ impl SdoServer {
         }
     }
 
+    /// A segment that does not fit the transfer in progress (a download
+    /// segment in an upload, or the reverse, or none in progress): abort
+    /// 0x05040001 carrying the transfer's object (0x0000/0 when idle, as
+    /// the segment names none), and the transfer ends. A master that
+    /// matches aborts by object sees it as its transfer's.
+    fn stray_segment(&mut self) -> [u8; 8] {
+        let (index, sub) = self.transfer.addr().unwrap_or((0, 0));
+        self.reset();
+        abort_payload(index, sub, SdoAbort::Command)
+    }
+
     fn upload_segment(&mut self, req: &[u8; 8], now_us: u64) -> [u8; 8] {
         let Transfer::Upload {
             index,
@@ -624,8 +694,7 @@ impl SdoServer {
             ..
         } = self.transfer
         else {
-            self.transfer = Transfer::Idle;
-            return abort_payload(0, 0, SdoAbort::Command);
+            return self.stray_segment();
         };
         let t = req[0] & 0x10 != 0;
         if t != toggle {
@@ -660,15 +729,18 @@ impl SdoServer {
     }
 
     /// Completes a deferred write: the confirmation, or the abort `err`.
-    /// `None` when nothing was deferred (or the client aborted meanwhile).
-    /// A confirmed DOMAIN part lets the download go on (its timeouts count
-    /// again from the last request or poll).
+    /// `None` when nothing was deferred, or the transfer was aborted
+    /// meanwhile (by the client, or by the server's answer to another
+    /// request: [`SdoServer::handle`]). A confirmed DOMAIN part lets the
+    /// download go on (its timeouts count again from the last request or
+    /// poll).
     pub fn complete(&mut self, err: Option<SdoAbort>) -> Option<[u8; 8]> {
         let Transfer::Deferred { index, sub, resp } = self.transfer else {
             return None;
         };
         let next = core::mem::replace(&mut self.resume, Transfer::Idle);
         self.transfer = Transfer::Idle;
+        let resp = resp?;
         Some(match err {
             None => {
                 self.transfer = self.rearm(next);
@@ -948,11 +1020,6 @@ mod tests {
             None
         );
         assert!(s.deferred());
-        // a request meanwhile is refused
-        let r = s
-            .handle(&mut od, &[0x40, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
-            .unwrap();
-        assert_eq!(abort_code(&r), Some(0x0800_0020));
         assert_eq!(s.complete(None).unwrap(), [0x60, 0x03, 0x20, 0, 0, 0, 0, 0]);
         assert_eq!(s.complete(None), None);
         assert_eq!(
@@ -961,6 +1028,75 @@ mod tests {
         );
         let r = s.complete(Some(SdoAbort::Store)).unwrap();
         assert_eq!(abort_code(&r), Some(0x0800_0020));
+    }
+
+    /// Issue 49: a request while a write is with the application is
+    /// refused with 0x08000020 on the deferred object, and that abort ends
+    /// the deferred transfer: its confirmation never follows. Requests
+    /// until the application is done are refused on their own object.
+    #[test]
+    fn abort_while_deferred_ends_the_transfer() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        assert_eq!(
+            s.handle(&mut od, &[0x23, 0x03, 0x20, 0, 1, 0, 0, 0], 0),
+            None
+        );
+        let r = s
+            .handle(&mut od, &[0x40, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0800_0020));
+        assert_eq!(&r[1..4], &[0x03, 0x20, 0], "the deferred transfer's object");
+        let r = s
+            .handle(&mut od, &[0x40, 0x02, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(abort_code(&r), Some(0x0800_0020));
+        assert_eq!(&r[1..4], &[0x02, 0x20, 0], "a later request's own object");
+        assert!(s.deferred(), "the application still holds the write");
+        assert_eq!(s.complete(None), None, "no confirmation after the abort");
+        assert!(!s.busy());
+        // A client's abort meanwhile: nothing answered, nothing confirmed.
+        s.handle(&mut od, &[0x23, 0x03, 0x20, 0, 1, 0, 0, 0], 0);
+        assert_eq!(
+            s.handle(&mut od, &[0x80, 0x03, 0x20, 0, 0, 0, 0, 0], 0),
+            None
+        );
+        assert_eq!(s.complete(Some(SdoAbort::Store)), None);
+        // The server serves again.
+        let r = s
+            .handle(&mut od, &[0x40, 0x00, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        assert_eq!(r[0], 0x43);
+    }
+
+    /// Issue 49: a segment that does not fit the transfer in progress is
+    /// aborted with that transfer's object, and the transfer ends.
+    #[test]
+    fn stray_segment_aborts_with_the_transfers_object() {
+        let mut s = SdoServer::new(1000);
+        let mut od = mini();
+        // A download segment in a segmented upload of 0x2002.
+        s.handle(&mut od, &[0x40, 0x02, 0x20, 0, 0, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x00, 1, 2, 3, 4, 5, 6, 7], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0504_0001));
+        assert_eq!(&r[1..4], &[0x02, 0x20, 0]);
+        assert!(!s.busy());
+        // An upload segment in a segmented download of 0x2000.
+        s.handle(&mut od, &[0x21, 0x00, 0x20, 0, 4, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x60, 0, 0, 0, 0, 0, 0, 0], 0).unwrap();
+        assert_eq!(abort_code(&r), Some(0x0504_0001));
+        assert_eq!(&r[1..4], &[0x00, 0x20, 0]);
+        assert!(!s.busy());
+        // A short frame in a transfer: that transfer's object too.
+        s.handle(&mut od, &[0x21, 0x00, 0x20, 0, 4, 0, 0, 0], 0)
+            .unwrap();
+        let r = s.handle(&mut od, &[0x00, 0x99, 0x99], 0).unwrap();
+        assert_eq!(&r[1..4], &[0x00, 0x20, 0]);
+        // No transfer: no object to name.
+        let r = s.handle(&mut od, &[0x60, 0, 0, 0, 0, 0, 0, 0], 0).unwrap();
+        assert_eq!(&r[1..8], &[0, 0, 0, 0x01, 0x00, 0x04, 0x05]);
     }
 
     #[test]

@@ -126,6 +126,38 @@ fn a_signed_image_goes_on_and_the_calibration_stays() {
     );
 }
 
+/// Issue 49: the board loses the last 5 segments of the first sub-block
+/// and the last one of the third (`--fault bus:block-tail:N:K`): no later
+/// frame reveals such a tail, the board acknowledges each after its gap
+/// timer, and the update resends from the ackseq, says how many segments
+/// it resent and notes them in the record.
+#[test]
+fn lost_sub_block_tails_are_resent() {
+    let vb = board(&[
+        "--fault",
+        "bus:block-tail:1:5",
+        "--fault",
+        "bus:block-tail:3:1",
+    ]);
+    let file = image_file("tails", 5000, PRODUCT, version(5, 0, 0), &TEST_SEED);
+    let (out, rec) = update_rec(&vb, &file);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(ok(&out).contains("to 5.0.0"), "{err}");
+    let line = err
+        .lines()
+        .find(|l| l.contains("segments lost on the bus were resent"))
+        .unwrap_or_else(|| panic!("no resend line: {err}"));
+    let (_, tail) = line.rsplit_once(": ").unwrap();
+    let n: usize = tail.split_whitespace().next().unwrap().parse().unwrap();
+    // 6 lost; a longer pause of the loaded test machine inside a
+    // sub-block can only add early acknowledgements, never hide one.
+    assert!(n >= 6, "{line}");
+    let rec = rec.expect("an update record");
+    let steps = rec["steps"].to_string();
+    assert!(steps.contains(&format!("({n} segments resent)")), "{steps}");
+    assert!(active(&vb).contains("5.0.0"));
+}
+
 /// Expects `file` refused with a sentence containing `why`, the board
 /// still on its old image.
 /// The record, when one is written, names `outcome` and the same cause.

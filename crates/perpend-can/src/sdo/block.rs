@@ -23,11 +23,29 @@
 //!   sub-block; a repeated segment (seqno = the last good one), and every
 //!   segment while nothing of the sub-block arrived yet (seqno 1 lost),
 //!   are ignored. It never sends 0x05040003: the ackseq is the remedy.
-//! * a sub-block that stalls is acknowledged (last good seqno) after 70 %
-//!   of the SDO timeout without a segment; the transfer aborts with
-//!   0x05040000 after the full timeout without one.
+//! * the transfer aborts with 0x05040000 after the full SDO timeout
+//!   without a segment.
 //! * a repeated segment after the last one (c set), or anything but the
 //!   end request then, aborts with 0x05040001.
+//!
+//! Where this server departs from CANopenNode: a sub-block whose tail was
+//! lost (segments received in sequence, then silence) is acknowledged
+//! with the last good seqno after [`BLOCK_GAP_US`] (20 ms) without a
+//! segment, not after 70 % of the SDO timeout as CANopenNode's
+//! `block_SDOtimeoutTime_us` (`SDOtimeoutTime_ms * 700`): no later frame
+//! comes to end such a sub-block early, and at 0.7 s every master that
+//! waits less for the acknowledgement (python-canopen 2.4 waits 0.3 s,
+//! `perpend` waited 0.5 s) aborted before the ackseq could help.
+//! CiA 301 (§7.2.4.3.10-16) fixes no time for this acknowledgement. A client
+//! sends a sub-block back to back (a frame takes 0.13-1 ms at 1000-125
+//! kbit/s), so 20 ms is far above a sane gap inside one and below any
+//! sane client's wait; a client that does pause longer mid sub-block gets
+//! an early acknowledgement and resends from it (its late segments are
+//! ignored), which costs time, never data. A sub-block of which nothing
+//! arrived in sequence (its first segment lost, or the client not yet
+//! sending) keeps CANopenNode's 70 %: after an early acknowledgement the
+//! rest of the old sub-block may still be on the way, and a second, stale
+//! acknowledgement would desynchronise the client.
 //!
 //! Memory: one 889-byte buffer (127 segments × 7 bytes) in the server,
 //! shared with segmented DOMAIN downloads; a DOMAIN's sub-block goes to
@@ -36,8 +54,9 @@
 //! sub-block only after the end request and its CRC check. A non-DOMAIN
 //! object (≤ 8 bytes) is written whole at the end.
 //!
-//! Limits: server-chosen blksize 127 (less when a non-DOMAIN download has
-//! data in the buffer); no block upload.
+//! Limits: server-chosen blksize 127 (less when data wait in the buffer: a
+//! non-DOMAIN download, or a stalled sub-block acknowledged by a timer,
+//! whose next sub-block fills the buffer's room); no block upload.
 
 use super::{abort_payload, Dictionary, SdoAbort, SdoServer, Transfer, Written};
 
@@ -45,6 +64,12 @@ use super::{abort_payload, Dictionary, SdoAbort, SdoServer, Transfer, Written};
 pub const MAX_BLKSIZE: u8 = 127;
 /// Bytes in a full sub-block: 127 segments of 7 bytes.
 pub const BLOCK_BYTES: usize = MAX_BLKSIZE as usize * 7;
+/// Gap timer \[µs\]: a sub-block with segments in sequence and then none
+/// for this long is acknowledged as it stands (its tail was lost; module
+/// docs). Capped at 70 % of the SDO timeout.
+pub const BLOCK_GAP_US: u64 = 20_000;
+// Well below a client's wait for the acknowledgement (module docs).
+const _: () = assert!(BLOCK_GAP_US <= 50_000);
 
 /// CRC-16-CCITT (polynomial 0x1021, no reflection, no final XOR) of
 /// `data`, continuing from `crc` (0 to start), as CiA 301 §7.2.4.3.16
@@ -87,15 +112,25 @@ pub struct BlockDown {
     domain: bool,
     /// Abort 0x05040000 at this time without a segment \[µs\].
     deadline: u64,
-    /// Acknowledge the stalled sub-block at this time \[µs\].
+    /// Acknowledge a sub-block with nothing in sequence at this time \[µs\].
     ack_at: u64,
+    /// Acknowledge a sub-block whose tail stalled at this time \[µs\]
+    /// (when `seqno` > 0).
+    gap_at: u64,
 }
 
 impl BlockDown {
+    /// The object being written.
+    pub(crate) fn addr(&self) -> (u16, u8) {
+        (self.index, self.sub)
+    }
+
     /// Timeouts counted from `now_us` (`timeout_us` the SDO timeout).
     pub(crate) fn rearm(&mut self, now_us: u64, timeout_us: u64) {
+        let long = timeout_us / 10 * 7;
         self.deadline = now_us.saturating_add(timeout_us);
-        self.ack_at = now_us.saturating_add(timeout_us / 10 * 7);
+        self.ack_at = now_us.saturating_add(long);
+        self.gap_at = now_us.saturating_add(BLOCK_GAP_US.min(long));
     }
 
     fn ack(&self, ackseq: u8) -> [u8; 8] {
@@ -160,6 +195,7 @@ impl SdoServer {
             domain: od.domain(index, sub),
             deadline: 0,
             ack_at: 0,
+            gap_at: 0,
         };
         b.rearm(now_us, self.timeout_us);
         self.transfer = Transfer::BlockDown(b);
@@ -272,15 +308,17 @@ impl SdoServer {
 
     /// Timeouts of a block download at `now_us`: the abort after the full
     /// SDO timeout without a segment, else the acknowledgement of a
-    /// stalled sub-block (not in the DOMAIN's data: it needs no
-    /// dictionary; the buffer keeps them and the next sub-block is sized
-    /// to the room left).
+    /// stalled sub-block: after [`BLOCK_GAP_US`] when segments came in
+    /// sequence, after 70 % of the SDO timeout when none did (module
+    /// docs). Not in the DOMAIN's data: it needs no dictionary; the buffer
+    /// keeps them and the next sub-block is sized to the room left.
     pub(crate) fn block_timeout(&mut self, mut b: BlockDown, now_us: u64) -> Option<[u8; 8]> {
         if now_us >= b.deadline {
             self.reset();
             return Some(abort_payload(b.index, b.sub, SdoAbort::Timeout));
         }
-        if b.ending || now_us < b.ack_at {
+        let due = if b.seqno > 0 { b.gap_at } else { b.ack_at };
+        if b.ending || now_us < due {
             return None;
         }
         let ackseq = b.seqno;

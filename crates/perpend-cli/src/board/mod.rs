@@ -76,6 +76,7 @@
 pub mod node;
 pub mod server;
 pub mod sim;
+pub mod tail;
 pub mod update;
 pub mod world;
 
@@ -125,9 +126,11 @@ pub struct Args {
     /// stuck, noisy), `bus:noack:SECONDS` (nothing the board sends is
     /// acknowledged for the first SECONDS), `bus:drop:IDX:N` (the client's
     /// connection is closed at its N-th SDO request to object IDX) or
-    /// `bus:reset:IDX:N` (the board resets after answering it), or
-    /// `update:no-confirm` (an image from `perpend node update` hangs at
-    /// start: the board rolls back to the old one); repeatable.
+    /// `bus:reset:IDX:N` (the board resets after answering it),
+    /// `bus:block-tail:N:K` (the last K segments of the N-th sub-block of
+    /// the next SDO block download are lost), or `update:no-confirm` (an
+    /// image from `perpend node update` hangs at start: the board rolls
+    /// back to the old one); repeatable.
     #[arg(long)]
     pub fault: Vec<FaultArg>,
     /// Seed of the noise generator.
@@ -202,6 +205,8 @@ pub enum FaultArg {
     UpdateNoConfirm,
     /// `bus:drop:IDX:N` or `bus:reset:IDX:N`: the server's link faults.
     Link(server::LinkFault),
+    /// `bus:block-tail:N:K`: the tail of a block download's sub-block lost.
+    BlockTail(tail::BlockTail),
 }
 
 impl FromStr for FaultArg {
@@ -216,6 +221,9 @@ impl FromStr for FaultArg {
         if rest.starts_with("drop:") || rest.starts_with("reset:") {
             return Ok(FaultArg::Link(rest.parse()?));
         }
+        if let Some(t) = rest.strip_prefix("block-tail:") {
+            return Ok(FaultArg::BlockTail(t.parse()?));
+        }
         let secs = rest
             .strip_prefix("noack:")
             .and_then(|t| t.trim().parse::<f64>().ok())
@@ -223,8 +231,8 @@ impl FromStr for FaultArg {
         match secs {
             Some(t) => Ok(FaultArg::BusNoAck(t)),
             None => bail!(
-                "--fault '{s}': expected bus:noack:SECONDS (0..86400), bus:drop:IDX:N or \
-                 bus:reset:IDX:N"
+                "--fault '{s}': expected bus:noack:SECONDS (0..86400), bus:drop:IDX:N, \
+                 bus:reset:IDX:N or bus:block-tail:N:K"
             ),
         }
     }
@@ -327,7 +335,7 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
             FaultArg::Sensor(f) => sim.set_fault(f.sensor, Some(f.kind)),
             FaultArg::BusNoAck(t) => noack_us = Some((t * 1e6) as u64),
             FaultArg::UpdateNoConfirm => confirms = false,
-            FaultArg::Link(_) => {}
+            FaultArg::Link(_) | FaultArg::BlockTail(_) => {}
         }
     }
     let first = a.serial.first().copied();
@@ -386,7 +394,11 @@ pub fn run(a: &Args) -> Result<()> {
             _ => None,
         })
         .collect();
-    server::serve(listener, world, &mut boards, faults)
+    let tails = tail::BlockTails::new(a.fault.iter().filter_map(|f| match f {
+        FaultArg::BlockTail(t) => Some(*t),
+        _ => None,
+    }));
+    server::serve(listener, world, &mut boards, faults, tails)
 }
 
 #[cfg(test)]
@@ -513,6 +525,14 @@ mod tests {
         ] {
             assert!(bad.parse::<FaultArg>().is_err(), "{bad}");
         }
+        assert!(matches!(
+            "bus:block-tail:3:5".parse::<FaultArg>().unwrap(),
+            FaultArg::BlockTail(tail::BlockTail {
+                sub_block: 3,
+                segments: 5
+            })
+        ));
+        assert!("bus:block-tail:0:5".parse::<FaultArg>().is_err());
         assert!(matches!(
             "bus:drop:0x2103:2".parse::<FaultArg>().unwrap(),
             FaultArg::Link(server::LinkFault {

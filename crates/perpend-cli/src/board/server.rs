@@ -18,7 +18,9 @@
 //! Link faults (`perpend board --fault bus:drop:IDX:N`, `bus:reset:IDX:N`,
 //! [`LinkFault`]) act on the client's N-th SDO request to one object: the
 //! connection is closed before the answer goes out, or an NMT reset node
-//! follows the request on the bus; each fires once.
+//! follows the request on the bus; each fires once. Block-tail faults
+//! (`bus:block-tail:N:K`, [`super::tail`]) drop the last segments of a
+//! block download's sub-block.
 //!
 //! Limits: the loop sleeps at most 200 µs when idle, so timestamps are
 //! accurate to a fraction of a millisecond; if it falls more than 50
@@ -483,6 +485,7 @@ pub fn serve(
     mut world: Option<World>,
     boards: &mut [VirtualBoard],
     faults: Vec<LinkFault>,
+    mut tails: super::tail::BlockTails,
 ) -> Result<()> {
     let mut faults = LinkFaults(faults.into_iter().map(|f| (f, 0, false)).collect());
     listener
@@ -513,6 +516,7 @@ pub fn serve(
             match c.read() {
                 Some(mut frames) => {
                     drop_client = faults.apply(&mut frames);
+                    tails.apply(&mut frames);
                     busy |= !frames.is_empty();
                     wire.extend(frames.into_iter().map(|f| (None, c.kbps, f)));
                 }
@@ -531,6 +535,7 @@ pub fn serve(
                 i += 1;
                 bus.deliver(w, now, &mut wire);
                 if w.0.is_some() {
+                    tails.observe(&w.2);
                     heard.push(w);
                 }
             } else if polled {

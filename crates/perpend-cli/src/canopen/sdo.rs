@@ -5,9 +5,12 @@
 //!
 //! Block download with CRC (CiA 301 §7.2.4.3.10-16, [`Client::download_block`]):
 //! sub-blocks of the server's blksize sent back to back, resent from the
-//! server's ackseq, CRC-16-CCITT at the end; a server without block
-//! transfer (abort 0x05040001 to the initiate) gets a segmented download
-//! instead.
+//! server's ackseq (the segments resent are counted), CRC-16-CCITT at the
+//! end; a server without block transfer (abort 0x05040001 to the
+//! initiate) gets a segmented download instead. The wait for a
+//! sub-block's acknowledgement is at least [`BLOCK_ACK_WAIT`]: a server
+//! learns of a lost tail of a sub-block only from its own timer (issue
+//! 49).
 //!
 //! Limits: no block upload; an upload larger than [`MAX_UPLOAD`] bytes is
 //! aborted.
@@ -20,6 +23,13 @@ use super::{Client, ClientError};
 
 /// Largest upload accepted \[bytes\].
 pub const MAX_UPLOAD: usize = 4096;
+
+/// Least wait for the acknowledgement of a sub-block: far above the
+/// board's gap timer (`perpend_can::sdo::block::BLOCK_GAP_US`, 20 ms),
+/// after which it acknowledges a sub-block whose last segments were lost,
+/// and above the 0.7 s after which a board before issue 49 (and
+/// CANopenNode's server at a 1 s SDO timeout) does.
+pub const BLOCK_ACK_WAIT: Duration = Duration::from_millis(900);
 
 /// Abort code the client sends: SDO protocol timed out.
 const ABORT_TIMEOUT: u32 = 0x0504_0000;
@@ -284,7 +294,10 @@ impl Client {
     /// with CRC; `progress` gets the bytes the server acknowledged after
     /// each sub-block. A server that refuses block transfer (0x05040001)
     /// gets a segmented download; `timeout` is the wait for the last
-    /// answer (the server may write to flash then).
+    /// answer (the server may write to flash then); each sub-block's
+    /// acknowledgement is awaited at least [`BLOCK_ACK_WAIT`]. Returns the
+    /// number of segments sent again after the server's ackseq (0 on a
+    /// clean bus).
     ///
     /// # Errors
     /// [`ClientError`]: timeout, abort (with its sentence), protocol error
@@ -297,7 +310,7 @@ impl Client {
         data: &[u8],
         timeout: Duration,
         progress: &mut dyn FnMut(usize),
-    ) -> Result<(), ClientError> {
+    ) -> Result<usize, ClientError> {
         let ctx = Ctx {
             node,
             index,
@@ -312,16 +325,16 @@ impl Client {
         let t = self.timeout;
         let resp = match self.exchange(&ctx, req, t) {
             Err(e) if e.abort_code() == Some(ABORT_COMMAND) => {
-                let r = self.download_timeout(node, index, sub, data, timeout);
+                self.download_timeout(node, index, sub, data, timeout)?;
                 progress(data.len());
-                return r;
+                return Ok(0);
             }
             r => r?,
         };
         self.check_initiate(&ctx, &resp, 0xFB, 0xA0)?;
         let crc_on = resp[0] & 0x04 != 0;
         let mut blksize = self.check_blksize(&ctx, resp[4])?;
-        let mut pos = 0usize;
+        let (mut pos, mut resent) = (0usize, 0usize);
         loop {
             let sent = self.send_sub_block(&ctx, data, pos, blksize)?;
             let wait = if pos + 7 * sent >= data.len() {
@@ -329,7 +342,7 @@ impl Client {
             } else {
                 t
             };
-            let ack = self.answer(&ctx, wait)?;
+            let ack = self.answer(&ctx, wait.max(BLOCK_ACK_WAIT))?;
             if ack[0] != 0xA2 {
                 self.send_abort(&ctx, ABORT_COMMAND);
                 return Err(ctx.protocol(&format!("unexpected block answer {:#04x}", ack[0])));
@@ -341,6 +354,7 @@ impl Client {
                     ack[1]
                 )));
             }
+            resent += sent - usize::from(ack[1]);
             pos = (pos + 7 * usize::from(ack[1])).min(data.len());
             progress(pos);
             blksize = self.check_blksize(&ctx, ack[2])?;
@@ -348,7 +362,8 @@ impl Client {
                 break;
             }
         }
-        self.end_block(&ctx, data, crc_on, timeout)
+        self.end_block(&ctx, data, crc_on, timeout)?;
+        Ok(resent)
     }
 
     /// The end of a block download: unused bytes of the last segment and

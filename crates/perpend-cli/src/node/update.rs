@@ -217,11 +217,15 @@ fn update(
     if std::io::stderr().is_terminal() {
         eprintln!();
     }
-    if let Err(e) = r {
-        return Err(download_failed(node, e, rec));
+    let resent = r.map_err(|e| download_failed(node, e, rec))?;
+    if resent > 0 {
+        eprintln!(
+            "{}: {resent} segments lost on the bus were resent",
+            node.name()
+        );
     }
     rec.step(format!(
-        "{} B downloaded to 0x1F50 sub 1, verified by the board",
+        "{} B downloaded to 0x1F50 sub 1, verified by the board ({resent} segments resent)",
         img.len()
     ));
     start_and_check(node, old, want.identification(), rec)

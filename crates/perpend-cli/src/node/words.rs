@@ -132,6 +132,10 @@ pub fn emcy_words(code: u16) -> String {
         }
         emcy::BUS_OFF_RECOVERED => "the CAN controller recovered from bus-off".into(),
         emcy::CAN_OVERRUN => "CAN receive overrun: frames were lost".into(),
+        perpend_can::device::EMCY_TABLE_FULL => {
+            "more errors active than the board can list (the first one unlisted in the data)"
+                .into()
+        }
         c => format!("{} (code {c:#06x})", emcy_class(c)),
     }
 }
@@ -196,6 +200,7 @@ mod tests {
     fn emcy_codes_in_words() {
         assert!(emcy_words(0x2112).starts_with("sensor 2: loop current"));
         assert!(emcy_words(0xFF14).starts_with("sensor 4: reading"));
+        assert!(emcy_words(0x6100).starts_with("more errors active than"));
         assert_eq!(emcy_words(0xFF02), "no valid plane");
         assert!(emcy_words(0x4210).starts_with("temperature error"));
         assert_eq!(
