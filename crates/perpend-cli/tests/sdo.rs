@@ -176,3 +176,42 @@ fn sdo_read_and_write_the_virtual_board() {
     let err = failed(&b.node(&["sdo", "read", "0x3000", "0"]));
     assert!(err.contains("abort 0x06020000"), "{err}");
 }
+
+/// Issue 47 point 1: oversampling 3 and 256 are inside the EDS limits
+/// 1..256; the refusal says the rule that refuses them (a power of two;
+/// one scan must fit into the sample period), never the limits.
+#[test]
+fn a_refused_value_inside_the_eds_limits_names_the_real_rule() {
+    let b = Board::start();
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "2", "3"]));
+    assert!(
+        err.contains("3 is not a power of two")
+            && err.contains("1, 2, 4, 8, 16, 32, 64, 128, 256")
+            && err.contains("nothing was sent"),
+        "{err}"
+    );
+    // the node's own abort of 3 (--force) says the same rule
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "2", "3", "--force"]));
+    assert!(
+        err.contains("abort 0x0609003") && err.contains("not a power of two"),
+        "{err}"
+    );
+    // 256× needs a 3012 µs period; the factory period is 1000 µs
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "2", "256"]));
+    assert!(
+        err.contains("abort 0x06090030")
+            && err.contains("3012 µs")
+            && err.contains("sample period of 1000 µs")
+            && err.contains("sdo write 0x2300 1 3012"),
+        "{err}"
+    );
+    assert!(!err.contains("the EDS gives"), "{err}");
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "1", "100"]));
+    assert!(
+        err.contains("shorter than one ADC scan at the present 16× oversampling"),
+        "{err}"
+    );
+    // the order the hint gives works
+    ok(&b.node(&["sdo", "write", "0x2300", "1", "3012"]));
+    ok(&b.node(&["sdo", "write", "0x2300", "2", "256"]));
+}

@@ -44,6 +44,7 @@ pub mod monitor;
 pub mod params;
 pub mod pdo;
 pub mod sdo;
+pub mod sdo_rules;
 pub mod update;
 pub mod update_record;
 pub mod words;

@@ -535,12 +535,14 @@ fn prepare(eds: &Eds, a: &WriteArgs) -> Result<(Entry, Value, Vec<u8>)> {
                 eds.file
             );
         }
-        check_limits(e, &v).map_err(|why| {
-            anyhow!(
-                "{}: {why}; nothing was sent (--force sends it anyway)",
-                label(e)
-            )
-        })?;
+        check_limits(e, &v)
+            .and_then(|()| super::sdo_rules::precheck(e, &v))
+            .map_err(|why| {
+                anyhow!(
+                    "{}: {why}; nothing was sent (--force sends it anyway)",
+                    label(e)
+                )
+            })?;
     }
     Ok((e.clone(), v, bytes))
 }
@@ -554,9 +556,9 @@ fn write(node: &mut Node, eds: &Eds, a: &WriteArgs) -> Result<()> {
     } else {
         None
     };
-    node.client
-        .download(node.id, a.index, a.sub, &bytes)
-        .map_err(|err| explain(node, Some(&e), err))?;
+    if let Err(err) = node.client.download(node.id, a.index, a.sub, &bytes) {
+        return Err(explain_write(node, &e, &value, err));
+    }
     let new = if readable {
         Some(upload(node, Some(&e), a.index, a.sub)?)
     } else {
@@ -587,6 +589,29 @@ fn write(node: &mut Node, eds: &Eds, a: &WriteArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `perpend node --bus BUS --node-id N`, for hints.
+fn link_of(node: &Node) -> String {
+    format!(
+        "perpend node --bus {} --node-id {}",
+        node.client.bus_name(),
+        node.id
+    )
+}
+
+/// A refused download as a sentence: a value-range abort says the rule
+/// that refused `value` ([`super::sdo_rules::range_hint`]), other aborts
+/// as [`explain`].
+fn explain_write(node: &mut Node, e: &Entry, value: &Value, err: ClientError) -> anyhow::Error {
+    match err.abort_code() {
+        Some(0x0609_0030..=0x0609_0032) => {
+            let link = link_of(node);
+            let hint = super::sdo_rules::range_hint(node, e, value, &link);
+            anyhow!("{err}\n  what to do: {hint}")
+        }
+        _ => explain(node, Some(e), err),
+    }
 }
 
 /// A client error as a sentence, with what to do for the aborts that have
