@@ -215,3 +215,44 @@ fn a_refused_value_inside_the_eds_limits_names_the_real_rule() {
     ok(&b.node(&["sdo", "write", "0x2300", "1", "3012"]));
     ok(&b.node(&["sdo", "write", "0x2300", "2", "256"]));
 }
+
+/// Issue 47 point 3: an EDS of another device (its VendorNumber and
+/// ProductNumber are not the node's 0x1018) is named in one warning line
+/// before a read, and stops a write before anything is sent.
+#[test]
+fn an_eds_of_another_device_is_named_before_the_first_transfer() {
+    let b = Board::start();
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("other.eds");
+    let other = COMMITTED
+        .replace("VendorNumber=0xAFFF5050", "VendorNumber=0x00000123")
+        .replace("ProductNumber=0x50455250", "ProductNumber=0x00000456");
+    std::fs::write(&p, other).unwrap();
+    let eds = p.to_str().unwrap();
+    let out = b.node(&["sdo", "read", "0x1017", "0", "--eds", eds]);
+    let (_, err) = support::text(&out);
+    assert!(out.status.success(), "{err}");
+    let warn: Vec<&str> = err.lines().filter(|l| l.contains("warning")).collect();
+    assert_eq!(warn.len(), 1, "{err}");
+    assert!(
+        warn[0].contains("vendor 0xafff5050 product 0x50455250")
+            && warn[0].contains("vendor 0x00000123 product 0x00000456")
+            && warn[0].contains("--eds"),
+        "{err}"
+    );
+    let err = failed(&b.node(&["sdo", "write", "0x1017", "0", "300", "--eds", eds]));
+    assert!(
+        err.contains("product 0x00000456") && err.contains("Nothing was sent"),
+        "{err}"
+    );
+    assert!(ok(&b.node(&["sdo", "read", "0x1017", "0"])).contains("= 1000"));
+    // `sdo list` with a link reads it: the same check
+    let out = b.node(&["sdo", "list", "0x1017", "--eds", eds]);
+    let (_, err) = support::text(&out);
+    assert!(out.status.success() && err.contains("warning:") && err.contains("0x00000456"), "{err}");
+    let out = b.node(&["sdo", "list", "0x1017"]);
+    assert!(support::text(&out).1.contains("agrees with its identity"), "{:?}", support::text(&out));
+    // the board's own EDS: no warning
+    let out = b.node(&["sdo", "read", "0x1017", "0"]);
+    assert!(support::text(&out).1.is_empty(), "{:?}", support::text(&out));
+}

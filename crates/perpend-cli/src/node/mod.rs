@@ -308,7 +308,7 @@ pub fn run(a: &Args) -> Result<()> {
     ));
     if let Cmd::Sdo(x) = &a.cmd {
         if x.offline() {
-            return sdo::list(x);
+            return sdo::list(&a.link, x);
         }
     }
     let cancel = &CANCEL;
