@@ -549,3 +549,20 @@ fn ctrl_c_appends_nothing_and_leaves_the_board_as_found() {
         serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
     assert_eq!(v["nmt_state"], "pre-operational");
 }
+
+/// Issue 47 point 5: node-id 0xFF (not configured) is refused at once,
+/// with the way to a configured node (LSS), before the bus is opened.
+#[test]
+fn node_id_ff_is_refused_with_the_way_to_lss() {
+    let t = Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .args(["node", "--bus", "tcp:127.0.0.1:9", "--node-id", "0xFF", "info"])
+        .output()
+        .unwrap();
+    let err = failed(&out);
+    assert!(t.elapsed() < Duration::from_secs(1), "{err}");
+    assert!(
+        err.contains("not configured") && err.contains("lss scan") && err.contains("--assign"),
+        "{err}"
+    );
+}

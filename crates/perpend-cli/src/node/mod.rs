@@ -110,12 +110,19 @@ impl LinkArgs {
         }
     }
 
-    /// The node-id, or the sentence that says it is missing.
+    /// The node-id of a configured node, or the sentence that says it is
+    /// missing (or is 0xFF, which only LSS can address).
     ///
     /// # Errors
-    /// `--node-id` not given.
+    /// `--node-id` not given, or 0xFF.
     pub fn node_id(&self) -> Result<u8> {
         match self.node_id {
+            Some(perpend_can::lss::UNCONFIGURED) => bail!(
+                "node-id 0xFF means \"not configured\": such a node answers no SDO, only LSS. \
+                 Find it with `perpend node --bus {bus} lss scan` and give it a node-id with \
+                 `lss scan --assign FIRST --store` (or `lss set-node-id N --serial S`)",
+                bus = self.bus.as_deref().unwrap_or("BUS")
+            ),
             Some(n) => Ok(n),
             None => bail!(
                 "no node-id given: add --node-id N (1..127; `perpend node lss fastscan` \
