@@ -550,6 +550,33 @@ fn ctrl_c_appends_nothing_and_leaves_the_board_as_found() {
     assert_eq!(v["nmt_state"], "pre-operational");
 }
 
+/// Issue 47 point 6: the summary counts the rows it printed apart from
+/// the rows it received (printing is limited to five a second), and each
+/// count is true: the printed lines, the CSV's rows.
+#[test]
+fn monitor_summary_counts_what_it_printed_and_what_it_logged() {
+    let b = Board::start(&[]);
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("live.csv");
+    let args = ["monitor", "--start", "--seconds", "2", "--sync-hz", "10"];
+    let out = b.node(&[&args[..], &["--csv", csv.to_str().unwrap()]].concat());
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    let printed = stdout.lines().filter(|l| l.starts_with("t ")).count();
+    let logged = std::fs::read_to_string(&csv).unwrap().lines().count() - 1;
+    let summary = stderr
+        .lines()
+        .find(|l| l.starts_with("monitor: "))
+        .unwrap_or_else(|| panic!("no summary: {stderr}"));
+    let want = if printed == logged {
+        format!("monitor: {logged} rows, all shown")
+    } else {
+        format!("monitor: {logged} rows, {printed} shown (at most 5 a second; every row in")
+    };
+    assert!(summary.starts_with(&want), "{summary} vs {want}");
+    assert!(printed < logged, "10 Hz rows, 5 printed a second: {summary}");
+}
+
 /// Issue 47 point 5: node-id 0xFF (not configured) is refused at once,
 /// with the way to a configured node (LSS), before the bus is opened.
 #[test]
