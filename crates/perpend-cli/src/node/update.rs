@@ -68,7 +68,10 @@ pub fn flash_words(status: u32) -> &'static str {
         od::FLASH_ADDRESS_ERROR => "the image is larger than the update partition",
         od::FLASH_SECURED => "the board takes no download now",
         FLASH_WRONG_PRODUCT => "the image is for another product",
-        FLASH_BAD_SIGNATURE => "the signature does not verify against the board's key",
+        FLASH_BAD_SIGNATURE => {
+            "the signature does not verify against the board's key: the image was signed \
+             with another key, or its signature was changed after signing"
+        }
         _ => "unknown flash status",
     }
 }
@@ -88,6 +91,22 @@ fn file_identity(img: &[u8], file: &str) -> Result<Identity> {
              firmware with `cargo xtask fw --sign KEY` and pass the .signed.bin it writes"
         ),
     }
+}
+
+/// The file's payload against the SHA-256 its signed trailer carries: a
+/// byte changed after signing (on disk, in a copy) is named before
+/// anything is sent, rather than as a signature the board refuses.
+fn file_intact(img: &[u8], id: &Identity, file: &str) -> Result<()> {
+    use sha2::Digest;
+    let payload = img.get(..id.payload_len as usize).unwrap_or_default();
+    if sha2::Sha256::digest(payload).as_slice() != id.sha256 {
+        bail!(
+            "{file} was changed after it was signed: its payload's SHA-256 differs from the \
+             one its signed trailer carries (a changed byte, on disk or in a copy). Nothing was \
+             written; take the file `cargo xtask fw --sign` wrote, or sign again"
+        );
+    }
+    Ok(())
 }
 
 /// Checks the board is pre-operational (by its heartbeat).
@@ -155,6 +174,7 @@ pub fn run(node: &mut Node, a: &Args) -> Result<()> {
     let file = a.file.display().to_string();
     let img = std::fs::read(&a.file).with_context(|| format!("cannot read {file}"))?;
     let want = file_identity(&img, &file)?;
+    file_intact(&img, &want, &file)?;
     node.hello()?;
     let id = node.id;
     let product = node.client.read_u32(id, 0x1018, 2)?;
