@@ -238,3 +238,23 @@ fn losing_the_client_mid_download_leaves_the_old_image() {
     let out = ok(&update(&vb, &again));
     assert!(out.contains("to 4.0.1"), "{out}");
 }
+
+/// Issue 47 point 10: docs/can.md describes the program store the
+/// firmware has (the DFU partition since issue 34), not the refusing
+/// `NoProgram` as the MCU's store.
+#[test]
+fn docs_can_names_the_mcus_program_store() {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
+    let fw = std::fs::read_to_string(format!("{root}/src/update.rs")).unwrap();
+    assert!(fw.contains("DfuProgram::new"), "the firmware's store changed");
+    let doc = std::fs::read_to_string(format!("{root}/docs/can.md")).unwrap();
+    let para = doc
+        .split("\n\n")
+        .find(|p| p.starts_with("**Program download (CiA 302-3).**"))
+        .unwrap();
+    let para = para.split_whitespace().collect::<Vec<_>>().join(" ");
+    assert!(para.contains("on the MCU the embassy-boot DFU partition"), "{para}");
+    assert!(para.contains("DfuProgram"), "{para}");
+    assert!(!para.contains("none on the MCU"), "{para}");
+    assert!(!para.contains("until the embassy-boot DFU partition is wired in"), "{para}");
+}
