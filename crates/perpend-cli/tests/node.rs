@@ -574,7 +574,10 @@ fn monitor_summary_counts_what_it_printed_and_what_it_logged() {
         format!("monitor: {logged} rows, {printed} shown (at most 5 a second; every row in")
     };
     assert!(summary.starts_with(&want), "{summary} vs {want}");
-    assert!(printed < logged, "10 Hz rows, 5 printed a second: {summary}");
+    assert!(
+        printed < logged,
+        "10 Hz rows, 5 printed a second: {summary}"
+    );
 }
 
 /// Issue 47 point 5: node-id 0xFF (not configured) is refused at once,
@@ -583,7 +586,14 @@ fn monitor_summary_counts_what_it_printed_and_what_it_logged() {
 fn node_id_ff_is_refused_with_the_way_to_lss() {
     let t = Instant::now();
     let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
-        .args(["node", "--bus", "tcp:127.0.0.1:9", "--node-id", "0xFF", "info"])
+        .args([
+            "node",
+            "--bus",
+            "tcp:127.0.0.1:9",
+            "--node-id",
+            "0xFF",
+            "info",
+        ])
         .output()
         .unwrap();
     let err = failed(&out);

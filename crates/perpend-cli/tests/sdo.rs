@@ -249,10 +249,21 @@ fn an_eds_of_another_device_is_named_before_the_first_transfer() {
     // `sdo list` with a link reads it: the same check
     let out = b.node(&["sdo", "list", "0x1017", "--eds", eds]);
     let (_, err) = support::text(&out);
-    assert!(out.status.success() && err.contains("warning:") && err.contains("0x00000456"), "{err}");
+    assert!(
+        out.status.success() && err.contains("warning:") && err.contains("0x00000456"),
+        "{err}"
+    );
     let out = b.node(&["sdo", "list", "0x1017"]);
-    assert!(support::text(&out).1.contains("agrees with its identity"), "{:?}", support::text(&out));
+    assert!(
+        support::text(&out).1.contains("agrees with its identity"),
+        "{:?}",
+        support::text(&out)
+    );
     // the board's own EDS: no warning
     let out = b.node(&["sdo", "read", "0x1017", "0"]);
-    assert!(support::text(&out).1.is_empty(), "{:?}", support::text(&out));
+    assert!(
+        support::text(&out).1.is_empty(),
+        "{:?}",
+        support::text(&out)
+    );
 }

@@ -173,7 +173,8 @@ fn a_wrong_signature_is_refused_by_the_board() {
     refused(&vb, &file, "its signature was changed after signing");
     let st = ok(&node(&vb, &["status"]));
     assert!(
-        st.contains("0x6200") && st.contains("firmware image refused: the signature does not verify"),
+        st.contains("0x6200")
+            && st.contains("firmware image refused: the signature does not verify"),
         "{st}"
     );
     assert!(!st.contains("device software error"), "{st}");
@@ -246,15 +247,24 @@ fn losing_the_client_mid_download_leaves_the_old_image() {
 fn docs_can_names_the_mcus_program_store() {
     let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
     let fw = std::fs::read_to_string(format!("{root}/src/update.rs")).unwrap();
-    assert!(fw.contains("DfuProgram::new"), "the firmware's store changed");
+    assert!(
+        fw.contains("DfuProgram::new"),
+        "the firmware's store changed"
+    );
     let doc = std::fs::read_to_string(format!("{root}/docs/can.md")).unwrap();
     let para = doc
         .split("\n\n")
         .find(|p| p.starts_with("**Program download (CiA 302-3).**"))
         .unwrap();
     let para = para.split_whitespace().collect::<Vec<_>>().join(" ");
-    assert!(para.contains("on the MCU the embassy-boot DFU partition"), "{para}");
+    assert!(
+        para.contains("on the MCU the embassy-boot DFU partition"),
+        "{para}"
+    );
     assert!(para.contains("DfuProgram"), "{para}");
     assert!(!para.contains("none on the MCU"), "{para}");
-    assert!(!para.contains("until the embassy-boot DFU partition is wired in"), "{para}");
+    assert!(
+        !para.contains("until the embassy-boot DFU partition is wired in"),
+        "{para}"
+    );
 }

@@ -699,7 +699,11 @@ pub fn list(link: &super::LinkArgs, a: &Args) -> Result<()> {
         node.hello()?;
         match identity_mismatch(&mut node, &eds, a.eds.is_none()) {
             Some(w) => eprintln!("warning: {w}"),
-            None => eprintln!("{}: {} agrees with its identity (0x1018)", node.name(), eds.file),
+            None => eprintln!(
+                "{}: {} agrees with its identity (0x1018)",
+                node.name(),
+                eds.file
+            ),
         }
     }
     match &a.cmd {

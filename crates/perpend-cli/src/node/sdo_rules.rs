@@ -140,7 +140,10 @@ mod tests {
     #[test]
     fn oversampling_must_be_a_power_of_two_inside_the_eds_limits() {
         let e = entry(0x2300, 2);
-        assert!(check_limits(&e, &Value::Uint(3)).is_ok(), "3 is inside 1..256");
+        assert!(
+            check_limits(&e, &Value::Uint(3)).is_ok(),
+            "3 is inside 1..256"
+        );
         let why = precheck(&e, &Value::Uint(3)).unwrap_err();
         assert!(why.contains("not a power of two"), "{why}");
         assert!(why.contains("1, 2, 4, 8, 16, 32, 64, 128, 256"), "{why}");

@@ -151,16 +151,16 @@ pub fn emcy_text(code: u16, info: u16) -> String {
             "firmware image refused: {} (0x1F57 = {info:#x})",
             super::update::flash_words(u32::from(info))
         )),
-        perpend_board::health::EMCY_WATCHDOG_RESET => {
-            Some(format!("watchdog reset (reset flags {b0:#04x}, 0x200B sub 1)"))
-        }
+        perpend_board::health::EMCY_WATCHDOG_RESET => Some(format!(
+            "watchdog reset (reset flags {b0:#04x}, 0x200B sub 1)"
+        )),
         emcy::NO_PLANE => Some(format!("{base} ({b0} valid sensor(s))")),
         emcy::DATA_SET if b0 == 1 => Some(format!(
             "{base}: the stored record could not be read back (flash read faults)"
         )),
-        emcy::CAN_OVERRUN if b0 == 1 => Some(
-            "CAN transmit queue full: frames were dropped (count in 0x2008 sub 1)".to_string(),
-        ),
+        emcy::CAN_OVERRUN if b0 == 1 => {
+            Some("CAN transmit queue full: frames were dropped (count in 0x2008 sub 1)".to_string())
+        }
         emcy::CAN_OVERRUN => Some("CAN receive overrun: received frames were lost".to_string()),
         perpend_can::device::EMCY_HEARTBEAT => Some(format!(
             "heartbeat of node {b0} lost (consumer 0x1016): communication error reaction 0x1029"
@@ -172,9 +172,9 @@ pub fn emcy_text(code: u16, info: u16) -> String {
         perpend_can::device::EMCY_PDO_LENGTH => {
             Some("command RPDO without data (0x2500 needs one byte)".to_string())
         }
-        c if (0..status::SENSORS).any(|i| {
-            c == emcy::sensor_current(i) || c == emcy::sensor_reading(i)
-        }) && (1..=status::SENSORS as u8).contains(&b0) =>
+        c if (0..status::SENSORS)
+            .any(|i| c == emcy::sensor_current(i) || c == emcy::sensor_reading(i))
+            && (1..=status::SENSORS as u8).contains(&b0) =>
         {
             Some(format!(
                 "sensor {b0}: {}",
@@ -254,7 +254,10 @@ mod tests {
         assert!(!t.contains("device software error"), "{t}");
         let t = emcy_text(emcy::sensor_current(1), u16::from_le_bytes([2, 0x04]));
         assert!(t.starts_with("sensor 2: open loop"), "{t}");
-        assert_eq!(emcy_text(emcy::NO_PLANE, 2), "no valid plane (2 valid sensor(s))");
+        assert_eq!(
+            emcy_text(emcy::NO_PLANE, 2),
+            "no valid plane (2 valid sensor(s))"
+        );
         assert!(emcy_text(0x8130, 5).starts_with("heartbeat of node 5 lost"));
         assert!(emcy_text(emcy::CAN_OVERRUN, 1).contains("transmit queue"));
         assert_eq!(emcy_text(0x4210, 7), emcy_words(0x4210));
