@@ -13,6 +13,7 @@ pub mod demo;
 pub mod eds;
 pub mod node;
 pub mod pipe;
+pub mod progress;
 pub mod record;
 pub mod schema;
 pub mod slcan;

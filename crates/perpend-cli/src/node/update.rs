@@ -254,9 +254,10 @@ fn start_and_check(node: &mut Node, old: u32, new: u32, rec: &mut UpdateRecord) 
         return Err(download_failed(node, e, rec));
     }
     rec.step("0x1F51 sub 1 = start");
-    node.client
-        .wait_bootup(id, RESTART_TIMEOUT)
-        .map_err(|e| anyhow::anyhow!("{e}: the board did not restart after \"start\""))?;
+    let ticker = crate::progress::Ticker::start("restarting (the bootloader swaps the images)");
+    let booted = node.client.wait_bootup(id, RESTART_TIMEOUT);
+    drop(ticker);
+    booted.map_err(|e| anyhow::anyhow!("{e}: the board did not restart after \"start\""))?;
     rec.step("boot-up received");
     let now = node.client.read_u32(id, 0x1F56, 1)?;
     rec.after(now);
