@@ -147,6 +147,33 @@ impl LinkArgs {
     }
 }
 
+/// The link options of a parent's [`LinkArgs`] for a subcommand that
+/// opens no bus (`perpend cell sim-head`): the same ids and types,
+/// hidden and refused with a sentence. Flattened into that subcommand's
+/// arguments, it keeps the parent's global options out of its help (clap
+/// does not propagate a global option to a subcommand that has an
+/// argument of the same id) and refuses them after the subcommand.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct NoLink {
+    /// Refused: this command opens no bus.
+    #[arg(long, hide = true, value_parser = no_link::<String>)]
+    pub bus: Option<String>,
+    /// Refused: this command addresses no node.
+    #[arg(long, hide = true, value_parser = no_link::<u8>)]
+    pub node_id: Option<u8>,
+    /// Refused: this command opens no bus.
+    #[arg(long, hide = true, value_parser = no_link::<u32>)]
+    pub bitrate: Option<u32>,
+    /// Refused: this command opens no bus.
+    #[arg(long, hide = true, value_parser = no_link::<u64>)]
+    pub timeout_ms: Option<u64>,
+}
+
+/// The value parser of [`NoLink`]: every value refused.
+fn no_link<T>(_: &str) -> Result<T, String> {
+    Err("this command opens no bus: leave out --bus, --node-id, --bitrate and --timeout-ms".into())
+}
+
 /// Arguments of `perpend node`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
