@@ -573,7 +573,7 @@ fn prepare(eds: &Eds, a: &WriteArgs) -> Result<(Entry, Value, Vec<u8>)> {
             );
         }
         check_limits(e, &v)
-            .and_then(|()| super::sdo_rules::precheck(e, &v))
+            .and_then(|()| super::sdo_rules::precheck(e, as_uint(&v)))
             .map_err(|why| {
                 anyhow!(
                     "{}: {why}; nothing was sent (--force sends it anyway)",
@@ -646,13 +646,37 @@ fn link_of(node: &Node) -> String {
 /// that refused `value` ([`super::sdo_rules::range_hint`]), other aborts
 /// as [`explain`].
 fn explain_write(node: &mut Node, e: &Entry, value: &Value, err: ClientError) -> anyhow::Error {
-    match err.abort_code() {
-        Some(0x0609_0030..=0x0609_0032) => {
-            let link = link_of(node);
-            let hint = super::sdo_rules::range_hint(node, e, value, &link);
-            anyhow!("{err}\n  what to do: {hint}")
-        }
-        _ => explain(node, Some(e), err),
+    if !matches!(err.abort_code(), Some(0x0609_0030..=0x0609_0032)) {
+        return explain(node, Some(e), err);
+    }
+    let link = link_of(node);
+    let rule = super::sdo_rules::range_hint(node, e, as_uint(value), &link);
+    let hint = match (rule, e.limits_text(), check_limits(e, value)) {
+        (Some(rule), _, _) => rule,
+        (None, Some(l), Err(_)) => format!("the EDS gives {l}"),
+        (None, Some(l), Ok(())) => format!(
+            "{} is inside the EDS {l}, so the node refused it by a rule the EDS cannot \
+             state (this board's: docs/can.md, object {:#06x}); check the node's manual",
+            show(value),
+            e.index
+        ),
+        (None, None, _) => format!(
+            "the node refused {} by a rule the EDS does not state (this board's: \
+             docs/can.md, object {:#06x}); check the node's manual",
+            show(value),
+            e.index
+        ),
+    };
+    anyhow!("{err}\n  what to do: {hint}")
+}
+
+/// An unsigned integer value, if `v` is one (the board's rules of
+/// `sdo_rules.rs` are about those only).
+fn as_uint(v: &Value) -> Option<u64> {
+    match v {
+        Value::Uint(u) => Some(*u),
+        Value::Int(i) => u64::try_from(*i).ok(),
+        _ => None,
     }
 }
 

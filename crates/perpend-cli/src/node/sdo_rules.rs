@@ -7,14 +7,15 @@
 //! `perpend node sdo write` checks the first two before sending
 //! ([`precheck`]), and when the node refuses a value with 0x06090030..32
 //! the hint says the rule that refused it ([`range_hint`]) instead of
-//! limits the value is inside. A rule applies only to an EDS entry that is
+//! limits the value is inside. Values come in as unsigned integers (the
+//! only kind these rules are about), so that `sdo.rs` imports this file
+//! and not the other way round. A rule applies only to an EDS entry that is
 //! the board's own object (same index, sub-index and name in
 //! [`perpend_can::od`]), so another vendor's EDS gets no perpend rule.
 
 use perpend_board::scan;
 use perpend_can::od::{self, Limits};
 
-use super::sdo::{check_limits, show, Value};
 use super::Node;
 use crate::eds::Entry;
 
@@ -26,22 +27,13 @@ fn board_entry(e: &Entry) -> Option<&'static od::Entry> {
         .filter(|b| b.name == e.name)
 }
 
-/// An unsigned integer value, if `v` is one.
-fn uint(v: &Value) -> Option<u64> {
-    match v {
-        Value::Uint(u) => Some(*u),
-        Value::Int(i) => u64::try_from(*i).ok(),
-        _ => None,
-    }
-}
-
 /// A value inside the EDS limits that the board's own rule for this entry
 /// refuses (not a power of two, not one of the listed values).
 ///
 /// # Errors
 /// The rule, in a sentence naming the values the board takes.
-pub fn precheck(e: &Entry, v: &Value) -> Result<(), String> {
-    let (Some(b), Some(x)) = (board_entry(e), uint(v)) else {
+pub fn precheck(e: &Entry, x: Option<u64>) -> Result<(), String> {
+    let (Some(b), Some(x)) = (board_entry(e), x) else {
         return Ok(());
     };
     match b.limits {
@@ -99,32 +91,13 @@ fn scan_rule(node: &mut Node, e: &Entry, x: u64, link: &str) -> Option<String> {
     }
 }
 
-/// What to do after the node refused `v` for `e` with a value-range abort
-/// (0x06090030..32): the board's rule that refused it when known, else
-/// the EDS limits when `v` is outside them, else that the node has a rule
-/// the EDS cannot state.
-pub fn range_hint(node: &mut Node, e: &Entry, v: &Value, link: &str) -> String {
-    if let Some(h) = uint(v).and_then(|x| scan_rule(node, e, x, link)) {
-        return h;
-    }
-    if let Err(rule) = precheck(e, v) {
-        return rule;
-    }
-    match (e.limits_text(), check_limits(e, v)) {
-        (Some(l), Err(_)) => format!("the EDS gives {l}"),
-        (Some(l), Ok(())) => format!(
-            "{} is inside the EDS {l}, so the node refused it by a rule the EDS cannot \
-             state (this board's: docs/can.md, object {:#06x}); check the node's manual",
-            show(v),
-            e.index
-        ),
-        (None, _) => format!(
-            "the node refused {} by a rule the EDS does not state (this board's: \
-             docs/can.md, object {:#06x}); check the node's manual",
-            show(v),
-            e.index
-        ),
-    }
+/// What to do after the node refused the unsigned value `x` for `e`
+/// with a value-range abort (0x06090030..32): the board's rule that
+/// refused it, `None` when no rule of the board's explains it (the
+/// caller then speaks of the EDS limits).
+pub fn range_hint(node: &mut Node, e: &Entry, x: Option<u64>, link: &str) -> Option<String> {
+    let x = x?;
+    scan_rule(node, e, x, link).or_else(|| precheck(e, Some(x)).err())
 }
 
 #[cfg(test)]
@@ -140,20 +113,17 @@ mod tests {
     #[test]
     fn oversampling_must_be_a_power_of_two_inside_the_eds_limits() {
         let e = entry(0x2300, 2);
-        assert!(
-            check_limits(&e, &Value::Uint(3)).is_ok(),
-            "3 is inside 1..256"
-        );
-        let why = precheck(&e, &Value::Uint(3)).unwrap_err();
+        let why = precheck(&e, Some(3)).unwrap_err();
         assert!(why.contains("not a power of two"), "{why}");
         assert!(why.contains("1, 2, 4, 8, 16, 32, 64, 128, 256"), "{why}");
-        assert!(precheck(&e, &Value::Uint(256)).is_ok());
+        assert!(precheck(&e, Some(256)).is_ok());
+        assert!(precheck(&e, None).is_ok(), "not an integer: no rule");
     }
 
     #[test]
     fn another_vendors_entry_gets_no_board_rule() {
         let mut e = entry(0x2300, 2);
         e.name = "Something else".into();
-        assert!(precheck(&e, &Value::Uint(3)).is_ok());
+        assert!(precheck(&e, Some(3)).is_ok());
     }
 }
