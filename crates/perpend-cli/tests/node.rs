@@ -603,3 +603,28 @@ fn node_id_ff_is_refused_with_the_way_to_lss() {
         "{err}"
     );
 }
+
+/// Issue 47, a newcomer's pass: a mistake of the command line (a
+/// --node-id the command refuses, a file that is not there) is named
+/// before the bus is opened, not hidden behind an unreachable bus.
+#[test]
+fn command_line_mistakes_come_before_the_bus() {
+    let run = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
+            .args(["node", "--bus", "tcp:127.0.0.1:9", "--node-id", "3"])
+            .args(args)
+            .output()
+            .unwrap();
+        failed(&out)
+    };
+    let e = run(&["lss", "scan"]);
+    assert!(
+        e.contains("leave out --node-id 3") && !e.contains("cannot open"),
+        "{e}"
+    );
+    let e = run(&["update", "/nonexistent/fw.signed.bin"]);
+    assert!(
+        e.contains("cannot read /nonexistent/fw.signed.bin") && !e.contains("cannot open"),
+        "{e}"
+    );
+}

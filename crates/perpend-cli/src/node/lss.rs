@@ -167,6 +167,14 @@ pub fn perpend_identity(serial: u32) -> Identity {
 /// # Errors
 /// Everything that went wrong, in sentences.
 pub fn run(link: &LinkArgs, a: &Args, cancel: &AtomicBool) -> Result<()> {
+    // a --node-id the command refuses is said before the bus is opened
+    if let (Some(n), Cmd::Scan(_) | Cmd::ActivateBitrate(_)) = (link.node_id, &a.cmd) {
+        let what = match a.cmd {
+            Cmd::Scan(_) => "lss scan addresses every non-configured node on the bus",
+            _ => "lss activate-bitrate switches every node on the bus",
+        };
+        bail!("{what}: leave out --node-id {n}");
+    }
     let mut c = link.client()?;
     let r = match &a.cmd {
         Cmd::Scan(x) => scan(&mut c, link, x, cancel),

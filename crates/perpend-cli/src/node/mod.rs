@@ -350,9 +350,13 @@ pub fn run(a: &Args) -> Result<()> {
     if let Cmd::Lss(x) = &a.cmd {
         return lss::run(&a.link, x, cancel);
     }
-    // A file that is not a params.json is named before the bus is opened.
+    // A file that is not a params.json, or not a signed image, is named
+    // before the bus is opened.
     if let Cmd::Push(x) = &a.cmd {
         filetype::check_params(&x.file)?;
+    }
+    if let Cmd::Update(x) = &a.cmd {
+        update::check_file(&x.file)?;
     }
     let mut node = Node::connect(&a.link)?;
     match &a.cmd {

@@ -63,7 +63,7 @@ impl Args {
 pub enum SdoCmd {
     /// Read one object (upload) and show it in its EDS type, unit and limits.
     Read(ReadArgs),
-    /// Write one object (download) after checking type, access and limits; read it back.
+    /// Write one object (download) after checking type, access, limits and the node's identity; read it back.
     Write(WriteArgs),
     /// The EDS's entries: names, types, access, limits, units (no bus needed;
     /// with --bus and --node-id, also whether it is that node's EDS).

@@ -109,6 +109,18 @@ fn file_intact(img: &[u8], id: &Identity, file: &str) -> Result<()> {
     Ok(())
 }
 
+/// The checks of the file alone (readable, signed, unchanged since
+/// signing), so that a wrong file is named before the bus is opened.
+///
+/// # Errors
+/// The file's first problem, in a sentence.
+pub fn check_file(path: &std::path::Path) -> Result<()> {
+    let file = path.display().to_string();
+    let img = std::fs::read(path).with_context(|| format!("cannot read {file}"))?;
+    let id = file_identity(&img, &file)?;
+    file_intact(&img, &id, &file)
+}
+
 /// Checks the board is pre-operational (by its heartbeat).
 fn check_preop(node: &mut Node) -> Result<()> {
     let hb = node.heartbeat_ms()?;
