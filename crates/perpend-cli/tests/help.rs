@@ -123,13 +123,14 @@ fn options(h: &str) -> Vec<String> {
 }
 
 /// Whether the command `path` reads the option `opt` it inherits from its
-/// parent: the link options only `node`'s commands and `cell run` read,
+/// parent: the link options only `node`'s commands, `cell run` and
+/// `cell check` (the lead's interim check, on main) read,
 /// `--eds` only `node sdo`'s, `--quiet` every command (`main.rs`).
 fn reads(path: &[String], opt: &str) -> bool {
     let p: Vec<&str> = path.iter().map(String::as_str).collect();
     match opt {
         "--bus" | "--node-id" | "--bitrate" | "--timeout-ms" => {
-            p.first() == Some(&"node") || p == ["cell", "run"]
+            p.first() == Some(&"node") || p == ["cell", "run"] || p == ["cell", "check"]
         }
         "--eds" => p.starts_with(&["node", "sdo"]),
         _ => true,
