@@ -36,16 +36,12 @@ import concurrent.futures as cf
 import json
 import math
 import os
-import subprocess
 import sys
-import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 import gen  # noqa: E402
-
-BASE = {"sigma_mm": 0.01, "declared": 1.0, "tracker_factor": 1.0,
-        "spread_deg": 5.0, "poses": 60}
+from cases import ACCEPT, BASE, noise_scale, run_one  # noqa: E402,F401
 
 # one factor at a time around the base regime
 REGIMES = [
@@ -92,36 +88,11 @@ SINGLES = ["gain", "linearity_s", "linearity_cubic", "incidence_tan", "incidence
 PAIRS = [("gain", "thermal_lag"), ("gain", "drift_settle"), ("crosstalk", "gain"),
          ("incidence_tan", "gain")]
 
-# what a right answer names, per generated effect
-ACCEPT = {
-    # the linearity error has two forms: a polynomial and a spline table
-    "gain": {"gain", "nonlinearity", "linearity_table"},
-    "linearity_s": {"nonlinearity", "linearity_table"},
-    "linearity_cubic": {"nonlinearity", "linearity_table"},
-    "incidence_tan": {"incidence"},
-    "incidence_sec": {"incidence"},
-    "crosstalk": {"crosstalk"},
-    # monotonic temperature: time-like effects, thermal and drift both fit
-    "thermal_lag": {"thermal", "drift"},
-    "drift_settle": {"drift", "thermal"},
-    # off the catalogue: the physics each shape belongs to
-    "linearity_knee": {"nonlinearity", "linearity_table"},
-    "thermal_lag2": {"thermal", "drift"},
-    "crosstalk_sq": {"crosstalk"},
-}
-
-
 # An effect is graded when what the paper's model cannot absorb of it is at
 # least this many times the visible noise (the 50 % detection limit of the
 # base regime is about 0.5: see the limit rows); a smaller one, capped by
 # the physical bounds of gen.py, is reported as `small`, not graded.
 VISIBLE_MIN = 1.0
-
-
-def noise_scale(case):
-    """The visible noise of a reading [mm]: reading noise and the tracker's
-    share at the spots (about 6.5 um at xi = 0.02 mm, 20 points, 150 mm)."""
-    return math.hypot(case["sigma_mm"], 0.0065 * case["tracker_factor"])
 
 
 def make_case(regime, truth, seed, size_sigma, geometry):
@@ -143,21 +114,6 @@ def make_case(regime, truth, seed, size_sigma, geometry):
     else:
         case["effects"] = [[truth, s]]
     return case
-
-
-def run_one(args):
-    perpend, case = args
-    with tempfile.TemporaryDirectory() as d:
-        gen.write(case, d)
-        p = subprocess.run(
-            [perpend, "--quiet", "diagnose", "--sensors", os.path.join(d, "sensors.csv"),
-             "--poses", os.path.join(d, "poses.csv"), "--json"],
-            capture_output=True, text=True, timeout=120)
-        with open(os.path.join(d, "truth.json")) as f:
-            truth = json.load(f)
-    if p.returncode != 0:
-        return {"case": case, "error": p.stdout.strip() or p.stderr.strip()}
-    return {"case": case, "out": json.loads(p.stdout), "truth": truth}
 
 
 def same_draw_residuals(r):

@@ -43,11 +43,11 @@ import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-import score  # noqa: E402
+import cases  # noqa: E402
 
 V3_SEEDS = 3000000
 
-# regime name -> factors changed from score.BASE
+# regime name -> factors changed from cases.BASE
 V3_REGIMES = {
     "base": {},
     "spread 15 deg": {"spread_deg": 15.0},
@@ -74,14 +74,14 @@ COST_MIN = 1.3
 
 
 def make_v3_case(regime, kinds, seed, size_sigma, geometry):
-    """One v3 run: the regime's factors on score.BASE, every effect in
+    """One v3 run: the regime's factors on cases.BASE, every effect in
     `kinds` at `size_sigma` times the visible noise, its normal cost
     computed by gen.py."""
-    case = dict(score.BASE)
+    case = dict(cases.BASE)
     case.update(V3_REGIMES[regime])
     case.update({"seed": seed, "geometry": geometry, "effects": [], "blunders": 0,
                  "shuffle": seed % 3 == 0, "normal_cost": True})
-    s = score.noise_scale(case) * size_sigma
+    s = cases.noise_scale(case) * size_sigma
     case["effects"] = [[k, s] for k in kinds]
     return case
 
@@ -113,7 +113,7 @@ def named_right(name, out):
     if name.startswith("incidence spot"):
         return "incidence" in named
     if name.startswith("gain, two sensors"):
-        return bool(named & score.ACCEPT["gain"])
+        return bool(named & cases.ACCEPT["gain"])
     if name == "drift + warm-up, plateau":
         return {"drift", "thermal"} <= named
     if name == "drift + warm-up, no plateau":
@@ -276,7 +276,7 @@ def main(argv=None):
         keep = only_cases(a.only)
         jobs = [j for j in jobs if j[0] in keep]
     with cf.ThreadPoolExecutor(max(1, a.jobs)) as ex:
-        outs = list(ex.map(score.run_one, [(a.perpend, j[3]) for j in jobs]))
+        outs = list(ex.map(cases.run_one, [(a.perpend, j[3]) for j in jobs]))
     rows = [grade(j, r) for j, r in zip(jobs, outs)]
     if a.runs:
         with open(a.runs, "w") as f:

@@ -1,4 +1,6 @@
-//! No two source files of the workspace import each other.
+//! No two source files of the workspace import each other: the Rust
+//! crates, and the Python of `host-tests/blind/` (issue 47: `score.py`
+//! and `v3.py` were the last pair).
 //!
 //! What *imports* means, and the limits of the lexical scan that finds
 //! it, are in `common/mod.rs` (shared with `diagnose_stages.rs`). A pair
@@ -169,4 +171,95 @@ fn print_importers() {
             eprintln!("{} -> {}", a.display(), into.to_string_lossy());
         }
     }
+}
+
+/// The sibling modules a Python file imports (`import a, b`, `from a
+/// import x`, also indented ones inside functions), outside triple-quoted
+/// strings and `#` comments. `siblings`: the module names of its directory.
+fn python_imports(src: &str, siblings: &BTreeSet<String>) -> BTreeSet<String> {
+    let mut out = BTreeSet::new();
+    let mut in_string = false;
+    for line in src.lines() {
+        let quotes = line.matches("\"\"\"").count();
+        let was = in_string;
+        if quotes % 2 == 1 {
+            in_string = !in_string;
+        }
+        if was || quotes > 0 {
+            continue;
+        }
+        let code = line.split('#').next().unwrap_or("").trim();
+        let names: Vec<&str> = if let Some(rest) = code.strip_prefix("import ") {
+            rest.split(',')
+                .filter_map(|n| n.split_whitespace().next())
+                .collect()
+        } else if let Some(rest) = code.strip_prefix("from ") {
+            match rest.split_once(" import ") {
+                Some((m, _)) => vec![m.trim()],
+                None => vec![],
+            }
+        } else {
+            vec![]
+        };
+        for n in names {
+            let top = n.split('.').next().unwrap_or(n);
+            if siblings.contains(top) {
+                out.insert(top.to_string());
+            }
+        }
+    }
+    out
+}
+
+/// The import graph of the Python files of one directory.
+fn python_graph(dir: &Path) -> Graph {
+    let files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "py"))
+        .collect();
+    let stem = |p: &Path| p.file_stem().unwrap().to_string_lossy().into_owned();
+    let siblings: BTreeSet<String> = files.iter().map(|p| stem(p)).collect();
+    let mut g = Graph::new();
+    for f in &files {
+        let src = std::fs::read_to_string(f).unwrap();
+        let to = python_imports(&src, &siblings)
+            .into_iter()
+            .filter(|m| *m != stem(f))
+            .map(|m| PathBuf::from(format!("{m}.py")))
+            .collect();
+        g.insert(PathBuf::from(format!("{}.py", stem(f))), to);
+    }
+    g
+}
+
+/// No import circle among the Python files of `host-tests/blind/` (a
+/// pair or longer): each can be read after the ones it imports.
+#[test]
+fn no_python_file_of_blind_imports_in_a_circle() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("blind");
+    let g = python_graph(&dir);
+    assert!(
+        g.len() >= 8 && g.get(Path::new("score.py")).is_some_and(|t| !t.is_empty()),
+        "the scan found {} files: it is broken",
+        g.len()
+    );
+    let c = cycles(&g);
+    assert!(
+        c.is_empty(),
+        "host-tests/blind: files that import each other (in a circle): {c:?}; move what they \
+         share into a module of its own"
+    );
+}
+
+/// The Python scan sees `import a, b`, `from a import x` and an import
+/// inside a function, and skips docstrings, comments and other modules.
+#[test]
+fn the_python_scan_sees_imports_and_skips_docstrings() {
+    let sib: BTreeSet<String> = ["a", "b", "c", "d"].iter().map(|s| s.to_string()).collect();
+    let src = "\"\"\"Doc\nimport d\n\"\"\"\nimport os, a  # noqa\nfrom b import x\n\
+               def f():\n    import c\n# import d\n";
+    let got = python_imports(src, &sib);
+    let want: BTreeSet<String> = ["a", "b", "c"].iter().map(|s| s.to_string()).collect();
+    assert_eq!(got, want);
 }

@@ -267,6 +267,10 @@ pub struct Eds {
     pub entries: BTreeMap<(u16, u8), Entry>,
     /// Each object's name.
     pub objects: BTreeMap<u16, String>,
+    /// `[DeviceInfo] VendorNumber` (0x1018 sub 1 of the device it describes).
+    pub vendor: Option<u32>,
+    /// `[DeviceInfo] ProductNumber` (0x1018 sub 2).
+    pub product: Option<u32>,
 }
 
 /// A malformed EDS: which file, which line, what.
@@ -343,7 +347,18 @@ impl Eds {
             file: file.to_string(),
             entries: BTreeMap::new(),
             objects: BTreeMap::new(),
+            vendor: None,
+            product: None,
         };
+        if let Some(d) = ini.section("DeviceInfo") {
+            let num = |k: &str| {
+                d.get(k)
+                    .and_then(|k| parse_int(&k.value))
+                    .and_then(|v| u32::try_from(v).ok())
+            };
+            eds.vendor = num("VendorNumber");
+            eds.product = num("ProductNumber");
+        }
         let mut any = false;
         for list in ["MandatoryObjects", "OptionalObjects", "ManufacturerObjects"] {
             if let Some(s) = ini.section(list) {

@@ -16,6 +16,7 @@ pub mod demo;
 pub mod eds;
 pub mod node;
 pub mod pipe;
+pub mod progress;
 pub mod record;
 pub mod record_cert;
 pub mod record_fmt;

@@ -112,3 +112,52 @@ fn a_bad_node_id_is_refused_in_either_position() {
         assert!(e.contains("node-id"), "{args:?}: {e}");
     }
 }
+
+/// Issue 47 point 7, the change `cell.rs` needs: a subcommand that
+/// flattens [`node::NoLink`] under a parent with global link options
+/// neither lists them in its help nor takes them after its name; the
+/// sibling that reads the link still takes them in either position.
+#[test]
+fn no_link_keeps_a_parents_link_options_out_of_a_subcommand() {
+    #[derive(clap::Subcommand, Debug)]
+    enum Sub {
+        Run,
+        Offline(Offline),
+    }
+    #[derive(clap::Args, Debug)]
+    struct Offline {
+        #[arg(long)]
+        out: String,
+        #[command(flatten)]
+        _no_link: node::NoLink,
+    }
+    #[derive(Parser, Debug)]
+    struct Top {
+        #[command(flatten)]
+        link: node::LinkArgs,
+        #[command(subcommand)]
+        cmd: Sub,
+    }
+    let mut cmd = <Top as clap::CommandFactory>::command();
+    cmd.build();
+    let off = cmd.find_subcommand_mut("offline").unwrap();
+    let help = off.render_long_help().to_string();
+    assert!(
+        !help.contains("--bus") && !help.contains("--node-id"),
+        "{help}"
+    );
+    let e = Top::try_parse_from(["t", "offline", "--out", "o", "--bus", "tcp:x:1"])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("opens no bus"), "{e}");
+    let t = Top::try_parse_from(["t", "offline", "--out", "o"]).unwrap();
+    assert!(matches!(t.cmd, Sub::Offline(_)));
+    for args in [
+        vec!["t", "--bus", "tcp:x:1", "--node-id", "5", "run"],
+        vec!["t", "run", "--bus", "tcp:x:1", "--node-id", "5"],
+    ] {
+        let t = Top::try_parse_from(&args).unwrap();
+        assert_eq!(t.link.bus.as_deref(), Some("tcp:x:1"), "{args:?}");
+        assert_eq!(t.link.node_id, Some(5), "{args:?}");
+    }
+}

@@ -549,3 +549,82 @@ fn ctrl_c_appends_nothing_and_leaves_the_board_as_found() {
         serde_json::from_str(ok(&b.node(&["info", "--json"])).trim()).unwrap();
     assert_eq!(v["nmt_state"], "pre-operational");
 }
+
+/// Issue 47 point 6: the summary counts the rows it printed apart from
+/// the rows it received (printing is limited to five a second), and each
+/// count is true: the printed lines, the CSV's rows.
+#[test]
+fn monitor_summary_counts_what_it_printed_and_what_it_logged() {
+    let b = Board::start(&[]);
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("live.csv");
+    let args = ["monitor", "--start", "--seconds", "2", "--sync-hz", "10"];
+    let out = b.node(&[&args[..], &["--csv", csv.to_str().unwrap()]].concat());
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    let printed = stdout.lines().filter(|l| l.starts_with("t ")).count();
+    let logged = std::fs::read_to_string(&csv).unwrap().lines().count() - 1;
+    let summary = stderr
+        .lines()
+        .find(|l| l.starts_with("monitor: "))
+        .unwrap_or_else(|| panic!("no summary: {stderr}"));
+    let want = if printed == logged {
+        format!("monitor: {logged} rows, all shown")
+    } else {
+        format!("monitor: {logged} rows, {printed} shown (at most 5 a second; every row in")
+    };
+    assert!(summary.starts_with(&want), "{summary} vs {want}");
+    assert!(
+        printed < logged,
+        "10 Hz rows, 5 printed a second: {summary}"
+    );
+}
+
+/// Issue 47 point 5: node-id 0xFF (not configured) is refused at once,
+/// with the way to a configured node (LSS), before the bus is opened.
+#[test]
+fn node_id_ff_is_refused_with_the_way_to_lss() {
+    let t = Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
+        .args([
+            "node",
+            "--bus",
+            "tcp:127.0.0.1:9",
+            "--node-id",
+            "0xFF",
+            "info",
+        ])
+        .output()
+        .unwrap();
+    let err = failed(&out);
+    assert!(t.elapsed() < Duration::from_secs(1), "{err}");
+    assert!(
+        err.contains("not configured") && err.contains("lss scan") && err.contains("--assign"),
+        "{err}"
+    );
+}
+
+/// Issue 47, a newcomer's pass: a mistake of the command line (a
+/// --node-id the command refuses, a file that is not there) is named
+/// before the bus is opened, not hidden behind an unreachable bus.
+#[test]
+fn command_line_mistakes_come_before_the_bus() {
+    let run = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_perpend"))
+            .args(["node", "--bus", "tcp:127.0.0.1:9", "--node-id", "3"])
+            .args(args)
+            .output()
+            .unwrap();
+        failed(&out)
+    };
+    let e = run(&["lss", "scan"]);
+    assert!(
+        e.contains("leave out --node-id 3") && !e.contains("cannot open"),
+        "{e}"
+    );
+    let e = run(&["update", "/nonexistent/fw.signed.bin"]);
+    assert!(
+        e.contains("cannot read /nonexistent/fw.signed.bin") && !e.contains("cannot open"),
+        "{e}"
+    );
+}

@@ -176,3 +176,94 @@ fn sdo_read_and_write_the_virtual_board() {
     let err = failed(&b.node(&["sdo", "read", "0x3000", "0"]));
     assert!(err.contains("abort 0x06020000"), "{err}");
 }
+
+/// Issue 47 point 1: oversampling 3 and 256 are inside the EDS limits
+/// 1..256; the refusal says the rule that refuses them (a power of two;
+/// one scan must fit into the sample period), never the limits.
+#[test]
+fn a_refused_value_inside_the_eds_limits_names_the_real_rule() {
+    let b = Board::start();
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "2", "3"]));
+    assert!(
+        err.contains("3 is not a power of two")
+            && err.contains("1, 2, 4, 8, 16, 32, 64, 128, 256")
+            && err.contains("nothing was sent"),
+        "{err}"
+    );
+    // the node's own abort of 3 (--force) says the same rule
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "2", "3", "--force"]));
+    assert!(
+        err.contains("abort 0x0609003") && err.contains("not a power of two"),
+        "{err}"
+    );
+    // 256× needs a 3012 µs period; the factory period is 1000 µs
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "2", "256"]));
+    assert!(
+        err.contains("abort 0x06090030")
+            && err.contains("3012 µs")
+            && err.contains("sample period of 1000 µs")
+            && err.contains("sdo write 0x2300 1 3012"),
+        "{err}"
+    );
+    assert!(!err.contains("the EDS gives"), "{err}");
+    let err = failed(&b.node(&["sdo", "write", "0x2300", "1", "100"]));
+    assert!(
+        err.contains("shorter than one ADC scan at the present 16× oversampling"),
+        "{err}"
+    );
+    // the order the hint gives works
+    ok(&b.node(&["sdo", "write", "0x2300", "1", "3012"]));
+    ok(&b.node(&["sdo", "write", "0x2300", "2", "256"]));
+}
+
+/// Issue 47 point 3: an EDS of another device (its VendorNumber and
+/// ProductNumber are not the node's 0x1018) is named in one warning line
+/// before a read, and stops a write before anything is sent.
+#[test]
+fn an_eds_of_another_device_is_named_before_the_first_transfer() {
+    let b = Board::start();
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("other.eds");
+    let other = COMMITTED
+        .replace("VendorNumber=0xAFFF5050", "VendorNumber=0x00000123")
+        .replace("ProductNumber=0x50455250", "ProductNumber=0x00000456");
+    std::fs::write(&p, other).unwrap();
+    let eds = p.to_str().unwrap();
+    let out = b.node(&["sdo", "read", "0x1017", "0", "--eds", eds]);
+    let (_, err) = support::text(&out);
+    assert!(out.status.success(), "{err}");
+    let warn: Vec<&str> = err.lines().filter(|l| l.contains("warning")).collect();
+    assert_eq!(warn.len(), 1, "{err}");
+    assert!(
+        warn[0].contains("vendor 0xafff5050 product 0x50455250")
+            && warn[0].contains("vendor 0x00000123 product 0x00000456")
+            && warn[0].contains("--eds"),
+        "{err}"
+    );
+    let err = failed(&b.node(&["sdo", "write", "0x1017", "0", "300", "--eds", eds]));
+    assert!(
+        err.contains("product 0x00000456") && err.contains("Nothing was sent"),
+        "{err}"
+    );
+    assert!(ok(&b.node(&["sdo", "read", "0x1017", "0"])).contains("= 1000"));
+    // `sdo list` with a link reads it: the same check
+    let out = b.node(&["sdo", "list", "0x1017", "--eds", eds]);
+    let (_, err) = support::text(&out);
+    assert!(
+        out.status.success() && err.contains("warning:") && err.contains("0x00000456"),
+        "{err}"
+    );
+    let out = b.node(&["sdo", "list", "0x1017"]);
+    assert!(
+        support::text(&out).1.contains("agrees with its identity"),
+        "{:?}",
+        support::text(&out)
+    );
+    // the board's own EDS: no warning
+    let out = b.node(&["sdo", "read", "0x1017", "0"]);
+    assert!(
+        support::text(&out).1.is_empty(),
+        "{:?}",
+        support::text(&out)
+    );
+}

@@ -185,12 +185,31 @@ fn a_wrong_signature_is_refused_by_the_board() {
     let vb = board(&[]);
     let stranger = image_file("stranger", 3000, PRODUCT, version(2, 0, 0), &[5u8; 32]);
     let rec = refused(&vb, &stranger, "signature does not verify");
+    let cause = rec.as_ref().unwrap()["cause"].as_str().unwrap().to_string();
+    assert!(cause.contains("signed with another key"), "{cause}");
     assert_eq!(outcome(rec), "refused");
+    // issue 47 point 4: a flipped payload byte is named as a change after
+    // signing (not sent to the key), before anything is written
     let file = image_file("flipped", 3000, PRODUCT, version(2, 0, 0), &TEST_SEED);
     let mut bytes = std::fs::read(&file).unwrap();
     bytes[100] ^= 1;
-    std::fs::write(&file, bytes).unwrap();
-    refused(&vb, &file, "keeps running its present image");
+    std::fs::write(&file, &bytes).unwrap();
+    let rec = refused(&vb, &file, "was changed after it was signed");
+    assert!(rec.is_none(), "nothing reached the board: no record");
+    // a flipped signature byte reaches the board, which refuses it; its
+    // EMCY in `node status` carries the 0x1F57 reason
+    bytes[100] ^= 1;
+    let n = bytes.len();
+    bytes[n - 1] ^= 1;
+    std::fs::write(&file, &bytes).unwrap();
+    refused(&vb, &file, "its signature was changed after signing");
+    let st = ok(&node(&vb, &["status"]));
+    assert!(
+        st.contains("0x6200")
+            && st.contains("firmware image refused: the signature does not verify"),
+        "{st}"
+    );
+    assert!(!st.contains("device software error"), "{st}");
     // Unsigned: refused before anything is sent.
     let raw = std::env::temp_dir().join(format!("perpend-update-{}-raw", std::process::id()));
     std::fs::write(&raw, [0u8; 500]).unwrap();
@@ -251,4 +270,33 @@ fn losing_the_client_mid_download_leaves_the_old_image() {
     let again = image_file("again", 2000, PRODUCT, version(4, 0, 1), &TEST_SEED);
     let out = ok(&update(&vb, &again));
     assert!(out.contains("to 4.0.1"), "{out}");
+}
+
+/// Issue 47 point 10: docs/can.md describes the program store the
+/// firmware has (the DFU partition since issue 34), not the refusing
+/// `NoProgram` as the MCU's store.
+#[test]
+fn docs_can_names_the_mcus_program_store() {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
+    let fw = std::fs::read_to_string(format!("{root}/src/update.rs")).unwrap();
+    assert!(
+        fw.contains("DfuProgram::new"),
+        "the firmware's store changed"
+    );
+    let doc = std::fs::read_to_string(format!("{root}/docs/can.md")).unwrap();
+    let para = doc
+        .split("\n\n")
+        .find(|p| p.starts_with("**Program download (CiA 302-3).**"))
+        .unwrap();
+    let para = para.split_whitespace().collect::<Vec<_>>().join(" ");
+    assert!(
+        para.contains("on the MCU the embassy-boot DFU partition"),
+        "{para}"
+    );
+    assert!(para.contains("DfuProgram"), "{para}");
+    assert!(!para.contains("none on the MCU"), "{para}");
+    assert!(
+        !para.contains("until the embassy-boot DFU partition is wired in"),
+        "{para}"
+    );
 }

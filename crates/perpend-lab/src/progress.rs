@@ -16,6 +16,11 @@ pub fn set_quiet(quiet: bool) {
     QUIET.store(quiet, Ordering::Relaxed);
 }
 
+/// Whether every progress output is off (`perpend --quiet`).
+pub fn quiet() -> bool {
+    QUIET.load(Ordering::Relaxed)
+}
+
 /// A bar counting `len` units of work, or nothing when quiet.
 #[derive(Debug)]
 pub struct Progress(Option<ProgressBar>);

@@ -137,8 +137,8 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Serial number of the board (0x1018 sub 4), decimal or 0x hex;
-    /// default: derived from --seed like the firmware folds the MCU UID
-    /// ([`node::serial_for_seed`]). Repeated: one board per serial, all
+    /// default: derived from --seed the way the firmware folds the MCU's
+    /// unique ID (FNV-1a to 32 bits). Repeated: one board per serial, all
     /// on one virtual bus (a cell), each with the other options.
     /// `S:NODEID`: this board's node-id instead of --node-id.
     #[arg(long, value_name = "S[:NODEID]")]

@@ -659,11 +659,25 @@ impl Client {
         expect: Option<&Identity>,
         max: usize,
     ) -> Result<Vec<Identity>, LssError> {
+        self.lss_list_non_configured_with(expect, max, &mut |_| {})
+    }
+
+    /// [`Client::lss_list_non_configured`], calling `found(n)` each time
+    /// the listing has found its n-th node (for a progress line).
+    ///
+    /// # Errors
+    /// As [`Client::lss_fastscan`].
+    pub fn lss_list_non_configured_with(
+        &mut self,
+        expect: Option<&Identity>,
+        max: usize,
+        found: &mut dyn FnMut(usize),
+    ) -> Result<Vec<Identity>, LssError> {
         let mut tries = 0;
         loop {
             tries += 1;
             self.lss_switch_global(LssState::Waiting)?;
-            let r = self.list_once(expect, max);
+            let r = self.list_once(expect, max, found);
             self.lss_switch_global(LssState::Waiting)?;
             match r {
                 Err(LssError::NoAnswer { .. }) if tries < FASTSCAN_TRIES => self.lss_settle()?,
@@ -676,6 +690,7 @@ impl Client {
         &mut self,
         expect: Option<&Identity>,
         max: usize,
+        on_found: &mut dyn FnMut(usize),
     ) -> Result<Vec<Identity>, LssError> {
         let mut found = Vec::new();
         while found.len() < max {
@@ -683,6 +698,7 @@ impl Client {
                 Some(id) => found.push(id),
                 None => break,
             }
+            on_found(found.len());
         }
         Ok(found)
     }

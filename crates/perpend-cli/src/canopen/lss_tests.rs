@@ -226,6 +226,13 @@ fn fastscan_lists_every_non_configured_node_smallest_first() {
     sorted.sort_unstable();
     assert_eq!(again, sorted, "without expectations: plain smallest first");
     assert_eq!(c.lss_list_non_configured(None, 2).unwrap().len(), 2);
+    // issue 47 point 2: the progress line hears of every node found
+    let mut heard = Vec::new();
+    let n = c
+        .lss_list_non_configured_with(None, 127, &mut |k| heard.push(k))
+        .unwrap()
+        .len();
+    assert_eq!(heard, (1..=n).collect::<Vec<_>>());
 }
 
 #[test]

@@ -299,7 +299,7 @@ pub fn status(node: &mut Node, a: &InfoArgs) -> Result<()> {
             .iter()
             .enumerate()
             .map(|(k, (code, info))| {
-                json!({"code": code, "info": info, "text": words::emcy_words(*code),
+                json!({"code": code, "info": info, "text": words::emcy_text(*code, *info),
                        "at_s": age(k).map(|x| x.0), "age_s": age(k).map(|x| x.1)})
             })
             .collect();
@@ -338,14 +338,14 @@ fn print_history(errors: &[(u16, u16)], times: Option<&(u32, Vec<u32>)>) {
             println!("last emergencies (0x1003, newest first; this firmware records no times):")
         }
     }
-    for (k, (code, _)) in errors.iter().enumerate() {
+    for (k, (code, info)) in errors.iter().enumerate() {
         match times {
             Some((up, at)) => println!(
                 "  {code:#06x}  {:>14}  {}",
                 format!("{} ago", age_words(up.saturating_sub(at[k]))),
-                words::emcy_words(*code)
+                words::emcy_text(*code, *info)
             ),
-            None => println!("  {code:#06x}  {}", words::emcy_words(*code)),
+            None => println!("  {code:#06x}  {}", words::emcy_text(*code, *info)),
         }
     }
 }

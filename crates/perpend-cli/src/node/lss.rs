@@ -167,6 +167,14 @@ pub fn perpend_identity(serial: u32) -> Identity {
 /// # Errors
 /// Everything that went wrong, in sentences.
 pub fn run(link: &LinkArgs, a: &Args, cancel: &AtomicBool) -> Result<()> {
+    // a --node-id the command refuses is said before the bus is opened
+    if let (Some(n), Cmd::Scan(_) | Cmd::ActivateBitrate(_)) = (link.node_id, &a.cmd) {
+        let what = match a.cmd {
+            Cmd::Scan(_) => "lss scan addresses every non-configured node on the bus",
+            _ => "lss activate-bitrate switches every node on the bus",
+        };
+        bail!("{what}: leave out --node-id {n}");
+    }
     let mut c = link.client()?;
     let r = match &a.cmd {
         Cmd::Scan(x) => scan(&mut c, link, x, cancel),
@@ -282,15 +290,20 @@ fn scan(c: &mut Client, link: &LinkArgs, a: &ScanArgs, cancel: &AtomicBool) -> R
         bail!("lss scan addresses every non-configured node on the bus: leave out --node-id {n}");
     }
     let expect = perpend_identity(0);
+    let bus = c.bus_name().to_string();
+    // about 2.3 s a node at the default timeout: a line on a terminal
+    let ticker = crate::progress::Ticker::start(&format!("lss scan of {bus}"));
     let found: Vec<(Identity, Option<u8>)> = match a.assign {
         None => c
-            .lss_list_non_configured(Some(&expect), 127)?
+            .lss_list_non_configured_with(Some(&expect), 127, &mut |n| {
+                ticker.note(format!("{n} non-configured node(s) found"));
+            })?
             .into_iter()
             .map(|i| (i, None))
             .collect(),
-        Some(first) => assign(c, first, a.store, cancel)?,
+        Some(first) => assign(c, first, a.store, cancel, &ticker)?,
     };
-    let bus = c.bus_name().to_string();
+    drop(ticker);
     if a.json {
         let nodes: Vec<_> = found
             .iter()
@@ -339,6 +352,7 @@ fn assign(
     first: u8,
     store: bool,
     cancel: &AtomicBool,
+    ticker: &crate::progress::Ticker,
 ) -> Result<Vec<(Identity, Option<u8>)>> {
     if first == UNCONFIGURED {
         bail!("--assign {first}: the first node-id must be 1..127");
@@ -372,6 +386,7 @@ fn assign(
             )
         })?;
         done.push((id, Some(n)));
+        ticker.note(format!("{} node(s) given node-ids", done.len()));
         from = n.saturating_add(1);
     }
     if cancel.load(Ordering::SeqCst) {

@@ -44,6 +44,7 @@ pub mod monitor;
 pub mod params;
 pub mod pdo;
 pub mod sdo;
+pub mod sdo_rules;
 pub mod update;
 pub mod update_record;
 pub mod words;
@@ -109,12 +110,19 @@ impl LinkArgs {
         }
     }
 
-    /// The node-id, or the sentence that says it is missing.
+    /// The node-id of a configured node, or the sentence that says it is
+    /// missing (or is 0xFF, which only LSS can address).
     ///
     /// # Errors
-    /// `--node-id` not given.
+    /// `--node-id` not given, or 0xFF.
     pub fn node_id(&self) -> Result<u8> {
         match self.node_id {
+            Some(perpend_can::lss::UNCONFIGURED) => bail!(
+                "node-id 0xFF means \"not configured\": such a node answers no SDO, only LSS. \
+                 Find it with `perpend node --bus {bus} lss scan` and give it a node-id with \
+                 `lss scan --assign FIRST --store` (or `lss set-node-id N --serial S`)",
+                bus = self.bus.as_deref().unwrap_or("BUS")
+            ),
             Some(n) => Ok(n),
             None => bail!(
                 "no node-id given: add --node-id N (1..127; `perpend node lss fastscan` \
@@ -137,6 +145,33 @@ impl LinkArgs {
         }
         Ok(client)
     }
+}
+
+/// The link options of a parent's [`LinkArgs`] for a subcommand that
+/// opens no bus (`perpend cell sim-head`): the same ids and types,
+/// hidden and refused with a sentence. Flattened into that subcommand's
+/// arguments, it keeps the parent's global options out of its help (clap
+/// does not propagate a global option to a subcommand that has an
+/// argument of the same id) and refuses them after the subcommand.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct NoLink {
+    /// Refused: this command opens no bus.
+    #[arg(long, hide = true, value_parser = no_link::<String>)]
+    pub bus: Option<String>,
+    /// Refused: this command addresses no node.
+    #[arg(long, hide = true, value_parser = no_link::<u8>)]
+    pub node_id: Option<u8>,
+    /// Refused: this command opens no bus.
+    #[arg(long, hide = true, value_parser = no_link::<u32>)]
+    pub bitrate: Option<u32>,
+    /// Refused: this command opens no bus.
+    #[arg(long, hide = true, value_parser = no_link::<u64>)]
+    pub timeout_ms: Option<u64>,
+}
+
+/// The value parser of [`NoLink`]: every value refused.
+fn no_link<T>(_: &str) -> Result<T, String> {
+    Err("this command opens no bus: leave out --bus, --node-id, --bitrate and --timeout-ms".into())
 }
 
 /// Arguments of `perpend node`.
@@ -307,7 +342,7 @@ pub fn run(a: &Args) -> Result<()> {
     ));
     if let Cmd::Sdo(x) = &a.cmd {
         if x.offline() {
-            return sdo::list(x);
+            return sdo::list(&a.link, x);
         }
     }
     let cancel = &CANCEL;
@@ -315,9 +350,13 @@ pub fn run(a: &Args) -> Result<()> {
     if let Cmd::Lss(x) = &a.cmd {
         return lss::run(&a.link, x, cancel);
     }
-    // A file that is not a params.json is named before the bus is opened.
+    // A file that is not a params.json, or not a signed image, is named
+    // before the bus is opened.
     if let Cmd::Push(x) = &a.cmd {
         filetype::check_params(&x.file)?;
+    }
+    if let Cmd::Update(x) = &a.cmd {
+        update::check_file(&x.file)?;
     }
     let mut node = Node::connect(&a.link)?;
     match &a.cmd {

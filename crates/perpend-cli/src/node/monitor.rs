@@ -90,6 +90,8 @@ struct Rows {
     csv: Option<csv::Writer<std::fs::File>>,
     printed: Option<Instant>,
     count: u64,
+    /// Rows printed (at most five a second, so fewer than `count`).
+    shown: u64,
     last_status: Option<u32>,
 }
 
@@ -172,6 +174,7 @@ impl Rows {
             return;
         }
         self.printed = Some(Instant::now());
+        self.shown += 1;
         let g = |name: &str, p: usize| get(name).map_or("-".into(), |x| format!("{x:.p$}"));
         let d: Vec<String> = (1..=self.sensors)
             .map(|i| g(&format!("d{i}_mm"), 3))
@@ -226,6 +229,20 @@ fn ensure_operational(node: &mut Node, start: bool) -> Result<bool> {
             );
             Ok(false)
         }
+    }
+}
+
+/// The summary's count: the rows received, and how many of them were
+/// printed (at most five a second) and where the others are.
+fn rows_words(count: u64, shown: u64, csv: Option<&std::path::Path>) -> String {
+    let rest = match csv {
+        Some(p) => format!("every row in {}", p.display()),
+        None => "--csv FILE logs every row".into(),
+    };
+    if shown == count {
+        format!("{count} rows, all shown")
+    } else {
+        format!("{count} rows, {shown} shown (at most 5 a second; {rest})")
     }
 }
 
@@ -322,6 +339,7 @@ pub fn run(node: &mut Node, a: &Args, cancel: &AtomicBool) -> Result<()> {
         csv,
         printed: None,
         count: 0,
+        shown: 0,
         last_status: None,
     };
     let r = run_loop(node, &mut rows, a, cancel);
@@ -333,8 +351,8 @@ pub fn run(node: &mut Node, a: &Args, cancel: &AtomicBool) -> Result<()> {
         w.flush().context("writing the CSV log")?;
     }
     eprintln!(
-        "monitor: {} rows in {:.1} s ({}){}",
-        rows.count,
+        "monitor: {} in {:.1} s ({}){}",
+        rows_words(rows.count, rows.shown, a.csv.as_deref()),
         rows.start.elapsed().as_secs_f64(),
         if own {
             format!("SYNC sent by perpend at {} Hz", a.sync_hz)

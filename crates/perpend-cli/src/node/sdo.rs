@@ -5,7 +5,7 @@
 //! ```text
 //! perpend node --bus BUS --node-id N sdo read IDX SUB [--json]
 //! perpend node --bus BUS --node-id N sdo write IDX SUB VALUE [--force] [--json]
-//! perpend node sdo list [IDX] [--json]                    (no bus needed)
+//! perpend node sdo list [IDX] [--json]   (no bus needed; with one, checks 0x1018)
 //! ```
 //!
 //! IDX is `0x2300`, `2300h` or decimal; SUB decimal or `0x` hex. `read`
@@ -15,8 +15,12 @@
 //! floats, strings as text, OCTET_STRING/DOMAIN as hex bytes), refuses
 //! before sending a value outside the EDS limits or an entry that is `ro`
 //! or `const` (`--force` sends anyway), downloads it with the type's size,
-//! reads it back and prints old → new. An abort prints its code, its
-//! sentence ([`crate::canopen::abort::describe`]) and, for the board's
+//! reads it back and prints old → new. Before the first transfer the
+//! node's identity (0x1018 sub 1, 2) is compared with the EDS's
+//! `VendorNumber`/`ProductNumber`: a difference is a one-line warning
+//! for `read`, a refusal for `write` (`--force` writes anyway). An abort
+//! prints its code, its sentence ([`crate::canopen::abort::describe`]),
+//! for a refused value the rule that refused it (`sdo_rules.rs`) and, for the board's
 //! state and lock aborts (0x08000022, 0x08000021, see
 //! [`perpend_can::od::Class`]), the command that clears them.
 //!
@@ -59,9 +63,10 @@ impl Args {
 pub enum SdoCmd {
     /// Read one object (upload) and show it in its EDS type, unit and limits.
     Read(ReadArgs),
-    /// Write one object (download) after checking type, access and limits; read it back.
+    /// Write one object (download) after checking type, access, limits and the node's identity; read it back.
     Write(WriteArgs),
-    /// The EDS's entries: names, types, access, limits, units (no bus needed).
+    /// The EDS's entries: names, types, access, limits, units (no bus needed;
+    /// with --bus and --node-id, also whether it is that node's EDS).
     List(ListArgs),
 }
 
@@ -92,7 +97,8 @@ pub struct WriteArgs {
     /// true/false, text, or hex bytes for OCTET_STRING/DOMAIN.
     #[arg(allow_hyphen_values = true)]
     pub value: String,
-    /// Send even a value outside the EDS limits, or to a ro/const entry.
+    /// Send even a value outside the EDS limits or the board's rules, to a
+    /// ro/const entry, or to a node whose identity (0x1018) is not the EDS's.
     #[arg(long)]
     pub force: bool,
     /// Print one JSON object instead of text.
@@ -169,11 +175,13 @@ pub fn hex(b: &[u8]) -> String {
 pub fn decode(ty: Type, raw: &[u8]) -> Result<Value, String> {
     if let Some(n) = ty.size() {
         if raw.len() != n {
-            return Err(format!(
-                "{} bytes for a {} ({n} bytes)",
-                raw.len(),
-                ty.name()
-            ));
+            let name = ty.name();
+            let a = if name.starts_with(['A', 'E', 'I', 'O', 'U']) {
+                "an"
+            } else {
+                "a"
+            };
+            return Err(format!("{} bytes for {a} {name} ({n} bytes)", raw.len()));
         }
     }
     let mut b = [0u8; 8];
@@ -431,11 +439,37 @@ fn merge(mut a: serde_json::Value, b: serde_json::Value) -> serde_json::Value {
 /// A bad EDS, a refused value, the node's abort or silence, in sentences.
 pub fn run(node: &mut Node, a: &Args) -> Result<()> {
     let eds = Eds::builtin_or(a.eds.as_ref())?;
+    let builtin = a.eds.is_none();
     match &a.cmd {
-        SdoCmd::Read(r) => read(node, &eds, r),
-        SdoCmd::Write(w) => write(node, &eds, w),
+        SdoCmd::Read(r) => read(node, &eds, builtin, r),
+        SdoCmd::Write(w) => write(node, &eds, builtin, w),
         SdoCmd::List(l) => list_eds(&eds, l),
     }
+}
+
+/// The node's identity (0x1018 sub 1, 2) against the EDS's
+/// `VendorNumber`/`ProductNumber`, in one line when they differ: the EDS
+/// then types another device's objects. The built-in EDS is compared by
+/// product only (the board's vendor-ID is set when its firmware is
+/// built). `None` when they agree, or the node or the EDS does not say.
+fn identity_mismatch(node: &mut Node, eds: &Eds, builtin: bool) -> Option<String> {
+    let vendor = node.client.read_u32(node.id, 0x1018, 1).ok();
+    let product = node.client.read_u32(node.id, 0x1018, 2).ok();
+    let differs = |a: Option<u32>, b: Option<u32>| matches!((a, b), (Some(a), Some(b)) if a != b);
+    if !(differs(product, eds.product) || !builtin && differs(vendor, eds.vendor)) {
+        return None;
+    }
+    let hex = |v: Option<u32>| v.map_or("?".into(), |v| format!("{v:#010x}"));
+    Some(format!(
+        "{} is vendor {} product {} (0x1018), but {} describes vendor {} product {}: its \
+         types and limits may not be this node's; give the node's own EDS with --eds FILE",
+        node.name(),
+        hex(vendor),
+        hex(product),
+        eds.file,
+        hex(eds.vendor),
+        hex(eds.product)
+    ))
 }
 
 /// Uploads `(index, sub)`, turning an abort into a sentence with a hint.
@@ -445,8 +479,11 @@ fn upload(node: &mut Node, e: Option<&Entry>, index: u16, sub: u8) -> Result<Vec
         .map_err(|err| explain(node, e, err))
 }
 
-fn read(node: &mut Node, eds: &Eds, a: &ReadArgs) -> Result<()> {
+fn read(node: &mut Node, eds: &Eds, builtin: bool, a: &ReadArgs) -> Result<()> {
     node.hello()?;
+    if let Some(w) = identity_mismatch(node, eds, builtin) {
+        eprintln!("warning: {w}");
+    }
     let e = eds.get(a.index, a.sub);
     let raw = upload(node, e, a.index, a.sub)?;
     let value = e.map(|e| decode(e.ty, &raw));
@@ -535,28 +572,35 @@ fn prepare(eds: &Eds, a: &WriteArgs) -> Result<(Entry, Value, Vec<u8>)> {
                 eds.file
             );
         }
-        check_limits(e, &v).map_err(|why| {
-            anyhow!(
-                "{}: {why}; nothing was sent (--force sends it anyway)",
-                label(e)
-            )
-        })?;
+        check_limits(e, &v)
+            .and_then(|()| super::sdo_rules::precheck(e, as_uint(&v)))
+            .map_err(|why| {
+                anyhow!(
+                    "{}: {why}; nothing was sent (--force sends it anyway)",
+                    label(e)
+                )
+            })?;
     }
     Ok((e.clone(), v, bytes))
 }
 
-fn write(node: &mut Node, eds: &Eds, a: &WriteArgs) -> Result<()> {
+fn write(node: &mut Node, eds: &Eds, builtin: bool, a: &WriteArgs) -> Result<()> {
     let (e, value, bytes) = prepare(eds, a)?;
     node.hello()?;
+    match identity_mismatch(node, eds, builtin) {
+        Some(w) if !a.force => bail!("{w}. Nothing was sent (--force sends it anyway)"),
+        Some(w) => eprintln!("warning: {w}"),
+        None => {}
+    }
     let readable = e.access != crate::eds::Access::Wo;
     let old = if readable {
         node.client.upload(node.id, a.index, a.sub).ok()
     } else {
         None
     };
-    node.client
-        .download(node.id, a.index, a.sub, &bytes)
-        .map_err(|err| explain(node, Some(&e), err))?;
+    if let Err(err) = node.client.download(node.id, a.index, a.sub, &bytes) {
+        return Err(explain_write(node, &e, &value, err));
+    }
     let new = if readable {
         Some(upload(node, Some(&e), a.index, a.sub)?)
     } else {
@@ -589,17 +633,60 @@ fn write(node: &mut Node, eds: &Eds, a: &WriteArgs) -> Result<()> {
     Ok(())
 }
 
+/// `perpend node --bus BUS --node-id N`, for hints.
+fn link_of(node: &Node) -> String {
+    format!(
+        "perpend node --bus {} --node-id {}",
+        node.client.bus_name(),
+        node.id
+    )
+}
+
+/// A refused download as a sentence: a value-range abort says the rule
+/// that refused `value` ([`super::sdo_rules::range_hint`]), other aborts
+/// as [`explain`].
+fn explain_write(node: &mut Node, e: &Entry, value: &Value, err: ClientError) -> anyhow::Error {
+    if !matches!(err.abort_code(), Some(0x0609_0030..=0x0609_0032)) {
+        return explain(node, Some(e), err);
+    }
+    let link = link_of(node);
+    let rule = super::sdo_rules::range_hint(node, e, as_uint(value), &link);
+    let hint = match (rule, e.limits_text(), check_limits(e, value)) {
+        (Some(rule), _, _) => rule,
+        (None, Some(l), Err(_)) => format!("the EDS gives {l}"),
+        (None, Some(l), Ok(())) => format!(
+            "{} is inside the EDS {l}, so the node refused it by a rule the EDS cannot \
+             state (this board's: docs/can.md, object {:#06x}); check the node's manual",
+            show(value),
+            e.index
+        ),
+        (None, None, _) => format!(
+            "the node refused {} by a rule the EDS does not state (this board's: \
+             docs/can.md, object {:#06x}); check the node's manual",
+            show(value),
+            e.index
+        ),
+    };
+    anyhow!("{err}\n  what to do: {hint}")
+}
+
+/// An unsigned integer value, if `v` is one (the board's rules of
+/// `sdo_rules.rs` are about those only).
+fn as_uint(v: &Value) -> Option<u64> {
+    match v {
+        Value::Uint(u) => Some(*u),
+        Value::Int(i) => u64::try_from(*i).ok(),
+        _ => None,
+    }
+}
+
 /// A client error as a sentence, with what to do for the aborts that have
 /// a remedy.
 fn explain(node: &Node, e: Option<&Entry>, err: ClientError) -> anyhow::Error {
     let Some(code) = err.abort_code() else {
         return err.into();
     };
-    let link = format!(
-        "perpend node --bus {} --node-id {}",
-        node.client.bus_name(),
-        node.id
-    );
+    let link = link_of(node);
     let hint = match code {
         0x0800_0022 => format!(
             "the node is operational or stopped: `{link} nmt preop` first, then write again"
@@ -622,12 +709,27 @@ fn explain(node: &Node, e: Option<&Entry>, err: ClientError) -> anyhow::Error {
     anyhow!("{err}\n  what to do: {hint}")
 }
 
-/// Runs `perpend node sdo list` (no bus).
+/// Runs `perpend node sdo list` (no bus needed). With `--bus` and
+/// `--node-id` it also says whether the EDS is that node's (0x1018
+/// against `VendorNumber`/`ProductNumber`), on stderr.
 ///
 /// # Errors
-/// A bad `--eds` file, an index the EDS does not have.
-pub fn list(a: &Args) -> Result<()> {
+/// A bad `--eds` file, an index the EDS does not have; with a link, a
+/// missing `--bus` or `--node-id` and the node's silence.
+pub fn list(link: &super::LinkArgs, a: &Args) -> Result<()> {
     let eds = Eds::builtin_or(a.eds.as_ref())?;
+    if link.bus.is_some() || link.node_id.is_some() {
+        let mut node = Node::connect(link)?;
+        node.hello()?;
+        match identity_mismatch(&mut node, &eds, a.eds.is_none()) {
+            Some(w) => eprintln!("warning: {w}"),
+            None => eprintln!(
+                "{}: {} agrees with its identity (0x1018)",
+                node.name(),
+                eds.file
+            ),
+        }
+    }
     match &a.cmd {
         SdoCmd::List(l) => list_eds(&eds, l),
         _ => bail!("perpend node sdo read and write need --bus"),

@@ -84,7 +84,11 @@ fn values_outside_their_type_are_refused_in_words() {
 #[test]
 fn a_wrong_length_is_a_decode_error() {
     let e = decode(Type::U16, &[1, 2, 3, 4]).unwrap_err();
-    assert!(e.contains("4 bytes for a UNSIGNED16"), "{e}");
+    assert!(e.contains("4 bytes for an UNSIGNED16"), "{e}");
+    let e = decode(Type::I16, &[1, 2, 3, 4]).unwrap_err();
+    assert!(e.contains("4 bytes for an INTEGER16 (2 bytes)"), "{e}");
+    let e = decode(Type::Real32, &[1, 2]).unwrap_err();
+    assert!(e.contains("2 bytes for a REAL32"), "{e}");
     assert_eq!(
         decode(Type::VisibleString, b"ab\0\0").unwrap(),
         Value::Text("ab".into())

@@ -68,7 +68,10 @@ pub fn flash_words(status: u32) -> &'static str {
         od::FLASH_ADDRESS_ERROR => "the image is larger than the update partition",
         od::FLASH_SECURED => "the board takes no download now",
         FLASH_WRONG_PRODUCT => "the image is for another product",
-        FLASH_BAD_SIGNATURE => "the signature does not verify against the board's key",
+        FLASH_BAD_SIGNATURE => {
+            "the signature does not verify against the board's key: the image was signed \
+             with another key, or its signature was changed after signing"
+        }
         _ => "unknown flash status",
     }
 }
@@ -88,6 +91,34 @@ fn file_identity(img: &[u8], file: &str) -> Result<Identity> {
              firmware with `cargo xtask fw --sign KEY` and pass the .signed.bin it writes"
         ),
     }
+}
+
+/// The file's payload against the SHA-256 its signed trailer carries: a
+/// byte changed after signing (on disk, in a copy) is named before
+/// anything is sent, rather than as a signature the board refuses.
+fn file_intact(img: &[u8], id: &Identity, file: &str) -> Result<()> {
+    use sha2::Digest;
+    let payload = img.get(..id.payload_len as usize).unwrap_or_default();
+    if sha2::Sha256::digest(payload).as_slice() != id.sha256 {
+        bail!(
+            "{file} was changed after it was signed: its payload's SHA-256 differs from the \
+             one its signed trailer carries (a changed byte, on disk or in a copy). Nothing was \
+             written; take the file `cargo xtask fw --sign` wrote, or sign again"
+        );
+    }
+    Ok(())
+}
+
+/// The checks of the file alone (readable, signed, unchanged since
+/// signing), so that a wrong file is named before the bus is opened.
+///
+/// # Errors
+/// The file's first problem, in a sentence.
+pub fn check_file(path: &std::path::Path) -> Result<()> {
+    let file = path.display().to_string();
+    let img = std::fs::read(path).with_context(|| format!("cannot read {file}"))?;
+    let id = file_identity(&img, &file)?;
+    file_intact(&img, &id, &file)
 }
 
 /// Checks the board is pre-operational (by its heartbeat).
@@ -155,6 +186,7 @@ pub fn run(node: &mut Node, a: &Args) -> Result<()> {
     let file = a.file.display().to_string();
     let img = std::fs::read(&a.file).with_context(|| format!("cannot read {file}"))?;
     let want = file_identity(&img, &file)?;
+    file_intact(&img, &want, &file)?;
     node.hello()?;
     let id = node.id;
     let product = node.client.read_u32(id, 0x1018, 2)?;
@@ -238,9 +270,10 @@ fn start_and_check(node: &mut Node, old: u32, new: u32, rec: &mut UpdateRecord) 
         return Err(download_failed(node, e, rec));
     }
     rec.step("0x1F51 sub 1 = start");
-    node.client
-        .wait_bootup(id, RESTART_TIMEOUT)
-        .map_err(|e| anyhow::anyhow!("{e}: the board did not restart after \"start\""))?;
+    let ticker = crate::progress::Ticker::start("restarting (the bootloader swaps the images)");
+    let booted = node.client.wait_bootup(id, RESTART_TIMEOUT);
+    drop(ticker);
+    booted.map_err(|e| anyhow::anyhow!("{e}: the board did not restart after \"start\""))?;
     rec.step("boot-up received");
     let now = node.client.read_u32(id, 0x1F56, 1)?;
     rec.after(now);

@@ -1,5 +1,7 @@
 //! The board's status word (0x2005), error register (0x1001) and
-//! emergency codes in words, as docs/can.md defines them.
+//! emergency codes in words, as docs/can.md defines them; an emergency
+//! with the manufacturer bytes the board sends with it ([`emcy_text`]:
+//! the two that 0x1003 keeps beside the code).
 
 use perpend_can::status::{self, emcy};
 
@@ -140,6 +142,54 @@ pub fn emcy_words(code: u16) -> String {
     }
 }
 
+/// An emergency code in words with what its first two manufacturer bytes
+/// say (`info`: bits 16-31 of its 0x1003 entry, byte 0 in the low 8
+/// bits), as the board fills them: the 0x1F57 reason of a refused
+/// firmware image, the sensor's state, the valid sensors, the node whose
+/// heartbeat was lost, the SYNC length, which CAN queue lost frames.
+pub fn emcy_text(code: u16, info: u16) -> String {
+    let base = emcy_words(code);
+    let [b0, b1] = info.to_le_bytes();
+    let detail = match code {
+        perpend_board::program::EMCY_PROGRAM_REFUSED => Some(format!(
+            "firmware image refused: {} (0x1F57 = {info:#x})",
+            super::update::flash_words(u32::from(info))
+        )),
+        perpend_board::health::EMCY_WATCHDOG_RESET => Some(format!(
+            "watchdog reset (reset flags {b0:#04x}, 0x200B sub 1)"
+        )),
+        emcy::NO_PLANE => Some(format!("{base} ({b0} valid sensor(s))")),
+        emcy::DATA_SET if b0 == 1 => Some(format!(
+            "{base}: the stored record could not be read back (flash read faults)"
+        )),
+        emcy::CAN_OVERRUN if b0 == 1 => {
+            Some("CAN transmit queue full: frames were dropped (count in 0x2008 sub 1)".to_string())
+        }
+        emcy::CAN_OVERRUN => Some("CAN receive overrun: received frames were lost".to_string()),
+        perpend_can::device::EMCY_HEARTBEAT => Some(format!(
+            "heartbeat of node {b0} lost (consumer 0x1016): communication error reaction 0x1029"
+        )),
+        perpend_can::device::EMCY_SYNC_LENGTH => Some(format!(
+            "SYNC with {b0} data byte(s) ignored: its length does not match the SYNC counter \
+             0x1019 (0: no data, 2..240: one byte)"
+        )),
+        perpend_can::device::EMCY_PDO_LENGTH => {
+            Some("command RPDO without data (0x2500 needs one byte)".to_string())
+        }
+        c if (0..status::SENSORS)
+            .any(|i| c == emcy::sensor_current(i) || c == emcy::sensor_reading(i))
+            && (1..=status::SENSORS as u8).contains(&b0) =>
+        {
+            Some(format!(
+                "sensor {b0}: {}",
+                sensor_words(u32::from(b1) & status::SENSOR_MASK)
+            ))
+        }
+        _ => None,
+    };
+    detail.unwrap_or(base)
+}
+
 /// The CiA 301 class of an emergency code.
 fn emcy_class(code: u16) -> &'static str {
     match code >> 12 {
@@ -194,6 +244,27 @@ mod tests {
         assert!(w[4].starts_with("degraded"));
         assert_eq!(status_short(st, 4), "s2 open loop, degraded");
         assert_eq!(status_short(0x1111, 4), "ok");
+    }
+
+    #[test]
+    fn emcy_manufacturer_bytes_in_words() {
+        use perpend_board::program::{EMCY_PROGRAM_REFUSED, FLASH_BAD_SIGNATURE};
+        let t = emcy_text(EMCY_PROGRAM_REFUSED, FLASH_BAD_SIGNATURE as u16);
+        assert!(
+            t.starts_with("firmware image refused: the signature does not verify")
+                && t.contains("0x1F57 = 0x82"),
+            "{t}"
+        );
+        assert!(!t.contains("device software error"), "{t}");
+        let t = emcy_text(emcy::sensor_current(1), u16::from_le_bytes([2, 0x04]));
+        assert!(t.starts_with("sensor 2: open loop"), "{t}");
+        assert_eq!(
+            emcy_text(emcy::NO_PLANE, 2),
+            "no valid plane (2 valid sensor(s))"
+        );
+        assert!(emcy_text(0x8130, 5).starts_with("heartbeat of node 5 lost"));
+        assert!(emcy_text(emcy::CAN_OVERRUN, 1).contains("transmit queue"));
+        assert_eq!(emcy_text(0x4210, 7), emcy_words(0x4210));
     }
 
     #[test]

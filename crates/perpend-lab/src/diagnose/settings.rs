@@ -86,11 +86,11 @@ pub struct Args {
     #[arg(long, default_value_t = 150.0)]
     pub tracker_patch_mm: f64,
     /// Folds of the cross-validation (split by pose); default: 10 below 100
-    /// poses (at most half the poses, at least 5), else 5 (see [`folds_for`]).
+    /// poses (at most half the poses, at least 5), else 5.
     #[arg(long)]
     pub folds: Option<usize>,
     /// Monte-Carlo draws of the simulated expectation; default: 8, or 16
-    /// on runs of fewer than 50 poses (see [`draws_for`]).
+    /// on runs of fewer than 50 poses.
     #[arg(long)]
     pub draws: Option<usize>,
     /// Seed of the folds and the draws.
