@@ -5,10 +5,13 @@
 //! From the run's `poses.csv` (the tracker's planes in the taught TCS and
 //! the readings) and the plan's joint angles (by pose number) it runs
 //! [`perpend_lab::frames::estimate`], writes the joint head's geometry into
-//! `params.json` (what the board gets), and reports each frame error with
-//! its 1σ in µrad / µm, whether resolved, and the warnings of
-//! [`perpend_lab::frames::report`] against the calibration's expected
-//! normal error; the estimates go into the record (`frames`).
+//! `params.json` (what the board gets), and reports each identifiable frame
+//! error as estimate ± 1σ in µrad / µm whatever its precision, whether it
+//! is significant (beyond 2σ) and resolved (1σ ≤ half the calibration's
+//! expected normal error), and the warnings of
+//! [`perpend_lab::frames::report`] against that error; the head is
+//! corrected for what is significant or resolved; the estimates go into
+//! the record (`frames`).
 //!
 //! Limits: the paper's reading model (no extensions); the verification
 //! poses are compared with the tracker's planes corrected by the estimated
@@ -20,7 +23,7 @@ use std::path::Path;
 use anyhow::{anyhow, bail, Context as _, Result};
 use perpend_core::geometry::Plane;
 use perpend_lab::frames::report::{summarise, FrameEstimates};
-use perpend_lab::frames::{estimate, true_plane, FrameFit, FramePose, Frames};
+use perpend_lab::frames::{estimate, true_plane, FrameFit, FramePose, Frames, Tolerance};
 
 /// Arguments of `perpend frames`.
 #[derive(clap::Args, Debug)]
@@ -36,8 +39,9 @@ pub struct Args {
     #[arg(long)]
     pub plan: std::path::PathBuf,
     /// The calibration's expected normal error [deg] (`perpend calibrate`
-    /// prints it); a significant frame error larger than it is a warning.
-    /// Without it only the unresolved tracker tilt is warned about.
+    /// prints it); a significant frame error larger than it is a warning,
+    /// and a 1σ up to half of it counts as resolved. Without it only the
+    /// unresolved tracker tilt is warned about, resolved at 1σ ≤ 30 µrad.
     #[arg(long)]
     pub expected_deg: Option<f64>,
     /// One JSON object (`perpend.frames/1`) instead of text.
@@ -135,7 +139,8 @@ pub fn estimate_run(
         readings.push(r.readings.clone());
         used.push(j);
     }
-    let fit = estimate(&nominal, &fp, &readings, true).context("the frame estimate")?;
+    let tol = Tolerance::expected(expected_deg);
+    let fit = estimate(&nominal, &fp, &readings, Some(tol)).context("the frame estimate")?;
     let summary = summarise(&fit, &used, expected_deg);
     Ok((fit, summary))
 }
@@ -233,8 +238,8 @@ impl Turns {
 
 /// After the calibration of a `--reversal` run: the joint estimate from
 /// `DIR/poses.csv`, its head written into `DIR/params.json`, the report
-/// printed and written to `DIR/frames.json`, the frame errors handed to
-/// `turns` for the verification.
+/// printed and written to `DIR/frames.json`, the frame errors the head was
+/// corrected for handed to `turns` for the verification.
 ///
 /// # Errors
 /// Those of [`estimate_run`] and [`apply_head`], I/O.
@@ -257,7 +262,7 @@ pub fn after_calibration(
     let path = out.join("frames.json");
     std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
         .with_context(|| format!("{}: cannot write", path.display()))?;
-    turns.set_frames(fit.frames);
+    turns.set_frames(fit.correction);
     Ok(summary)
 }
 

@@ -36,12 +36,15 @@ pub struct Side {
     pub normal_deg: f64,
     /// Its ratio to the mean floor.
     pub over_floor: f64,
-    /// Mean estimated tracker tilt about x [deg] (0 when not resolved).
+    /// Mean estimated tracker tilt about x [deg] (estimated whatever its
+    /// precision; 0 where not identifiable).
     pub tracker_x_deg: f64,
-    /// Mean 1σ of that estimate [µrad] (`None` when not resolved).
+    /// Mean 1σ of that estimate [µrad] (`None` when never identifiable).
     pub tracker_sigma_urad: Option<f64>,
-    /// Seeds in which the tracker tilt was resolved.
+    /// Seeds in which the tracker tilt was resolved (1σ ≤ [`super::RESOLVE_RAD`]).
     pub resolved: usize,
+    /// Seeds in which it was significant (beyond 2σ).
+    pub significant: usize,
     /// Mean residual RMS [µm].
     pub rms_um: f64,
 }
@@ -59,8 +62,8 @@ pub struct Row {
     pub floor_deg: f64,
     /// With reversal (joint estimate).
     pub reversal: Side,
-    /// Without reversal (joint estimate; what the poses cannot resolve is
-    /// reported, not estimated).
+    /// Without reversal (joint estimate; the head is corrected only for a
+    /// significant tilt).
     pub no_reversal: Side,
 }
 
@@ -71,6 +74,8 @@ pub struct Needed {
     pub turned: usize,
     /// Seeds in which the tracker tilt was resolved.
     pub resolved: usize,
+    /// Seeds in which it was significant.
+    pub significant: usize,
     /// Mean normal error over the mean floor.
     pub over_floor: f64,
     /// Mean |estimate − truth| of the tilt [deg].
@@ -126,7 +131,8 @@ fn mean(v: impl Iterator<Item = f64>) -> f64 {
 }
 
 fn side(out: &[Outcome], floor: f64) -> Side {
-    let resolved = out.iter().filter(|o| o.joint.sigma[0].is_some()).count();
+    let resolved = out.iter().filter(|o| o.joint.resolved[0]).count();
+    let significant = out.iter().filter(|o| o.joint.significant[0]).count();
     let normal = mean(out.iter().map(|o| o.joint_deg));
     let sig: Vec<f64> = out.iter().filter_map(|o| o.joint.sigma[0]).collect();
     Side {
@@ -135,6 +141,7 @@ fn side(out: &[Outcome], floor: f64) -> Side {
         tracker_x_deg: mean(out.iter().map(|o| o.joint.frames[0].to_degrees())),
         tracker_sigma_urad: (!sig.is_empty()).then(|| 1e6 * mean(sig.into_iter())),
         resolved,
+        significant,
         rms_um: 1e3 * mean(out.iter().map(|o| o.joint.rms_mm)),
     }
 }
@@ -175,7 +182,8 @@ fn sweep(a: &Args, tilt_deg: f64) -> Result<Vec<Needed>> {
             let floor = mean(out.iter().map(|o| o.floor_deg));
             Ok(Needed {
                 turned,
-                resolved: out.iter().filter(|o| o.joint.sigma[0].is_some()).count(),
+                resolved: out.iter().filter(|o| o.joint.resolved[0]).count(),
+                significant: out.iter().filter(|o| o.joint.significant[0]).count(),
                 over_floor: mean(out.iter().map(|o| o.joint_deg)) / floor,
                 tilt_error_deg: mean(
                     out.iter()
@@ -214,10 +222,13 @@ pub fn bench(a: &Args) -> Result<Report> {
     })
 }
 
-fn sigma_text(s: &Side) -> String {
+fn sigma_text(s: &Side, seeds: u64) -> String {
     match s.tracker_sigma_urad {
-        Some(u) => format!("{:.4}° ± {u:.0} µrad", s.tracker_x_deg),
-        None => "not resolved".into(),
+        Some(u) => format!(
+            "{:.4}° ± {u:.0} µrad, r{}/s{}",
+            s.tracker_x_deg, s.resolved, s.significant
+        ),
+        None => format!("not identifiable in {seeds}"),
     }
 }
 
@@ -231,22 +242,23 @@ pub fn text(r: &Report) -> String {
     );
     let _ = writeln!(
         t,
-        "tracker°  TCP°   TCP mm   floor     reversal (×floor, tracker est)          no reversal (×floor, tracker est)"
+        "tracker°  TCP°   TCP mm   floor     reversal (×floor, tracker est ± 1σ, resolved/significant of {})      no reversal (×floor, same)",
+        r.seeds
     );
     for w in &r.rows {
         let _ = writeln!(
             t,
-            "{:7.3} {:6.3} {:7.2}  {:.5}  {:.5} ({:5.2}×, {:<22}) {:.5} ({:5.2}×, {})",
+            "{:7.3} {:6.3} {:7.2}  {:.5}  {:.5} ({:5.2}×, {:<32}) {:.5} ({:5.2}×, {})",
             w.tracker_tilt_deg,
             w.tcp_tilt_deg,
             w.tcp_offset_mm,
             w.floor_deg,
             w.reversal.normal_deg,
             w.reversal.over_floor,
-            sigma_text(&w.reversal),
+            sigma_text(&w.reversal, r.seeds),
             w.no_reversal.normal_deg,
             w.no_reversal.over_floor,
-            sigma_text(&w.no_reversal),
+            sigma_text(&w.no_reversal, r.seeds),
         );
     }
     let _ = writeln!(
@@ -257,8 +269,8 @@ pub fn text(r: &Report) -> String {
     for n in &r.sweep {
         let _ = writeln!(
             t,
-            "  {:3} turned: resolved {}/{}, {:.2}× floor, |tilt error| {:.4}°",
-            n.turned, n.resolved, r.seeds, n.over_floor, n.tilt_error_deg
+            "  {:3} turned: resolved {}/{}, significant {}/{}, {:.2}× floor, |tilt error| {:.4}°",
+            n.turned, n.resolved, r.seeds, n.significant, r.seeds, n.over_floor, n.tilt_error_deg
         );
     }
     let _ = match r.turned_needed {

@@ -8,6 +8,13 @@
 //! dropping singular values below `1e-7·σ_max` (a minimum-norm step: what
 //! the readings cannot see is left at its start value). The covariance is
 //! `s²·(JᵀJ)⁺` with `s² = RSS / (m − rank)`.
+//!
+//! Every frame error outside the Jacobian's null space is estimated and
+//! reported with its 1σ, however large (issue 46): precision decides only
+//! what is called resolved and what the handed-over head is corrected for
+//! ([`estimate`]), never whether a value is given. Limits: the 1σ is the
+//! linearised one at the fit, with `s` from the residual (white reading
+//! noise; a tracker's per-pose plane error is not separated from it).
 
 use anyhow::{anyhow, bail, Result};
 use nalgebra::{DMatrix, DVector};
@@ -16,8 +23,8 @@ use perpend_core::model::{distance, jacobian};
 use serde::Serialize;
 
 use super::{
-    is_angle, true_plane, FramePose, Frames, FRAME_NAMES, NULL_SHARE, N_FRAME, RANK_TOL,
-    RESOLVE_MM, RESOLVE_RAD,
+    is_angle, is_significant, true_plane, FramePose, Frames, Tolerance, CORRECT_Z, FRAME_NAMES,
+    NULL_SHARE, N_FRAME, RANK_TOL,
 };
 
 /// Gauss-Newton iterations at most.
@@ -58,7 +65,9 @@ pub struct FrameIdent {
     /// 1σ [rad or mm] of its estimate if it were estimated (`None` when in
     /// the null space).
     pub sigma: Option<f64>,
-    /// Identifiable and 1σ within [`RESOLVE_RAD`] / [`RESOLVE_MM`].
+    /// Identifiable and 1σ within [`Tolerance::fallback`] (a description
+    /// of the precision with these poses; the estimate's own `resolved` is
+    /// judged against the calibration's expected error, [`estimate`]).
     pub resolved: bool,
 }
 
@@ -78,17 +87,31 @@ pub struct Ident {
 /// The joint fit.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameFit {
-    /// The estimated head (in the true TCS).
+    /// The head handed over (in the true TCS): fitted together with the
+    /// frame errors of `corrected`, the others held at 0.
     pub head: Vec<Sensor<f64>>,
-    /// Estimated frame errors (0 where not estimated).
+    /// Estimated frame errors: every identifiable one, whatever its
+    /// precision (0 where not identifiable, or in a head-only fit).
     pub frames: Frames,
-    /// 1σ of each estimated frame error (`None` where not estimated).
+    /// 1σ of each estimate (`None`: not identifiable, or not estimated).
     pub sigma: [Option<f64>; N_FRAME],
+    /// Estimated and 1σ within `tolerance`.
+    pub resolved: [bool; N_FRAME],
+    /// Estimated and beyond [`super::SIGNIFICANT_Z`]·1σ.
+    pub significant: [bool; N_FRAME],
+    /// Whether `head` is corrected for it (resolved, or beyond
+    /// [`super::CORRECT_Z`]·1σ).
+    pub corrected: [bool; N_FRAME],
+    /// The frame errors `head` was fitted with (0 where not corrected): the
+    /// correction of the tracker's planes that goes with `head`.
+    pub correction: Frames,
+    /// The precision that counts as resolved.
+    pub tolerance: Tolerance,
     /// Identifiability of all six with these poses (1σ scaled by `s`).
     pub ident: Ident,
-    /// Residual RMS [mm].
+    /// Residual RMS [mm] of the fit with every identifiable frame error.
     pub rms_mm: f64,
-    /// `s` [mm]: residual scale, `sqrt(RSS / (m − rank))`.
+    /// `s` [mm]: its residual scale, `sqrt(RSS / (m − rank))`.
     pub s_mm: f64,
 }
 
@@ -286,12 +309,11 @@ pub fn identify(
         .map(|j| {
             let null_share = s.null_share[base + j];
             let sigma = (null_share < NULL_SHARE).then(|| s_mm * s.cov_diag[base + j].sqrt());
-            let limit = if is_angle(j) { RESOLVE_RAD } else { RESOLVE_MM };
             FrameIdent {
                 name: FRAME_NAMES[j],
                 null_share,
                 sigma,
-                resolved: sigma.is_some_and(|x| x <= limit),
+                resolved: sigma.is_some_and(|x| Tolerance::fallback().resolves(j, x)),
             }
         })
         .collect();
@@ -303,9 +325,51 @@ pub fn identify(
     })
 }
 
-/// Calibrates the head alone (`frames` = false: the usual calibration, the
-/// frame errors absorbed) or the head and every frame error the poses
-/// resolve ([`identify`] at the head-only fit decides which).
+/// One Gauss-Newton fit from `start` with the frame errors `free`.
+struct Fitted {
+    head: Vec<Sensor<f64>>,
+    f: Frames,
+    /// 1σ of each free frame error, `s·sqrt(diag (JᵀJ)⁺)`.
+    sigma: [Option<f64>; N_FRAME],
+    s_mm: f64,
+    rms_mm: f64,
+}
+
+fn fit_from(
+    start: &(Vec<Sensor<f64>>, Frames),
+    free: &[usize],
+    poses: &[FramePose],
+    readings: &[Vec<Option<f64>>],
+) -> Result<Fitted> {
+    let (mut head, mut f) = start.clone();
+    let (sol, d) = gauss_newton(&mut head, &mut f, free, poses, readings)?;
+    let (s_mm, rms_mm) = scale_of(&sol, &d);
+    let mut sigma = [None; N_FRAME];
+    for (c, &j) in free.iter().enumerate() {
+        sigma[j] = Some(s_mm * sol.cov_diag[DOF * head.len() + c].sqrt());
+    }
+    Ok(Fitted {
+        head,
+        f,
+        sigma,
+        s_mm,
+        rms_mm,
+    })
+}
+
+/// Calibrates the head alone (`joint` = `None`: the usual calibration, the
+/// frame errors absorbed), or the head and every frame error the poses can
+/// identify (not in the Jacobian's null space, [`identify`] at the
+/// head-only fit), whatever its precision.
+///
+/// Every identifiable frame error is estimated with its 1σ, called
+/// significant beyond [`super::SIGNIFICANT_Z`]·1σ and resolved when its 1σ is
+/// within `joint`'s [`Tolerance`]. The head handed over ([`FrameFit::head`])
+/// is corrected for those that are resolved or beyond
+/// [`super::CORRECT_Z`]·1σ; any other (an unresolved estimate within 3σ of
+/// 0, e.g. a tracker tilt without reversal, 1σ ≈ 0.05°) is held at 0
+/// there, since correcting it would add its 1σ to every normal to remove
+/// little more.
 ///
 /// # Errors
 /// Beams that miss a plane, fewer readings than parameters.
@@ -313,7 +377,7 @@ pub fn estimate(
     nominal: &[Sensor<f64>],
     poses: &[FramePose],
     readings: &[Vec<Option<f64>>],
-    frames: bool,
+    joint: Option<Tolerance>,
 ) -> Result<FrameFit> {
     if poses.len() != readings.len() {
         bail!(
@@ -322,46 +386,65 @@ pub fn estimate(
             readings.len()
         );
     }
-    let mut head = nominal.to_vec();
-    let mut f = Frames::zeros();
-    let (s0, d0) = gauss_newton(&mut head, &mut f, &[], poses, readings)?;
-    let (s_head, _) = scale_of(&s0, &d0);
-    let pre = identify(&head, &f, poses, readings, s_head)?;
-    // First every frame error the poses can see at all, then only those
-    // whose 1σ (with the joint fit's own residual) resolves them.
-    let mut free: Vec<usize> = if frames {
-        (0..N_FRAME)
-            .filter(|&j| pre.frames[j].sigma.is_some())
-            .collect()
-    } else {
-        Vec::new()
+    let start = (nominal.to_vec(), Frames::zeros());
+    let plain = fit_from(&start, &[], poses, readings)?;
+    let ident = identify(&plain.head, &plain.f, poses, readings, plain.s_mm)?;
+    let Some(tol) = joint else {
+        return Ok(FrameFit::head_only(plain, ident));
     };
-    let start = (head.clone(), f);
-    loop {
-        (head, f) = start.clone();
-        let (sol, d) = gauss_newton(&mut head, &mut f, &free, poses, readings)?;
-        let (s_mm, rms_mm) = scale_of(&sol, &d);
-        let ident = identify(&head, &f, poses, readings, s_mm)?;
-        let kept: Vec<usize> = free
-            .iter()
-            .copied()
-            .filter(|&j| ident.frames[j].resolved)
-            .collect();
-        if kept.len() < free.len() {
-            free = kept;
-            continue;
-        }
-        let mut sigma = [None; N_FRAME];
-        for (c, &j) in free.iter().enumerate() {
-            sigma[j] = Some(s_mm * sol.cov_diag[DOF * head.len() + c].sqrt());
-        }
-        return Ok(FrameFit {
-            head,
-            frames: f,
-            sigma,
+    let start = (plain.head.clone(), plain.f);
+    let free: Vec<usize> = (0..N_FRAME)
+        .filter(|&j| ident.frames[j].sigma.is_some())
+        .collect();
+    let full = fit_from(&start, &free, poses, readings)?;
+    let ident = identify(&full.head, &full.f, poses, readings, full.s_mm)?;
+    let resolved: [bool; N_FRAME] =
+        core::array::from_fn(|j| full.sigma[j].is_some_and(|s| tol.resolves(j, s)));
+    let significant: [bool; N_FRAME] =
+        core::array::from_fn(|j| full.sigma[j].is_some_and(|s| is_significant(full.f[j], s)));
+    let corrected: [bool; N_FRAME] = core::array::from_fn(|j| {
+        resolved[j] || full.sigma[j].is_some_and(|s| full.f[j].abs() > CORRECT_Z * s)
+    });
+    let keep: Vec<usize> = free.iter().copied().filter(|&j| corrected[j]).collect();
+    let (head, correction) = if keep.len() == free.len() {
+        (full.head, full.f)
+    } else if keep.is_empty() {
+        start
+    } else {
+        let c = fit_from(&start, &keep, poses, readings)?;
+        (c.head, c.f)
+    };
+    Ok(FrameFit {
+        head,
+        frames: full.f,
+        sigma: full.sigma,
+        resolved,
+        significant,
+        corrected,
+        correction,
+        tolerance: tol,
+        ident,
+        rms_mm: full.rms_mm,
+        s_mm: full.s_mm,
+    })
+}
+
+impl FrameFit {
+    /// The head-only calibration as a [`FrameFit`] (nothing estimated,
+    /// nothing corrected).
+    fn head_only(plain: Fitted, ident: Ident) -> Self {
+        Self {
+            head: plain.head,
+            frames: Frames::zeros(),
+            sigma: [None; N_FRAME],
+            resolved: [false; N_FRAME],
+            significant: [false; N_FRAME],
+            corrected: [false; N_FRAME],
+            correction: Frames::zeros(),
+            tolerance: Tolerance::fallback(),
             ident,
-            rms_mm,
-            s_mm,
-        });
+            rms_mm: plain.rms_mm,
+            s_mm: plain.s_mm,
+        }
     }
 }

@@ -1,15 +1,28 @@
 //! The frame errors of a calibration run as the cell reports and records
-//! them (issue 36): each with its 1σ in µrad / µm, whether the poses
-//! resolve it, and warnings that name the frame and the fix.
+//! them (issues 36, 46): each identifiable one as estimate ± 1σ in µrad /
+//! µm whatever its precision, whether it is significant and whether the
+//! precision is good enough for the calibration, and warnings that name
+//! the frame and the fix.
 //!
-//! Rules: a resolved error is **significant** when it exceeds 2σ; a
-//! significant one whose effect on the normal (the angle itself for
-//! tilts) exceeds the calibration's expected normal error is a warning
-//! (tracker: re-register the tracker against the robot base; the head was
-//! calibrated against the corrected planes). An unresolved tracker tilt is
-//! a warning to turn the head about the spindle axis. The TCP tilt and
-//! offset are never identifiable from plane readings ([`super`]): a note
-//! ([`TCP_NOTE`]) says how to check them.
+//! Rules ([`super::estimate`] decides the first three):
+//!
+//! * **significant**: |estimate| > 2σ ([`super::SIGNIFICANT_Z`]);
+//! * **resolved**: 1σ ≤ half the calibration's expected normal error
+//!   ([`super::RESOLVE_SHARE`]; 30 µrad when that error is not given). It
+//!   describes the precision and never withholds the value;
+//! * the head is corrected for every frame error that is resolved or
+//!   beyond 3σ ([`super::CORRECT_Z`]);
+//! * a significant tracker tilt whose angle exceeds the calibration's
+//!   expected normal error is a **warning** with the fix, at any noise:
+//!   re-register the tracker against the robot base (the head was
+//!   calibrated against the corrected planes);
+//! * a tracker tilt neither significant nor resolved is a warning saying
+//!   what would resolve it: more poses at this noise (1σ falls as
+//!   1/√poses), or turning the head about the spindle axis if it did not
+//!   turn; a tilt below 2σ is absorbed by the head meanwhile.
+//!
+//! The TCP tilt and offset are never identifiable from plane readings
+//! ([`super`]): a note ([`TCP_NOTE`]) says how to check them.
 
 use serde::{Deserialize, Serialize};
 
@@ -23,13 +36,14 @@ pub struct FrameEstimate {
     pub name: String,
     /// `µrad` or `µm`.
     pub unit: String,
-    /// Estimate (`null`: not estimated).
+    /// Estimate (`null`: not identifiable with these poses; records
+    /// before issue 46 also wrote `null` for an unresolved one).
     pub value: Option<f64>,
     /// 1σ (`null`: not identifiable with these poses).
     pub sigma: Option<f64>,
-    /// Identifiable and 1σ within the resolution limit.
+    /// Estimated and 1σ within the calibration's tolerance (module header).
     pub resolved: bool,
-    /// Resolved and beyond 2σ.
+    /// Estimated and beyond 2σ (before issue 46: resolved and beyond 2σ).
     pub significant: bool,
 }
 
@@ -52,7 +66,8 @@ pub struct FrameEstimates {
 }
 
 /// The record of `fit` from poses at `joints` (deg), with warnings against
-/// the calibration's `expected_deg` normal error.
+/// the calibration's `expected_deg` normal error (infinite: not known, no
+/// warning of size).
 pub fn summarise(fit: &FrameFit, joints: &[f64], expected_deg: f64) -> FrameEstimates {
     let mut angles: Vec<f64> = Vec::new();
     for j in joints {
@@ -63,20 +78,24 @@ pub fn summarise(fit: &FrameFit, joints: &[f64], expected_deg: f64) -> FrameEsti
     let errors: Vec<FrameEstimate> = (0..N_FRAME)
         .map(|j| {
             let k = if is_angle(j) { 1e6 } else { 1e3 };
-            let value = fit.sigma[j].map(|_| k * fit.frames[j]);
-            let sigma = fit.sigma[j].or(fit.ident.frames[j].sigma).map(|s| k * s);
-            let resolved = fit.sigma[j].is_some();
             FrameEstimate {
                 name: FRAME_NAMES[j].into(),
                 unit: if is_angle(j) { "µrad" } else { "µm" }.into(),
-                value,
-                sigma,
-                resolved,
-                significant: resolved && value.zip(sigma).is_some_and(|(v, s)| v.abs() > 2.0 * s),
+                value: fit.sigma[j].map(|_| k * fit.frames[j]),
+                sigma: fit.sigma[j].or(fit.ident.frames[j].sigma).map(|s| k * s),
+                resolved: fit.resolved[j],
+                significant: fit.significant[j],
             }
         })
         .collect();
-    let warnings = warnings(&errors, expected_deg, angles.len() > 1, joints.len());
+    let advice = Advice {
+        expected_deg,
+        limit_urad: 1e6 * fit.tolerance.angle_rad,
+        turned: angles.len() > 1,
+        poses: joints.len(),
+        corrected: [fit.corrected[0], fit.corrected[1]],
+    };
+    let warnings = warnings(&errors, &advice);
     FrameEstimates {
         joint_angles_deg: angles,
         rank: fit.ident.rank,
@@ -87,49 +106,82 @@ pub fn summarise(fit: &FrameFit, joints: &[f64], expected_deg: f64) -> FrameEsti
     }
 }
 
-/// The warnings of `errors`; `turned`: the run used more than one joint
-/// angle (then an unresolved tilt needs more poses or less noise, not a
-/// turn), `poses`: how many.
-pub(crate) fn warnings(
-    errors: &[FrameEstimate],
-    expected_deg: f64,
-    turned: bool,
-    poses: usize,
-) -> Vec<String> {
+/// What the warnings are weighed against.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Advice {
+    /// The calibration's expected normal error [deg] (infinite: not known).
+    pub expected_deg: f64,
+    /// 1σ [µrad] up to which a tilt is resolved.
+    pub limit_urad: f64,
+    /// The run used more than one joint angle (then an unresolved tilt
+    /// needs more poses or less noise, not a turn).
+    pub turned: bool,
+    /// Poses of the run.
+    pub poses: usize,
+    /// Whether the head was corrected for the tracker tilt x, y.
+    pub corrected: [bool; 2],
+}
+
+/// The warnings of the tracker tilts of `errors` (module header).
+pub(crate) fn warnings(errors: &[FrameEstimate], a: &Advice) -> Vec<String> {
     let mut w = Vec::new();
-    for e in errors.iter().take(2) {
+    for (e, &corrected) in errors.iter().zip(&a.corrected) {
         let deg = e.value.map_or(0.0, |v| (v * 1e-6).to_degrees());
-        if e.significant && deg.abs() > expected_deg {
+        if e.significant && deg.abs() > a.expected_deg {
+            let (v, s) = (e.value.unwrap_or(0.0), e.sigma.unwrap_or(0.0));
+            let head = if corrected {
+                "the head was calibrated against the corrected planes"
+            } else {
+                "the head is not corrected for it: below 3σ the correction would add about its 1σ to every normal"
+            };
             w.push(format!(
-                "{} = {:.0} ± {:.0} µrad ({deg:.4}°) is above the calibration's expected normal error ({expected_deg:.4}°): the tracker's frame is off against the robot base: re-register the tracker (the head was calibrated against the corrected planes)",
+                "{} = {v:.0} ± {s:.0} µrad ({deg:.4}°, {:.1}σ) is above the calibration's expected normal error ({:.4}°): the tracker's frame is off against the robot base: re-register the tracker ({head})",
                 e.name,
-                e.value.unwrap_or(0.0),
-                e.sigma.unwrap_or(0.0)
+                v.abs() / s.max(f64::MIN_POSITIVE),
+                a.expected_deg
             ));
-        }
-        if !e.resolved && turned {
-            w.push(unresolved_turned(e, poses));
-        } else if !e.resolved {
-            w.push(format!(
-                "{} is not resolved by these poses (1σ {}): a tracker tilt would be absorbed by the head: turn the head about the spindle axis (perpend plan --reversal 4)",
-                e.name,
-                e.sigma.map_or("unbounded".into(), |s| format!("{s:.0} µrad"))
-            ));
+        } else if !e.resolved && !e.significant {
+            w.push(if a.turned {
+                unresolved_turned(e, a)
+            } else {
+                unresolved_still(e)
+            });
         }
     }
     w
 }
 
+/// The estimate as text: `v ± s µrad` (or that there is none).
+fn value_text(e: &FrameEstimate) -> String {
+    match (e.value, e.sigma) {
+        (Some(v), Some(s)) => format!("{v:.0} ± {s:.0} µrad"),
+        (None, Some(s)) => format!("not estimated (1σ {s:.0} µrad)"),
+        _ => "not identifiable".into(),
+    }
+}
+
+/// An unresolved tracker tilt of a run that did not turn the head.
+fn unresolved_still(e: &FrameEstimate) -> String {
+    format!(
+        "{} is not resolved by these poses ({}): a tracker tilt below 2σ is absorbed by the head: turn the head about the spindle axis (perpend plan --reversal 4)",
+        e.name,
+        value_text(e)
+    )
+}
+
 /// An unresolved tracker tilt of a run that did turn the head: 1σ falls as
 /// noise/√poses, so the poses it would take at this noise.
-fn unresolved_turned(e: &FrameEstimate, poses: usize) -> String {
-    let limit = super::RESOLVE_RAD * 1e6;
+fn unresolved_turned(e: &FrameEstimate, a: &Advice) -> String {
+    let limit = a.limit_urad;
     match e.sigma {
         Some(s) => {
-            let need = (poses as f64 * (s / limit).powi(2)).ceil();
+            let need = (a.poses as f64 * (s / limit).powi(2)).ceil();
             format!(
-                "{} is not resolved although the head turned (1σ {s:.0} µrad, resolved below {limit:.0}): the noise of readings and tracker is too large for {poses} poses: about {need:.0} poses at this noise, or a quieter tracker; a tilt of that size is absorbed by the head meanwhile",
-                e.name
+                "{} = {} is within 2σ of 0 but not resolved although the head turned (resolved at 1σ ≤ {limit:.0} µrad): the noise is too large for {} poses: about {need:.0} poses at this noise, or a quieter tracker, would resolve it; a tilt below 2σ ({:.0} µrad) is absorbed by the head meanwhile",
+                e.name,
+                value_text(e),
+                a.poses,
+                2.0 * s
             )
         }
         None => format!(
@@ -151,13 +203,18 @@ pub fn lines(f: &FrameEstimates) -> Vec<String> {
     for e in &f.errors {
         let v = match (e.value, e.sigma) {
             (Some(v), Some(s)) => format!("{v:.1} ± {s:.1} {}", e.unit),
-            (None, Some(s)) => format!("not estimated (1σ would be {s:.1} {})", e.unit),
+            (None, Some(s)) => format!("not estimated (1σ {s:.1} {})", e.unit),
             _ => "not identifiable".into(),
         };
-        let state = match (e.resolved, e.significant) {
-            (true, true) => "resolved, significant",
-            (true, false) => "resolved, within 2σ of 0",
-            _ => "not resolved",
+        let precision = if e.resolved {
+            "resolved"
+        } else {
+            "not resolved"
+        };
+        let state = match (e.value.is_some(), e.significant) {
+            (false, _) => precision.to_string(),
+            (true, true) => format!("{precision}, significant"),
+            (true, false) => format!("{precision}, within 2σ of 0"),
         };
         out.push(format!("  {:<15} {v} ({state})", e.name));
     }
