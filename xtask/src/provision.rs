@@ -190,7 +190,7 @@ pub fn provision(args: &[String]) -> Result<()> {
         );
         for (a, v) in option_writes(&Target {
             optr: t.optr & !0xFF | RDP0,
-            ..t
+            wrp1ar: 0xFF00_FFFF,
         }) {
             println!("     write {} = {}", hex(a), hex(v));
         }
