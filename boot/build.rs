@@ -1,10 +1,14 @@
 //! Puts `memory.x` where cortex-m-rt's `link.x` finds it and the public key
 //! of the field update into `OUT_DIR/public_key.bin` for `include_bytes!`.
 //!
-//! The key is `../keys/test-only.pk` (TEST KEY, see keys/README.md) unless
-//! `PERPEND_PUBLIC_KEY` names another 32-byte public key file (a release:
-//! `PERPEND_PUBLIC_KEY=/path/release.pk cargo xtask fw`). A file that is
-//! not 32 bytes stops the build.
+//! The key is the file named by `PERPEND_PUBLIC_KEY` (a release:
+//! `PERPEND_PUBLIC_KEY=/path/release.pk cargo xtask fw`). Without it the
+//! build stops, unless the cargo feature `test-key` asks explicitly for
+//! `../keys/test-only.pk` (TEST KEY, see keys/README.md; what `cargo xtask
+//! fw --test-key` and CI build): a release never carries the test key by
+//! accident. The test key sets `cfg(perpend_test_key)` (the bootloader
+//! then says so in its boot info and its RTT log). A file that is not 32
+//! bytes stops the build.
 
 use std::env;
 use std::fs;
@@ -21,9 +25,19 @@ fn main() -> Result<(), String> {
     println!("cargo:rerun-if-changed=build.rs");
     println!("cargo:rerun-if-env-changed={KEY_VAR}");
 
+    println!("cargo:rustc-check-cfg=cfg(perpend_test_key)");
+    let test_key_feature = env::var_os("CARGO_FEATURE_TEST_KEY").is_some();
     let (path, test) = match env::var_os(KEY_VAR) {
         Some(p) => (PathBuf::from(p), false),
-        None => (PathBuf::from("../keys/test-only.pk"), true),
+        None if test_key_feature => (PathBuf::from("../keys/test-only.pk"), true),
+        None => {
+            return Err(format!(
+                "perpend-boot: no public key: set {KEY_VAR}=/path/release.pk for a release, \
+                 or build a TEST bootloader explicitly with the feature `test-key` \
+                 (`cargo xtask fw --test-key`, `--features perpend-boot/test-key`), \
+                 which trusts keys/test-only.pk, a key anyone can sign with"
+            ))
+        }
     };
     println!("cargo:rerun-if-changed={}", path.display());
     let key = fs::read(&path).map_err(|e| {
@@ -40,6 +54,7 @@ fn main() -> Result<(), String> {
         ));
     }
     if test {
+        println!("cargo:rustc-cfg=perpend_test_key");
         println!(
             "cargo:warning=perpend-boot: built with keys/test-only.pk (TEST KEY, accepts images anyone can sign); set {KEY_VAR} for a release"
         );

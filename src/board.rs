@@ -1,6 +1,9 @@
-//! Register reads and writes behind `perpend_board::health`: reset cause,
-//! factory calibration words, flash layout, debugger freeze of the IWDG,
-//! the DWT cycle counter, stack painting and the MPU stack guard.
+//! Register reads and writes behind `perpend_board::health` and
+//! `perpend_board::bootctl`: reset cause, factory calibration words, flash
+//! layout and option bytes, debugger freeze of the IWDG, the IWDG
+//! hand-over from the bootloader, the ROM-loader request (TAMP_BKP0R) and
+//! the bootloader's build flags, the DWT cycle counter, stack painting and
+//! the MPU stack guard.
 //!
 //! Addresses (RM0440 / STM32G474 datasheet): VREFINT_CAL 0x1FFF75AA, TS_CAL1
 //! 0x1FFF75A8 (30 °C), TS_CAL2 0x1FFF75CA (130 °C), all at VREF+ = 3.0 V;
@@ -19,10 +22,12 @@
 //! writes are not guaranteed to fault). The guard is larger than any frame the stack
 //! can hold below the main task's: a 32-byte guard could be stepped over
 //! by a frame with a ~2 KiB buffer (the storage's item buffer), whose
-//! writes then land below the guard without touching it. The largest such
-//! frame is `App::store_now` (a copy of the CANopen device, its image and
-//! the item buffer; ≈ 8,000 B in the release build's `sub sp`); a
-//! compile-time check keeps those buffers below [`GUARD`]. The
+//! writes then land below the guard without touching it. `cargo xtask
+//! size` reads every function's frame from the linked image (prologues)
+//! and fails when one below the main task is at or above [`GUARD`]
+//! (`App::store_now` held the device copy, its image and the item buffer,
+//! 9,304 B; now split: `staged_params`, `save_with_tail`); a
+//! compile-time check keeps those buffers below [`GUARD`] too. The
 //! stack below the boot-time SP is painted ([`health::STACK_PAINT`]); the
 //! high-water mark is published in 0x200B sub 3.
 
@@ -30,6 +35,7 @@ use core::sync::atomic::{AtomicUsize, Ordering};
 
 use cortex_m::peripheral::{DCB, DWT};
 use embassy_stm32::pac;
+use perpend_board::bootctl::{self, BackupRegister, BootInfo, IwdgSetting, RomLoaderPolicy};
 use perpend_board::health::{self, HealthError, ResetFlags};
 
 const VREFINT_CAL: *const u16 = 0x1FFF_75AA as *const u16;
@@ -185,45 +191,102 @@ fn guard(base: usize) {
     }
 }
 
-/// Magic word of a bootloader request in `.uninit` RAM (kept across a
-/// system reset, random after power-on).
-const BOOT_MAGIC: u32 = 0xB007_10AD;
+/// TAMP_BKP0R, where the ROM-loader request lives
+/// (`perpend_board::bootctl`: kept over the system reset, read and cleared
+/// by perpend-boot before anything else). Not a RAM word: the
+/// bootloader's start-up zeroes its `.bss`, which covered the word the
+/// application used before (issue 50 item 1).
+struct Tamp;
 
-#[link_section = ".uninit.perpend_boot"]
-static mut BOOT_REQUEST: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::uninit();
+impl BackupRegister for Tamp {
+    fn read(&mut self) -> u32 {
+        pac::TAMP.bkpr(bootctl::ROM_LOADER_BKP).read().bkp()
+    }
+    fn write(&mut self, value: u32) {
+        pac::TAMP
+            .bkpr(bootctl::ROM_LOADER_BKP)
+            .write(|w| w.set_bkp(value));
+    }
+}
 
-/// Resets into the system bootloader (field update, docs/bring-up.md):
-/// stores the magic word, then a system reset; [`enter_bootloader_if_requested`]
-/// takes it from there before anything is set up.
-pub fn reset_into_bootloader() -> ! {
-    // SAFETY: a plain word in `.uninit`, written once before the reset.
-    unsafe {
-        core::ptr::addr_of_mut!(BOOT_REQUEST)
-            .cast::<u32>()
-            .write_volatile(BOOT_MAGIC)
-    };
+/// The bootloader's build flags (`.boot_info` at
+/// [`bootctl::BOOT_INFO_ADDR`]); `None` without a bootloader.
+pub fn boot_info() -> Option<BootInfo> {
+    // SAFETY: 8 bytes of bank 1 flash, always readable.
+    let w = unsafe { (bootctl::BOOT_INFO_ADDR as *const [u32; 2]).read_volatile() };
+    BootInfo::from_words(w)
+}
+
+/// What the bootloader allows for the ROM loader (refused without one).
+pub fn rom_loader_policy() -> RomLoaderPolicy {
+    boot_info().map(BootInfo::policy).unwrap_or_default()
+}
+
+/// Resets into the ROM loader through perpend-boot (field update,
+/// docs/bring-up.md §7.2): the request into TAMP_BKP0R (RTC/TAMP APB clock
+/// and backup-domain write access, PWR_CR1.DBP, RM0440 §6.4.1), then a
+/// system reset. Returns only when the bootloader's policy refuses it.
+pub fn reset_into_bootloader() -> Result<core::convert::Infallible, bootctl::BootCtlError> {
+    pac::RCC.apb1enr1().modify(|w| {
+        w.set_pwren(true);
+        w.set_rtcapben(true);
+    });
+    pac::PWR.cr1().modify(|w| w.set_dbp(true));
+    while !pac::PWR.cr1().read().dbp() {}
+    let r = bootctl::request_rom_loader(&mut Tamp, rom_loader_policy());
+    pac::PWR.cr1().modify(|w| w.set_dbp(false));
+    r?;
     cortex_m::asm::dsb();
     cortex_m::peripheral::SCB::sys_reset()
 }
 
-/// First thing at boot: when the previous run asked for the bootloader,
-/// clear the request, map system memory at 0 (SYSCFG_MEMRMP.MEM_MODE = 01,
-/// RM0440 §9.1.1) and jump to the ROM bootloader at 0x1FFF0000 (its stack
-/// pointer and reset vector, AN2606 "jump to the bootloader from
-/// application code"). Clocks and peripherals are still in their reset
-/// state here.
-pub fn enter_bootloader_if_requested() {
-    let p = core::ptr::addr_of_mut!(BOOT_REQUEST).cast::<u32>();
-    // SAFETY: a word in `.uninit`: any value is valid.
-    if unsafe { p.read_volatile() } != BOOT_MAGIC {
-        return;
+/// FLASH_OPTR (RM0440 §3.7.8).
+pub fn optr() -> u32 {
+    pac::FLASH.optr().read().0
+}
+
+/// The IWDG registers for `perpend_board::bootctl::handover`.
+struct IwdgRegs;
+
+impl bootctl::IwdgRegs for IwdgRegs {
+    fn key(&mut self, key: u16) {
+        pac::IWDG
+            .kr()
+            .write(|w| w.set_key(pac::iwdg::vals::Key::from_bits(key)));
     }
-    // SAFETY: as above.
-    unsafe { p.write_volatile(0) };
-    pac::RCC.apb2enr().modify(|w| w.set_syscfgen(true));
-    pac::SYSCFG.memrmp().modify(|w| w.set_mem_mode(1));
-    // SAFETY: the system memory holds the ROM bootloader's vector table.
-    unsafe { cortex_m::asm::bootload(0x1FFF_0000 as *const u32) }
+    fn set_prescaler(&mut self, pr: u8) {
+        pac::IWDG
+            .pr()
+            .write(|w| w.set_pr(pac::iwdg::vals::Pr::from_bits(pr)));
+    }
+    fn set_reload(&mut self, rl: u16) {
+        pac::IWDG.rlr().write(|w| w.set_rl(rl));
+    }
+    fn busy(&mut self) -> bool {
+        pac::IWDG.sr().read().0 & 0b111 != 0
+    }
+}
+
+/// The independent watchdog once the application has it: taken over from
+/// the bootloader's 8 s with a reload (`bootctl::handover`), then petted.
+pub struct Watchdog(());
+
+impl Watchdog {
+    /// Hands the IWDG over to `timeout_us` and reloads it: the full
+    /// timeout from now (issue 50 item 2).
+    ///
+    /// # Errors
+    /// As `bootctl::handover` (the counter is reloaded in any case).
+    pub fn take_over(timeout_us: u32) -> (Self, Result<(), bootctl::BootCtlError>) {
+        let r = IwdgSetting::for_timeout_us(timeout_us)
+            .and_then(|s| bootctl::handover(&mut IwdgRegs, s));
+        (Self(()), r)
+    }
+
+    /// Reloads the counter (IWDG_KR = 0xAAAA).
+    pub fn pet(&mut self) {
+        bootctl::IwdgRegs::key(&mut IwdgRegs, bootctl::KEY_RELOAD);
+    }
 }
 
 /// The clocks of the NUCLEO-G474RE (the firmware's and the HIL tests').

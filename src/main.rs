@@ -34,7 +34,13 @@
 //!   system bootloader (0x2500 = 0xB0).
 //! * **IWDG** (500 ms) fed by the main loop only while samples arrive
 //!   (last one < 20 ms ago) and the CAN controller is not stuck in bus-off
-//!   (< 1 s).
+//!   (< 1 s). Taken over from the bootloader's 8 s at the end of `setup`
+//!   with a reload (`perpend_board::bootctl::handover`): storage loading
+//!   and repair run under the bootloader's 8 s, the loop starts with the
+//!   full 500 ms.
+//! * **Trial deadline**: an image on trial that has not confirmed itself
+//!   60 s after boot resets, and the bootloader swaps the old one back
+//!   (`perpend_board::confirm::TRIAL_DEADLINE_US`).
 //! * **LED** LD2 (PA5): see `led_pattern`.
 //!
 //! All work runs in one task (`main`): a `select` over a 1 ms tick, "scan
@@ -58,9 +64,8 @@ use embassy_futures::select::{select3, Either3};
 use embassy_stm32::adc::{AdcChannel, RingBufferedAdc};
 use embassy_stm32::can::{self, CanConfigurator};
 use embassy_stm32::gpio::{Level, Output, Speed};
-use embassy_stm32::peripherals::{ADC1, DMA1_CH1, FDCAN1, IWDG, PA11, PA12, TIM3};
+use embassy_stm32::peripherals::{ADC1, DMA1_CH1, FDCAN1, PA11, PA12, TIM3};
 use embassy_stm32::timer::low_level::{MasterMode, Timer};
-use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_stm32::{bind_interrupts, dma, Peri};
 use embassy_time::{Duration, Instant, Ticker};
 use perpend_board::app::App;
@@ -121,7 +126,7 @@ struct Fw {
     acq: Acquisition,
     bitrate: Bitrate,
     led: Output<'static>,
-    wdg: IndependentWatchdog<'static, IWDG>,
+    wdg: board::Watchdog,
     last_sample: Instant,
     /// Acquisition locked to SYNC (0x2301 sub 1): TIM3 stopped, one scan
     /// per SYNC.
@@ -245,6 +250,11 @@ impl Fw {
         });
         self.check_bus_off();
         self.confirm_boot();
+        if self.app.trial_expired(now_us()) {
+            warn!("image on trial not confirmed within 60 s: resetting, the bootloader reverts it");
+            self.flush_tx();
+            cortex_m::peripheral::SCB::sys_reset();
+        }
         if acq_ctl::overrun() {
             warn!("ADC overrun: restarting the acquisition");
             acq_ctl::restart(&mut self.ring, &self.tim, &self.acq, self.locked);
@@ -364,10 +374,12 @@ impl Fw {
     /// 0x2500 = bootloader in pre-operational: the SDO answer and what else
     /// is queued leave (at most 20 ms), then a reset into the ROM
     /// bootloader.
-    fn enter_bootloader(&mut self) -> ! {
+    fn enter_bootloader(&mut self) {
         warn!("0x2500: resetting into the system bootloader (field update)");
         self.flush_tx();
-        board::reset_into_bootloader()
+        if board::reset_into_bootloader().is_err() {
+            warn!("0x2500: the bootloader does not allow the ROM loader (release build)");
+        }
     }
 }
 
@@ -376,7 +388,6 @@ impl Fw {
 /// Brings up the peripherals and the application (a plain function, so
 /// that its locals do not take room in the main task's future).
 fn setup() -> Fw {
-    board::enter_bootloader_if_requested();
     let p = embassy_stm32::init(board::config());
     info!("perpend-fw {}", env!("CARGO_PKG_VERSION"));
     let reset = board::take_reset_flags();
@@ -402,8 +413,6 @@ fn setup() -> Fw {
     };
 
     let led = Output::new(p.PA5, Level::Low, Speed::Low);
-    let mut wdg = IndependentWatchdog::new(p.IWDG, 500_000);
-    wdg.unleash();
 
     // Parameters and the CANopen device.
     flash::enable_pvd();
@@ -417,6 +426,15 @@ fn setup() -> Fw {
     info!("serial number {=u32:#010x}", serial);
     let mut app = App::with_program(store, serial, update::program(flash_ok));
     app.report_reset(reset);
+    app.report_option_bytes(board::optr());
+    let policy = board::rom_loader_policy();
+    app.set_rom_loader_policy(policy);
+    if policy.test_key {
+        warn!("bootloader built with the TEST key (keys/test-only.pk): never ship this board");
+    }
+    if app.on_trial() {
+        warn!("image on trial: confirms itself once up, else reverted after 60 s");
+    }
     if app.boot_read_faults() > 0 {
         warn!(
             "boot: {} unreadable flash double word(s) (ECC) skipped",
@@ -463,6 +481,9 @@ fn setup() -> Fw {
     let tim = Timer::new(p.TIM3);
     tim.set_master_mode(MasterMode::UPDATE);
 
+    // The bootloader's 8 s covered everything above (storage load and
+    // repair included); from here the loop's 500 ms, reloaded now.
+    let (wdg, wdg_result) = board::Watchdog::take_over(500_000);
     let mut fw = Fw {
         app,
         txq: TxQueue::new(),
@@ -488,6 +509,9 @@ fn setup() -> Fw {
         health_due: false,
     };
     acq_ctl::restart(&mut fw.ring, &fw.tim, &fw.acq, fw.locked);
+    if wdg_result.is_err() {
+        warn!("IWDG hand-over: PR/RLR update still pending (PVU/RVU), counter reloaded anyway");
+    }
     fw
 }
 

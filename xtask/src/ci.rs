@@ -341,6 +341,9 @@ pub fn ci(args: &[String]) -> Result<()> {
         "perpend-hil",
         "-p",
         "perpend-boot",
+        // a TEST bootloader, said so: the release key is not in CI
+        "--features",
+        "perpend-boot/test-key",
         "--all-targets",
         "--target",
         thumb,
@@ -351,7 +354,7 @@ pub fn ci(args: &[String]) -> Result<()> {
     r.step("firmware clippy", &mut niced(cmd(&c, &fw_clippy)), nothing)?;
     r.step(
         "firmware size",
-        &mut niced(xtask(&["size"])),
+        &mut niced(xtask(&["size", "--test-key"])),
         line_starting("perpend-fw:"),
     )?;
     // Builds and links the on-target test binary (release, as `size`), then

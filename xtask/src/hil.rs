@@ -93,7 +93,7 @@ pub fn executable_of(json_lines: &str, name: &str) -> Option<PathBuf> {
 }
 
 /// Why no probe run is possible here, if so.
-fn probe_missing() -> Option<NotRun> {
+pub fn probe_missing() -> Option<NotRun> {
     let Ok(out) = Command::new("probe-rs").arg("list").output() else {
         return Some(NotRun::NoProbeRs);
     };

@@ -10,14 +10,19 @@
 //!   board whose true head has the paper's errors (`perpend cell run`).
 //! * `bring-up --bus BUS --node-id N | --virtual` — the bus side of
 //!   docs/bring-up.md against a board or a virtual board.
-//! * `fw [--sign KEY]` — build the release firmware and bootloader images (and the signed
-//!   field-update image); `keygen OUT` — a new ed25519 key pair; `size` — its flash and static
+//! * `fw [--test-key] [--sign KEY [--allow-downgrade]]` — build the release firmware and
+//!   bootloader images (and the signed field-update image); the bootloader needs
+//!   `PERPEND_PUBLIC_KEY` or an explicit `--test-key` (a TEST build); `keygen OUT` — a new ed25519 key pair; `size` — its flash and static
 //!   RAM use against the budget (220 KiB ACTIVE / 48 KiB), and the
 //!   bootloader's (32 KiB); `mcu-bench [--json]` —
 //!   instructions per update on an emulated Cortex-M4F (QEMU mps2-an386).
 //! * `hil [--qemu]` — the on-target tests: with a probe, on the board
 //!   (`probe-rs run`; exit 2 = no probe found, 3 = probe-rs not installed);
 //!   `--qemu`, the board's logic on QEMU mps2-an386 (see `hil.rs`).
+//! * `provision [--test-key] [--allow-rom-loader] [--rdp1] [--dry-run]` — a
+//!   new board with probe-rs: option bytes (DBANK = 1, BFB2 = 0), both
+//!   images flashed and verified, bootloader write protection, RDP level 1
+//!   only with `--rdp1` (`provision.rs`; exit 2 / 3 without a probe).
 //! * `fuzz [--seconds N] [TARGET...]` — run the cargo-fuzz targets of
 //!   `fuzz/` (nightly toolchain; installs `cargo-fuzz` if missing) for N
 //!   seconds each and print executions and coverage per target.
@@ -29,6 +34,7 @@ mod cell;
 mod ci;
 mod fw;
 mod hil;
+mod provision;
 mod setup;
 mod sign;
 mod testrun;
@@ -250,7 +256,8 @@ fn main() -> ExitCode {
         Some("size") => fw::size(&args[1..]),
         Some("mcu-bench") => fw::mcu_bench(&args[1..]),
         Some("hil") => hil::hil(&args[1..]),
-        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|test [--jobs N]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw [--sign KEY]|keygen OUT|size|mcu-bench [--json]|hil [--qemu]|fuzz [--seconds N] [TARGET...]>".to_string()),
+        Some("provision") => provision::provision(&args[1..]),
+        _ => Err("usage: cargo xtask <ci [--no-fuzz] [--verbose]|test [--jobs N]|setup [--no-fuzz]|demo|cell-demo|bring-up (--bus BUS --node-id N | --virtual)|fw [--test-key] [--provision-rom-loader] [--sign KEY [--allow-downgrade]]|keygen OUT|size [--test-key] [--no-build]|provision [--test-key] [--allow-rom-loader] [--rdp1] [--dry-run]|mcu-bench [--json]|hil [--qemu]|fuzz [--seconds N] [TARGET...]>".to_string()),
     };
     match res {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,12 +1,15 @@
 //! Signed firmware images for the field update: `cargo xtask fw --sign KEY`
 //! and `cargo xtask keygen OUT`.
 //!
-//! * `fw --sign KEY` — after the build, the ELF's loadable flash segments
+//! * `fw --sign KEY [--allow-downgrade]` — after the build, the ELF's loadable flash segments
 //!   are laid out from the lowest load address (gaps 0xFF, erased flash)
 //!   into a binary, and `perpend_board::image::sign` appends the identity
 //!   trailer (product code of the board's identity, the workspace version,
 //!   SHA-256) and embassy-boot's ed25519 signature of the SHA-512 of the
 //!   signed bytes. Written next to the ELF as `perpend-fw.signed.bin`.
+//!   `--allow-downgrade` sets the trailer's signed flag that lets a board
+//!   running a newer version take this one (versions only go up
+//!   otherwise, `perpend_board::image::check_version`).
 //! * `keygen OUT` — a new key pair from the OS's random source:
 //!   `OUT.sk` (32-byte ed25519 seed, the private key: keep it off the
 //!   repository) and `OUT.pk` (32-byte public key, RFC 8032 encoding, the
@@ -88,13 +91,18 @@ pub fn flash_binary(elf: &[u8]) -> Result<Vec<u8>> {
 
 /// Signs the firmware ELF at `elf` with the seed in `key`: the signed
 /// image's path.
-pub fn sign_elf(elf: &Path, key: &Path) -> Result<PathBuf> {
+pub fn sign_elf(elf: &Path, key: &Path, allow_downgrade: bool) -> Result<PathBuf> {
     let seed = read_key(key)?;
     let data = fs::read(elf).map_err(|e| format!("{}: {e}", elf.display()))?;
     let bin = flash_binary(&data)?;
     let product = perpend_can::Defaults::nominal().identity.product_code;
     let version = perpend_board::program::build_version();
-    let signed = image::sign(&bin, product, version, &seed);
+    let flags = if allow_downgrade {
+        image::FLAG_ALLOW_DOWNGRADE
+    } else {
+        0
+    };
+    let signed = image::sign_with_flags(&bin, product, version, flags, &seed);
     let out = elf.with_file_name("perpend-fw.signed.bin");
     fs::write(&out, &signed).map_err(|e| format!("{}: {e}", out.display()))?;
     let pk = image::public_key(&seed);
@@ -109,6 +117,11 @@ pub fn sign_elf(elf: &Path, key: &Path) -> Result<PathBuf> {
         version & 0xFF,
         hex(&pk)
     );
+    if allow_downgrade {
+        println!(
+            "NOTE: --allow-downgrade: boards running a newer version accept this image (the override is signed)"
+        );
+    }
     if seed == image::TEST_SEED {
         println!("WARNING: signed with the TEST key (keys/test-only.sk): never ship this image");
     }

@@ -12,6 +12,10 @@
 //! plus the deepest interrupt handler with its exception frame (104 B:
 //! 8 words and the lazily stacked FPU context, one level of nesting).
 //!
+//! Every function's own frame is listed too ([`Report::frames`]): `cargo
+//! xtask size` fails when a frame other than a root's is at or above the
+//! MPU guard ([`frames_over`]), since such a frame can step over it.
+//!
 //! Limits: other indirect calls (`blx rN`: wakers, vtables) are counted
 //! as zero and reported; recursion is cut at the first repeat and
 //! reported; a frame that moves `sp` by a register (alloca) is not seen.
@@ -187,6 +191,32 @@ pub struct Report {
     /// The deepest interrupt or exception handler, exception frame
     /// included.
     pub handler: Depth,
+    /// Every function's own frame, largest first: (name, bytes, root). A
+    /// root (`Reset`, the main task's poll function) is entered at a
+    /// fixed depth near the top of the stack, never near the guard.
+    pub frames: Vec<(String, u64, bool)>,
+}
+
+/// Whether `name` is a thread-mode root: entered once, at the top of the
+/// stack (cortex-m-rt's `Reset`, embassy's main task poll function).
+pub fn is_root(name: &str) -> bool {
+    name == "Reset"
+        || name == "__stext"
+        || (name.contains("____embassy_main_task") && name.contains("closure"))
+}
+
+/// A function's name and its frame [B].
+pub type Frame = (String, u64);
+
+/// The frames at or above `guard` bytes: a frame that large can step over
+/// an MPU guard of that size (its writes land below the guard without
+/// touching it). Roots are listed apart (second): they sit at the top of
+/// the stack.
+pub fn frames_over(r: &Report, guard: u64) -> (Vec<Frame>, Vec<Frame>) {
+    let over = r.frames.iter().filter(|f| f.1 >= guard);
+    let (roots, others): (Vec<_>, Vec<_>) = over.partition(|f| f.2);
+    let strip = |v: Vec<&(String, u64, bool)>| v.into_iter().map(|f| (f.0.clone(), f.1)).collect();
+    (strip(others), strip(roots))
 }
 
 impl Report {
@@ -244,7 +274,17 @@ pub fn analyse(disasm: &str) -> Result<Report, String> {
         }
     }
     handler.bytes += EXCEPTION_FRAME;
-    Ok(Report { thread, handler })
+    let mut frames: Vec<(String, u64, bool)> = funcs
+        .values()
+        .filter(|f| f.frame > 0)
+        .map(|f| (f.name.clone(), f.frame, is_root(&f.name)))
+        .collect();
+    frames.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    Ok(Report {
+        thread,
+        handler,
+        frames,
+    })
 }
 
 #[cfg(test)]
@@ -291,5 +331,16 @@ mod tests {
         assert_eq!(r.thread.path[..3], ["Reset", "main", "leaf"]);
         assert_eq!(r.handler.bytes, 8 + 88 + EXCEPTION_FRAME);
         assert_eq!(r.total(), r.thread.bytes + r.handler.bytes);
+        assert_eq!(r.frames[0], ("main".to_string(), 276, false));
+        let (over, roots) = frames_over(&r, 64);
+        assert_eq!(
+            over,
+            [("main".to_string(), 276), ("leaf".to_string(), 88)],
+            "frames at or above the guard"
+        );
+        assert!(roots.is_empty());
+        let (over, roots) = frames_over(&r, 30);
+        assert!(over.iter().all(|f| f.1 >= 30));
+        assert_eq!(roots.len(), 1, "the main task's poll function: {roots:?}");
     }
 }

@@ -289,6 +289,8 @@ pub struct App<S: ParamStore, P: crate::program::ProgramStore = crate::program::
     lag: crate::thermal::ThermalLag,
     /// 0x2500 = bootloader was written in pre-operational.
     bootloader: bool,
+    /// Whether the bootloader lets the board into the ROM loader.
+    rom_loader: crate::bootctl::RomLoaderPolicy,
     boot_bad: bool,
     /// The stored record: `extra` after the next reset node.
     next_extra: Params,
@@ -371,6 +373,10 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
             temp_c: None,
             lag: crate::thermal::ThermalLag::new(),
             bootloader: false,
+            rom_loader: crate::bootctl::RomLoaderPolicy {
+                test_key: true,
+                provisioned: false,
+            },
             next_extra: extra,
             quiet: [0; CONDS],
             acq_changed: false,
@@ -389,7 +395,13 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
             confirm: crate::confirm::BootConfirm::new(),
             update_restart: false,
         };
-        app.confirm.storage_loaded();
+        // Only a record that actually loaded (or none stored) counts: an
+        // image that rejects the stored calibration is reverted.
+        if crate::confirm::storage_ok(&app.boot) {
+            app.confirm.storage_loaded();
+        }
+        let trial = app.program.on_trial();
+        app.confirm.set_trial(trial);
         app.program_state = crate::program::ProgramState::of(&app.program);
         crate::program::publish(&app.program_state, &mut app.dev);
         app.reload();
@@ -529,16 +541,68 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     /// Handles a received frame.
     pub fn handle(&mut self, frame: &Frame, now_us: u64, out: &mut impl FnMut(Frame)) {
         self.dev.handle(frame, now_us, out);
-        // A SYNC served in operational (its TPDOs) serves the bus
-        // (`confirm.rs`); checked without wrapping `out`, which would cost
-        // the SYNC path some 40 instructions (`cargo xtask mcu-bench`).
-        if frame.id == SYNC_COB_ID
-            && !self.confirm.done()
-            && self.dev.nmt_state() == perpend_can::NmtState::Operational
-        {
+        // A SYNC served in operational (its TPDOs), an NMT command or an
+        // SDO request of a master serves the bus (`confirm.rs`); checked
+        // without wrapping `out`, which would cost the SYNC path some 40
+        // instructions (`cargo xtask mcu-bench`).
+        if !self.confirm.done() && self.serves(frame) {
             self.confirm.served();
         }
         self.service(out);
+    }
+
+    /// Whether handling `frame` served a master (`confirm.rs`): a SYNC in
+    /// operational, an NMT command for this node (or all), an SDO request
+    /// to this node. Works when the master consumes no heartbeat (0x1017
+    /// = 0) and sends no SYNC.
+    fn serves(&self, frame: &Frame) -> bool {
+        let node = self.dev.node_id();
+        match frame.id {
+            SYNC_COB_ID => self.dev.nmt_state() == perpend_can::NmtState::Operational,
+            0x000 => frame.len == 2 && (frame.data[1] == 0 || frame.data[1] == node),
+            id => id == 0x600 + u16::from(node),
+        }
+    }
+
+    /// Whether the image on trial has run [`crate::confirm::TRIAL_DEADLINE_US`]
+    /// since boot without confirming itself: `true` once; the firmware
+    /// then resets and the bootloader swaps the old image back. Never
+    /// for an image that is not on trial. Call it every tick.
+    pub fn trial_expired(&mut self, now_us: u64) -> bool {
+        self.confirm.expired(now_us)
+    }
+
+    /// Whether the running image is on trial and not yet confirmed.
+    pub fn on_trial(&self) -> bool {
+        self.confirm.on_trial()
+    }
+
+    /// What the bootloader allows for 0x2500 = bootloader
+    /// ([`crate::bootctl::BootInfo::policy`]; the host's default allows
+    /// it, as a test-key build). Refused: the SDO write aborts with
+    /// 0x08000022 and nothing resets.
+    pub fn set_rom_loader_policy(&mut self, policy: crate::bootctl::RomLoaderPolicy) {
+        self.rom_loader = policy;
+        self.dev.set_rom_loader_allowed(policy.allows());
+    }
+
+    /// The ROM-loader policy in force.
+    pub fn rom_loader_policy(&self) -> crate::bootctl::RomLoaderPolicy {
+        self.rom_loader
+    }
+
+    /// Reports option bytes that do not give the flash layout
+    /// ([`crate::bootctl::check_option_bytes`]): EMCY
+    /// [`crate::bootctl::EMCY_OPTION_BYTES`], kept active (the board
+    /// writes no flash until they are fixed). Nothing for right ones.
+    pub fn report_option_bytes(&mut self, optr: u32) {
+        if crate::bootctl::check_option_bytes(optr).is_err() {
+            self.dev.signal_emcy(
+                crate::bootctl::EMCY_OPTION_BYTES,
+                error_register::GENERIC,
+                crate::bootctl::option_bytes_emcy_data(optr),
+            );
+        }
     }
 
     /// Whether 0x1F51 "start" has marked a verified image for the swap
@@ -742,7 +806,8 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
             self.capture = (self.dev.command() == perpend_can::od::CMD_CAPTURE)
                 .then(|| crate::capture::Capture::new(self.dev.capture_samples()));
             self.bootloader = self.dev.command() == perpend_can::od::CMD_BOOTLOADER
-                && self.dev.nmt_state() == perpend_can::NmtState::PreOperational;
+                && self.dev.nmt_state() == perpend_can::NmtState::PreOperational
+                && self.rom_loader.allows();
         }
         if ev.contains(Events::REQUEST) {
             if let Some(req) = self.dev.pending_request() {
@@ -782,15 +847,11 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     fn store_now(&mut self, req: Request) -> bool {
         let mut image = [0u8; IMAGE_LEN];
         self.dev.persistent_image(&mut image);
-        let mut staged = self.dev.clone();
-        if staged.load_image(&image).is_err() {
-            return false;
-        }
         let base = match req {
             Request::Restore(Group::All | Group::Application) => Params::factory(),
             _ => self.next_extra,
         };
-        let Ok(mut p) = params_from_device(&staged, &base) else {
+        let Some(mut p) = staged_params(&self.dev, &image, &base) else {
             return false;
         };
         p.stamp = self.extra.stamp.wrapping_add(1).max(1);
@@ -835,6 +896,18 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
         self.recovering = false;
         let _ = self.dev.finish_request(ok, out);
     }
+}
+
+/// The record a store writes: the parameters of a copy of `dev` with
+/// `image` loaded, the settings without an object from `base`. Not
+/// inlined: the device copy (≈ 4 KiB) stays in this frame, apart from the
+/// store's item buffer (one frame held both, 9,304 B, more than the 8 KiB
+/// stack guard: issue 50 item 6).
+#[inline(never)]
+fn staged_params(dev: &Device, image: &[u8; IMAGE_LEN], base: &Params) -> Option<Params> {
+    let mut staged = dev.clone();
+    staged.load_image(image).ok()?;
+    params_from_device(&staged, base).ok()
 }
 
 /// EMCY code of a store refused for low supply voltage (CiA 301 0x3220

@@ -22,8 +22,14 @@ pub struct Capture {
     want: u16,
     seen: u32,
     used: u16,
-    /// Sums of θ1, θ2, θ, pitch, yaw \[deg\] (f64: exact for n ≤ 1000).
-    sums: [f64; 5],
+    /// θ1, θ2, θ, pitch, yaw of the first valid sample \[deg\]: the others
+    /// are summed as deviations from it (small numbers, little rounding).
+    first: [f32; 5],
+    /// Sums of the deviations from `first` \[deg\] (f32, compensated:
+    /// no f64 soft-float on the board, issue 50 item 7).
+    sums: [f32; 5],
+    /// The compensation terms of `sums` (Kahan-Babuška/Neumaier).
+    comp: [f32; 5],
 }
 
 /// A finished capture: the mean angles and how many samples made them.
@@ -55,8 +61,19 @@ impl Capture {
                 o.pitch_deg,
                 o.yaw_deg,
             ];
-            for (s, v) in self.sums.iter_mut().zip(a) {
-                *s += f64::from(v);
+            if self.used == 0 {
+                self.first = a;
+            }
+            for (k, &v) in a.iter().enumerate() {
+                let d = v - self.first[k];
+                let t = self.sums[k] + d;
+                // Neumaier: the low-order bits the addition lost
+                self.comp[k] += if self.sums[k].abs() >= d.abs() {
+                    (self.sums[k] - t) + d
+                } else {
+                    (d - t) + self.sums[k]
+                };
+                self.sums[k] = t;
             }
             self.used += 1;
         }
@@ -65,9 +82,9 @@ impl Capture {
     }
 
     fn result(&self) -> Captured {
-        let n = f64::from(self.used);
+        let n = f32::from(self.used);
         Captured {
-            angles_deg: self.sums.map(|s| (s / n) as f32),
+            angles_deg: core::array::from_fn(|k| self.first[k] + (self.sums[k] + self.comp[k]) / n),
             used: self.used,
         }
     }
@@ -105,6 +122,26 @@ mod tests {
         let r = c.add(&out(6.0, true)).unwrap();
         assert_eq!(r.used, 4);
         assert_eq!(r.angles_deg, [3.0, -3.0, 2.0, 0.5, -0.5]);
+    }
+
+    #[test]
+    fn the_f32_mean_of_a_thousand_samples_matches_f64() {
+        let mut c = Capture::new(1000);
+        let mut exact = 0.0f64;
+        let mut r = None;
+        for k in 0..1000u32 {
+            let v = 12.345_678 + 1e-3 * ((k * 7919 % 1000) as f32 - 500.0) / 500.0;
+            exact += f64::from(v);
+            r = c.add(&out(v, true));
+        }
+        let r = r.unwrap();
+        let want = (exact / 1000.0) as f32;
+        assert!(
+            (r.angles_deg[0] - want).abs() <= 2.0 * f32::EPSILON * want.abs(),
+            "{} vs {want}",
+            r.angles_deg[0]
+        );
+        assert_eq!(r.angles_deg[2], 2.0);
     }
 
     #[test]

@@ -1,10 +1,11 @@
 //! When a freshly swapped-in image confirms itself (embassy-boot
-//! `mark_booted`, issue 34 item 4): only after it has come up completely,
-//! i.e. the parameter storage was loaded, the CAN controller runs (a frame
-//! was acknowledged on the bus) and the node has served the bus once (a
-//! heartbeat sent or a SYNC answered). Until then a reset (panic, watchdog
-//! of a hung image, power cut) makes the bootloader swap the old image
-//! back.
+//! `mark_booted`, issue 34 item 4, issue 50 item 3): only after it has come
+//! up completely, i.e. a stored parameter record actually loaded (or none
+//! was stored: nothing to reject), the CAN controller runs (a frame was
+//! acknowledged on the bus) and the node has served the bus once (a
+//! heartbeat sent, a SYNC answered, an NMT command or an SDO request of a
+//! master handled). Until then a reset (panic, watchdog of a hung image,
+//! power cut) makes the bootloader swap the old image back.
 //!
 //! [`BootConfirm`] collects the three conditions in any order and says
 //! exactly once that it is time to confirm ([`BootConfirm::due`]); the
@@ -13,11 +14,37 @@
 //! nothing (embassy-boot compares the magic first), so the firmware runs
 //! it at every start.
 //!
+//! **Trial deadline** ([`TRIAL_DEADLINE_US`]): an image on trial that has
+//! not confirmed itself [`TRIAL_DEADLINE_US`] after boot is done with
+//! ([`BootConfirm::expired`]): the firmware resets and the bootloader
+//! swaps the old image back. Before, an image whose frames were never
+//! acknowledged still fed the watchdog and ran unconfirmed until the next
+//! power cycle. A board that is not on trial never expires.
+//!
+//! **Storage**: a record that was found but rejected, or storage that
+//! could not be read, never counts as loaded ([`storage_ok`]): an image
+//! that cannot read the calibration the old one stored is reverted.
+//!
 //! Limits: "CAN running" is what the firmware reports (an acknowledged
-//! transmission); a node alone on the bus never confirms a new image, and
-//! the next reset reverts it, which is the safe outcome.
+//! transmission); a node alone on the bus, or on a bus whose master
+//! never addresses it and with its heartbeat producer off (0x1017 = 0),
+//! never confirms a new image and is reverted at the deadline, which is
+//! the safe outcome.
 
 use crate::program::{ProgramError, ProgramStore};
+use crate::storage::Boot;
+
+/// How long an image on trial may run unconfirmed after boot \[µs\]
+/// (60 s: a master brings a node up well within it; the swap back takes
+/// another ≈ 10 s).
+pub const TRIAL_DEADLINE_US: u64 = 60_000_000;
+
+/// Whether the parameter storage counts as loaded for the confirmation: a
+/// stored record loaded, or nothing stored. A rejected record or an
+/// unreadable storage does not.
+pub fn storage_ok(boot: &Boot) -> bool {
+    matches!(boot, Boot::Stored | Boot::Missing)
+}
 
 /// The confirmation conditions and whether the confirmation was made.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -26,6 +53,10 @@ pub struct BootConfirm {
     can: bool,
     served: bool,
     done: bool,
+    /// The running image is on trial (swapped in, not yet confirmed).
+    trial: bool,
+    /// The trial deadline was reported.
+    expired: bool,
 }
 
 impl BootConfirm {
@@ -36,7 +67,28 @@ impl BootConfirm {
             can: false,
             served: false,
             done: false,
+            trial: false,
+            expired: false,
         }
+    }
+
+    /// The running image is on trial (the bootloader's state says so).
+    pub fn set_trial(&mut self, trial: bool) {
+        self.trial = trial;
+    }
+
+    /// Whether the running image is on trial and not confirmed yet.
+    pub fn on_trial(&self) -> bool {
+        self.trial && !self.done
+    }
+
+    /// Whether the trial deadline has passed at `now_us` (µs since boot)
+    /// without a confirmation: `true` once, then `false`. Never for an
+    /// image that is not on trial.
+    pub fn expired(&mut self, now_us: u64) -> bool {
+        let e = self.on_trial() && !self.expired && now_us >= TRIAL_DEADLINE_US;
+        self.expired |= e;
+        e
     }
 
     /// The parameter storage was loaded (stored or factory parameters).
@@ -55,9 +107,10 @@ impl BootConfirm {
     }
 
     /// Whether every condition holds and the confirmation was not made
-    /// yet; `true` once, then `false` for ever.
+    /// yet; `true` once, then `false` for ever (also after the deadline
+    /// expired: the image is being reverted).
     pub fn due(&mut self) -> bool {
-        let due = self.storage && self.can && self.served && !self.done;
+        let due = self.storage && self.can && self.served && !self.done && !self.expired;
         self.done |= due;
         due
     }
@@ -144,6 +197,40 @@ mod tests {
         assert_eq!(c.run(&mut s), None);
         assert_eq!(s.reset(), BootState::Boot);
         assert_eq!(s.active_image, v1);
+    }
+
+    #[test]
+    fn an_image_on_trial_expires_once_at_the_deadline_and_a_confirmed_one_never() {
+        let mut c = BootConfirm::new();
+        c.set_trial(true);
+        c.storage_loaded();
+        assert!(!c.expired(TRIAL_DEADLINE_US - 1));
+        assert!(c.expired(TRIAL_DEADLINE_US));
+        assert!(!c.expired(TRIAL_DEADLINE_US + 1), "once");
+        c.can_running();
+        c.served();
+        assert!(!c.due(), "no confirmation after the deadline");
+        let mut ok = BootConfirm::new();
+        ok.set_trial(true);
+        ok.storage_loaded();
+        ok.can_running();
+        ok.served();
+        assert!(ok.due());
+        assert!(!ok.expired(10 * TRIAL_DEADLINE_US));
+        let mut normal = BootConfirm::new();
+        assert!(!normal.expired(10 * TRIAL_DEADLINE_US), "not on trial");
+    }
+
+    #[test]
+    fn only_a_loaded_or_absent_record_counts_as_storage() {
+        assert!(storage_ok(&Boot::Stored));
+        assert!(storage_ok(&Boot::Missing));
+        assert!(!storage_ok(&Boot::Rejected(perpend_core::Error::Decode(
+            "x"
+        ))));
+        assert!(!storage_ok(&Boot::Unreadable(
+            crate::storage::StoreError::Flash
+        )));
     }
 
     #[test]

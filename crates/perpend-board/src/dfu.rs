@@ -93,12 +93,22 @@ impl<DFU: NorFlash, STATE: NorFlash> DfuProgram<DFU, STATE> {
     }
 
     /// Writes the buffered page ending at `received` (padded with 0xFF).
+    /// The page is lent to the updater in place (a copy of it cost 2 KiB
+    /// of stack, issue 50 item 6).
     fn flush(&mut self) -> Result<(), ProgramError> {
         let fill = self.received as usize % DFU_PAGE;
         let at = self.received as usize - if fill == 0 { DFU_PAGE } else { fill };
-        let page = self.page;
-        let r = self.updater().write_firmware(at, &page);
-        self.page = [0xFF; DFU_PAGE];
+        let Self {
+            dfu,
+            state,
+            aligned,
+            page,
+            ..
+        } = self;
+        let config = FirmwareUpdaterConfig { dfu, state };
+        let mut u = BlockingFirmwareUpdater::new(config, &mut aligned[..STATE::WRITE_SIZE]);
+        let r = u.write_firmware(at, &page[..]);
+        page.fill(0xFF);
         r.map_err(updater_error)
     }
 }
@@ -176,6 +186,14 @@ impl<DFU: NorFlash, STATE: NorFlash> ProgramStore for DfuProgram<DFU, STATE> {
 
     fn mark_booted(&mut self) -> Result<(), ProgramError> {
         self.updater().mark_booted().map_err(updater_error)
+    }
+
+    fn on_trial(&mut self) -> bool {
+        // After a swap the bootloader leaves the SWAP magic in STATE until
+        // `mark_booted` (embassy-boot 0.7 boot_loader.rs: a SWAP magic at
+        // the next start means "revert"). An unreadable STATE: not on
+        // trial (no deadline; the bootloader decides at the next reset).
+        matches!(self.boot_state(), Ok(State::Swap))
     }
 
     fn active(&self) -> u32 {

@@ -174,6 +174,45 @@ fn the_bootloader_command_is_honoured_in_pre_operational_only() {
     assert_eq!(sdo(&mut app, 0xB1), Some(0x80));
 }
 
+#[test]
+fn a_release_bootloader_refuses_the_rom_loader_command_with_an_abort() {
+    let sdo = |app: &mut crate::app::App<_>, v: u8| {
+        let f = perpend_can::Frame::new(0x620, &[0x2F, 0x00, 0x25, 0, v, 0, 0, 0]);
+        let mut out = std::vec::Vec::new();
+        app.handle(&f, 100, &mut |o| out.push(o));
+        out.iter().find(|o| o.id == 0x5A0).map(|o| o.data)
+    };
+    let mut app = booted();
+    app.set_rom_loader_policy(crate::bootctl::RomLoaderPolicy::default());
+    let r = sdo(&mut app, perpend_can::od::CMD_BOOTLOADER).unwrap();
+    assert_eq!(r[0], 0x80);
+    assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 0x0800_0022);
+    assert!(!app.take_bootloader_request(), "nothing resets");
+    // provisioned: allowed again
+    app.set_rom_loader_policy(crate::bootctl::RomLoaderPolicy {
+        test_key: false,
+        provisioned: true,
+    });
+    assert_eq!(
+        sdo(&mut app, perpend_can::od::CMD_BOOTLOADER).unwrap()[0],
+        0x60
+    );
+    assert!(app.take_bootloader_request());
+}
+
+#[test]
+fn wrong_option_bytes_raise_an_emcy_that_stays() {
+    let mut app = booted();
+    app.report_option_bytes(0xFFEF_F8AA);
+    assert!(!app.device().emcy_active(crate::bootctl::EMCY_OPTION_BYTES));
+    app.report_option_bytes(0xFFEF_F8AA & !crate::bootctl::OPTR_DBANK);
+    assert!(app.device().emcy_active(crate::bootctl::EMCY_OPTION_BYTES));
+    for t in 0..200u64 {
+        app.on_sample(&crate::pipeline::Sample::default(), t * 1000);
+    }
+    assert!(app.device().emcy_active(crate::bootctl::EMCY_OPTION_BYTES));
+}
+
 proptest! {
     #[test]
     fn stack_used_counts_the_touched_top(len in 1usize..64, used in 0usize..64) {

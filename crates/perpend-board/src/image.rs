@@ -5,8 +5,9 @@
 //!
 //! ```text
 //! payload (the firmware binary, n bytes)
-//! identity trailer, 48 bytes: "PPIM", product code u32, version u32,
-//!                             payload length u32, SHA-256(payload) [32]
+//! identity trailer, 48 bytes: "PPIM", product code u32, version u32
+//!                             (bits 0..23 major.minor.patch, bits 24..31
+//!                             flags), payload length u32, SHA-256(payload) [32]
 //! signature, 64 bytes:        ed25519(secret key, SHA-512(payload ‖ trailer))
 //! ```
 //!
@@ -17,12 +18,24 @@
 //! − 64, the signature appended at the end as in embassy-boot's signing
 //! example. The trailer inside the signed bytes adds what embassy-boot does
 //! not check: the product code (0x1018 sub 2) so an image for another board
-//! is refused, the version reported in 0x1F56, and a SHA-256 of the payload.
+//! is refused, the version reported in 0x1F56, and a SHA-256 of the payload
+//! (written by the signer and read for 0x1F56's hash byte; the board does
+//! not recompute it: the signature already covers the payload, and the
+//! SHA-256 code cost 7.4 KB of flash, issue 50 item 7).
+//!
+//! **Versions only go up** (issue 50 item 5, [`check_version`]): the board
+//! refuses an image older than the one it runs ([`ImageError::Downgrade`]),
+//! so an older signed image with a known fault cannot be put back over
+//! CAN. The same version is accepted (a reinstall). The override is
+//! signed: [`FLAG_ALLOW_DOWNGRADE`] in the trailer's flag byte, set by
+//! `cargo xtask fw --sign KEY --allow-downgrade`, so only the holder of
+//! the private key can authorise a downgrade (docs/firmware.md).
 //!
 //! Limits: images up to 4 GiB − 1; reads in 256-byte chunks (the buffer is
 //! on the stack); one public key.
 
 use salty::{PublicKey, Sha512, Signature};
+#[cfg(any(test, feature = "std"))]
 use sha2::{Digest, Sha256};
 
 /// Bytes of the signature at the end of an image.
@@ -31,6 +44,10 @@ pub const SIGNATURE_LEN: usize = 64;
 pub const TRAILER_LEN: usize = 48;
 /// Magic at the start of the trailer.
 pub const MAGIC: [u8; 4] = *b"PPIM";
+/// Trailer flag (version word bit 31): this image may replace a newer one.
+pub const FLAG_ALLOW_DOWNGRADE: u8 = 1 << 7;
+/// The version bits of the trailer's version word.
+pub const VERSION_MASK: u32 = 0x00FF_FFFF;
 /// Bytes read per step while hashing.
 const CHUNK: usize = 256;
 
@@ -49,10 +66,16 @@ pub enum ImageError {
     BadKey,
     /// The image is for another product code.
     WrongProduct,
-    /// The payload's SHA-256 differs from the trailer's.
+    /// The payload's SHA-256 differs from the trailer's. No longer
+    /// checked on the board (issue 50 item 7): the signature covers the
+    /// payload and the trailer, so only the key holder can make the two
+    /// disagree; kept for its 0x1F57 mapping and the host's tools.
     BadHash,
     /// The store could not read the image back.
     Read,
+    /// The image is older than the running one and does not carry
+    /// [`FLAG_ALLOW_DOWNGRADE`].
+    Downgrade,
 }
 
 impl ImageError {
@@ -66,6 +89,7 @@ impl ImageError {
             ImageError::WrongProduct => 5,
             ImageError::BadHash => 6,
             ImageError::Read => 7,
+            ImageError::Downgrade => 8,
         }
     }
 }
@@ -86,6 +110,8 @@ pub struct Identity {
     pub product: u32,
     /// Version, `major << 16 | minor << 8 | patch`.
     pub version: u32,
+    /// Flags (`FLAG_*`), the top byte of the trailer's version word.
+    pub flags: u8,
     /// Payload length \[bytes\].
     pub payload_len: u32,
     /// SHA-256 of the payload.
@@ -104,7 +130,8 @@ impl Identity {
         let mut t = [0u8; TRAILER_LEN];
         t[..4].copy_from_slice(&MAGIC);
         t[4..8].copy_from_slice(&self.product.to_le_bytes());
-        t[8..12].copy_from_slice(&self.version.to_le_bytes());
+        let v = (self.version & VERSION_MASK) | (u32::from(self.flags) << 24);
+        t[8..12].copy_from_slice(&v.to_le_bytes());
         t[12..16].copy_from_slice(&self.payload_len.to_le_bytes());
         t[16..].copy_from_slice(&self.sha256);
         t
@@ -123,11 +150,26 @@ impl Identity {
         sha256.copy_from_slice(&t[16..]);
         Ok(Self {
             product: word(4),
-            version: word(8),
+            version: word(8) & VERSION_MASK,
+            flags: (word(8) >> 24) as u8,
             payload_len: word(12),
             sha256,
         })
     }
+}
+
+/// Whether an image `new` may replace the running version `running`
+/// (both `major.minor.patch` words; see the module docs).
+///
+/// # Errors
+/// [`ImageError::Downgrade`] for an older image without
+/// [`FLAG_ALLOW_DOWNGRADE`].
+pub fn check_version(new: &Identity, running: u32) -> Result<(), ImageError> {
+    let downgrade = new.version & VERSION_MASK < running & VERSION_MASK;
+    if downgrade && new.flags & FLAG_ALLOW_DOWNGRADE == 0 {
+        return Err(ImageError::Downgrade);
+    }
+    Ok(())
 }
 
 /// `major.minor.patch` as an [`Identity::version`] (each part saturated
@@ -137,7 +179,8 @@ pub fn version(major: u32, minor: u32, patch: u32) -> u32 {
 }
 
 /// Verifies the image of `len` bytes that `read(offset, buf)` reads back
-/// (the DFU partition): signature first, then trailer, product and hash.
+/// (the DFU partition): trailer, signature, product (the trailer's SHA-256
+/// is not recomputed: the signature covers the payload).
 ///
 /// # Errors
 /// The first reason the image is refused.
@@ -159,40 +202,30 @@ where
     let mut sig = [0u8; SIGNATURE_LEN];
     read(signed_len, &mut sig)?;
     let key = PublicKey::try_from(&trust.public_key).map_err(|_| ImageError::BadKey)?;
-    let (sha512, sha256) = digests(&mut read, id.payload_len, signed_len)?;
+    let sha512 = digest(&mut read, signed_len)?;
     key.verify(&sha512, &Signature::from(&sig))
         .map_err(|_| ImageError::BadSignature)?;
     if id.product != trust.product {
         return Err(ImageError::WrongProduct);
     }
-    if sha256 != id.sha256 {
-        return Err(ImageError::BadHash);
-    }
     Ok(id)
 }
 
-/// SHA-512 of bytes `0..signed_len` and SHA-256 of `0..payload_len`.
-fn digests<R>(
-    read: &mut R,
-    payload_len: u32,
-    signed_len: u32,
-) -> Result<([u8; 64], [u8; 32]), ImageError>
+/// SHA-512 of bytes `0..signed_len`.
+fn digest<R>(read: &mut R, signed_len: u32) -> Result<[u8; 64], ImageError>
 where
     R: FnMut(u32, &mut [u8]) -> Result<(), ImageError>,
 {
     let mut sha512 = Sha512::new();
-    let mut sha256 = Sha256::new();
     let mut buf = [0u8; CHUNK];
     let mut at = 0u32;
     while at < signed_len {
         let n = (signed_len - at).min(CHUNK as u32) as usize;
         read(at, &mut buf[..n])?;
         sha512.update(&buf[..n]);
-        let p = payload_len.saturating_sub(at).min(n as u32) as usize;
-        sha256.update(&buf[..p]);
         at += n as u32;
     }
-    Ok((sha512.finalize(), sha256.finalize().into()))
+    Ok(sha512.finalize())
 }
 
 /// The public key of an ed25519 secret seed.
@@ -203,9 +236,22 @@ pub fn public_key(seed: &[u8; 32]) -> [u8; 32] {
 /// A signed image of `payload` (host only: `cargo xtask fw --sign`, tests).
 #[cfg(any(test, feature = "std"))]
 pub fn sign(payload: &[u8], product: u32, version: u32, seed: &[u8; 32]) -> std::vec::Vec<u8> {
+    sign_with_flags(payload, product, version, 0, seed)
+}
+
+/// [`sign`] with trailer flags (`FLAG_*`).
+#[cfg(any(test, feature = "std"))]
+pub fn sign_with_flags(
+    payload: &[u8],
+    product: u32,
+    version: u32,
+    flags: u8,
+    seed: &[u8; 32],
+) -> std::vec::Vec<u8> {
     let id = Identity {
         product,
-        version,
+        version: version & VERSION_MASK,
+        flags,
         payload_len: payload.len().min(u32::MAX as usize) as u32,
         sha256: Sha256::digest(payload).into(),
     };
@@ -291,6 +337,34 @@ mod tests {
         let stranger = sign(&payload(700), PRODUCT, 5, &[9u8; 32]);
         assert_eq!(check(&stranger), Err(ImageError::BadSignature));
         assert!(check(&good).is_ok(), "the original still verifies");
+    }
+
+    #[test]
+    fn versions_only_go_up_unless_the_signed_flag_allows() {
+        let v = |ver, flags| {
+            let img = sign_with_flags(&payload(10), PRODUCT, ver, flags, &TEST_SEED);
+            check(&img).unwrap()
+        };
+        let running = version(1, 2, 0);
+        assert_eq!(check_version(&v(version(1, 3, 0), 0), running), Ok(()));
+        assert_eq!(
+            check_version(&v(version(1, 2, 0), 0), running),
+            Ok(()),
+            "reinstall"
+        );
+        assert_eq!(
+            check_version(&v(version(1, 1, 9), 0), running),
+            Err(ImageError::Downgrade)
+        );
+        let allowed = v(version(1, 1, 9), FLAG_ALLOW_DOWNGRADE);
+        assert_eq!(
+            allowed.version,
+            version(1, 1, 9),
+            "the flag is not the version"
+        );
+        assert_eq!(check_version(&allowed, running), Ok(()));
+        // 0x1F56's hash byte of the running image does not count
+        assert_eq!(check_version(&v(version(1, 2, 0), 0), 0xFF01_0200), Ok(()));
     }
 
     #[test]

@@ -16,6 +16,8 @@
 //! * [`txq`] — the software transmit queue in CAN priority order between
 //!   the application and the controller (never blocks the acquisition);
 //! * [`bittiming`] — the FDCAN nominal bit timing of the four bit rates;
+//! * [`bootctl`] — the ROM-loader request in a backup register, the IWDG
+//!   hand-over from the bootloader, the option-byte check;
 //! * [`health`] — reset cause, VREF+ from VREFINT, die temperature, flash
 //!   layout check, worst loop time, stack high-water mark;
 //! * [`rxfilter`] — the FDCAN receive acceptance filters and a model of the
@@ -42,6 +44,7 @@
 pub mod acq;
 pub mod app;
 pub mod bittiming;
+pub mod bootctl;
 pub mod busmon;
 pub mod capture;
 pub mod confirm;

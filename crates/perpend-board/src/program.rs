@@ -38,6 +38,9 @@ pub const EMCY_PROGRAM_REFUSED: u16 = 0x6200;
 pub const FLASH_WRONG_PRODUCT: u32 = 64 << 1;
 /// 0x1F57, manufacturer-specific: the signature does not verify.
 pub const FLASH_BAD_SIGNATURE: u32 = 65 << 1;
+/// 0x1F57, manufacturer-specific: the image is older than the running one
+/// (versions only go up; `image::FLAG_ALLOW_DOWNGRADE` overrides).
+pub const FLASH_DOWNGRADE: u32 = 66 << 1;
 
 /// Why a program store refused an operation; each maps to a 0x1F57 code.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -65,6 +68,7 @@ impl ProgramError {
             ProgramError::Image(ImageError::BadSignature | ImageError::BadKey) => {
                 FLASH_BAD_SIGNATURE
             }
+            ProgramError::Image(ImageError::Downgrade) => FLASH_DOWNGRADE,
         }
     }
 }
@@ -105,6 +109,10 @@ pub trait ProgramStore {
     /// # Errors
     /// The state could not be written.
     fn mark_booted(&mut self) -> Result<(), ProgramError>;
+    /// Whether the running image is on trial: swapped in by the
+    /// bootloader and not confirmed (embassy-boot STATE still says
+    /// `Swap`). Asked once at boot (`confirm.rs`, the trial deadline).
+    fn on_trial(&mut self) -> bool;
     /// 0x1F56 of the ACTIVE (running) image ([`image::Identity::identification`]).
     fn active(&self) -> u32;
     /// The ed25519 public key images must verify against.
@@ -133,6 +141,9 @@ impl ProgramStore for NoProgram {
     }
     fn mark_booted(&mut self) -> Result<(), ProgramError> {
         Ok(())
+    }
+    fn on_trial(&mut self) -> bool {
+        false
     }
     fn active(&self) -> u32 {
         build_version()
@@ -277,6 +288,9 @@ impl ProgramStore for RamProgram {
         }
         Ok(())
     }
+    fn on_trial(&mut self) -> bool {
+        self.boot == BootState::Trial
+    }
     fn active(&self) -> u32 {
         trailer_identification(&self.active_image)
     }
@@ -411,6 +425,7 @@ fn check<P: ProgramStore>(store: &mut P, len: u32, product: u32) -> Result<u32, 
     };
     let read = |o: u32, b: &mut [u8]| store.read(o, b).map_err(|_| ImageError::Read);
     let id = image::verify(read, len, &trust).map_err(ProgramError::Image)?;
+    image::check_version(&id, store.active()).map_err(ProgramError::Image)?;
     Ok(id.identification())
 }
 
@@ -585,7 +600,7 @@ mod tests {
         rig.store.reset();
         assert_eq!(rig.store.active_image, v1, "{code:?}");
         // A good image afterwards clears the EMCY and is accepted.
-        rig.download(&signed(100, 7)).unwrap();
+        rig.download(&signed(100, image::version(1, 0, 7))).unwrap();
         assert!(!rig.dev.emcy_active(EMCY_PROGRAM_REFUSED));
     }
 
@@ -611,6 +626,26 @@ mod tests {
     }
 
     #[test]
+    fn an_older_image_is_refused_unless_signed_to_allow_it() {
+        // running v1.0.0
+        refused(
+            &signed(1500, image::version(0, 9, 0)),
+            FLASH_DOWNGRADE,
+            ImageError::Downgrade,
+        );
+        let mut rig = running_v1(8192);
+        let old = image::sign_with_flags(
+            &payload(1500),
+            PRODUCT,
+            image::version(0, 9, 0),
+            image::FLAG_ALLOW_DOWNGRADE,
+            &image::TEST_SEED,
+        );
+        rig.download(&old).unwrap();
+        assert_eq!(rig.control(PROGRAM_START)[0], 0x60);
+    }
+
+    #[test]
     fn an_image_for_another_board_is_refused() {
         let img = image::sign(&payload(1500), PRODUCT ^ 1, 9, &image::TEST_SEED);
         refused(&img, FLASH_WRONG_PRODUCT, ImageError::WrongProduct);
@@ -621,7 +656,7 @@ mod tests {
         let mut rig = running_v1(8192);
         assert_eq!(abort(rig.control(PROGRAM_START)), 0x0800_0020);
         assert_eq!(rig.read(0x1F57), FLASH_NO_PROGRAM);
-        rig.download(&signed(100, 1)).unwrap();
+        rig.download(&signed(100, image::version(1, 0, 1))).unwrap();
         assert_eq!(rig.control(PROGRAM_STOP)[0], 0x60);
         assert_eq!(rig.control(PROGRAM_CLEAR)[0], 0x60);
         assert!(rig.store.image.is_empty());

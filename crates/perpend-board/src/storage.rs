@@ -533,6 +533,7 @@ pub fn save<S: ParamStore + ?Sized>(store: &mut S, params: &Params) -> Result<()
 /// [`SaveError::Invalid`] when the parameters do not validate or the item
 /// exceeds [`MAX_ITEM`] (nothing is written), [`SaveError::Store`] from the
 /// flash.
+#[inline(never)] // its 2 KiB buffer stays out of the caller's frame
 pub fn save_with_tail<S: ParamStore + ?Sized>(
     store: &mut S,
     params: &Params,

@@ -303,6 +303,10 @@ struct Core {
     syncs: SyncRt,
     /// Heartbeat consumers (0x1016).
     hb_cons: [HbMonitor; HB_CONSUMERS],
+    /// 0x2500 = [`od::CMD_BOOTLOADER`] is refused (SDO abort 0x08000022):
+    /// the board's bootloader does not allow the ROM loader
+    /// ([`Device::set_rom_loader_allowed`]).
+    rom_loader_locked: bool,
 }
 
 /// A CANopen device (CiA 301 subset) holding the perpend object
@@ -1349,6 +1353,7 @@ impl Device {
             config_gen: 0,
             syncs: SyncRt::default(),
             hb_cons: [HbMonitor::default(); HB_CONSUMERS],
+            rom_loader_locked: false,
         };
         for (s, _, e) in od::entries() {
             core.values[s] = core.init_value(e, node_id);

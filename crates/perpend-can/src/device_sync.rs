@@ -293,6 +293,9 @@ impl Core {
 
     /// The command 0x2500 = `v` (SDO or RPDO).
     pub(super) fn command(&mut self, v: u32) -> Result<Option<Written>, SdoAbort> {
+        if self.rom_loader_locked && v == u32::from(crate::od::CMD_BOOTLOADER) {
+            return Err(SdoAbort::State);
+        }
         self.set(0x2500, 0, v);
         self.event(Events::COMMAND);
         Ok(Some(Written::Done))
@@ -418,6 +421,13 @@ impl Device {
     /// SYNCs whose sample came too late (0x2301 sub 2).
     pub fn sync_missed(&self) -> u32 {
         self.core.get(0x2301, 2)
+    }
+
+    /// Whether 0x2500 = [`crate::od::CMD_BOOTLOADER`] is accepted (the
+    /// default) or refused with SDO abort 0x08000022 (the bootloader of a
+    /// release build without the provisioning flag forbids the ROM loader).
+    pub fn set_rom_loader_allowed(&mut self, allowed: bool) {
+        self.core.rom_loader_locked = !allowed;
     }
 
     /// The command waiting in 0x2500 ([`CMD_NONE`] when none).

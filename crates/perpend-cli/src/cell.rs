@@ -200,6 +200,10 @@ pub struct SimHeadArgs {
     /// Directory to write nominal.csv and truth.csv into.
     #[arg(long)]
     pub out: PathBuf,
+    /// `perpend cell`'s global link options, which sim-head does not read:
+    /// kept out of its help and refused after its name.
+    #[command(flatten)]
+    pub no_link: crate::node::NoLink,
 }
 
 /// What `cell run` measured (`cell.json`).

@@ -26,7 +26,7 @@ Files (CSV, header names in any order, `#` comments, empty or NaN = missing; doc
 #[derive(Parser)]
 #[command(name = "perpend", version = perpend_lab::record::VERSION, about, long_about = None, after_help = CONVENTIONS)]
 struct Cli {
-    /// No progress bars (they are drawn on stderr, and only on a terminal).
+    /// No progress bars or progress lines (drawn on stderr, and only on a terminal).
     #[arg(long, global = true)]
     quiet: bool,
     #[command(subcommand)]

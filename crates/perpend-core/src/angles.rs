@@ -68,7 +68,10 @@ impl<T: Real> Deviation<T> {
         // atan2 of the lateral and axial parts: exact near 0, where
         // acos(−n_z) loses half the digits.
         let theta = (n.x * n.x + n.y * n.y).fast_sqrt().atan2(-n.z);
-        let t1 = n.y.max(-T::one()).min(T::one()).asin();
+        // asin(n_y) of the unit normal as atan2(n_y, √(n_x² + n_z²)): the
+        // same angle, exact near ±90° too, and no `asinf` (libm's computes
+        // in software f64 on the Cortex-M4F, issue 50 item 7).
+        let t1 = n.y.atan2((n.x * n.x + n.z * n.z).fast_sqrt());
         Ok(Self {
             theta1,
             theta2,
@@ -101,7 +104,8 @@ impl<T: Real> Attitude<T> {
         }
         let f = -n;
         Ok(Self {
-            pitch: -(f.y.max(-T::one()).min(T::one())).asin(),
+            // −asin(f_y) of the unit f, as in `Deviation::from_normal`
+            pitch: -f.y.atan2((f.x * f.x + f.z * f.z).fast_sqrt()),
             yaw: (f.x / f.z).atan(),
         })
     }

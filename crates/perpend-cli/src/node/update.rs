@@ -27,7 +27,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use perpend_board::image::{Identity, SIGNATURE_LEN, TRAILER_LEN};
-use perpend_board::program::{FLASH_BAD_SIGNATURE, FLASH_WRONG_PRODUCT};
+use perpend_board::program::{FLASH_BAD_SIGNATURE, FLASH_DOWNGRADE, FLASH_WRONG_PRODUCT};
 use perpend_can::od;
 
 pub use super::update_record::version_words;
@@ -71,6 +71,10 @@ pub fn flash_words(status: u32) -> &'static str {
         FLASH_BAD_SIGNATURE => {
             "the signature does not verify against the board's key: the image was signed \
              with another key, or its signature was changed after signing"
+        }
+        FLASH_DOWNGRADE => {
+            "the image is older than the one the board runs (versions only go up; \
+             sign it with `cargo xtask fw --sign KEY --allow-downgrade` to allow it)"
         }
         _ => "unknown flash status",
     }
