@@ -135,8 +135,7 @@ pub fn emcy_words(code: u16) -> String {
         emcy::BUS_OFF_RECOVERED => "the CAN controller recovered from bus-off".into(),
         emcy::CAN_OVERRUN => "CAN receive overrun: frames were lost".into(),
         perpend_can::device::EMCY_TABLE_FULL => {
-            "more errors active than the board can list (the first one unlisted in the data)"
-                .into()
+            "more errors active than the board can list (the first one unlisted in the data)".into()
         }
         c => format!("{} (code {c:#06x})", emcy_class(c)),
     }
