@@ -1102,6 +1102,11 @@ impl Report {
             None => serde_json::json!({ "before_deg": self.before_deg }),
         };
         if let Some(o) = v.as_object_mut() {
+            o.insert("utc".into(), perpend_lab::record::utc_now().into());
+            o.insert(
+                "tool_version".into(),
+                perpend_lab::record::tool_version().into(),
+            );
             o.insert("outcome".into(), self.outcome.word().into());
             o.insert("reason".into(), self.reason.clone().into());
             o.insert("first_cause".into(), self.first_cause.clone().into());
@@ -1208,6 +1213,8 @@ fn run_and_report(x: &RunArgs) -> Result<()> {
             // Nothing was changed on the board.
             if x.out.is_dir() {
                 let v = serde_json::json!({
+                    "utc": perpend_lab::record::utc_now(),
+                    "tool_version": perpend_lab::record::tool_version(),
                     "outcome": perpend_lab::record::OUTCOME_FAILED_RESTORED,
                     "reason": "the run stopped before it changed anything on the board",
                     "first_cause": format!("{e:#}"),

@@ -123,7 +123,25 @@ pub fn run_check(a: &CheckArgs, cancel: &AtomicBool) -> Result<CheckRecord> {
     let tol = a
         .tolerance_deg
         .or(last.decision.as_ref().map(|d| d.tolerance_deg));
-    let reference = Reference::new(a.config.as_deref(), tol, a.robot.starts_with("sim:"))?;
+    let mut reference = Reference::new(a.config.as_deref(), tol, a.robot.starts_with("sim:"))?;
+    // Without a configuration, the tracker the record names (and its
+    // uncertainty) stands, not a default.
+    if let (None, Some(c)) = (&a.config, last.certification.as_ref()) {
+        if let Some(u) = perpend_lab::conformity::tracker_u_rad(
+            c.tracker.xi_mm,
+            c.tracker.points,
+            c.tracker.patch_mm,
+        ) {
+            reference.tracker = c.tracker.clone();
+            reference.tracker_u_deg = u.to_degrees();
+            reference.source = format!(
+                "tracker {} (serial {}) as the record {} names it",
+                c.tracker.model,
+                c.tracker.serial,
+                a.record.display()
+            );
+        }
+    }
     let plan = read_plan(&a.plan)?;
     let mut robot = Robot::open(&a.robot, a.seed, reference.sim_tracker())?;
     let mut node = Node::connect(&a.link)?;
@@ -202,16 +220,19 @@ fn record(
             "no significant change"
         }
     );
-    let mut events = vec![format!("{} perpend cell check: {reason}", utc_now())];
+    // A board whose calibration is not the record's is said first: the
+    // comparison below is then of another calibration than the record's.
+    let mut events = Vec::new();
     if board_stamp != against.stamp {
         events.push(format!(
             "{} the board carries stamp {}, the record stamped {}: its calibration changed \
-             since that record",
+             since that record, the comparison is with another calibration",
             utc_now(),
             board_stamp.as_deref().unwrap_or("none"),
             against.stamp.as_deref().unwrap_or("none")
         ));
     }
+    events.push(format!("{} perpend cell check: {reason}", utc_now()));
     Ok(CheckRecord {
         schema: interim::SCHEMA.into(),
         utc: utc_now(),
