@@ -158,7 +158,7 @@ pub fn cell_demo() -> Result<()> {
 }
 
 /// The demo's cell configuration.
-const DEMO_CONFIG: &str = r#"{"schema": "perpend.cell-config/1", "site": "cell-demo (virtual board)",
+const DEMO_CONFIG: &str = r#"{"schema": "perpend.cell-config/1", "laboratory": "perpend cell-demo, on this machine", "site": "cell-demo (virtual board)",
  "operator": "demo operator", "approver": "demo approver", "tolerance_deg": 0.05,
  "tracker": {"model": "simulated tracker (Chen 2018 section 5)", "serial": "SIM-1",
  "calibration_due": "2099-12-31", "traceability": "simulation: none",

@@ -125,9 +125,6 @@ pub struct RunArgs {
     /// The poses to capture (`perpend plan --out`).
     #[arg(long)]
     pub plan: PathBuf,
-    /// `sim:HOST:PORT` (the virtual board's world channel) or `manual`.
-    #[arg(long)]
-    pub robot: String,
     /// Directory for previous.json (the board's calibration as found),
     /// poses.csv, params.json and cell.json (must not hold a poses.csv yet).
     #[arg(long)]
@@ -141,22 +138,9 @@ pub struct RunArgs {
     /// Fresh verification poses.
     #[arg(long, default_value_t = 8)]
     pub verify: usize,
-    /// SYNCs (board samples) per verification pose (at least 2: their
-    /// scatter is the readings' share of the uncertainty).
-    #[arg(long, default_value_t = 20)]
-    pub verify_samples: usize,
-    /// Maximum permissible normal error at every fresh pose [deg]
-    /// (default: the --config file's, else 0.05).
-    #[arg(long)]
-    pub tolerance_deg: Option<f64>,
-    /// The cell configuration (JSON, docs/record.md): site, operator,
-    /// approver, tolerance, the tracker (model, serial, calibration due
-    /// date, traceability, point noise), for the record and certificate.
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// How long the robot settles after a move before measuring [ms].
-    #[arg(long, default_value_t = 300)]
-    pub settle_ms: u64,
+    /// The robot, the sampling and the tolerance.
+    #[command(flatten)]
+    pub m: crate::cell_verify::MeasureArgs,
     /// Residual limit (0x2300 sub 4) during the before pass [mm]: the
     /// uncalibrated head's spots miss the plane by more than the board's
     /// default; put back afterwards.
@@ -262,7 +246,7 @@ fn capture_all(
         let p = robot
             .present(&format!("pose {k}"), pose, s.cancel)
             .map_err(|e| anyhow!("{e:#} ({})", captured(done, plan.len())))?;
-        std::thread::sleep(Duration::from_millis(a.settle_ms));
+        std::thread::sleep(Duration::from_millis(a.m.settle_ms));
         let c = capture::Args {
             plane: abcd(&p.tracker),
             pose: *k,
@@ -398,6 +382,8 @@ struct Session<'a> {
     die_temp_c: [Option<f64>; 2],
     /// The tolerance and the tracker.
     reference: Reference,
+    /// When the run began (ISO 8601 UTC), for the certificate.
+    started_utc: String,
 }
 
 /// What [`Session::restore`] put back, and what it could not.
@@ -418,6 +404,7 @@ impl<'a> Session<'a> {
         cancel: &'a AtomicBool,
         reference: Reference,
     ) -> Result<Self> {
+        let started_utc = perpend_lab::record::utc_now();
         let heartbeat_ms = node.heartbeat_ms()?;
         let nmt = node.state(heartbeat_ms)?;
         let residual = node.client.read_f32(node.id, 0x2300, 4)?;
@@ -456,15 +443,13 @@ impl<'a> Session<'a> {
             stamp: None,
             die_temp_c: [die, None],
             reference,
+            started_utc,
         })
     }
 
     /// The verification's sampling.
     fn sampling(&self) -> Sampling {
-        Sampling {
-            samples: self.args.verify_samples,
-            settle_ms: self.args.settle_ms,
-        }
+        self.args.m.sampling()
     }
 
     /// The before pass with the residual limit raised, put back after it.
@@ -728,7 +713,7 @@ fn steps(
     let after = v.mean_deg();
     let sigma = pooled_sigma(&poses)?;
     let (head, from) = floor_head(a, &params)?;
-    let floor = floor(&head, &v.seen(), sigma, a.verify_samples, a.seed())?;
+    let floor = floor(&head, &v.seen(), sigma, a.m.verify_samples, a.seed())?;
     Ok(Figures {
         before_deg: before,
         after_deg: after,
@@ -738,7 +723,7 @@ fn steps(
         sigma_mm: sigma,
         poses: plan.len(),
         verify_poses: fresh.len(),
-        verify_samples: a.verify_samples,
+        verify_samples: a.m.verify_samples,
         expected_deg: expected,
         seconds: started.elapsed().as_secs_f64(),
         expected_p95_deg: expected_p95,
@@ -921,15 +906,15 @@ fn die_temp(node: &mut Node) -> Option<f64> {
 /// `failed`, after what the run changed was put back.
 pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
     let started = Instant::now();
-    if a.verify == 0 || a.verify_samples < 2 {
+    if a.verify == 0 || a.m.verify_samples < 2 {
         bail!(
             "--verify must be at least 1 and --verify-samples at least 2 (their scatter is the \
              readings' share of the verification's uncertainty)"
         );
     }
     let plan = read_plan(&a.plan)?;
-    let simulated = a.robot.starts_with("sim:");
-    let reference = Reference::new(a.config.as_deref(), a.tolerance_deg, simulated)?;
+    let simulated = a.m.simulated();
+    let reference = Reference::new(a.m.config.as_deref(), a.m.tolerance_deg, simulated)?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create", a.out.display()))?;
     let poses = a.out.join("poses.csv");
@@ -939,7 +924,7 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
             poses.display()
         );
     }
-    let mut robot = Robot::open(&a.robot, a.seed(), reference.sim_tracker())?;
+    let mut robot = Robot::open(&a.m.robot, a.seed(), reference.sim_tracker())?;
     if a.reversal {
         let Robot::Sim(sim) = &mut robot else {
             bail!("--reversal: only with --robot sim:HOST:PORT for now (a manual robot cannot be told the joint angle yet)");
@@ -1056,10 +1041,13 @@ fn certification(s: &Session<'_>, utc: &str) -> perpend_lab::record::Certificati
         operator: given(|c| &c.operator),
         approver: given(|c| &c.approver),
         site: given(|c| &c.site),
+        laboratory: Some(given(|c| &c.laboratory)),
+        customer: cfg.and_then(|c| c.0.customer.clone()),
         tracker: s.reference.tracker.clone(),
         die_temp_c: s.die_temp_c,
         ambient_c: cfg.and_then(|c| c.0.ambient_c),
         config: cfg.map(|c| c.1.clone()),
+        performed_utc: Some([s.started_utc.clone(), perpend_lab::record::utc_now()]),
     }
 }
 

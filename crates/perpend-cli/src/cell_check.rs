@@ -25,7 +25,7 @@ use perpend_lab::record::{utc_now, FileHash, Record};
 
 use crate::canopen::{Nmt, NodeState};
 use crate::cell_robot::{ManualCheck, Robot};
-use crate::cell_verify::{fresh_poses, read_plan, verify, write_csv, Reference, Sampling};
+use crate::cell_verify::{fresh_poses, read_plan, verify, write_csv, Reference};
 use crate::node::{params, Node};
 
 /// Options of `cell check`.
@@ -40,9 +40,6 @@ pub struct CheckArgs {
     /// The plan whose reach the fresh poses are drawn in (`perpend plan`).
     #[arg(long)]
     pub plan: PathBuf,
-    /// `sim:HOST:PORT` (the virtual board's world channel) or `manual`.
-    #[arg(long)]
-    pub robot: String,
     /// The check record to write (`perpend.check/1`); its poses go beside
     /// it as `<name>.verify.csv`.
     #[arg(long)]
@@ -50,21 +47,12 @@ pub struct CheckArgs {
     /// Fresh poses.
     #[arg(long, default_value_t = 4)]
     pub verify: usize,
-    /// SYNCs (board samples) per pose (at least 2).
-    #[arg(long, default_value_t = 20)]
-    pub verify_samples: usize,
-    /// How long the robot settles after a move [ms].
-    #[arg(long, default_value_t = 300)]
-    pub settle_ms: u64,
     /// Seed of the fresh poses and the simulated tracker.
     #[arg(long, default_value_t = 2)]
     pub seed: u64,
-    /// Maximum permissible normal error [deg] (default: the record's).
-    #[arg(long)]
-    pub tolerance_deg: Option<f64>,
-    /// The cell configuration (the tracker, the tolerance).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    /// The robot, the sampling and the tolerance.
+    #[command(flatten)]
+    pub m: crate::cell_verify::MeasureArgs,
 }
 
 /// What the last record verified, to compare with.
@@ -113,20 +101,20 @@ fn put_back(node: &mut Node, found: Option<NodeState>) -> Result<()> {
 /// Bad files or arguments, a board of another head, bus or robot errors
 /// (the NMT state found is put back first).
 pub fn run_check(a: &CheckArgs, cancel: &AtomicBool) -> Result<CheckRecord> {
-    if a.verify == 0 || a.verify_samples < 2 {
+    if a.verify == 0 || a.m.verify_samples < 2 {
         bail!("--verify must be at least 1 and --verify-samples at least 2");
     }
     if a.out.exists() {
         bail!("{} exists: a check writes a new record", a.out.display());
     }
     let (last, against) = against(&a.record)?;
-    let tol = a
-        .tolerance_deg
-        .or(last.decision.as_ref().map(|d| d.tolerance_deg));
-    let mut reference = Reference::new(a.config.as_deref(), tol, a.robot.starts_with("sim:"))?;
+    let tol =
+        a.m.tolerance_deg
+            .or(last.decision.as_ref().map(|d| d.tolerance_deg));
+    let mut reference = Reference::new(a.m.config.as_deref(), tol, a.m.simulated())?;
     // Without a configuration, the tracker the record names (and its
     // uncertainty) stands, not a default.
-    if let (None, Some(c)) = (&a.config, last.certification.as_ref()) {
+    if let (None, Some(c)) = (&a.m.config, last.certification.as_ref()) {
         if let Some(u) = perpend_lab::conformity::tracker_u_rad(
             c.tracker.xi_mm,
             c.tracker.points,
@@ -143,7 +131,7 @@ pub fn run_check(a: &CheckArgs, cancel: &AtomicBool) -> Result<CheckRecord> {
         }
     }
     let plan = read_plan(&a.plan)?;
-    let mut robot = Robot::open(&a.robot, a.seed, reference.sim_tracker())?;
+    let mut robot = Robot::open(&a.m.robot, a.seed, reference.sim_tracker())?;
     let mut node = Node::connect(&a.link)?;
     node.hello()?;
     let serial = format!("{:#010x}", node.client.read_u32(node.id, 0x1018, 4)?);
@@ -163,11 +151,14 @@ pub fn run_check(a: &CheckArgs, cancel: &AtomicBool) -> Result<CheckRecord> {
     }
     let (_, found) = nmt_found(&mut node)?;
     let fresh = fresh_poses(&plan, a.verify, a.seed);
-    let sampling = Sampling {
-        samples: a.verify_samples,
-        settle_ms: a.settle_ms,
-    };
-    let pass = verify(&mut node, &mut robot, &fresh, sampling, "check", cancel);
+    let pass = verify(
+        &mut node,
+        &mut robot,
+        &fresh,
+        a.m.sampling(),
+        "check",
+        cancel,
+    );
     let back = put_back(&mut node, found);
     let v = pass?;
     back.context("putting the NMT state found back")?;

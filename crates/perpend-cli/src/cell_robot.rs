@@ -71,6 +71,24 @@ fn standoff(p: &Plane<f64>) -> Option<f64> {
     (p.n.z.abs() > 1e-9).then(|| -p.d / p.n.z)
 }
 
+/// The planned plane as the prompt prints it ([`rounded`]).
+fn rounded(p: &Plane<f64>) -> String {
+    format!("{:.4},{:.4},{:.4},{:.3}", p.n.x, p.n.y, p.n.z, p.d)
+}
+
+/// Whether `p` is the planned plane typed back (exactly, or as printed,
+/// whose rounding moves it by under 0.006° and 3 µm): a tracker's
+/// measurement is not within 0.01° and 5 µm of the plan (the robot alone
+/// places the plane to about 0.1 mm; the tracker's own plane noise is
+/// about 5 µm).
+fn copied(p: &Plane<f64>, planned: &Plane<f64>) -> bool {
+    let same_standoff = match (standoff(p), standoff(planned)) {
+        (Some(a), Some(b)) => (a - b).abs() < 0.005,
+        _ => false,
+    };
+    same_standoff && normal_error(&p.n, &planned.n) < 0.01
+}
+
 /// Why the typed plane `p` cannot be the tracker's plane of `pose`.
 fn plausible(
     p: &Plane<f64>,
@@ -78,6 +96,13 @@ fn plausible(
     check: Option<&ManualCheck>,
 ) -> std::result::Result<(), String> {
     let planned = pose.plane();
+    if copied(p, &planned) {
+        return Err(
+            "the planned plane as printed, not a measurement: measure the datum plane with the \
+             tracker and type the plane it reports"
+                .into(),
+        );
+    }
     if let (Some(s), Some(w)) = (standoff(p), standoff(&planned)) {
         for (k, unit) in [(25.4, "inches"), (0.001, "micrometres")] {
             if (s * k - w).abs() <= MANUAL_STANDOFF_MM && (s - w).abs() > MANUAL_STANDOFF_MM {
@@ -209,11 +234,11 @@ impl Robot {
                 println!(
                     "{label}: move the datum plane to tilt x {:.3}°, tilt y {:.3}°, standoff \
                      {:.3} mm (planned plane {}), measure it with the tracker and type the \
-                     measured A,B,C,D:",
+                     plane it reports as A,B,C,D:",
                     pose.tilt_x_deg,
                     pose.tilt_y_deg,
                     pose.standoff_mm,
-                    abcd(&truth)
+                    rounded(&truth)
                 );
                 let ok = |p: &Plane<f64>| plausible(p, pose, check.as_ref());
                 let tracker = read_plane(label, &mut || lines.next(cancel, label), &ok)?;
@@ -370,11 +395,11 @@ mod tests {
             parse_tracker_plane("0,0,0,5").unwrap_err(),
             "not a plane: |(A,B,C)| = 0"
         );
-        let mut input = ["hello\n", "\n", "0,0,1,-28\n"].into_iter();
+        let mut input = ["hello\n", "\n", "0,0,1,-28.02\n"].into_iter();
         let mut next = || Ok(input.next().map(String::from));
         let ok = |p: &Plane<f64>| plausible(p, &pose(), None);
         let p = read_plane("pose 1", &mut next, &ok).unwrap();
-        assert!((p.d + 28.0).abs() < 1e-12);
+        assert!((p.d + 28.02).abs() < 1e-12);
         let e = read_plane("pose 2", &mut next, &ok)
             .unwrap_err()
             .to_string();
@@ -392,7 +417,14 @@ mod tests {
         };
         let p = |s: &str| parse_tracker_plane(s).unwrap();
         let at = |s: &str| plausible(&p(s), &pose(), Some(&check));
-        assert_eq!(at("0,0,1,-28"), Ok(()));
+        assert_eq!(at("0,0,1,-28.01"), Ok(()));
+        // The plan typed back, exactly or as the prompt prints it, is no
+        // measurement.
+        let planned = pose().plane();
+        for copy in [abcd(&planned), rounded(&planned)] {
+            let e = at(&copy).unwrap_err();
+            assert!(e.starts_with("the planned plane as printed"), "{copy}: {e}");
+        }
         let inch = at("0,0,1,-1.1024").unwrap_err();
         assert!(
             inch.starts_with("a plane in inches: D = -1.1024 is -28.0010 mm"),

@@ -336,6 +336,48 @@ fn pose_result(
     }
 }
 
+/// The options `cell run` and `cell check` share: the robot, how each
+/// fresh pose is measured, and what it is decided against.
+#[derive(clap::Args, Debug, Clone)]
+pub struct MeasureArgs {
+    /// `sim:HOST:PORT` (the virtual board's world channel) or `manual`.
+    #[arg(long)]
+    pub robot: String,
+    /// SYNCs (board samples) per verification pose (at least 2: their
+    /// scatter is the readings' share of the uncertainty).
+    #[arg(long, default_value_t = 20)]
+    pub verify_samples: usize,
+    /// How long the robot settles after a move before measuring [ms].
+    #[arg(long, default_value_t = 300)]
+    pub settle_ms: u64,
+    /// Maximum permissible normal error at every fresh pose [deg]
+    /// (default: `cell check`: the record's; then the --config file's,
+    /// else 0.05).
+    #[arg(long)]
+    pub tolerance_deg: Option<f64>,
+    /// The cell configuration (JSON, docs/record.md): laboratory, site,
+    /// operator, approver, tolerance, the tracker (model, serial,
+    /// calibration due date, traceability, point noise), for the record
+    /// and certificate.
+    #[arg(long)]
+    pub config: Option<std::path::PathBuf>,
+}
+
+impl MeasureArgs {
+    /// The sampling of a verification pass.
+    pub fn sampling(&self) -> Sampling {
+        Sampling {
+            samples: self.verify_samples,
+            settle_ms: self.settle_ms,
+        }
+    }
+
+    /// Whether the robot is the simulated one.
+    pub fn simulated(&self) -> bool {
+        self.robot.starts_with("sim:")
+    }
+}
+
 /// Sampling of one verification pass: SYNCs per pose and settling time.
 #[derive(Debug, Clone, Copy)]
 pub struct Sampling {

@@ -223,9 +223,10 @@ pub fn show_text(r: &Record) -> String {
         Some(p) => {
             let _ = writeln!(
                 o,
-                "replaced: parameters sha256 {}, record {}",
+                "replaced: parameters sha256 {}, record {}, {}",
                 p.params_sha256,
-                p.record_hash.as_deref().unwrap_or("none")
+                p.record_hash.as_deref().unwrap_or("none"),
+                crate::record_fmt::replaced_stamp(p)
             );
         }
     }
@@ -350,11 +351,31 @@ pub fn find(stamp: &str, dirs: &[PathBuf]) -> Result<Vec<(PathBuf, String, Item)
                     "the cell run that stamped the board with it".into(),
                     item,
                 ));
+            } else if r
+                .previous
+                .as_ref()
+                .and_then(|p| p.board_stamp.as_ref())
+                .is_some_and(|s| s.record_hash == want)
+            {
+                out.push((
+                    f,
+                    "a later run that found the board with this stamp and replaced it".into(),
+                    item,
+                ));
             }
         }
     }
-    // The cell record (board, outcome, decision) first.
-    out.sort_by_key(|(_, why, _)| !why.starts_with("the cell run"));
+    // The cell record (board, outcome, decision) first, runs that
+    // replaced it last.
+    out.sort_by_key(|(_, why, _)| {
+        if why.starts_with("the cell run") {
+            0
+        } else if why.starts_with("a later run") {
+            2
+        } else {
+            1
+        }
+    });
     Ok(out)
 }
 

@@ -31,6 +31,23 @@ text-align:right}th{background:#eee}.pass{color:#070}.fail{color:#b00}.open{colo
 .banner{border:3px solid #b00;color:#b00;padding:0.5em;font-weight:bold}code{font-size:90%}\
 .sign td{height:2.5em;min-width:12em;text-align:left}";
 
+/// Every printed page names the document and says "page N of M" (CSS
+/// page margin boxes, printed by Chromium 131 and later), so a loose page
+/// is known for a part of its whole (ISO/IEC 17025 §7.8.2.1 d); the last
+/// line says where it ends.
+fn page_style(title: &str) -> String {
+    // Inside <style> nothing is unescaped: keep the characters a CSS
+    // string and HTML both take as they are.
+    let title: String = title
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric() || " -.()".contains(*c))
+        .collect();
+    format!(
+        "@page{{margin:2cm 1.5cm;@bottom-left{{content:\"{title}\";font-size:8pt}}\
+         @bottom-right{{content:\"page \" counter(page) \" of \" counter(pages);font-size:8pt}}}}"
+    )
+}
+
 /// Why `r` gets no certificate (`None`: it does).
 pub fn refusal(r: &Record) -> Option<String> {
     if r.is_certifiable() {
@@ -109,7 +126,8 @@ fn document(r: &Record, not_cert: Option<&str>) -> String {
     let _ = write!(
         h,
         "<!DOCTYPE html>\n<html xmlns=\"http://www.w3.org/1999/xhtml\"><head><meta charset=\"utf-8\"/>\
-         <title>{title}</title><style>{STYLE}</style></head><body><h1>{title}</h1>"
+         <title>{title}</title><style>{STYLE}{}</style></head><body><h1>{title}</h1>",
+        page_style(&title)
     );
     if let Some(why) = not_cert {
         let _ = write!(
@@ -137,7 +155,15 @@ fn document(r: &Record, not_cert: Option<&str>) -> String {
     }
     h.push_str(
         "<p>The results relate only to the item calibrated, at the poses verified. The 1σ of \
-         the parameters are standard uncertainties (k = 1).</p></body></html>\n",
+         the parameters are standard uncertainties (k = 1).</p>",
+    );
+    let _ = writeln!(
+        h,
+        "<p id=\"end\">End of {}.</p></body></html>",
+        match not_cert {
+            None => format!("certificate No. {}", esc(number)),
+            Some(_) => "report (not a certificate)".into(),
+        }
     );
     h
 }
@@ -228,7 +254,15 @@ fn doc_item(r: &Record, h: &mut String) {
         }
         None => row(h, "stamp on the board (0x2011)", "none from this record"),
     }
-    row(h, "date of calibration (UTC)", &r.utc);
+    let performed = r
+        .certification
+        .as_ref()
+        .and_then(|c| c.performed_utc.as_ref())
+        .map_or_else(
+            || format!("{} (parameters fitted; the run's span was not kept)", r.utc),
+            |[a, b]| format!("{a} to {b} (parameters fitted {})", r.utc),
+        );
+    row(h, "date of calibration (UTC)", &performed);
     row(h, "date of issue (UTC)", &perpend_lab::record::utc_now());
     row(h, "tool", &r.tool_version);
     row(
@@ -248,6 +282,16 @@ fn doc_item(r: &Record, h: &mut String) {
             c.number
                 .as_deref()
                 .unwrap_or("none: no certificate for this record"),
+        );
+        row(
+            h,
+            "laboratory",
+            c.laboratory.as_deref().unwrap_or("not kept in this record"),
+        );
+        row(
+            h,
+            "customer",
+            c.customer.as_deref().unwrap_or("none named (in-house)"),
         );
         row(h, "site", &c.site);
         row(h, "calibrated by", &c.operator);
@@ -365,9 +409,10 @@ fn cert_files(r: &Record, h: &mut String) {
     if let Some(p) = &r.previous {
         let _ = write!(
             h,
-            "<p>Replaces parameters <code>{}</code> (record {}).</p>",
+            "<p>Replaces parameters <code>{}</code> (record {}; {}).</p>",
             esc(&p.params_sha256),
-            esc(p.record_hash.as_deref().unwrap_or("none"))
+            esc(p.record_hash.as_deref().unwrap_or("none")),
+            esc(&crate::record_fmt::replaced_stamp(p))
         );
     }
 }

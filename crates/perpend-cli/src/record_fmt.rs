@@ -84,3 +84,17 @@ pub fn iso(s: f64) -> String {
     };
     humantime::format_rfc3339_seconds(t).to_string()
 }
+
+/// The stamp the board carried before, in words (`record find` leads to
+/// the record that set it).
+pub fn replaced_stamp(p: &perpend_lab::record::Previous) -> String {
+    p.board_stamp.as_ref().map_or_else(
+        || "the board carried no stamp".to_string(),
+        |s| {
+            format!(
+                "the board's stamp {} of {} (store {})",
+                s.record_hash, s.utc, s.store_count
+            )
+        },
+    )
+}

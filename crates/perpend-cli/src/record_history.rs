@@ -212,6 +212,9 @@ pub struct Entry {
     /// Whether the p95 is of fresh poses (cell run, check) rather than
     /// cross-validated.
     pub fresh: bool,
+    /// The board's store count after the push (applied cell
+    /// calibrations: the stamp's sub 3).
+    pub store_count: Option<u32>,
 }
 
 /// A parameter's trend.
@@ -247,6 +250,10 @@ pub struct History {
     pub verdict: String,
     /// The date the trend reaches the tolerance, when resolved and rising.
     pub recalibrate_by: Option<String>,
+    /// What makes the history itself doubtful: a store count that does
+    /// not rise (two boards with one serial, or a board whose storage was
+    /// erased), said before any trend.
+    pub warnings: Vec<String>,
 }
 
 /// 1σ of a p95 from per-pose errors (normal theory:
@@ -305,7 +312,12 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
             ("check", c.verdict.clone(), None, errors, true)
         }
     };
+    let store_count = match item {
+        Item::Calibration(r) => r.stamp.as_ref().map(|s| s.store_count),
+        Item::Check(_) => None,
+    };
     Entry {
+        store_count,
         file: file.display().to_string(),
         kind: kind.into(),
         outcome,
@@ -420,6 +432,7 @@ fn one_history(items: &[&(PathBuf, Item)], serial: Option<String>, tol: f64) -> 
     let verification = verification_line(&entries);
     let (verdict, recalibrate_by) = recalibrate(verification, t0, unit, unit_s, &entries, tol);
     Ok(History {
+        warnings: store_warnings(&entries),
         serial,
         tolerance_deg: tol,
         unit: unit.into(),
@@ -429,6 +442,29 @@ fn one_history(items: &[&(PathBuf, Item)], serial: Option<String>, tol: f64) -> 
         verdict,
         recalibrate_by,
     })
+}
+
+/// Every store count (0x2011 sub 3) that does not rise over the one
+/// before it in time: each push stores once more on the same board, so a
+/// count that stands or falls means another board answers to the same
+/// serial, or this one's storage was erased (the history then mixes
+/// what is not one head's life).
+fn store_warnings(entries: &[Entry]) -> Vec<String> {
+    let counted: Vec<&Entry> = entries.iter().filter(|e| e.store_count.is_some()).collect();
+    counted
+        .windows(2)
+        .filter_map(|w| {
+            let (a, b) = (w[0].store_count?, w[1].store_count?);
+            (b <= a).then(|| {
+                format!(
+                    "store count {b} at {} after {a} at {} ({}, then {}): not one board's \
+                     life; two boards with this serial, or its storage erased; check the \
+                     boards before reading a trend",
+                    w[1].utc, w[0].utc, w[0].file, w[1].file
+                )
+            })
+        })
+        .collect()
 }
 
 /// The p95 line over fresh entries (cross-validated ones only when there
@@ -534,6 +570,9 @@ pub fn history_text(hs: &[History]) -> String {
             h.entries.len(),
             h.tolerance_deg
         );
+        for w in &h.warnings {
+            let _ = writeln!(o, "  WARNING: {w}");
+        }
         for e in &h.entries {
             let _ = writeln!(
                 o,
@@ -600,6 +639,15 @@ fn panel(h: &History, top: f64) -> String {
         r = w - m,
         ty = y(h.tolerance_deg)
     );
+    s.push_str(&ticks(&x, &y, (tmax, ymin, ymax), &h.unit));
+    if let Some(w) = h.warnings.first() {
+        let _ = write!(
+            s,
+            "<text x=\"{m}\" y=\"{:.1}\" font-size=\"10\" fill=\"#b00\">WARNING: {}</text>",
+            top + ht - 8.0,
+            esc(w.split(':').next().unwrap_or(w))
+        );
+    }
     for (t, v, check) in &pts {
         let _ = match check {
             true => write!(
@@ -644,6 +692,79 @@ fn panel(h: &History, top: f64) -> String {
         esc(&h.verdict)
     );
     s
+}
+
+/// A round step (1, 2 or 5 × 10^k) that cuts `span` into at most five.
+fn nice_step(span: f64) -> f64 {
+    let raw = (span / 5.0).max(1e-12);
+    let p = 10f64.powf(raw.log10().floor());
+    [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * p)
+        .find(|s| *s >= raw)
+        .unwrap_or(10.0 * p)
+}
+
+/// The round values from `lo` to `hi` (at most six).
+fn tick_values(lo: f64, hi: f64) -> Vec<f64> {
+    let step = nice_step(hi - lo);
+    let first = (lo / step).ceil() as i64;
+    (first..)
+        .map(|k| k as f64 * step)
+        .take_while(|v| *v <= hi + step * 1e-9)
+        .take(6)
+        .collect()
+}
+
+/// Labelled ticks at round values on each axis: time since the first
+/// record in `unit`s (0 to `tmax`), the p95 in degrees (`ymin` to
+/// `ymax`).
+fn ticks(
+    x: &dyn Fn(f64) -> f64,
+    y: &dyn Fn(f64) -> f64,
+    (tmax, ymin, ymax): (f64, f64, f64),
+    unit: &str,
+) -> String {
+    let mut s = String::new();
+    let yb = y(ymin);
+    for t in tick_values(0.0, tmax) {
+        let xt = x(t);
+        let _ = write!(
+            s,
+            "<line x1=\"{xt:.1}\" y1=\"{yb:.1}\" x2=\"{xt:.1}\" y2=\"{:.1}\" stroke=\"black\"/>\
+             <text x=\"{xt:.1}\" y=\"{:.1}\" font-size=\"10\" text-anchor=\"middle\">{}</text>",
+            yb + 4.0,
+            yb + 15.0,
+            tick_label(t)
+        );
+    }
+    let x0 = x(0.0);
+    for v in tick_values(ymin, ymax) {
+        let yv = y(v);
+        let _ = write!(
+            s,
+            "<line x1=\"{:.1}\" y1=\"{yv:.1}\" x2=\"{x0:.1}\" y2=\"{yv:.1}\" stroke=\"black\"/>\
+             <text x=\"{:.1}\" y=\"{:.1}\" font-size=\"10\" text-anchor=\"end\">{}</text>",
+            x0 - 4.0,
+            x0 - 6.0,
+            yv + 3.5,
+            tick_label(v)
+        );
+    }
+    let _ = write!(
+        s,
+        "<text x=\"{:.1}\" y=\"{:.1}\" font-size=\"10\" text-anchor=\"end\">{}s</text>",
+        x(tmax),
+        yb + 28.0,
+        esc(unit)
+    );
+    s
+}
+
+/// A tick's label: a round value without trailing zeros.
+fn tick_label(v: f64) -> String {
+    let t = format!("{v:.6}");
+    t.trim_end_matches('0').trim_end_matches('.').to_string()
 }
 
 /// The histories as one SVG, a panel per head.

@@ -71,7 +71,7 @@ fn cell_run(args: &[&str], order: &str) {
     check_link(&c.a.link, order);
     match c.a.cmd {
         cell::Cmd::Run(r) => {
-            assert_eq!(r.robot, "manual", "{order}");
+            assert_eq!(r.m.robot, "manual", "{order}");
             assert_eq!(r.samples, 7, "{order}");
         }
         cell::Cmd::SimHead(_) | cell::Cmd::Check(_) => panic!("{order}: not run"),

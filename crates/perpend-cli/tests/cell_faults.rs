@@ -116,11 +116,15 @@ fn manual_entries_are_asked_again_and_the_end_of_input_stops_safely() {
     let (_board, bus, _world) = board(d, "truth.csv", &[]);
     let mut run = cell_run(d, &bus, "run", &["--robot", "manual"], Stdio::piped());
     // The two verification poses: a word, an empty line, the planned plane
-    // in inches, then the planned plane; no plane, `1,2,3,4`, a plane 3 mm
-    // off the plan's standoff, then the planned plane; then the end.
+    // in inches, the planned plane as printed, then a measured plane; no
+    // plane, `1,2,3,4`, a plane 3 mm off the plan's standoff, then a
+    // measured plane; then the end.
     let out = answer_prompts(
         &mut run,
-        &[&["hello", "", "INCH"], &["0,0,0,5", "1,2,3,4", "FAR"]],
+        &[
+            &["hello", "", "INCH", "COPY"],
+            &["0,0,0,5", "1,2,3,4", "FAR"],
+        ],
     );
     let (status, _, err) = finish(run, 120);
     assert!(!status.success(), "{out}");
@@ -130,6 +134,7 @@ fn manual_entries_are_asked_again_and_the_end_of_input_stops_safely() {
         "refused: a plane in inches: D = ",
         "'0,0,0,5' refused: not a plane: |(A,B,C)| = 0",
         "'1,2,3,4' refused: ",
+        "refused: the planned plane as printed, not a measurement",
         "mm, the plan's is",
         "before calibration, normal error",
     ] {
@@ -162,9 +167,18 @@ fn the_end_of_input_at_the_first_prompt_puts_back_limit_and_nmt_state() {
     );
 }
 
+/// The planned plane a manual prompt prints (`None`: not a prompt).
+fn planned_plane(line: &str) -> Option<&str> {
+    line.split("(planned plane ")
+        .nth(1)
+        .and_then(|t| t.split(')').next())
+}
+
 /// Answers the first manual prompts of `run`: for prompt k the lines of
 /// `bad[k]` (`INCH`: the planned plane with D in inches, `FAR`: 3 mm
-/// beyond its standoff), then the planned plane; then closes the input.
+/// beyond its standoff, `COPY`: the planned plane as printed), then the
+/// planned plane as a tracker measures it (20 µm further); then closes
+/// the input.
 /// Returns what the run printed until then.
 fn answer_prompts(run: &mut common::Killed, bad: &[&[&str]]) -> String {
     let mut stdin = run.0.stdin.take().unwrap();
@@ -175,11 +189,7 @@ fn answer_prompts(run: &mut common::Killed, bad: &[&[&str]]) -> String {
     while let Some(Ok(line)) = lines.next() {
         seen.push_str(&line);
         seen.push('\n');
-        let Some(plane) = line
-            .split("(planned plane ")
-            .nth(1)
-            .and_then(|t| t.split(')').next())
-        else {
+        let Some(plane) = planned_plane(&line) else {
             continue;
         };
         let Some(answers) = bad.get(k) else {
@@ -192,11 +202,13 @@ fn answer_prompts(run: &mut common::Killed, bad: &[&[&str]]) -> String {
             let a = match *a {
                 "INCH" => with_d(v[3] / 25.4),
                 "FAR" => with_d(v[3] - 3.0 * v[2]),
+                "COPY" => plane.to_string(),
                 a => a.to_string(),
             };
             stdin.write_all(format!("{a}\n").as_bytes()).unwrap();
         }
-        stdin.write_all(format!("{plane}\n").as_bytes()).unwrap();
+        let measured = with_d(v[3] - 0.02 * v[2]);
+        stdin.write_all(format!("{measured}\n").as_bytes()).unwrap();
     }
     drop(stdin);
     // Keep reading: the run reports on standard output.
@@ -213,11 +225,7 @@ fn lying_tracker(run: &mut common::Killed, world: &str) {
     let mut stdin = run.0.stdin.take().unwrap();
     let stdout = BufReader::new(run.0.stdout.take().unwrap());
     for (k, line) in stdout.lines().map_while(Result::ok).enumerate() {
-        let Some(plane) = line
-            .split("(planned plane ")
-            .nth(1)
-            .and_then(|t| t.split(')').next())
-        else {
+        let Some(plane) = planned_plane(&line) else {
             continue;
         };
         w.get_mut()
@@ -230,6 +238,8 @@ fn lying_tracker(run: &mut common::Killed, world: &str) {
         if line.starts_with("pose ") {
             v[0] += if k % 2 == 0 { 0.009 } else { -0.009 };
         }
+        // A measurement, not the plan as printed: 20 µm further.
+        v[3] -= 0.02 * v[2];
         let typed = format!("{},{},{},{}\n", v[0], v[1], v[2], v[3]);
         if stdin.write_all(typed.as_bytes()).is_err() {
             break;
@@ -320,7 +330,7 @@ fn ctrl_c_at_a_manual_prompt_puts_back_what_the_run_changed() {
     let _stdin = run.0.stdin.take().unwrap();
     let mut lines = BufReader::new(run.0.stdout.take().unwrap()).lines();
     for line in lines.by_ref().map_while(Result::ok) {
-        if line.contains("type the measured A,B,C,D") {
+        if planned_plane(&line).is_some() {
             break;
         }
     }

@@ -97,6 +97,9 @@ fn applied() -> Record {
         operator: "A. Operator".into(),
         approver: "Q. Engineer".into(),
         site: "Plant 2, cell 4".into(),
+        laboratory: Some("Metrology lab, 1 Plant Road, Town".into()),
+        customer: None,
+        performed_utc: Some(["2026-12-01T09:00:00Z".into(), "2026-12-01T10:05:00Z".into()]),
         tracker: perpend_lab::cellconfig::paper_tracker("Tracker T1"),
         die_temp_c: [Some(31.5), Some(32.0)],
         ambient_c: Some(21.5),
@@ -121,6 +124,16 @@ fn the_certificate_is_well_formed_and_shows_the_records_figures() {
     assert!(html.contains(&format!("id=\"verdict\">{}</h2>", d.verdict.word())));
     assert!(html.contains("Outcome: applied"));
     assert!(!html.contains("NOT A CERTIFICATE"));
+    // Each printed page names the certificate and counts the pages; the
+    // end is marked; the laboratory, customer and the run's span shown.
+    assert!(html.contains(
+        "@bottom-left{content:\"Calibration certificate No. PPD-B143EAE7-20261201T100000Z\""
+    ));
+    assert!(html.contains("counter(pages)"));
+    assert!(html.contains("End of certificate No. PPD-B143EAE7-20261201T100000Z.</p></body>"));
+    assert!(html.contains("Metrology lab, 1 Plant Road, Town"));
+    assert!(html.contains("none named (in-house)"));
+    assert!(html.contains("2026-12-01T09:00:00Z to 2026-12-01T10:05:00Z (parameters fitted"));
     let v = &r.verification;
     for x in [v.mean_deg, v.p95_deg, v.max_deg] {
         assert!(html.contains(&format!("<td>{}</td>", deg(x.unwrap()))));
@@ -304,6 +317,89 @@ fn each_head_of_a_mix_gets_its_section_and_serials_match_as_typed() {
     assert!(e.contains("no record of head 0x1"), "{e}");
     let svg = perpend_cli::record::history_svg(&hs);
     assert!(svg.contains("height=\"600\""), "a panel per head");
+}
+
+/// A store count that falls between two applied calibrations of one
+/// serial is said before any trend; one that rises is not; the plot has
+/// labelled ticks on both axes.
+#[test]
+fn a_falling_store_count_is_a_warning_and_the_plot_has_ticks() {
+    for (counts, warned) in [([3u32, 4, 5], false), ([7, 8, 2], true)] {
+        let dir = tempfile::tempdir().unwrap();
+        series(dir.path(), 7, 3, |_| 0.02);
+        for (k, c) in counts.iter().enumerate() {
+            let f = dir.path().join(format!("w{k}.record.json"));
+            let mut r = Record::read(&f).unwrap();
+            r.outcome = Some(OUTCOME_APPLIED.into());
+            r.stamp = Some(BoardStamp {
+                record_hash: format!("{k:08x}"),
+                stamped_record: FileHash {
+                    path: "params.record.json".into(),
+                    sha256: "0".repeat(64),
+                },
+                utc: r.utc.clone(),
+                store_count: *c,
+            });
+            r.write(&f).unwrap();
+        }
+        let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
+        let hs = history(&files, None, 0.05).unwrap();
+        assert_eq!(!hs[0].warnings.is_empty(), warned, "{counts:?}");
+        let text = perpend_cli::record::history_text(&hs);
+        assert_eq!(text.contains("WARNING: store count 2 at"), warned, "{text}");
+        let svg = perpend_cli::record::history_svg(&hs);
+        assert_eq!(svg.contains(">WARNING: store count 2 at"), warned);
+        assert!(
+            svg.contains(">days</text>") && svg.contains(">10</text>"),
+            "{svg}"
+        );
+        assert!(svg.contains(">0.04</text>"), "{svg}");
+    }
+}
+
+/// A board's stamp leads to the cell run that set it, then to the later
+/// run that found it on the board and replaced it (`previous.board_stamp`).
+#[test]
+fn a_stamp_leads_to_its_run_and_to_the_run_that_replaced_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let first = applied();
+    let stamp = first.stamp.clone().unwrap();
+    first.write(&dir.path().join("run1.record.json")).unwrap();
+    let mut later = applied();
+    later.utc = "2026-12-08T10:00:00Z".into();
+    later.stamp.as_mut().unwrap().record_hash = "11223344".into();
+    later.previous = Some(perpend_lab::record::Previous {
+        params_sha256: "2".repeat(64),
+        record_hash: None,
+        record_file_sha256: None,
+        record_utc: None,
+        board_stamp: Some(perpend_lab::paramfile::CalibrationStamp {
+            record_hash: stamp.record_hash.clone(),
+            utc: stamp.utc.clone(),
+            utc_s: 1_796_119_200,
+            store_count: stamp.store_count,
+        }),
+    });
+    later.write(&dir.path().join("run2.record.json")).unwrap();
+    let found = perpend_cli::record::find(&stamp.record_hash, &[dir.path().to_path_buf()]).unwrap();
+    let names: Vec<String> = found
+        .iter()
+        .map(|(f, why, _)| format!("{}: {why}", f.file_name().unwrap().to_string_lossy()))
+        .collect();
+    assert_eq!(names.len(), 2, "{names:?}");
+    assert!(
+        names[0].starts_with("run1.record.json: the cell run"),
+        "{names:?}"
+    );
+    assert!(
+        names[1].starts_with("run2.record.json: a later run"),
+        "{names:?}"
+    );
+    let shown = perpend_cli::record::show_text(&later);
+    assert!(
+        shown.contains("the board's stamp 0507bf5a of 2026-12-01T10:00:00Z (store 3)"),
+        "{shown}"
+    );
 }
 
 /// Records minutes apart get slopes per minute, not per day.

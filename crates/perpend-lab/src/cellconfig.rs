@@ -1,6 +1,7 @@
 //! The cell configuration (`perpend.cell-config/1`, docs/record.md): what
 //! a certificate states beyond the calibration and what the operator
-//! would otherwise type at every run: site, operator, approver, the
+//! would otherwise type at every run: the laboratory's name and address,
+//! the customer (if any), site, operator, approver, the
 //! tolerance, the cell's air temperature, and the reference standard (the
 //! laser tracker: model, serial, calibration due date, traceability and
 //! the point noise, count and patch its plane uncertainty follows from,
@@ -44,6 +45,13 @@ pub fn paper_tracker(what: &str) -> Tracker {
 pub struct CellConfig {
     /// [`SCHEMA`].
     pub schema: String,
+    /// The calibrating laboratory: its name and address (ISO/IEC 17025
+    /// §7.8.2.1 b), on every certificate.
+    pub laboratory: String,
+    /// The customer, when the head is calibrated for another party
+    /// (absent: in-house).
+    #[serde(default)]
+    pub customer: Option<String>,
     /// Site and cell.
     pub site: String,
     /// Who calibrates.
@@ -98,6 +106,7 @@ impl CellConfig {
         check_tolerance(self.tolerance_deg)?;
         let t = &self.tracker;
         for (field, v) in [
+            ("laboratory", &self.laboratory),
             ("site", &self.site),
             ("operator", &self.operator),
             ("approver", &self.approver),
@@ -108,6 +117,9 @@ impl CellConfig {
             if v.trim().is_empty() {
                 bail!("{field} is empty: a certificate names it");
             }
+        }
+        if self.customer.as_ref().is_some_and(|c| c.trim().is_empty()) {
+            bail!("customer is empty: name the customer, or leave the field out (in-house)");
         }
         if self.operator.trim() == self.approver.trim() {
             bail!(
@@ -193,7 +205,8 @@ mod tests {
     use super::*;
 
     fn good() -> String {
-        r#"{"schema": "perpend.cell-config/1", "site": "Plant 2, cell 4",
+        r#"{"schema": "perpend.cell-config/1",
+         "laboratory": "Metrology lab, 1 Plant Road, Town", "site": "Plant 2, cell 4",
             "operator": "A. Operator", "approver": "Q. Engineer",
             "tolerance_deg": 0.05, "ambient_c": 21.5,
             "tracker": {"model": "Tracker T1", "serial": "T1-0042",
@@ -240,6 +253,16 @@ mod tests {
             ),
             ("\"T1-0042\"", "\" \"", "tracker.serial is empty"),
             (
+                "\"Metrology lab, 1 Plant Road, Town\"",
+                "\"\"",
+                "laboratory is empty",
+            ),
+            (
+                "\"site\"",
+                "\"customer\": \" \", \"site\"",
+                "customer is empty",
+            ),
+            (
                 "Q. Engineer",
                 "A. Operator",
                 "operator and approver are both",
@@ -253,6 +276,16 @@ mod tests {
             "{:#}",
             read(&good().replace("\"site\"", "\"sight\"")).unwrap_err()
         );
-        assert!(e.contains("line 1") && e.contains("sight"), "{e}");
+        assert!(e.contains("line 2") && e.contains("sight"), "{e}");
+        let e = format!(
+            "{:#}",
+            read(&good().replace("\"laboratory\"", "\"lab\"")).unwrap_err()
+        );
+        assert!(
+            e.contains("laboratory"),
+            "a certificate names its laboratory: {e}"
+        );
+        let c = read(&good().replace("\"site\"", "\"customer\": \"Acme\", \"site\""));
+        assert_eq!(c.unwrap().customer.as_deref(), Some("Acme"));
     }
 }

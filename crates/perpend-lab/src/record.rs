@@ -229,6 +229,13 @@ pub struct Previous {
     pub record_file_sha256: Option<String>,
     /// The `utc` of that record.
     pub record_utc: Option<String>,
+    /// The stamp the board carried when its calibration was pulled (a
+    /// pulled file's `calibration_stamp`): the previous record's
+    /// [`BoardStamp::record_hash`], so records chain board by board
+    /// (`record find`, `record history`). Absent: no stamp on the board,
+    /// or a file that was not pulled.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub board_stamp: Option<crate::paramfile::CalibrationStamp>,
 }
 
 impl Previous {
@@ -251,11 +258,17 @@ impl Previous {
                 record_utc = Some(r.utc);
             }
         }
+        // The stamp of a pulled file; a file that does not read as
+        // parameters still has its hash above.
+        let board_stamp = crate::paramfile::ParamFile::read(params)
+            .ok()
+            .and_then(|f| f.calibration_stamp);
         Ok(Some(Self {
             params_sha256: p.sha256,
             record_hash,
             record_file_sha256,
             record_utc,
+            board_stamp,
         }))
     }
 }
@@ -313,6 +326,13 @@ pub struct Certification {
     pub approver: String,
     /// Where (site, cell).
     pub site: String,
+    /// The laboratory's name and address (absent in records written
+    /// before it was kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laboratory: Option<String>,
+    /// The customer (absent: in-house, or not kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub customer: Option<String>,
     /// The reference standard.
     pub tracker: Tracker,
     /// The board's die temperature at the start and end of the run [°C]
@@ -323,6 +343,13 @@ pub struct Certification {
     /// The configuration file the fields came from, with its SHA-256
     /// (`null`: none given, the defaults stated).
     pub config: Option<FileHash>,
+    /// When the calibration was performed, ISO 8601 UTC: the cell run's
+    /// start (the board's calibration pulled) and end (the record
+    /// written, after the verification). The record's `utc` is when the
+    /// parameters were fitted, inside this span. Absent in records
+    /// written before it was kept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub performed_utc: Option<[String; 2]>,
 }
 
 /// The calibration record.

@@ -42,7 +42,7 @@ pub fn ok(args: &[&str], dir: &Path) -> String {
 
 /// A cell configuration (docs/record.md): the simulated tracker's
 /// figures (Chen §5) under a named model and serial.
-pub const CELL_CONFIG: &str = r#"{"schema": "perpend.cell-config/1", "site": "test cell",
+pub const CELL_CONFIG: &str = r#"{"schema": "perpend.cell-config/1", "laboratory": "Test Lab, 1 Test Street, Testville", "site": "test cell",
  "operator": "A. Operator", "approver": "Q. Engineer", "tolerance_deg": 0.05,
  "ambient_c": 21.0, "tracker": {"model": "Tracker T1", "serial": "T1-0042",
  "calibration_due": "2099-12-31", "traceability": "cert 17-123",
