@@ -406,7 +406,7 @@ pub fn words(e: Effect, a: f64) -> String {
 }
 
 /// Three significant figures.
-fn sig3(v: f64) -> String {
+pub fn sig3(v: f64) -> String {
     let m = v.abs();
     if m >= 100.0 {
         format!("{v:.0}")

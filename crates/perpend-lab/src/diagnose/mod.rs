@@ -661,6 +661,7 @@ mod tests {
             let s = Settings {
                 folds: requested,
                 draws: Some(3),
+                limit_draws: 0,
                 ..Settings::default()
             };
             let d = diagnose(&table, &poses, &s).unwrap();

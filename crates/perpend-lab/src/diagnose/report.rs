@@ -346,12 +346,16 @@ fn limits_section(o: &mut String, d: &Diagnosis, s: &Settings) {
             Ok(f) => {
                 let _ = writeln!(
                     o,
-                    "  {:<15} {} ({} failed; named in {}/{}); the paper's model then costs {:.2}× the normal-error floor, held-out RMS {:.2}× its floor",
+                    "  {:<15} {} (named in {}/{}; {} failed); the paper's model there costs {:.2}× the normal-error floor, held-out RMS {:.2}× its floor",
                     e.name(),
                     words(e, f.amplitude),
-                    if f.below > 0.0 { words(e, f.below) } else { "none smaller tried".into() },
                     f.detected,
                     f.draws,
+                    if f.below > 0.0 {
+                        super::limits::sig3(super::limits::physical(e, f.below).0)
+                    } else {
+                        "none smaller tried".into()
+                    },
                     f.cost,
                     f.rms_ratio
                 );
