@@ -76,7 +76,7 @@ fn with(mut data: Dataset, f: &dyn Fn(usize, usize, f64) -> f64) -> Dataset {
 }
 
 fn sign(i: usize) -> f64 {
-    if i % 2 == 0 {
+    if i.is_multiple_of(2) {
         1.0
     } else {
         -1.0
