@@ -89,7 +89,11 @@ fn every_none_states_limits_that_follow_the_noise_and_hold_at_twice() {
     assert_eq!(quiet.decided.effect.name(), "none");
     // Every catalogue candidate has an entry, in the JSON too.
     let j = quiet.json();
-    let names: Vec<&str> = j.detection_limits.iter().map(|l| l.effect.as_str()).collect();
+    let names: Vec<&str> = j
+        .detection_limits
+        .iter()
+        .map(|l| l.effect.as_str())
+        .collect();
     assert_eq!(
         names,
         [

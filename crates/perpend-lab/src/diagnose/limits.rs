@@ -368,9 +368,7 @@ fn detected(
     let nb = normal_errors(&b, t, &c.l.folds, c.s.method);
     let nx = normal_errors(&x, t, &c.l.folds, c.s.method);
     let g = paired_normals(&nb, &nx);
-    let normal = v
-        .normal
-        .is_some_and(|n| g.poses > 0 && g.z > n.threshold);
+    let normal = v.normal.is_some_and(|n| g.poses > 0 && g.z > n.threshold);
     let base: Vec<f64> = nb.iter().flatten().copied().collect();
     let cost = if c.floor_deg > 0.0 {
         stats::mean(&base) / c.floor_deg
