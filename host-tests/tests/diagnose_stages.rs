@@ -61,7 +61,7 @@ enum Role {
 
 /// The files of the pass in the order a reader takes them: each imports
 /// only files above it.
-const ORDER: [(&str, Role); 21] = [
+const ORDER: [(&str, Role); 22] = [
     ("stats.rs", Role::Toolbox),
     ("folds.rs", Role::Toolbox),
     ("settings.rs", Role::Toolbox),
@@ -79,6 +79,7 @@ const ORDER: [(&str, Role); 21] = [
     ("decision.rs", Role::Stage("decide_run")),
     ("scores.rs", Role::Stage("scores")),
     ("checks.rs", Role::Stage("compare")),
+    ("limits.rs", Role::Stage("limits")),
     ("diagnosis.rs", Role::Output),
     ("report.rs", Role::Report),
     ("plot.rs", Role::Report),

@@ -11,6 +11,7 @@ use super::candidates::Effect;
 use super::checks::Checks;
 use super::decision::{named, Decided};
 use super::fits::Fitted;
+use super::limits::Limits;
 use super::load::Loaded;
 use super::scores::Scores;
 
@@ -38,6 +39,9 @@ pub struct Diagnosis {
     /// Stage 7, the comparisons of the measured run with the simulation
     /// and the warnings for the user.
     pub checked: Checks,
+    /// Stage 7b, with a `none`: each candidate's detection limit
+    /// ([`super::limits`]).
+    pub limits: Limits,
 }
 
 impl Diagnosis {

@@ -66,6 +66,7 @@ pub mod expect;
 pub mod fits;
 pub mod folds;
 pub mod lags;
+pub mod limits;
 pub mod load;
 pub mod moments;
 pub mod nested;
@@ -92,12 +93,15 @@ pub use decision::{Step, MAX_EFFECTS};
 pub use diagnosis::Diagnosis;
 use fits::fit;
 pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
+use limits::limits;
 use load::load;
 pub(crate) use load::reading_span;
 pub use load::{available_models, declared_sigma};
 use scores::scores;
 pub use scores::Perf;
-pub use settings::{draws_for, Args, NormalMethod, Settings, DRAWS, SMALL_RUN, SMALL_RUN_DRAWS};
+pub use settings::{
+    draws_for, Args, NormalMethod, Settings, DRAWS, LIMIT_DRAWS, SMALL_RUN, SMALL_RUN_DRAWS,
+};
 
 /// One candidate in the JSON output.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -203,6 +207,70 @@ pub struct DiagnoseJson {
     /// ([`lags::inseparable`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub inseparable: Option<InseparableJson>,
+    /// With a `none`: every catalogue candidate's detection limit
+    /// ([`limits`]); absent for other verdicts or `--limit-draws 0`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub detection_limits: Vec<LimitJson>,
+}
+
+/// A candidate's detection limit, in the JSON output ([`limits`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LimitJson {
+    /// The candidate.
+    pub effect: String,
+    /// The smallest amplitude detected in ≥ 90 % of the effect-free
+    /// re-simulations it was injected into, in `unit`; `null` when the run
+    /// cannot show the candidate (`reason`).
+    pub limit: Option<f64>,
+    /// The unit of `limit` and `below` (those of the report's coefficients).
+    pub unit: String,
+    /// The largest amplitude tried below the limit, which failed (0: none
+    /// tried), in `unit`.
+    pub below: Option<f64>,
+    /// The limit as the coefficient of the candidate's term (as stored;
+    /// the linearity forms: peak in mm).
+    pub coefficient: Option<f64>,
+    /// Draws detected at the limit, of `draws`.
+    pub detected: Option<usize>,
+    /// Effect-free re-simulations per amplitude.
+    pub draws: usize,
+    /// The paper's model's held-out normal error at the limit over its
+    /// effect-free floor (mean over the draws).
+    pub cost: Option<f64>,
+    /// The paper's model's held-out RMS at the limit over its effect-free
+    /// floor (mean over the draws).
+    pub rms_ratio: Option<f64>,
+    /// Why there is no limit ("not detectable in this run: …").
+    pub reason: Option<String>,
+    /// What run would lower the limit, in words.
+    pub lowered_by: String,
+}
+
+impl LimitJson {
+    /// Of the stage's output.
+    fn of(l: &limits::Limits) -> Vec<Self> {
+        l.limits
+            .iter()
+            .map(|x| {
+                let e = x.effect;
+                let f = x.found.as_ref().ok();
+                let in_unit = |a: f64| limits::physical(e, a).0;
+                Self {
+                    effect: e.name().into(),
+                    limit: f.map(|f| in_unit(f.amplitude)),
+                    unit: limits::physical(e, 1.0).1.into(),
+                    below: f.map(|f| in_unit(f.below)),
+                    coefficient: f.map(|f| f.amplitude),
+                    detected: f.map(|f| f.detected),
+                    draws: l.draws,
+                    cost: f.map(|f| f.cost),
+                    rms_ratio: f.map(|f| f.rms_ratio),
+                    reason: x.found.as_ref().err().cloned(),
+                    lowered_by: x.lowered_by.clone(),
+                }
+            })
+            .collect()
+    }
 }
 
 /// Two named time-like effects this run cannot tell apart, in the JSON
@@ -346,6 +414,7 @@ impl Diagnosis {
             direction_offset: DirectionJson::of(&self.decided.direction),
             normal_cost: select::NormalCostJson::of(&self.decided.decision),
             inseparable: InseparableJson::of(&self.run.poses, &self.effects()),
+            detection_limits: LimitJson::of(&self.limits),
         }
     }
 }
@@ -387,6 +456,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
     let decided = decide_run(&run, &fits, s)?;
     let scores = scores(decided.effect, &decided.also, &fits.measured, &run, s);
     let checked = compare(&run, &fits, &decided);
+    let limits = limits(&run, &fits, &decided, s);
     run.skipped.append(&mut fits.failed);
     Ok(Diagnosis {
         run,
@@ -394,6 +464,7 @@ pub fn diagnose(sensors: &SensorTable, all_poses: &PoseTable, s: &Settings) -> R
         decided,
         scores,
         checked,
+        limits,
     })
 }
 
@@ -590,6 +661,7 @@ mod tests {
             let s = Settings {
                 folds: requested,
                 draws: Some(3),
+                limit_draws: 0,
                 ..Settings::default()
             };
             let d = diagnose(&table, &poses, &s).unwrap();

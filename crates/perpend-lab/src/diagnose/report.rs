@@ -103,6 +103,7 @@ pub fn text(
     checks_section(&mut o, d);
     candidates_section(&mut o, d, s);
     verdict_section(&mut o, d);
+    limits_section(&mut o, d, s);
     coefficients_section(&mut o, d, (sensors, poses), out);
     gain_section(&mut o, d);
     o
@@ -322,6 +323,48 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
                 f * 100.0
             );
         }
+    }
+}
+
+/// With a `none`: what the run could have missed, each candidate's
+/// detection limit ([`super::limits`]).
+fn limits_section(o: &mut String, d: &Diagnosis, s: &Settings) {
+    use super::limits::{words, POWER};
+    if d.limits.limits.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        o,
+        "\nDetection limits (what this run could have missed: each candidate's form injected into {} effect-free re-simulations at growing sizes and judged by the decision's own test at α = {}; the smallest size named in ≥ {:.0} % of them, with the size below it that failed)",
+        d.limits.draws,
+        s.rule.alpha,
+        100.0 * POWER
+    );
+    for l in &d.limits.limits {
+        let e = l.effect;
+        match &l.found {
+            Ok(f) => {
+                let _ = writeln!(
+                    o,
+                    "  {:<15} {} (named in {}/{}; {} failed); the paper's model there costs {:.2}× the normal-error floor, held-out RMS {:.2}× its floor",
+                    e.name(),
+                    words(e, f.amplitude),
+                    f.detected,
+                    f.draws,
+                    if f.below > 0.0 {
+                        super::limits::sig3(super::limits::physical(e, f.below).0)
+                    } else {
+                        "none smaller tried".into()
+                    },
+                    f.cost,
+                    f.rms_ratio
+                );
+            }
+            Err(why) => {
+                let _ = writeln!(o, "  {:<15} {why}", e.name());
+            }
+        }
+        let _ = writeln!(o, "  {:<15}   lowered by: {}", "", l.lowered_by);
     }
 }
 

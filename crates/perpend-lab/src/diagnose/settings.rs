@@ -102,6 +102,11 @@ pub struct Args {
     /// Normal computation for the held-out normal error.
     #[arg(long, value_enum, default_value_t = NormalMethod::Lsq)]
     pub normal: NormalMethod,
+    /// Effect-free re-simulations per amplitude of the detection limits
+    /// reported with a `none` (0: none reported; docs/diagnosis.md,
+    /// "Detection limits").
+    #[arg(long, default_value_t = LIMIT_DRAWS)]
+    pub limit_draws: usize,
 }
 
 /// Settings of a diagnosis (what [`Args`] carries besides the files).
@@ -123,6 +128,9 @@ pub struct Settings {
     pub method: Method,
     /// Solver settings.
     pub lsq: LsqConfig<f64>,
+    /// Effect-free re-simulations per amplitude of the detection limits
+    /// ([`super::limits`]; 0: not computed).
+    pub limit_draws: usize,
 }
 
 impl Default for Settings {
@@ -136,6 +144,7 @@ impl Default for Settings {
             rule: Rule::default(),
             method: Method::LeastSquares,
             lsq: LsqConfig::default(),
+            limit_draws: LIMIT_DRAWS,
         }
     }
 }
@@ -184,9 +193,14 @@ impl Settings {
             },
             method: a.normal.method(),
             lsq: LsqConfig::default(),
+            limit_draws: a.limit_draws,
         })
     }
 }
+
+/// Effect-free re-simulations per amplitude of the detection limits
+/// ([`super::limits`]): a pass is ⌈0.9·8⌉ = 8 of 8 detected.
+pub const LIMIT_DRAWS: usize = 8;
 
 /// Runs below this many poses take [`SMALL_RUN_DRAWS`] effect-free draws
 /// instead of [`DRAWS`].
