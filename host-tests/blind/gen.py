@@ -696,6 +696,12 @@ def generate_full(case):
             rise = max(1e-9, lagged[-1] - lagged[0])
             par["k"] = [s / rise for s in par["signs"]]
         v3_setup(kind, par, size, rng, [context(k) for k in range(n_poses)])
+        if "mask" in par:
+            # per-sensor amplitudes of the sensors left out are nothing
+            # (so that PHYSICAL caps the effect by the sensors it is on)
+            for key in ("g", "A", "k", "h"):
+                if isinstance(par.get(key), list):
+                    par[key] = [x * m for x, m in zip(par[key], par["mask"])]
         effects.append((kind, par))
 
     # Scale every effect so that what the paper's model cannot absorb (the
