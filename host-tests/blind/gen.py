@@ -55,6 +55,16 @@ removed, same folds), the effects' drawn parameters and `temp_time_r`:
 | reversal: N       | poses // N planned poses, each at the last joint's angles 0, 360/N, ... deg (`perpend plan --reversal N`); poses.csv gains joint_deg and base_pose, plan.csv is written |
 | tracker_tilt_deg  | [ex, ey]: the tracker reports every plane turned by -eps about the plate's x and y axes (pivot on the spindle axis), so it turns against the head with the joint; truth.json gains `true_planes` |
 
+Issue 46 (power.py: the diagnosis beside the oracle of oracle.py, which
+reads `generate_full`'s state: the effects as drawn and every pose's
+context):
+
+| effect / case key | reading error added (mm), or what                        |
+|-------------------|-------------------------------------------------------------|
+| [kind, size, n]   | any effect on n drawn sensors only (`mask`; drawn from its own stream, seed + 19 + j; the others' amplitudes zero, so PHYSICAL caps it by the sensors it is on) |
+| tracker_drift     | the tracker's planes drift during the run: turned by s(t) eps about x, y and moved by s(t) D0, s(t) = 1 - exp(-t / tau), tau 0.15-0.6 of the run; written as the distance the calibration's prediction misses along each true beam |
+| geometry: skew    | a head neither ring-symmetric nor of one cone: azimuths 20/115/190/300 deg, radii 28-46 mm, cones 15-35 deg |
+
 Usage: gen.py CASE.json OUTDIR   (CASE: the parameters of one run, see
 `make_case` in score.py and `make_v3_case` in v3.py) writes
 OUTDIR/sensors.csv, OUTDIR/poses.csv (and OUTDIR/plan.csv with `reversal`)

@@ -92,9 +92,13 @@ QUICK_SIZES = (0.5, 2.0)
 
 # the issue's goal
 GOAL_RATIO, GOAL_ORACLE, GOAL_FP = 0.8, 0.5, 0.05
-# CI's gates (ci_gates): the pooled ratio measured on the full run of
-# docs/diagnosis.md ("Power against the oracle") less a margin
-RATIO_FLOOR = 0.35
+# CI's gates (ci_gates): the pooled ratio (diagnosis named / oracle
+# rejected, cells where the oracle's power >= 50 %) measured today, 0.73
+# on the full run of docs/diagnosis.md ("Power against the oracle") and
+# 0.77 (24/31) on the quick form (seeds from SEEDS, deterministic), less
+# a margin of about 3 sd of the quick form's binomial spread: a
+# regression fails it, the goal (0.8 per cell) is printed beside it
+RATIO_FLOOR = 0.55
 
 
 def make_case(cls, seed, size, j):
@@ -250,6 +254,37 @@ def markdown(cells, nulls):
     return "\n".join(lines)
 
 
+def compact(cells):
+    """One row per class (and effect, in a run of several), one column per
+    size: oracle power / diagnosis power, the goal's misses starred; the
+    ratio pooled over the sizes where the oracle's power is >= 50 %
+    (named / rejected); the median normal cost over the sizes >= 1."""
+    sizes = sorted({k[2] for k in cells})
+    rows = {}
+    for (name, eff, size), c in cells.items():
+        rows.setdefault((name, eff), {})[size] = c
+    lines = ["| class (effect) | regime | " + " | ".join("%.2g×" % s for s in sizes)
+             + " | ratio where the oracle ≥ 50 % (pooled) | normal cost at ≥ 1× (median) |",
+             "|---|---|" + "---|" * len(sizes) + "---|---|"]
+    for (name, eff), by in rows.items():
+        cols = []
+        for s in sizes:
+            c = by.get(s)
+            if not c:
+                cols.append("–")
+                continue
+            miss = c["oracle"] / c["n"] >= GOAL_ORACLE and (ratio(c) or 0.0) < GOAL_RATIO
+            cols.append("%.2f / %.2f%s" % (c["oracle"] / c["n"], c["diag"] / c["n"], " *" if miss else ""))
+        costs = [x for s, c in by.items() if s >= 1.0 for x in c["cost"]]
+        reg = next(iter(by.values()))["regime"]
+        strong = [c for c in by.values() if c["oracle"] / c["n"] >= GOAL_ORACLE]
+        d, o = sum(c["diag"] for c in strong), sum(c["oracle"] for c in strong)
+        lines.append("| %s%s | %s | %s | %s | %s |" % (
+            name, " (%s)" % eff if eff else "", reg, " | ".join(cols),
+            "%.2f (%d/%d)" % (d / o, d, o) if o else "–", "%.2f" % median(costs) if costs else "–"))
+    return "\n".join(lines)
+
+
 def pooled(cells, nulls):
     """Pooled figures: the ratio over cells where the oracle's power is
     >= 50 % (named / rejected), false positives, the oracle's null
@@ -323,6 +358,7 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     ap.add_argument("--md", help="also write the tables here")
     ap.add_argument("--json", help="write one JSON line per run here")
+    ap.add_argument("--from-json", help="summarise a --json file instead of running")
     a = ap.parse_args(argv)
     sizes = (tuple(float(x) for x in a.sizes.split(",")) if a.sizes
              else QUICK_SIZES if a.quick else SIZES)
@@ -334,14 +370,18 @@ def main(argv=None):
         keep = set(x.strip() for x in a.only.split(";"))
         jobs = [j for j in jobs if j[0] in keep]
     t0 = time.time()
-    with cf.ThreadPoolExecutor(max(1, a.jobs)) as ex:
-        rows = list(ex.map(run_job, [(a.perpend, j) for j in jobs]))
-    if a.json:
+    if a.from_json:
+        with open(a.from_json) as f:
+            rows = [json.loads(line) for line in f]
+    else:
+        with cf.ThreadPoolExecutor(max(1, a.jobs)) as ex:
+            rows = list(ex.map(run_job, [(a.perpend, j) for j in jobs]))
+    if a.json and not a.from_json:
         with open(a.json, "w") as f:
             for r in rows:
                 f.write(json.dumps(r) + "\n")
     cells, nulls = summarise(rows)
-    md = markdown(cells, nulls)
+    md = compact(cells) + "\n\n" + markdown(cells, nulls)
     print(md)
     if a.md:
         with open(a.md, "w") as f:
