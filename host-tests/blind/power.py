@@ -30,7 +30,7 @@ same statistic without the effect).
 
     power.py --perpend BIN [--quick] [--check] [--seed-base N] [--runs N]
              [--nulls N] [--oracle-nulls N] [--sizes 0.5,2] [--jobs N]
-             [--md FILE] [--json FILE]
+             [--only "NAME;NAME"] [--md FILE] [--json FILE] [--from-json FILE]
 
 The goal (issue 46): diagnosis power >= 0.8x the oracle's wherever the
 oracle's is >= 50 %, false positives <= 5 % per regime; every miss is
@@ -346,7 +346,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--perpend", required=True)
     ap.add_argument("--quick", action="store_true",
-                    help="CI's form: sizes 0.5 and 2, one run a cell, 1 null per regime, 3 oracle nulls a class")
+                    help="CI's form: sizes 0.5 and 2, one run a cell, 2 effect-free runs per regime, 3 oracle-only a class")
     ap.add_argument("--check", action="store_true", help="exit 1 when a CI gate fails (ci_gates)")
     ap.add_argument("--seed-base", type=int, default=SEEDS)
     ap.add_argument("--runs", type=int, help="runs per class and size (default 5; --quick 1)")
@@ -354,7 +354,7 @@ def main(argv=None):
     ap.add_argument("--oracle-nulls", type=int,
                     help="effect-free draws per class, oracle only (default 40; --quick 3)")
     ap.add_argument("--sizes", help="comma-separated sizes (× visible noise; default 0.25,0.5,1,2,4)")
-    ap.add_argument("--only", help="comma-separated class names (a subset of CLASSES)")
+    ap.add_argument("--only", help="semicolon-separated class names (a subset of CLASSES; names hold commas)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     ap.add_argument("--md", help="also write the tables here")
     ap.add_argument("--json", help="write one JSON line per run here")
