@@ -36,6 +36,10 @@ ACCEPT = {
     "linearity_knee": {"nonlinearity", "linearity_table"},
     "thermal_lag2": {"thermal", "drift"},
     "crosstalk_sq": {"crosstalk"},
+    # issue 46 (power.py): gain on two sensors; a tracker whose planes
+    # drift during the run (a time-like error common to the sensors)
+    "gain2": {"gain", "nonlinearity", "linearity_table"},
+    "tracker_drift": {"drift", "thermal"},
 }
 
 

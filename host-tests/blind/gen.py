@@ -55,6 +55,16 @@ removed, same folds), the effects' drawn parameters and `temp_time_r`:
 | reversal: N       | poses // N planned poses, each at the last joint's angles 0, 360/N, ... deg (`perpend plan --reversal N`); poses.csv gains joint_deg and base_pose, plan.csv is written |
 | tracker_tilt_deg  | [ex, ey]: the tracker reports every plane turned by -eps about the plate's x and y axes (pivot on the spindle axis), so it turns against the head with the joint; truth.json gains `true_planes` |
 
+Issue 46 (power.py: the diagnosis beside the oracle of oracle.py, which
+reads `generate_full`'s state: the effects as drawn and every pose's
+context):
+
+| effect / case key | reading error added (mm), or what                        |
+|-------------------|-------------------------------------------------------------|
+| [kind, size, n]   | any effect on n drawn sensors only (`mask`; drawn from its own stream, seed + 19 + j; the others' amplitudes zero, so PHYSICAL caps it by the sensors it is on) |
+| tracker_drift     | the tracker's planes drift during the run: turned by s(t) eps about x, y and moved by s(t) D0, s(t) = 1 - exp(-t / tau), tau 0.15-0.6 of the run; written as the distance the calibration's prediction misses along each true beam |
+| geometry: skew    | a head neither ring-symmetric nor of one cone: azimuths 20/115/190/300 deg, radii 28-46 mm, cones 15-35 deg |
+
 Usage: gen.py CASE.json OUTDIR   (CASE: the parameters of one run, see
 `make_case` in score.py and `make_v3_case` in v3.py) writes
 OUTDIR/sensors.csv, OUTDIR/poses.csv (and OUTDIR/plan.csv with `reversal`)
@@ -132,16 +142,28 @@ GEOMETRIES = {
     # Tian-like: ring of 30 mm, 20 deg cone, numbered clockwise from +y.
     "tian30": {"radius": 30.0, "phase": 90.0, "cone": 20.0, "z0": 0.0,
                "standoff": 55.0, "clockwise": True},
+    # issue 46: a head neither ring-symmetric nor of one cone angle:
+    # sensors at 20/115/190/300 deg on radii 28-46 mm, beams leaning
+    # 15-35 deg towards the axis.
+    "skew": {"radius": [28.0, 40.0, 33.0, 46.0], "azimuth": [20.0, 115.0, 190.0, 300.0],
+             "cone": [15.0, 30.0, 22.0, 35.0], "z0": -10.0, "standoff": 45.0},
 }
 
 
 def nominal_head(name):
+    """The four (zero point, beam direction) of a geometry: on a ring at
+    `phase` + 90 deg steps, or at per-sensor azimuths, radii and cones."""
     g = GEOMETRIES[name]
     sensors = []
     for i in range(4):
-        phi = math.radians(g["phase"] + (-90.0 if g["clockwise"] else 90.0) * i)
-        e = [g["radius"] * math.cos(phi), g["radius"] * math.sin(phi), g["z0"]]
-        c = math.radians(g["cone"])
+        if "azimuth" in g:
+            phi = math.radians(g["azimuth"][i])
+            radius, cone = g["radius"][i], g["cone"][i]
+        else:
+            phi = math.radians(g["phase"] + (-90.0 if g["clockwise"] else 90.0) * i)
+            radius, cone = g["radius"], g["cone"]
+        e = [radius * math.cos(phi), radius * math.sin(phi), g["z0"]]
+        c = math.radians(cone)
         u = [-math.sin(c) * math.cos(phi), -math.sin(c) * math.sin(phi), math.cos(c)]
         sensors.append((e, u))
     return sensors
@@ -222,7 +244,11 @@ def tracker_fit(plane, rng, xi, points, patch, centre):
 
 
 def effect_error(kind, par, i, ctx):
-    """Reading error [mm] of sensor i (0-based) for one effect."""
+    """Reading error [mm] of sensor i (0-based) for one effect (nothing on
+    a sensor its `mask` leaves out: an effect on some sensors only)."""
+    mask = par.get("mask")
+    if mask is not None and not mask[i]:
+        return 0.0
     d = ctx["d"][i]
     if kind in ("gain", "gain2"):
         return par["g"][i] * (d - ctx["d_lo"][i])
@@ -289,7 +315,25 @@ def v3_error(kind, par, i, ctx):
         prev = ctx["d_prev"]
         sign = par["first"][i] if prev is None else (1.0 if d >= prev[i] else -1.0)
         return -par["h"][i] * sign
+    if kind == "tracker_drift":
+        return tracker_drift_error(par, i, ctx)
     raise ValueError(kind)
+
+
+def tracker_drift_error(par, i, ctx):
+    """Reading error [mm] of sensor i from a tracker whose planes drift
+    during the run (issue 46): at time t the tracker reports every plane
+    turned by s(t) A eps (rad, about x and y, pivot on the spindle axis)
+    and moved by s(t) A D0 along its normal, s(t) = 1 - exp(-t / tau) (the
+    tracker settling: a drift that changes during the run, neither linear
+    nor tied to the head's temperature). Written as its reading equivalent:
+    the true distance along the true beam to the true plane less that to
+    the reported one, what the calibration's prediction misses."""
+    s = (1.0 - math.exp(-ctx["t"] / (par["tau_frac"] * ctx["t_end"]))) * par["A"]
+    plane = ctx["plane"]
+    n2, d2 = reported(plane, [s * par["eps"][0], s * par["eps"][1], 0.0])
+    e, u = ctx["e"][i], ctx["u"][i]
+    return beam_distance(e, u, plane) - beam_distance(e, u, (n2, d2 + s * par["D0"]))
 
 
 def reading_noise(case, rng, sd, d, lo, hi):
@@ -341,6 +385,12 @@ def draw_effect(kind, rng, size_mm, span_mm):
         return {"A": per_sensor()}
     if kind == "thermal_tied":
         return {"k": None, "size": size_mm, "signs": per_sensor()}
+    if kind == "tracker_drift":
+        # A scales the whole drift (offset D0 mm, tilt eps rad: about the
+        # size at the spots of a 40 mm ring); tau a fraction of the run
+        return {"A": 1.0, "D0": size_mm * rng.choice([-1, 1]) * rng.uniform(0.6, 1.4),
+                "eps": [size_mm / 40.0 * rng.gauss(0, 1) for _ in range(2)],
+                "tau_frac": rng.uniform(0.15, 0.6)}
     if kind == "hysteresis":
         # not rescaled: h is the size asked for (x0.6-1.4 per sensor)
         return {"h": [size_mm * rng.uniform(0.6, 1.4) for _ in range(4)],
@@ -561,7 +611,12 @@ def damage(case, rows, clean, blunders):
     return spatter
 
 
-def generate(case):
+def generate_full(case):
+    """One run (see `generate`) and the generator's state that the oracle
+    of oracle.py reads: the true head, the effects as drawn (kind,
+    parameters), every pose's context (true distances, angles,
+    temperatures, times, true plane) and the poses left out (blunders,
+    spatter)."""
     rng = random.Random(case["seed"])
     geom = case["geometry"]
     g = GEOMETRIES[geom]
@@ -623,11 +678,17 @@ def generate(case):
                 "t": times[k], "t_sensor": sensor_T[k], "t_sensor2": sensor_T2[k],
                 "T0": sensor_T[0], "n": planes[k][0], "u": [u for _, u in truth],
                 "t_end": t_end, "T_head": head_T[k], "T_head0": head_T[0],
-                "d_prev": true_d[k - 1] if k else None}
+                "d_prev": true_d[k - 1] if k else None,
+                "e": [e for e, _ in truth], "plane": planes[k]}
 
     effects, visible = [], []
-    for kind, size in case["effects"]:
+    for j, spec in enumerate(case["effects"]):
+        kind, size = spec[0], spec[1]
         par = draw_effect(kind, rng, size, span)
+        if len(spec) > 2 and spec[2]:
+            # on `spec[2]` sensors only, drawn from a stream of their own
+            on = random.Random(case["seed"] + 19 + j).sample(range(4), spec[2])
+            par["mask"] = [int(i in on) for i in range(4)]
         if kind in ("incidence_tan", "incidence_sec"):
             f = (lambda x: math.tan(x)) if kind == "incidence_tan" else (lambda x: 1 / math.cos(x) - 1)
             vals = [f(x) for r in gam for x in r]
@@ -645,6 +706,12 @@ def generate(case):
             rise = max(1e-9, lagged[-1] - lagged[0])
             par["k"] = [s / rise for s in par["signs"]]
         v3_setup(kind, par, size, rng, [context(k) for k in range(n_poses)])
+        if "mask" in par:
+            # per-sensor amplitudes of the sensors left out are nothing
+            # (so that PHYSICAL caps the effect by the sensors it is on)
+            for key in ("g", "A", "k", "h"):
+                if isinstance(par.get(key), list):
+                    par[key] = [x * m for x, m in zip(par[key], par["mask"])]
         effects.append((kind, par))
 
     # Scale every effect so that what the paper's model cannot absorb (the
@@ -711,7 +778,7 @@ def generate(case):
     if frame:
         extra["tracker_tilt_deg"] = case.get("tracker_tilt_deg", [0.0, 0.0])
         extra["true_planes"] = [[list(n), d] for n, d in planes]
-    hidden = {"effects": [[k, s] for k, s in case["effects"]],
+    hidden = {"effects": [list(e) for e in case["effects"]],
               "visible_rms_mm": visible,
               "crosstalk_order": [p.get("order") for _, p in effects if "order" in p],
               "blunder_poses": sorted(b + 1 for b in blunders),
@@ -720,7 +787,16 @@ def generate(case):
               "sigma_mm": sig_i, "tracker_xi_mm": xi,
               "temp_rise_c": dT, "run_s": t_end}
     hidden.update(extra)
-    return nominal, rows, hidden
+    state = {"nominal": nominal, "head": truth, "effects": effects, "contexts": [context(k) for k in range(n_poses)],
+             "skip": blunders | spatter}
+    return nominal, rows, hidden, state
+
+
+def generate(case):
+    """One run: the nominal head, the rows (pose, reported plane,
+    readings, time, temperature) and the hidden truth (`generate_full`
+    without its state)."""
+    return generate_full(case)[:3]
 
 
 def rot_z(v, t):
@@ -859,9 +935,11 @@ def normal_cost(head, true_planes, rows, clean, skip, fit_clean, seed):
             "normal_cost": eff / floor if floor > 0 else float("inf")}
 
 
-def write(case, out):
+def write(case, out, generated=None):
+    """Writes the run of `case` (or `generated`, what `generate` returned
+    for it) to the directory `out`."""
     os.makedirs(out, exist_ok=True)
-    nominal, rows, truth = generate(case)
+    nominal, rows, truth = generated if generated is not None else generate(case)
     decl = case.get("declared")  # factor on the true sigma, or None: no column
     rng = random.Random(case["seed"] + 7)
     order = list(range(len(rows)))
