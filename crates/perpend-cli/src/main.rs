@@ -67,7 +67,7 @@ enum Cmd {
     Record(record::Args),
     /// The cell's frame errors (tracker tilt, TCP) from a reversal run's files, offline.
     #[command(after_help = FILES)]
-    Frames(perpend_cli::cell_frames::Args),
+    Frames(perpend_cli::cell::frames::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -88,7 +88,7 @@ fn main() -> std::process::ExitCode {
         Cmd::Cell(a) => cell::run(&a),
         Cmd::Eds(a) => eds::run(&a),
         Cmd::Record(a) => record::run(&a),
-        Cmd::Frames(a) => perpend_cli::cell_frames::run(&a),
+        Cmd::Frames(a) => perpend_cli::cell::frames::run(&a),
     };
     match res {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -161,7 +161,7 @@ pub struct SimRobot {
     tracker: Tracker,
     rng: StdRng,
     /// The last joint of a `--reversal` run.
-    pub turns: crate::cell_frames::Turns,
+    pub turns: super::frames::Turns,
 }
 
 /// The robot (with its tracker) that presents the datum plane.
@@ -196,7 +196,7 @@ impl Robot {
     }
 
     /// The last joint of a `--reversal` run (`None` for a manual robot).
-    pub fn turns(&mut self) -> Option<&mut crate::cell_frames::Turns> {
+    pub fn turns(&mut self) -> Option<&mut super::frames::Turns> {
         match self {
             Robot::Sim(sim) => Some(&mut sim.turns).filter(|t| t.active()),
             Robot::Manual(..) => None,
@@ -362,6 +362,24 @@ pub fn check_cancel(cancel: &AtomicBool, what: &str) -> Result<()> {
         bail!("interrupted (Ctrl-C) during {what}");
     }
     Ok(())
+}
+
+/// Set by Ctrl-C during `cell run`: the run stops at its next step and
+/// puts back what it changed.
+pub static CANCEL: AtomicBool = AtomicBool::new(false);
+
+/// The first Ctrl-C sets [`CANCEL`], the second quits at once.
+pub fn install_ctrlc() {
+    let _ = ctrlc::set_handler(|| {
+        if CANCEL.swap(true, Ordering::SeqCst) {
+            eprintln!("\nperpend cell: Ctrl-C, quitting now (nothing put back)");
+            std::process::exit(130);
+        }
+        eprintln!(
+            "\nperpend cell: Ctrl-C, stopping and putting back what the run changed (Ctrl-C \
+             again quits at once)"
+        );
+    });
 }
 
 #[cfg(test)]

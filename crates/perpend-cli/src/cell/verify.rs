@@ -40,7 +40,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use crate::canopen::Nmt;
-use crate::cell_robot::{abcd, check_cancel, normal_error, Presented, Robot};
+use super::robot::{abcd, check_cancel, normal_error, Presented, Robot};
 use crate::node::Node;
 
 /// The board's normal from θ1/θ2 [deg] (Tian eq. 1-3 inverted).
@@ -683,5 +683,21 @@ mod tests {
         assert!((u_mean / expect - 1.0).abs() < 0.05, "{u_mean} vs {expect}");
         assert_eq!(average(&[truth], &truth).unwrap().1, None);
         assert!(average(&[], &truth).is_none());
+    }
+
+    #[test]
+    fn fresh_poses_stay_in_the_plan_box() {
+        let p = |x, y, s| PlannedPose {
+            tilt_x_deg: x,
+            tilt_y_deg: y,
+            standoff_mm: s,
+        };
+        let plan = vec![(1, p(-5.0, -4.0, 26.0)), (2, p(5.0, 4.0, 30.0))];
+        for q in fresh_poses(&plan, 50, 3) {
+            assert!((-5.0..=5.0).contains(&q.tilt_x_deg));
+            assert!((-4.0..=4.0).contains(&q.tilt_y_deg));
+            assert!((26.0..=30.0).contains(&q.standoff_mm));
+        }
+        assert!(Robot::open("robot", 1, perpend_lab::sim::Tracker::paper()).is_err());
     }
 }

@@ -1,7 +1,7 @@
 //! `perpend cell check`: the interim check between two calibrations
 //! (issue 45). The board's stored calibration, unchanged, is measured at
 //! a few fresh poses inside the plan's reach exactly as the cell run
-//! verifies ([`crate::cell_verify`]), decided against the tolerance with
+//! verifies ([`super::verify`]), decided against the tolerance with
 //! the verification's own expanded uncertainty
 //! ([`perpend_lab::conformity`]) and compared with the last calibration
 //! record's fresh-pose mean; a `perpend.check/1` record
@@ -24,8 +24,8 @@ use perpend_lab::interim::{self, Against, CheckRecord};
 use perpend_lab::record::{utc_now, FileHash, Record};
 
 use crate::canopen::{Nmt, NodeState};
-use crate::cell_robot::{ManualCheck, Robot};
-use crate::cell_verify::{fresh_poses, read_plan, verify, write_csv, Reference};
+use super::robot::{ManualCheck, Robot};
+use super::verify::{fresh_poses, read_plan, verify, write_csv, Reference};
 use crate::node::{params, Node};
 
 /// Options of `cell check`.
@@ -52,7 +52,7 @@ pub struct CheckArgs {
     pub seed: u64,
     /// The robot, the sampling and the tolerance.
     #[command(flatten)]
-    pub m: crate::cell_verify::MeasureArgs,
+    pub m: super::verify::MeasureArgs,
 }
 
 /// What the last record verified, to compare with.
@@ -184,7 +184,7 @@ fn verify_csv(out: &Path) -> PathBuf {
 /// The check record of the pass `v`.
 fn record(
     reference: &Reference,
-    v: &crate::cell_verify::Verified,
+    v: &super::verify::Verified,
     against: Against,
     inputs: Vec<FileHash>,
     [serial, firmware]: [String; 2],
@@ -198,7 +198,7 @@ fn record(
     let reason = format!(
         "{verdict}: {}; mean {:.4}° ± {:.4}° against the record's {:.4}° ± {:.4}° ({:+.4}° ± \
          {:.4}°, {})",
-        crate::cell_verify::decision_words(&decision),
+        super::verify::decision_words(&decision),
         mean,
         u,
         against.mean_deg,
