@@ -1,23 +1,7 @@
 //! The options of `perpend cell run` ([`RunArgs`]) and the seed a run
 //! takes from the clock when none is given.
 
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
-
-use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::head::Head4;
-use perpend_lab::conformity::{Decision, Verdict};
-use perpend_lab::plan::PlannedPose;
-use perpend_lab::record::BoardStamp;
-
-use crate::canopen::{Nmt, NodeState};
-use crate::node::{capture, params, Node};
-use super::robot::{abcd, check_cancel, ManualCheck, Robot};
-use super::verify::{
-    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
-    write_csv, Reference, Sampling, Verified,
-};
+use std::path::PathBuf;
 
 /// Options of `cell run`.
 #[derive(clap::Args, Debug, Clone)]

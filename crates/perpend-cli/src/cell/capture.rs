@@ -3,24 +3,16 @@
 //! a boot-up of the node in between stops the run (a reset board's poses
 //! are not trusted).
 
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::path::PathBuf;
+use std::time::Duration;
 
-use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::head::Head4;
-use perpend_lab::conformity::{Decision, Verdict};
+use anyhow::{anyhow, Result};
 use perpend_lab::plan::PlannedPose;
-use perpend_lab::record::BoardStamp;
 
-use crate::canopen::{Nmt, NodeState};
-use crate::node::{capture, params, Node};
-use super::robot::{abcd, check_cancel, ManualCheck, Robot};
-use super::verify::{
-    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
-    write_csv, Reference, Sampling, Verified,
-};
+use super::robot::{abcd, check_cancel, Robot};
 use super::session::Session;
+use super::verify::{drain_saw_bootup, reset_error};
+use crate::node::capture;
 
 /// Captures every planned pose into `DIR/poses.csv` and returns its
 /// path; a reset of the node in between (its boot-up message) stops it.

@@ -23,9 +23,9 @@ use anyhow::{anyhow, bail, Context as _, Result};
 use perpend_lab::interim::{self, Against, CheckRecord};
 use perpend_lab::record::{utc_now, FileHash, Record};
 
-use crate::canopen::{Nmt, NodeState};
 use super::robot::{ManualCheck, Robot};
 use super::verify::{fresh_poses, read_plan, verify, write_csv, Reference};
+use crate::canopen::{Nmt, NodeState};
 use crate::node::{params, Node};
 
 /// Options of `cell check`.

@@ -3,26 +3,17 @@
 //! fresh poses, from the true head or the calibrated one, with the reading
 //! noise the captures measured) and the decision, as [`Figures`].
 
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::path::Path;
+use std::time::Instant;
 
-use anyhow::{anyhow, bail, Context as _, Result};
+use anyhow::Result;
 use perpend_core::head::Head4;
-use perpend_lab::conformity::{Decision, Verdict};
-use perpend_lab::plan::PlannedPose;
-use perpend_lab::record::BoardStamp;
+use perpend_lab::conformity::Decision;
 
-use crate::canopen::{Nmt, NodeState};
-use crate::node::{capture, params, Node};
-use super::robot::{abcd, check_cancel, ManualCheck, Robot};
-use super::verify::{
-    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
-    write_csv, Reference, Sampling, Verified,
-};
 use super::args::RunArgs;
 use super::fit::Fit;
 use super::session::Session;
+use super::verify::{floor, head4, Verified};
 
 /// What `cell run` measured (`cell.json`).
 #[derive(Debug, Clone, PartialEq)]

@@ -2,25 +2,13 @@
 //! paired before/after change, or what a stopped run left ([`failed`]),
 //! as a [`Report`] with its [`Outcome`] and first cause.
 
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::path::PathBuf;
 
-use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::head::Head4;
-use perpend_lab::conformity::{Decision, Verdict};
-use perpend_lab::plan::PlannedPose;
-use perpend_lab::record::BoardStamp;
+use perpend_lab::conformity::Verdict;
 
-use crate::canopen::{Nmt, NodeState};
-use crate::node::{capture, params, Node};
-use super::robot::{abcd, check_cancel, ManualCheck, Robot};
-use super::verify::{
-    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
-    write_csv, Reference, Sampling, Verified,
-};
 use super::figures::Figures;
-use super::session::Session;
+use super::session::{PushStage, Session};
+use super::verify::decision_words;
 
 /// How a run ended (`outcome` in cell.json and the record).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -3,23 +3,10 @@
 //! decision, certificate fields and events) and `DIR/cert.html` or
 //! `DIR/report.html`.
 
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::path::PathBuf;
 
-use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::head::Head4;
-use perpend_lab::conformity::{Decision, Verdict};
-use perpend_lab::plan::PlannedPose;
-use perpend_lab::record::BoardStamp;
+use anyhow::Result;
 
-use crate::canopen::{Nmt, NodeState};
-use crate::node::{capture, params, Node};
-use super::robot::{abcd, check_cancel, ManualCheck, Robot};
-use super::verify::{
-    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
-    write_csv, Reference, Sampling, Verified,
-};
 use super::args::RunArgs;
 use super::figures::Figures;
 use super::judge::{Outcome, Report};
@@ -35,7 +22,11 @@ use super::session::Session;
 /// `DIR/cert.html` when the calibration is applied and verified, else
 /// `DIR/report.html` (marked: no certificate). A run that stopped before it
 /// calibrated has nothing to record (cell.json says why).
-pub(super) fn write_record(a: &RunArgs, s: &Session<'_>, report: &Report) -> Result<Option<PathBuf>> {
+pub(super) fn write_record(
+    a: &RunArgs,
+    s: &Session<'_>,
+    report: &Report,
+) -> Result<Option<PathBuf>> {
     use perpend_lab::record::{self as rec, FileHash, Previous, Record};
     let params = a.out.join("params.json");
     if !params.exists() {

@@ -6,27 +6,23 @@
 //! `DIR/cell.json`.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::head::Head4;
-use perpend_lab::conformity::{Decision, Verdict};
 use perpend_lab::plan::PlannedPose;
-use perpend_lab::record::BoardStamp;
 
-use crate::canopen::{Nmt, NodeState};
-use crate::node::{params, Node};
-use super::robot::{abcd, check_cancel, ManualCheck, Robot};
-use super::verify::{
-    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
-    write_csv, Reference, Sampling, Verified,
-};
 use super::args::RunArgs;
 use super::figures::{self, Figures};
-use super::{capture, fit};
-use super::judge::{failed, judge, Report};
+use super::judge::{failed, judge, Outcome, Report};
+use super::record::write_record;
+use super::robot::{check_cancel, ManualCheck, Robot};
+use super::robot::{install_ctrlc, CANCEL};
 use super::session::Session;
+use super::verify::{fresh_poses, read_plan, Reference};
+use super::{capture, fit};
+use crate::canopen::Nmt;
+use crate::node::Node;
 
 /// Before, capture, calibrate, push, after, floor: each step takes what
 /// the one before left.
@@ -49,7 +45,13 @@ fn steps(
     check_cancel(s.cancel, "the calibration")?;
     s.push_new(&fit.params)?;
     let after = s.after(robot, &fresh)?;
-    figures::of(s, [&before, &after], &fit, [plan.len(), fresh.len()], started)
+    figures::of(
+        s,
+        [&before, &after],
+        &fit,
+        [plan.len(), fresh.len()],
+        started,
+    )
 }
 
 /// `perpend cell run`.

@@ -6,23 +6,18 @@
 //! limit, lock, NMT state).
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_core::head::Head4;
-use perpend_lab::conformity::{Decision, Verdict};
 use perpend_lab::plan::PlannedPose;
 use perpend_lab::record::BoardStamp;
 
-use crate::canopen::{Nmt, NodeState};
-use crate::node::{capture, params, Node};
-use super::robot::{abcd, check_cancel, ManualCheck, Robot};
-use super::verify::{
-    decision_words, drain_saw_bootup, floor, fresh_poses, head4, read_plan, reset_error, verify,
-    write_csv, Reference, Sampling, Verified,
-};
 use super::args::RunArgs;
+use super::robot::Robot;
+use super::verify::{verify, write_csv, Reference, Sampling, Verified};
+use crate::canopen::{Nmt, NodeState};
+use crate::node::{params, Node};
 
 /// How far the push of the new calibration got.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -39,8 +39,8 @@ use perpend_lab::sim::gauss;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use crate::canopen::Nmt;
 use super::robot::{abcd, check_cancel, normal_error, Presented, Robot};
+use crate::canopen::Nmt;
 use crate::node::Node;
 
 /// The board's normal from θ1/θ2 [deg] (Tian eq. 1-3 inverted).
