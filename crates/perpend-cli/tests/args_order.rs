@@ -113,7 +113,7 @@ fn a_bad_node_id_is_refused_in_either_position() {
     }
 }
 
-/// Issue 47 point 7, the change `cell.rs` needs: a subcommand that
+/// Issue 47 point 7, the change `cell/mod.rs` needs: a subcommand that
 /// flattens [`node::NoLink`] under a parent with global link options
 /// neither lists them in its help nor takes them after its name; the
 /// sibling that reads the link still takes them in either position.
