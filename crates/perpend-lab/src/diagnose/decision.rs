@@ -13,13 +13,14 @@
 use anyhow::{anyhow, bail, Result};
 use perpend_core::head::Sensor;
 
+use super::candidates::available_models;
 use super::candidates::{self, Effect, Refs, SensorFit};
 use super::cv;
 use super::direction::{self, DirectionTest, NullPlan};
 use super::expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
 use super::fits::{implausible_fits, Fitted};
 use super::lags;
-use super::load::{available_models, Loaded};
+use super::load::Loaded;
 use super::nested::{self, Nested, NestedPlan};
 use super::noise::{self, NoiseEstimate};
 use super::select::{self, decide, Decision};

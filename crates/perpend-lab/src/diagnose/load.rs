@@ -12,7 +12,7 @@ use anyhow::{anyhow, bail, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
 
-use super::candidates::{available, Effect, Refs};
+use super::candidates::{available, available_models, Effect, Refs};
 use super::expect::Plan;
 use super::folds::{folds_for, Folds};
 use super::lags;
@@ -123,17 +123,6 @@ fn retimed(
     let kept = noise::without(all, outliers);
     let lags = lags::select(nominal, &kept, &[Effect::Thermal, Effect::Drift], lsq);
     (noise::without(&lags::apply(all, &lags), outliers), lags)
-}
-
-/// The paper's model and every candidate the run has the inputs for.
-pub fn available_models(poses: &PoseTable) -> Vec<Effect> {
-    std::iter::once(Effect::None)
-        .chain(
-            Effect::CATALOG
-                .into_iter()
-                .filter(|e| available(*e, poses).is_ok()),
-        )
-        .collect()
 }
 
 /// The largest `|d − d_ref|` of the run [mm] (for the plausibility bounds).

@@ -54,30 +54,25 @@
 //!
 //! Everything is seeded: the same files and options give the same report.
 
+pub use perpend_calib::{candidates, cv, folds, lags, moments, noise, stats};
+
 pub mod bench;
 pub mod blind;
-pub mod candidates;
 pub mod checks;
-pub mod cv;
 pub mod decision;
 pub mod diagnosis;
 pub mod direction;
 pub mod expect;
 pub mod fits;
-pub mod folds;
-pub mod lags;
 pub mod limits;
 pub mod load;
-pub mod moments;
 pub mod nested;
-pub mod noise;
 pub mod plot;
 pub mod report;
 pub mod scenario;
 pub mod scores;
 pub mod select;
 pub mod settings;
-pub mod stats;
 pub mod study;
 
 use anyhow::{anyhow, bail, Context as _, Result};
@@ -85,6 +80,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use crate::paramfile::ParamFile;
+pub use candidates::available_models;
 use candidates::{Effect, SensorFit};
 use checks::compare;
 pub use checks::{Check, Checks};
@@ -94,9 +90,9 @@ pub use diagnosis::Diagnosis;
 use fits::fit;
 pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
 use limits::limits;
+pub use load::declared_sigma;
 use load::load;
 pub(crate) use load::reading_span;
-pub use load::{available_models, declared_sigma};
 use scores::scores;
 pub use scores::Perf;
 pub use settings::{

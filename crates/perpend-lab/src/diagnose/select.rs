@@ -848,7 +848,16 @@ mod tests {
         use perpend_core::calib::LsqConfig;
         use perpend_core::ext::Extension;
         use rand::SeedableRng;
-        let (head, cfg) = crate::diagnose::candidates::tests::paper_tilted(60, 15.0);
+        // The paper's head, 60 poses tilted over ±15° about both axes (as
+        // perpend-calib's candidates tests build it).
+        let head = crate::sim::paper_head().unwrap();
+        let mut cfg = crate::sim::SimConfig::paper();
+        cfg.poses = 60;
+        cfg.spread = crate::sim::PoseSpread {
+            tilt_x_range_deg: 15.0,
+            tilt_y_range_deg: 15.0,
+            ..crate::sim::PoseSpread::cell(crate::sim::PAPER_STANDOFF_MM)
+        };
         let ext = [0.3f64, 2.0, -2.6, -1.0]
             .iter()
             .map(|p| Extension {

@@ -5,7 +5,7 @@
 //! tolerance, the cell's air temperature, and the reference standard (the
 //! laser tracker: model, serial, calibration due date, traceability and
 //! the point noise, count and patch its plane uncertainty follows from,
-//! [`crate::conformity::tracker_u_rad`]).
+//! [`perpend_formats::conformity::tracker_u_rad`]).
 //!
 //! Every figure is checked by physics where it is read: a tolerance
 //! outside (0, 5]°, a point noise that looks like micrometres, a patch
@@ -84,13 +84,14 @@ impl CellConfig {
     /// # Errors
     /// Syntax (line, column), a field out of its physics.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
-        let c: Self = serde_json::from_str(&crate::exchange::json_text(text)).map_err(|e| {
-            anyhow!(
+        let c: Self =
+            serde_json::from_str(&perpend_formats::exchange::json_text(text)).map_err(|e| {
+                anyhow!(
                 "{name}: line {}, column {}: {e} (a cell configuration, {SCHEMA}: docs/record.md)",
                 e.line(),
                 e.column()
             )
-        })?;
+            })?;
         c.check().with_context(|| name.to_string())?;
         Ok(c)
     }

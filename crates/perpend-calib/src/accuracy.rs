@@ -33,8 +33,8 @@ use perpend_core::normal::{plane, Method};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use crate::diagnose::candidates::Subset;
-use crate::exchange::PoseTable;
+use crate::candidates::Subset;
+use perpend_formats::exchange::PoseTable;
 
 /// The normal error a calibration with this covariance makes.
 #[derive(Debug, Clone, Copy, PartialEq)]

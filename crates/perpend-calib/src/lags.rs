@@ -34,7 +34,7 @@
 //! other beside it, since a warm-up confounds them); a τ
 //! other than the default must lower it by more than the 1 % χ²₁ point in
 //! units of its own residual variance (as a crosstalk source must,
-//! [`super::candidates::SOURCE_CHI2`]), so an effect-free run keeps the
+//! [`crate::candidates::SOURCE_CHI2`]), so an effect-free run keeps the
 //! default in most draws. The run is then re-timed once ([`apply`]: the
 //! `temp_c` and `t_s` columns replaced by `T_s` and `g`) and every later
 //! stage — cross-validation, the effect-free re-simulations (which copy
@@ -56,8 +56,8 @@
 use perpend_core::calib::{LsqConfig, Regressors};
 use perpend_core::head::Sensor;
 
-use super::candidates::{fit, Effect, Refs, SOURCE_CHI2};
-use crate::exchange::PoseTable;
+use crate::candidates::{fit, Effect, Refs, SOURCE_CHI2};
+use perpend_formats::exchange::PoseTable;
 
 /// Fractions of the run's duration tried as the thermal lag (0 = none).
 pub const THERMAL_GRID: [f64; 8] = [0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0];
@@ -185,7 +185,7 @@ pub fn temp_time_r(poses: &PoseTable) -> Option<f64> {
         .filter_map(|r| Some((r.t_s?, r.temp_c?)))
         .filter(|(a, b)| a.is_finite() && b.is_finite())
         .unzip();
-    (t.len() >= 3).then(|| super::stats::pearson(&t, &temp))
+    (t.len() >= 3).then(|| crate::stats::pearson(&t, &temp))
 }
 
 /// Whether the run tells a temperature coefficient from a drift in time
@@ -196,7 +196,7 @@ pub fn separable(poses: &PoseTable) -> bool {
 }
 
 /// What separates thermal from drift, in words (the report and
-/// [`super::InseparableJson`]).
+/// `perpend_lab::diagnose::InseparableJson`).
 pub const SEPARATED_BY: &str =
     "a run continued past the warm-up's plateau, a run started warm (soaked), or a cool-down";
 
@@ -248,7 +248,7 @@ fn best(
             BESIDE
                 .into_iter()
                 .zip(m)
-                .filter(|(e, on)| **on && super::candidates::available(*e, poses).is_ok())
+                .filter(|(e, on)| **on && crate::candidates::available(*e, poses).is_ok())
                 .map(|(e, _)| e)
                 .chain(partner)
                 .collect::<Vec<_>>()
@@ -280,7 +280,7 @@ pub fn select(
         return Lags::default();
     };
     let run = t[order[order.len() - 1]] - t[order[0]];
-    let wanted = |e: Effect| effects.contains(&e) && super::candidates::available(e, poses).is_ok();
+    let wanted = |e: Effect| effects.contains(&e) && crate::candidates::available(e, poses).is_ok();
     let thermal = |x: f64| Lags {
         thermal_tau_s: x * run,
         ..Lags::default()

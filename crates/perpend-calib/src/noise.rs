@@ -19,7 +19,7 @@
 //! terms that read another channel (the carry-over) move them between
 //! sensors; σ² and the tracker's scale are therefore solved from the two
 //! energies by the method of moments through that fit's own residual
-//! operator ([`super::moments`]), not by dividing by a degree-of-freedom
+//! operator ([`crate::moments`]), not by dividing by a degree-of-freedom
 //! count. With four sensors a pose gives one within-pose degree of
 //! freedom: σ is pooled over sensors; per-sensor values come from the
 //! `s1_mm …` columns when present (`s_i/√n_samples`), and the larger of
@@ -63,11 +63,11 @@ use perpend_core::calib::{LsqConfig, Poses};
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 
-use super::candidates::{fit, Effect, Refs, SensorFit};
-use super::moments::{orthonormal, plane_columns};
-use super::stats;
-use crate::exchange::PoseTable;
+use crate::candidates::{fit, Effect, Refs, SensorFit};
+use crate::moments::{orthonormal, plane_columns};
 use crate::sim::Tracker;
+use crate::stats;
+use perpend_formats::exchange::PoseTable;
 
 /// Within-pose and common (plane) energy of a run's residuals.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -249,7 +249,7 @@ pub fn model_residuals(
     refs: &Refs,
     lsq: &LsqConfig<f64>,
 ) -> Option<(Vec<SensorFit>, Residuals)> {
-    let fits = super::candidates::fit_all(nominal, poses, refs, e, lsq).ok()?;
+    let fits = crate::candidates::fit_all(nominal, poses, refs, e, lsq).ok()?;
     let resid = residuals_of(&fits, poses);
     Some((fits, resid))
 }
@@ -327,7 +327,7 @@ pub fn residuals_of(fits: &[SensorFit], poses: &PoseTable) -> Residuals {
             (0..fits.len())
                 .map(|i| {
                     let d = poses.reading(k, i)?;
-                    super::candidates::predict(&fits[i], poses, k, i).map(|p| d - p)
+                    crate::candidates::predict(&fits[i], poses, k, i).map(|p| d - p)
                 })
                 .collect()
         })
@@ -337,7 +337,7 @@ pub fn residuals_of(fits: &[SensorFit], poses: &PoseTable) -> Residuals {
 /// Estimates the run's noise from the in-sample residuals `resid` of the
 /// model fitted as `fits` (module docs): the reading variance and the
 /// tracker's scale by the method of moments through the fit's own
-/// residual operator ([`super::moments`]).
+/// residual operator ([`crate::moments`]).
 pub fn estimate(
     nominal: &[Sensor<f64>],
     poses: &PoseTable,
@@ -391,7 +391,7 @@ fn by_moments(
     nominal: Option<Tracker>,
 ) -> Option<(f64, Option<Tracker>, f64, bool)> {
     let t = columns.or(nominal);
-    let m = super::moments::moments(fits, poses, resid, t.as_ref())?;
+    let m = crate::moments::moments(fits, poses, resid, t.as_ref())?;
     Some(match (columns, nominal) {
         (Some(c), _) => (m.var_given(1.0)?, Some(c), m.spot.sqrt(), true),
         (None, Some(t0)) => {
@@ -521,7 +521,7 @@ fn residuals_under(
                 (0..nominal.len())
                     .map(|i| {
                         let d = poses.reading(k, i)?;
-                        super::candidates::predict(&fits[i], poses, k, i).map(|p| d - p)
+                        crate::candidates::predict(&fits[i], poses, k, i).map(|p| d - p)
                     })
                     .collect()
             })
@@ -588,7 +588,7 @@ pub const AXES: [&str; 4] = [
 /// The index, after [`AXES`], of the structure z along the step from the
 /// channel converted before (the carry-over's regressor): computed for
 /// every model, but read only by the carry-over test of a named incidence
-/// ([`super::select`], "Carry-over"), not by the structure test.
+/// (`perpend_lab::diagnose::select`, "Carry-over"), not by the structure test.
 pub const STEP_AXIS: usize = AXES.len();
 
 /// The name of axis `x` of [`structure`]'s output.
@@ -602,7 +602,7 @@ pub fn axis_name(x: usize) -> &'static str {
 /// [`AXES`], then along the step ([`STEP_AXIS`]) (`None` where the run
 /// lacks the axis). The step axis reads
 /// sensor `i`'s carry-over source `sources[i]` (the crosstalk candidate's
-/// choice, [`super::candidates::sources`]; the previous channel in sensor
+/// choice, [`crate::candidates::sources`]; the previous channel in sensor
 /// order where `sources` has no entry): the measured reading of the source
 /// minus the sensor's own, per pose.
 pub fn structure(
@@ -627,7 +627,7 @@ pub fn structure(
                 let p = sources
                     .get(i)
                     .copied()
-                    .unwrap_or_else(|| super::candidates::previous(i, ns));
+                    .unwrap_or_else(|| crate::candidates::previous(i, ns));
                 Some(r.get(p).copied().flatten()? - r.get(i).copied().flatten()?)
             }
         }

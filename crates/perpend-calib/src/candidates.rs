@@ -54,8 +54,8 @@ use perpend_core::geometry::Plane;
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 
-use crate::exchange::PoseTable;
-use crate::paramfile::{Identifiability, SensorParams, Triples};
+use perpend_formats::exchange::PoseTable;
+use perpend_formats::paramfile::{Identifiability, SensorParams, Triples};
 
 /// The names the diagnosis can give (the catalogue plus `none` and
 /// `unexplained`).
@@ -227,7 +227,7 @@ impl Refs {
         let readings: Vec<Vec<f64>> = (0..poses.n_sensors)
             .map(|i| sensor_readings(poses, i))
             .collect();
-        let d_ref: Vec<f64> = readings.iter().map(|v| super::stats::mean(v)).collect();
+        let d_ref: Vec<f64> = readings.iter().map(|v| crate::stats::mean(v)).collect();
         let knots: Vec<[f64; TABLE_KNOTS]> = readings
             .iter()
             .zip(&d_ref)
@@ -244,7 +244,7 @@ impl Refs {
             temp_ref: if temps.is_empty() {
                 20.0
             } else {
-                super::stats::mean(&temps)
+                crate::stats::mean(&temps)
             },
             ridge: vec![0.0; knots.len()],
             incidence: vec![IncidenceForm::Symmetric; knots.len()],
@@ -277,7 +277,7 @@ impl Refs {
             return out;
         }
         let n = poses.rows.len();
-        let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 1);
+        let folds = crate::folds::Folds::new(n, crate::folds::folds_for(n, None), 1);
         let mut best = vec![f64::INFINITY; nominal.len()];
         let sses = |t: &Refs| t.heldout_sses(nominal, poses, effect, &folds, cfg);
         let rules = KnotRule::ALL
@@ -343,7 +343,7 @@ impl Refs {
         // score it, which keeps its optimism (and the null's threshold)
         // low.
         let n = poses.rows.len();
-        let folds = super::folds::Folds::new(n, super::folds::folds_for(n, None), 2);
+        let folds = crate::folds::Folds::new(n, crate::folds::folds_for(n, None), 2);
         let forms = IncidenceForm::ALL.into_iter().map(|form| {
             let trial = Refs {
                 incidence: vec![form; nominal.len()],
@@ -390,7 +390,7 @@ impl Refs {
         nominal: &[Sensor<f64>],
         poses: &PoseTable,
         effect: Effect,
-        folds: &super::folds::Folds,
+        folds: &crate::folds::Folds,
         cfg: &LsqConfig<f64>,
     ) -> Vec<f64> {
         nominal
@@ -502,7 +502,7 @@ fn table_knots(v: &[f64], d_ref: f64, rule: KnotRule) -> [f64; TABLE_KNOTS] {
     if v.is_empty() {
         return [0.0; TABLE_KNOTS];
     }
-    let q = KNOT_QUANTILES.map(|q| super::stats::quantile(v, q) - d_ref);
+    let q = KNOT_QUANTILES.map(|q| crate::stats::quantile(v, q) - d_ref);
     match rule {
         KnotRule::Quantiles => q,
         KnotRule::Even => {
@@ -519,7 +519,7 @@ fn heldout_sse(
     idx: usize,
     poses: &PoseTable,
     terms: ExtTerms<f64>,
-    folds: &super::folds::Folds,
+    folds: &crate::folds::Folds,
     cfg: &LsqConfig<f64>,
 ) -> f64 {
     let mut sse = 0.0;
@@ -1155,6 +1155,17 @@ pub fn line_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
     c.atan2(a.dot(b).abs()).to_degrees()
 }
 
+/// The paper's model and every candidate the run has the inputs for.
+pub fn available_models(poses: &PoseTable) -> Vec<Effect> {
+    std::iter::once(Effect::None)
+        .chain(
+            Effect::CATALOG
+                .into_iter()
+                .filter(|e| available(*e, poses).is_ok()),
+        )
+        .collect()
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 pub(crate) mod tests {
@@ -1242,7 +1253,7 @@ pub(crate) mod tests {
         // Readings crowding the middle of their range (as a pose set spread
         // by tilts more than by standoff gives): every pose whose mean
         // reading is in the middle half, one in four of the others.
-        let mean = |r: &crate::exchange::PoseRow| -> f64 {
+        let mean = |r: &perpend_formats::exchange::PoseRow| -> f64 {
             r.readings.iter().flatten().sum::<f64>() / 4.0
         };
         let m: Vec<f64> = run.rows.iter().map(mean).collect();
@@ -1321,8 +1332,7 @@ pub(crate) mod tests {
                 .unwrap()
                 .poses;
             let n = run.rows.len();
-            let folds =
-                super::super::folds::Folds::new(n, super::super::folds::folds_for(n, None), 7);
+            let folds = crate::folds::Folds::new(n, crate::folds::folds_for(n, None), 7);
             let chosen =
                 Refs::of(&run).with_table_choice(&head.nominal, &run, Effect::LinearityTable, &lsq);
             let plain = Refs {
@@ -1399,7 +1409,7 @@ pub(crate) mod tests {
             assert_eq!(f.sensor.ext.incidence, 0.0);
         }
         let n = biased.rows.len();
-        let folds = super::super::folds::Folds::new(n, super::super::folds::folds_for(n, None), 1);
+        let folds = crate::folds::Folds::new(n, crate::folds::folds_for(n, None), 1);
         let sse = |poses: &PoseTable, r: &Refs| -> f64 {
             (0..4)
                 .map(|i| {
@@ -1432,7 +1442,7 @@ pub(crate) mod tests {
     /// said `none`).
     #[test]
     fn the_form_choice_takes_only_forms_within_their_bounds() {
-        use crate::exchange::{read_poses, read_sensors};
+        use perpend_formats::exchange::{read_poses, read_sensors};
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/v3/spot5deg");
         let nominal = read_sensors(&dir.join("sensors.csv"))
             .unwrap()
@@ -1447,7 +1457,7 @@ pub(crate) mod tests {
         };
         let (sym, spot) = (all(IncidenceForm::Symmetric), all(IncidenceForm::Spot));
         let n = poses.rows.len();
-        let folds = super::super::folds::Folds::new(n, super::super::folds::folds_for(n, None), 2);
+        let folds = crate::folds::Folds::new(n, crate::folds::folds_for(n, None), 2);
         let sse = |r: &Refs| {
             heldout_sse(
                 &nominal[2],

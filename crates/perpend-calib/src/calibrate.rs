@@ -1,7 +1,7 @@
 //! `perpend calibrate`: calibrate a sensor head from a calibration run in
 //! the exchange format, with batch least squares (default) or the paper's
 //! EKF, print per-sensor corrections with 1σ, residual RMS and
-//! identifiability, and write the parameter JSON ([`crate::paramfile`]).
+//! identifiability, and write the parameter JSON ([`perpend_formats::paramfile`]).
 //!
 //! Malformed input is an error naming the file, line and problem; a pose
 //! set that cannot identify a sensor's parameters is an error naming what
@@ -19,10 +19,10 @@ use perpend_core::calib::{
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 
-use crate::diagnose::candidates::{self, Effect, Refs};
-pub use crate::diagnose::lags::run_end_s;
-use crate::exchange::{read_poses, read_sensors, PoseTable};
-use crate::paramfile::{Identifiability, ParamFile, SensorParams, Triples};
+use crate::candidates::{self, Effect, Refs};
+pub use crate::lags::run_end_s;
+use perpend_formats::exchange::{read_poses, read_sensors, PoseTable};
+use perpend_formats::paramfile::{Identifiability, ParamFile, SensorParams, Triples};
 
 /// Estimator.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
@@ -96,18 +96,18 @@ impl EkfPreset {
 
 /// `poses` (the run without the outliers of `all`) re-timed for `model`:
 /// a thermal lag or a settling drift with the time constant the diagnosis
-/// would choose ([`crate::diagnose::lags`]), the lag filtering every pose's
+/// would choose ([`crate::lags`]), the lag filtering every pose's
 /// temperature, the outliers' included. The lag goes to `file`, the choice
 /// to `report`.
 fn retime(
     model: Effect,
     nominal: &[perpend_core::head::Sensor<f64>],
-    (all, outliers): (&PoseTable, &[crate::diagnose::noise::Outlier]),
+    (all, outliers): (&PoseTable, &[crate::noise::Outlier]),
     poses: &PoseTable,
     report: &mut String,
     file: &mut ParamFile,
 ) -> PoseTable {
-    use crate::diagnose::{lags, noise};
+    use crate::{lags, noise};
     if !matches!(model, Effect::Thermal | Effect::Drift) {
         return poses.clone();
     }
@@ -120,7 +120,7 @@ fn retime(
 }
 
 /// Reports the time constant of a thermal lag or a settling drift.
-fn lag_lines(model: Effect, lags: &crate::diagnose::lags::Lags, report: &mut String) {
+fn lag_lines(model: Effect, lags: &crate::lags::Lags, report: &mut String) {
     if model == Effect::Thermal && lags.thermal_tau_s > 0.0 {
         let _ = writeln!(
             report,
@@ -148,7 +148,7 @@ fn lag_lines(model: Effect, lags: &crate::diagnose::lags::Lags, report: &mut Str
 /// # Errors
 /// The model and what the log lacks.
 fn board_can_apply(model: Effect, poses: &PoseTable) -> Result<()> {
-    let missing = |f: fn(&crate::exchange::PoseRow) -> bool| {
+    let missing = |f: fn(&perpend_formats::exchange::PoseRow) -> bool| {
         poses.rows.iter().filter(|r| !f(r)).map(|r| r.line).next()
     };
     match model {
@@ -364,15 +364,15 @@ fn reject_outliers(
     nominal: &[Sensor<f64>],
     all_poses: &PoseTable,
     report: &mut String,
-) -> Vec<crate::diagnose::noise::Outlier> {
+) -> Vec<crate::noise::Outlier> {
     if a.keep_outliers {
         return Vec::new();
     }
-    let outliers = crate::diagnose::noise::reject(
+    let outliers = crate::noise::reject(
         nominal,
         all_poses,
         &LsqConfig::default(),
-        &crate::diagnose::available_models(all_poses),
+        &crate::candidates::available_models(all_poses),
     );
     if !outliers.is_empty() {
         let p: Vec<String> = outliers
@@ -407,7 +407,7 @@ struct Outcome {
 fn calibrate_lsq(
     model: Effect,
     nominal: &[Sensor<f64>],
-    all: (&PoseTable, &[crate::diagnose::noise::Outlier]),
+    all: (&PoseTable, &[crate::noise::Outlier]),
     poses: &PoseTable,
     o: &mut Outcome,
     verify: bool,
@@ -463,7 +463,7 @@ pub fn with_sensor(i: usize, why: &str) -> String {
 }
 
 /// Held-out normal errors of every pose by k-fold cross-validation by pose
-/// (the folds `perpend diagnose` uses, [`crate::diagnose::folds_for`],
+/// (the folds `perpend diagnose` uses, [`crate::folds::folds_for`],
 /// seed 1): each pose measured by the head fitted with `model` on the other
 /// folds, against the pose's plane normal. `None` (and a line in the
 /// report) when a fold cannot be fitted.
@@ -473,10 +473,10 @@ fn heldout_errors(
     poses: &PoseTable,
     report: &mut String,
 ) -> Option<Vec<crate::record::PoseError>> {
-    use crate::diagnose::cv;
+    use crate::cv;
     let folds = cv::Folds::new(
         poses.rows.len(),
-        crate::diagnose::folds_for(poses.rows.len(), None),
+        crate::folds::folds_for(poses.rows.len(), None),
         1,
     );
     let refs = Refs::of(poses);
@@ -633,14 +633,17 @@ fn ekf_sensor_lines(
 
 /// The declared `sigma_mm` of each sensor against its residual RMS (an
 /// upper bound of its noise: a declared value 5× above it is a mistake of
-/// units, [`crate::plausible::sigma_warning`]).
-pub fn sigma_warnings(table: &crate::exchange::SensorTable, file: &ParamFile) -> Vec<String> {
+/// units, [`perpend_formats::plausible::sigma_warning`]).
+pub fn sigma_warnings(
+    table: &perpend_formats::exchange::SensorTable,
+    file: &ParamFile,
+) -> Vec<String> {
     table
         .rows
         .iter()
         .zip(&file.sensors)
         .filter_map(|(row, p)| {
-            crate::plausible::sigma_warning(
+            perpend_formats::plausible::sigma_warning(
                 &format!("sensor {}", row.sensor),
                 row.sigma_mm?,
                 p.residual_rms_mm?,
@@ -664,13 +667,15 @@ pub fn run(a: &Args) -> Result<()> {
         .sensors()
         .map_err(|e| anyhow::anyhow!("{}: {e}", a.sensors.display()))?;
     let (all_poses, left, total) =
-        crate::plausible::check_run(&a.poses.display().to_string(), &table, all_poses)?;
+        perpend_formats::plausible::check_run(&a.poses.display().to_string(), &table, all_poses)?;
     let mut report = String::new();
-    for l in crate::plausible::left_out_lines(&a.poses.display().to_string(), &left, total) {
+    for l in
+        perpend_formats::plausible::left_out_lines(&a.poses.display().to_string(), &left, total)
+    {
         let _ = writeln!(report, "{l}");
     }
     let outliers = reject_outliers(a, &nominal, &all_poses, &mut report);
-    let poses = crate::diagnose::noise::without(&all_poses, &outliers);
+    let poses = crate::noise::without(&all_poses, &outliers);
     let method = match a.method {
         Method::Lsq => "lsq",
         Method::Ekf => "ekf",
@@ -750,7 +755,7 @@ pub fn run(a: &Args) -> Result<()> {
 fn write_record(
     a: &Args,
     o: &Outcome,
-    outliers: &[crate::diagnose::noise::Outlier],
+    outliers: &[crate::noise::Outlier],
     previous: Option<crate::record::Previous>,
     out: &std::path::Path,
 ) -> Result<PathBuf> {
@@ -762,7 +767,7 @@ fn write_record(
                 "held-out normal error of every pose: {}-fold cross-validation by pose (seed 1), \
                  each pose measured by the head fitted on the other folds, against its plane \
                  normal; includes the reading noise",
-                crate::diagnose::folds_for(o.file.poses, None)
+                crate::folds::folds_for(o.file.poses, None)
             ),
             errs.clone(),
         ),

@@ -9,7 +9,7 @@
 //! [`perpend_core::surface`] (issue 14) → angles.
 //!
 //! The readings file has the columns of `poses.csv`
-//! ([`crate::exchange::parse_readings`]): the plane columns may be absent
+//! ([`perpend_formats::exchange::parse_readings`]): the plane columns may be absent
 //! and are ignored. A row the core cannot measure (fewer than three
 //! readings, degenerate spots, an axis that misses the fitted surface) is
 //! reported with its file, line and reason, and the others are measured;
@@ -36,10 +36,10 @@ use perpend_core::normal::Method;
 use perpend_core::surface::{measure, Shape, SurfaceMeasurement};
 use serde::Serialize;
 
-use crate::exchange::{
+use perpend_formats::exchange::{
     read_readings, read_sensors, ExchangeError, ReadingRow, ReadingTable, SensorTable,
 };
-use crate::paramfile::ParamFile;
+use perpend_formats::paramfile::ParamFile;
 
 /// The nominal shape of the surface, as given on the command line:
 /// `plane`, `sphere:R` or `cylinder:R:ax,ay,az` (R in mm, negative for a
@@ -356,7 +356,7 @@ pub fn lag_temperatures(table: &ReadingTable, tau_s: f64, file: &str) -> Result<
 }
 
 /// The schema of `perpend measure --json` (docs/json.md).
-pub const SCHEMA: &str = crate::schema::MEASURE;
+pub const SCHEMA: &str = perpend_formats::schema::MEASURE;
 
 /// Warnings for a head whose corrections need a column the readings lack:
 /// a thermal coefficient without `temp_c`, a drift without `t_s` (the
@@ -408,7 +408,7 @@ struct Computed {
     warnings: Vec<String>,
 }
 
-/// Reads the head and the readings, checks them ([`crate::plausible`],
+/// Reads the head and the readings, checks them ([`perpend_formats::plausible`],
 /// [`missing_columns`]), lags the temperatures, measures every row.
 ///
 /// # Errors
@@ -418,8 +418,8 @@ fn compute(a: &Args) -> Result<Computed> {
     let (sensors, mut label, nominal) = head(a, &mut tau_s)?;
     let mut table = read_readings(&a.poses, Some(sensors.len()))?;
     let file = a.poses.display().to_string();
-    let (left, total) = crate::plausible::check_readings(&file, &nominal, &mut table)?;
-    let mut warnings = crate::plausible::left_out_lines(&file, &left, total);
+    let (left, total) = perpend_formats::plausible::check_readings(&file, &nominal, &mut table)?;
+    let mut warnings = perpend_formats::plausible::left_out_lines(&file, &left, total);
     warnings.extend(missing_columns(&sensors, &table, &file));
     // The lag only matters through a thermal coefficient: without one a
     // τ asks nothing of the file (no t_s / temp_c needed).
@@ -468,7 +468,7 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
             "method": method, "rows": rows, "measured": measured,
             "skipped": rows.len() - measured, "warnings": warnings,
         });
-        writeln!(out, "{}", crate::schema::to_json(SCHEMA, &v)?)?;
+        writeln!(out, "{}", perpend_formats::schema::to_json(SCHEMA, &v)?)?;
         return Ok(());
     }
     for w in &warnings {

@@ -3,7 +3,7 @@
 //!
 //! The poses are dealt into `k` folds by a seeded shuffle (the same seed
 //! and pose count give the same folds). For each fold every sensor is
-//! fitted on the other folds' poses ([`super::candidates::fit`]) and the
+//! fitted on the other folds' poses ([`crate::candidates::fit`]) and the
 //! held-out readings are predicted: the held-out residual of a reading is
 //! `d − f(E, u; plane) − Σ c_j x_j` (Chen eq. 1-3 plus the extension terms).
 //! The held-out normal error of a pose is the angle between the normal the
@@ -13,7 +13,7 @@
 //! normal of the pose's plane as given in the file.
 //!
 //! [`paired_normals`] compares two models' held-out normal errors pose by
-//! pose (the normal-cost test of [`super::select`]).
+//! pose (the normal-cost test of `perpend_lab::diagnose::select`).
 //!
 //! Limits: a pose is predicted only by the fold that holds it out, so each
 //! reading gets exactly one held-out residual; poses with fewer than three
@@ -24,10 +24,10 @@ use perpend_core::calib::{LsqConfig, Poses};
 use perpend_core::head::{Head, Sensor};
 use perpend_core::normal::{plane, Method};
 
-use super::candidates::{line_angle_deg, predict, Effect, Refs, SensorFit, Subset};
-pub use super::folds::Folds;
-use super::stats;
-use crate::exchange::PoseTable;
+use crate::candidates::{line_angle_deg, predict, Effect, Refs, SensorFit, Subset};
+pub use crate::folds::Folds;
+use crate::stats;
+use perpend_formats::exchange::PoseTable;
 
 /// Cross-validation result of one model.
 #[derive(Debug, Clone, PartialEq)]
@@ -58,7 +58,7 @@ impl CvResult {
     /// effects already selected included). Per sensor, not per model: the
     /// incidence candidate fits one coefficient where the symmetric form
     /// was chosen and two where the spot form was
-    /// ([`super::candidates::Refs::with_incidence_choice`]). Every fold fits
+    /// ([`crate::candidates::Refs::with_incidence_choice`]). Every fold fits
     /// the same terms, so the first is counted; `None` without fits.
     pub fn fitted_params(&self) -> Option<usize> {
         let head = self.heads.first().filter(|h| !h.is_empty())?;
@@ -169,7 +169,7 @@ pub fn cross_validate(
     // Table knots and crosstalk sources are picked once on the whole table
     // (the null re-simulations pick theirs the same way).
     let refs = &refs.with_table_choice(nominal, poses, effect, cfg);
-    let src = super::candidates::sources(nominal, poses, refs, effect, cfg);
+    let src = crate::candidates::sources(nominal, poses, refs, effect, cfg);
     for f in 0..folds.k {
         let train = folds.train(f);
         let sub = Subset {
@@ -178,7 +178,7 @@ pub fn cross_validate(
         };
         let mut fitted = Vec::with_capacity(ns);
         for (i, s) in nominal.iter().enumerate() {
-            let sf = super::candidates::fit_from(s, i, &sub, refs.terms(effect, i), src[i], cfg)
+            let sf = crate::candidates::fit_from(s, i, &sub, refs.terms(effect, i), src[i], cfg)
                 .map_err(|e| format!("fold {} of {}, sensor {}: {e}", f + 1, folds.k, i + 1))?;
             fitted.push(sf);
         }
@@ -208,12 +208,12 @@ fn summarise(
     let rms_sensor = (0..ns)
         .map(|i| {
             let v: Vec<f64> = resid.iter().filter_map(|r| r[i]).collect();
-            super::stats::rms(&v)
+            crate::stats::rms(&v)
         })
         .collect();
     CvResult {
         effect,
-        rms: super::stats::rms(&all),
+        rms: crate::stats::rms(&all),
         n: all.len(),
         rms_sensor,
         pose_loss,
@@ -287,7 +287,7 @@ fn rewired_head(
         .map(|(i, f)| {
             let d = readings.get(i).copied().flatten();
             let c = f.sensor.ext.crosstalk;
-            if c == 0.0 || f.source == super::candidates::previous(i, n) {
+            if c == 0.0 || f.source == crate::candidates::previous(i, n) {
                 return (f.sensor, d);
             }
             let mut s = f.sensor;

@@ -1,7 +1,7 @@
 //! The interim check record (`perpend.check/1`, issue 45): between two
 //! calibrations, the board's stored calibration measured at a few fresh
 //! poses (`perpend cell check`), decided against the tolerance with the
-//! verification's own uncertainty ([`crate::conformity`]) and compared
+//! verification's own uncertainty ([`perpend_formats::conformity`]) and compared
 //! with what the last calibration record verified.
 //!
 //! Verdict words: `in tolerance` (the decision is PASS), `recalibrate now`
@@ -16,8 +16,8 @@ use std::path::Path;
 use anyhow::{anyhow, bail, Context as _, Result};
 use serde::{Deserialize, Serialize};
 
-use crate::conformity::{Decision, Verdict};
 use crate::record::{sha256_hex, FileHash};
+use perpend_formats::conformity::{Decision, Verdict};
 
 /// Value of the `schema` field.
 pub const SCHEMA: &str = "perpend.check/1";
@@ -128,13 +128,14 @@ impl CheckRecord {
     /// # Errors
     /// Syntax, unknown fields, another schema.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
-        let r: Self = serde_json::from_str(&crate::exchange::json_text(text)).map_err(|e| {
-            anyhow!(
-                "{name}: line {}, column {}: {e} (an interim check record, {SCHEMA})",
-                e.line(),
-                e.column()
-            )
-        })?;
+        let r: Self =
+            serde_json::from_str(&perpend_formats::exchange::json_text(text)).map_err(|e| {
+                anyhow!(
+                    "{name}: line {}, column {}: {e} (an interim check record, {SCHEMA})",
+                    e.line(),
+                    e.column()
+                )
+            })?;
         if r.schema != SCHEMA {
             bail!("{name}: schema {:?}: expected {SCHEMA:?}", r.schema);
         }

@@ -2,7 +2,7 @@
 #![allow(clippy::unwrap_used)]
 
 use perpend_core::calib::Poses;
-use perpend_lab::exchange::{parse_poses, parse_sensors, write_poses, write_sensors};
+use perpend_formats::exchange::{parse_poses, parse_sensors, write_poses, write_sensors};
 
 const SENSORS: &str = "\
 # nominal head, written by hand
@@ -252,7 +252,7 @@ pose,a,b,c,d_mm,d1_mm,d2_mm,d3_mm,d4_mm,s1_mm,s2_mm,s3_mm,s4_mm,n_samples,plane_
 
 #[test]
 fn readings_without_a_plane_and_with_an_ignored_one() {
-    use perpend_lab::exchange::parse_readings;
+    use perpend_formats::exchange::parse_readings;
     // No plane columns, context columns, rows out of order.
     let text = "# readings of a curved skin\nd2_mm,pose,d1_mm,d3_mm,temp_c,t_s\n40.5,2,41,42,21.5,0.1\n# c\n40,1,,41.5,,\n";
     let t = parse_readings(text.as_bytes(), "r.csv", Some(3)).unwrap();
@@ -270,7 +270,7 @@ fn readings_without_a_plane_and_with_an_ignored_one() {
 
 #[test]
 fn readings_errors_name_file_line_and_problem() {
-    use perpend_lab::exchange::parse_readings;
+    use perpend_formats::exchange::parse_readings;
     let e = |text: &str| {
         parse_readings(text.as_bytes(), "r.csv", Some(3))
             .unwrap_err()

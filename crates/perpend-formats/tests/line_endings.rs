@@ -4,7 +4,7 @@
 //! every ending and expects the message of the LF file, word for word.
 #![allow(clippy::unwrap_used)]
 
-use perpend_lab::exchange::{parse_poses, parse_readings, parse_sensors};
+use perpend_formats::exchange::{parse_poses, parse_readings, parse_sensors};
 
 /// A transform of an LF text into the bytes of another ending.
 type Ending = Box<dyn Fn(&str) -> Vec<u8>>;
@@ -165,7 +165,7 @@ fn every_ending_reads_the_same_table() {
 /// ending, and a valid file with a byte-order mark or bare CRs reads.
 #[test]
 fn params_json_errors_count_physical_lines() {
-    use perpend_lab::paramfile::ParamFile;
+    use perpend_formats::paramfile::ParamFile;
     let head = perpend_core::head::Head4::cone(50.0, 0.5, 0.0, 0.0).unwrap();
     let good =
         serde_json::to_string_pretty(&ParamFile::truth(&head.sensors, &head.sensors)).unwrap();

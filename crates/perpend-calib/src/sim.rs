@@ -73,7 +73,7 @@ impl PlannedPose {
 }
 use rand_distr::StandardNormal;
 
-use crate::exchange::{PoseRow, PoseTable, SensorTable};
+use perpend_formats::exchange::{PoseRow, PoseTable, SensorTable};
 
 /// A sensor head to simulate: what the drawings say and what was built.
 #[derive(Debug, Clone, PartialEq)]
@@ -592,7 +592,7 @@ pub struct Dataset {
 /// readings in the run, `amp[i]·sin(π·u)` with `u` from −1 at its smallest
 /// reading to +1 at its largest (the S-curve a triangulation sensor's
 /// residual linearity often is). For tests of the linearity table.
-pub fn add_sine_linearity(poses: &mut crate::exchange::PoseTable, amp: &[f64]) {
+pub fn add_sine_linearity(poses: &mut perpend_formats::exchange::PoseTable, amp: &[f64]) {
     let range = |i: usize| {
         let v = poses
             .rows
@@ -933,9 +933,9 @@ pub fn run(a: &Args) -> Result<()> {
             a.xi, a.tracker_points, a.patch, a.zeta
         ),
     ];
-    crate::exchange::write_dataset(&a.out, &data.sensors, &data.poses, &comments)?;
+    perpend_formats::exchange::write_dataset(&a.out, &data.sensors, &data.poses, &comments)?;
     if let Some(p) = &a.truth {
-        let pf = crate::paramfile::ParamFile::truth(&head.truth, &head.nominal);
+        let pf = perpend_formats::paramfile::ParamFile::truth(&head.truth, &head.nominal);
         pf.write(p)
             .with_context(|| format!("cannot write {}", p.display()))?;
     }

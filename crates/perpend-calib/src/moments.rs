@@ -1,7 +1,7 @@
 //! Reading and datum-plane noise by the method of moments, through the
 //! fitted model's own residual operator.
 //!
-//! Noise enters a pose's readings in two ways ([`super::noise`]): reading
+//! Noise enters a pose's readings in two ways ([`crate::noise`]): reading
 //! noise `ε`, independent between sensors, and the datum-plane error of
 //! the tracker, which moves the readings of a pose together along the
 //! plane columns `A_k` (Chen eq. 3 differentiated). The fit then removes
@@ -57,9 +57,9 @@ use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 use rand::SeedableRng;
 
-use super::candidates::{predict, SensorFit};
-use crate::exchange::PoseTable;
+use crate::candidates::{predict, SensorFit};
 use crate::sim::Tracker;
+use perpend_formats::exchange::PoseTable;
 
 /// The three plane-error columns of the sensors `idx` of a pose.
 pub(super) fn plane_columns(

@@ -55,8 +55,8 @@ use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::calibrate::angle_deg;
-use crate::exchange::{PoseRow, PoseTable};
 use crate::sim::{readings, Moment, PoseSpread, SimConfig, SimHead};
+use perpend_formats::exchange::{PoseRow, PoseTable};
 
 type Info = SMatrix<f64, DOF, DOF>;
 
@@ -468,9 +468,9 @@ pub fn evaluate(
             })
             .collect(),
         sigma_dir_mrad: da.iter().map(|v| rms(v)).collect(),
-        lsq_mean_deg: crate::diagnose::stats::mean(&lsq_err),
-        lsq_p95_deg: crate::diagnose::stats::quantile(&lsq_err, 0.95),
-        floor_mean_deg: crate::diagnose::stats::mean(&floor_err),
+        lsq_mean_deg: crate::stats::mean(&lsq_err),
+        lsq_p95_deg: crate::stats::quantile(&lsq_err, 0.95),
+        floor_mean_deg: crate::stats::mean(&floor_err),
     })
 }
 
@@ -514,7 +514,8 @@ pub fn bench(seeds: usize) -> Result<BenchPlan> {
     let spread = PoseSpread::paper();
     let lsq = LsqConfig::default();
     let reach = Reach::of(&spread);
-    let bar = crate::progress::Progress::new((2 * BENCH_COUNTS.len()) as u64, "bench plan");
+    let bar =
+        perpend_formats::progress::Progress::new((2 * BENCH_COUNTS.len()) as u64, "bench plan");
     let row = |n: usize, planes_of: &dyn Fn(u64) -> Result<Vec<Plane<f64>>>| -> Result<BenchRow> {
         bar.inc();
         let (mut l, mut f, mut failed) = (Vec::new(), Vec::new(), 0);
@@ -536,8 +537,8 @@ pub fn bench(seeds: usize) -> Result<BenchPlan> {
         }
         Ok(BenchRow {
             poses: n,
-            lsq_mean_deg: crate::diagnose::stats::mean(&l),
-            floor_mean_deg: crate::diagnose::stats::mean(&f),
+            lsq_mean_deg: crate::stats::mean(&l),
+            floor_mean_deg: crate::stats::mean(&f),
             failed,
         })
     };
@@ -633,7 +634,7 @@ pub struct PlanJson {
 /// head needs, a simulated calibration that fails, I/O. Nothing is written
 /// then.
 pub fn run(a: &Args) -> Result<()> {
-    let table = crate::exchange::read_sensors(&a.sensors)?;
+    let table = perpend_formats::exchange::read_sensors(&a.sensors)?;
     let nominal = table
         .sensors()
         .map_err(|e| anyhow!("{}: {e}", a.sensors.display()))?;

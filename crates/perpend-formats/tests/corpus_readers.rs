@@ -6,9 +6,9 @@
 
 use std::path::{Path, PathBuf};
 
-use perpend_lab::exchange::{parse_poses, parse_readings, parse_sensors, SensorTable};
-use perpend_lab::paramfile::ParamFile;
-use perpend_lab::plausible::{check_readings, check_run, left_out_lines};
+use perpend_formats::exchange::{parse_poses, parse_readings, parse_sensors, SensorTable};
+use perpend_formats::paramfile::ParamFile;
+use perpend_formats::plausible::{check_readings, check_run, left_out_lines};
 
 fn dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../host-tests/corpus/readers")
@@ -22,7 +22,7 @@ fn head() -> SensorTable {
 /// The message the reader gives for `bytes` named `name` (an accepted
 /// file gives the warnings, or "accepted").
 fn message(reader: &str, name: &str, bytes: &[u8]) -> String {
-    let err = |e: perpend_lab::exchange::ExchangeError| e.to_string();
+    let err = |e: perpend_formats::exchange::ExchangeError| e.to_string();
     let r = match reader {
         "sensors" => parse_sensors(bytes, name)
             .map(|_| "accepted".into())

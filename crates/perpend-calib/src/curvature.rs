@@ -297,7 +297,7 @@ pub fn accuracy(a: &Args) -> Result<Vec<Row>> {
         })
         .collect();
     let mut errs: Vec<[Vec<f64>; 3]> = vec![Default::default(); cells.len()];
-    let bar = crate::progress::Progress::new(a.seeds, "curvature: seeds");
+    let bar = perpend_formats::progress::Progress::new(a.seeds, "curvature: seeds");
     for seed in a.first_seed..a.first_seed + a.seeds {
         bar.inc();
         let mut rng = StdRng::seed_from_u64(seed);
@@ -481,7 +481,7 @@ pub fn run(a: &Args) -> Result<()> {
         let v = serde_json::json!({ "config": config, "rows": rows, "alignment": align });
         println!(
             "{}",
-            crate::schema::to_json(crate::schema::BENCH_CURVATURE, &v)?
+            perpend_formats::schema::to_json(perpend_formats::schema::BENCH_CURVATURE, &v)?
         );
         return Ok(());
     }

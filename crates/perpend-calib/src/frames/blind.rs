@@ -32,7 +32,7 @@
 use super::report::summarise;
 use super::*;
 use crate::accuracy::{base_refit, expected_normal_error};
-use crate::exchange::{PoseRow, PoseTable};
+use perpend_formats::exchange::{PoseRow, PoseTable};
 
 type V3 = [f64; 3];
 type M3 = [[f64; 3]; 3];

@@ -5,19 +5,19 @@
 #![allow(clippy::unwrap_used, missing_docs)]
 
 use clap::Parser;
-use perpend_lab::paramfile::ParamFile;
-use perpend_lab::record::{record_path, sha256_hex, Record, KIND_CROSS_VALIDATED, SCHEMA};
+use perpend_calib::record::{record_path, sha256_hex, Record, KIND_CROSS_VALIDATED, SCHEMA};
+use perpend_formats::paramfile::ParamFile;
 
 #[derive(Parser)]
 struct Sim {
     #[command(flatten)]
-    a: perpend_lab::sim::Args,
+    a: perpend_calib::sim::Args,
 }
 
 #[derive(Parser)]
 struct Cal {
     #[command(flatten)]
-    a: perpend_lab::calibrate::Args,
+    a: perpend_calib::calibrate::Args,
 }
 
 fn doc_example() -> String {
@@ -45,7 +45,7 @@ fn calibrate_out_writes_a_record_that_reads_back() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let sim = Sim::parse_from(["sim", "--out", d.to_str().unwrap(), "--poses", "60"]);
-    perpend_lab::sim::run(&sim.a).unwrap();
+    perpend_calib::sim::run(&sim.a).unwrap();
     let (s, p, out) = (
         d.join("sensors.csv"),
         d.join("poses.csv"),
@@ -60,7 +60,7 @@ fn calibrate_out_writes_a_record_that_reads_back() {
         "--out",
         out.to_str().unwrap(),
     ];
-    perpend_lab::calibrate::run(&Cal::parse_from(args).a).unwrap();
+    perpend_calib::calibrate::run(&Cal::parse_from(args).a).unwrap();
     let rp = record_path(&out);
     let r = Record::read(&rp).unwrap();
     let file = ParamFile::read(&out).unwrap();
@@ -99,7 +99,7 @@ fn calibrate_out_writes_a_record_that_reads_back() {
     // A second calibration over the same file names what it replaced.
     let first_hash = r.hash().unwrap();
     let first_params = o.sha256.clone();
-    perpend_lab::calibrate::run(&Cal::parse_from(args).a).unwrap();
+    perpend_calib::calibrate::run(&Cal::parse_from(args).a).unwrap();
     let r2 = Record::read(&rp).unwrap();
     let prev = r2.previous.unwrap();
     assert_eq!(prev.params_sha256, first_params);

@@ -25,7 +25,7 @@ use anyhow::{bail, Context as _, Result};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::paramfile::{ParamFile, SensorParams};
+use perpend_formats::paramfile::{ParamFile, SensorParams};
 
 /// Value of the `schema` field.
 pub const SCHEMA: &str = "perpend.record/2";
@@ -121,8 +121,8 @@ pub struct Dropped {
 pub const REASON_OUTLIER: &str =
     "disagrees with every model (tracker blunder, spatter); --keep-outliers keeps it";
 
-impl From<&crate::diagnose::noise::Outlier> for Dropped {
-    fn from(o: &crate::diagnose::noise::Outlier) -> Self {
+impl From<&crate::noise::Outlier> for Dropped {
+    fn from(o: &crate::noise::Outlier) -> Self {
         Self {
             pose: o.pose,
             reason: REASON_OUTLIER.into(),
@@ -235,7 +235,7 @@ pub struct Previous {
     /// (`record find`, `record history`). Absent: no stamp on the board,
     /// or a file that was not pulled.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub board_stamp: Option<crate::paramfile::CalibrationStamp>,
+    pub board_stamp: Option<perpend_formats::paramfile::CalibrationStamp>,
 }
 
 impl Previous {
@@ -260,7 +260,7 @@ impl Previous {
         }
         // The stamp of a pulled file; a file that does not read as
         // parameters still has its hash above.
-        let board_stamp = crate::paramfile::ParamFile::read(params)
+        let board_stamp = perpend_formats::paramfile::ParamFile::read(params)
             .ok()
             .and_then(|f| f.calibration_stamp);
         Ok(Some(Self {
@@ -401,7 +401,7 @@ pub struct Record {
     pub stamp: Option<BoardStamp>,
     /// The verification's decision against the tolerance (cell runs).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub decision: Option<crate::conformity::Decision>,
+    pub decision: Option<perpend_formats::conformity::Decision>,
     /// Certificate fields (cell runs).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub certification: Option<Certification>,
@@ -527,7 +527,7 @@ impl Record {
     /// Syntax (with line and column), unknown or missing fields, wrong
     /// schema.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
-        let json = crate::exchange::json_text(text);
+        let json = perpend_formats::exchange::json_text(text);
         if let Ok(v) = serde_json::from_str::<serde_json::Value>(&json) {
             match v.get("schema").and_then(|s| s.as_str()) {
                 Some(s) if !s.starts_with("perpend.record/") && s.starts_with("perpend.") => bail!(
@@ -537,13 +537,14 @@ impl Record {
                 _ => {}
             }
         }
-        let r: Self = serde_json::from_str(&crate::exchange::json_text(text)).map_err(|e| {
-            anyhow::anyhow!(
+        let r: Self =
+            serde_json::from_str(&perpend_formats::exchange::json_text(text)).map_err(|e| {
+                anyhow::anyhow!(
                 "{name}: line {}, column {}: {e} (a calibration record, {SCHEMA}: docs/record.md)",
                 e.line(),
                 e.column()
             )
-        })?;
+            })?;
         r.validate().with_context(|| name.to_string())?;
         Ok(r)
     }

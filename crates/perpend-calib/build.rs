@@ -1,4 +1,4 @@
-//! Build script of perpend-lab: records the git commit the tool was built
+//! Build script of perpend-calib: records the git commit the tool was built
 //! from (`PERPEND_GIT_HASH`, `git rev-parse --short HEAD`, with `-dirty`
 //! when tracked files differ from that commit) for the calibration
 //! record's `tool_version` ([`crate::record`]). Without git or outside a
@@ -6,9 +6,9 @@
 //!
 //! Limits: the marker is the checkout's state when this script last ran:
 //! it runs again when HEAD moves, when the index changes (`git add`,
-//! commit, checkout, stash) and when perpend-lab's own sources change
+//! commit, checkout, stash) and when perpend-calib's own sources change
 //! (which rebuild it anyway). An edit elsewhere that is neither staged
-//! nor rebuilds perpend-lab leaves the marker as it was (watching every
+//! nor rebuilds perpend-calib leaves the marker as it was (watching every
 //! file would rebuild the library at each edit). CI and release builds
 //! start from a clean clone, where it is exact.
 

@@ -1,22 +1,22 @@
-//! Plausibility by physics (`perpend_lab::plausible`): the thresholds are
+//! Plausibility by physics (`perpend_formats::plausible`): the thresholds are
 //! checked on the simulator's clean runs (every head of `perpend simulate`,
 //! several seeds: nothing refused, nothing left out, no noise warning), and
 //! each mistake of the issue is caught by name on the same runs.
 #![allow(clippy::unwrap_used, missing_docs)]
 
 use clap::Parser;
+use perpend_calib::candidates::{self, Effect, Refs};
+use perpend_calib::sim::{setup, simulate};
 use perpend_core::calib::LsqConfig;
-use perpend_lab::diagnose::candidates::{self, Effect, Refs};
-use perpend_lab::exchange::{PoseTable, SensorTable};
-use perpend_lab::plausible::{check_run, check_units, sigma_warning};
-use perpend_lab::sim::{setup, simulate};
+use perpend_formats::exchange::{PoseTable, SensorTable};
+use perpend_formats::plausible::{check_run, check_units, sigma_warning};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
 #[derive(Parser)]
 struct Sim {
     #[command(flatten)]
-    a: perpend_lab::sim::Args,
+    a: perpend_calib::sim::Args,
 }
 
 /// A clean simulated run as `perpend simulate` writes it (σ declared =
@@ -144,11 +144,11 @@ fn one_reading_a_hundred_times_too_large_is_named_not_a_blunder() {
     assert_eq!(q.rows[k].readings[1], None);
     // The pose keeps its three other readings and is no blunder.
     let nominal = s.sensors().unwrap();
-    let out = perpend_lab::diagnose::noise::reject(
+    let out = perpend_calib::noise::reject(
         &nominal,
         &q,
         &LsqConfig::default(),
-        &perpend_lab::diagnose::available_models(&q),
+        &perpend_calib::candidates::available_models(&q),
     );
     assert!(out.iter().all(|o| o.pose != pose), "{out:?}");
 }
@@ -166,9 +166,9 @@ fn a_sigma_typed_in_micrometres_warns_with_both_numbers() {
 /// calibrated head warns about readings without `temp_c`.
 #[test]
 fn measure_names_impossible_readings_and_missing_columns() {
-    use perpend_lab::exchange::parse_readings;
-    use perpend_lab::measure::missing_columns;
-    use perpend_lab::plausible::check_readings;
+    use perpend_calib::measure::missing_columns;
+    use perpend_formats::exchange::parse_readings;
+    use perpend_formats::plausible::check_readings;
     let (s, _) = run("paper", 1);
     let text = "pose,d1_mm,d2_mm,d3_mm,d4_mm\n1,41,41,41,41\n2,41,300,41,41\n3,40,41,42,41\n";
     let mut t = parse_readings(text.as_bytes(), "r.csv", Some(4)).unwrap();
@@ -197,8 +197,8 @@ fn measure_names_impossible_readings_and_missing_columns() {
 /// The range columns are read, written back, and decide the range.
 #[test]
 fn range_columns_round_trip_and_decide() {
-    use perpend_lab::exchange::{parse_sensors, write_sensors};
-    use perpend_lab::plausible::range_of;
+    use perpend_formats::exchange::{parse_sensors, write_sensors};
+    use perpend_formats::plausible::range_of;
     let text = "sensor,x_mm,y_mm,z_mm,m,n,q,range_min_mm,range_max_mm\n1,50,0,0,-0.5,0,0.866,20,70\n2,0,50,0,0,-0.5,0.866,,\n";
     let t = parse_sensors(text.as_bytes(), "s.csv").unwrap();
     let mut out = Vec::new();
