@@ -10,8 +10,8 @@
 //! them and names their executables; each then runs in its package's
 //! directory (as cargo does), its output kept whole and printed when it
 //! ends (`Running …` then the harness's lines, so `test result:` lines
-//! count as before). Binaries of perpend-lab (long, CPU-bound) start
-//! first. `PERPEND_BIN` names the `perpend` binary the test build made
+//! count as before). Binaries of perpend-lab and perpend-calib (long,
+//! CPU-bound) start first. `PERPEND_BIN` names the `perpend` binary the test build made
 //! (for perpend-cli's integration tests), so tests that run it elsewhere
 //! need not build it again with other features. Limits: tests that need a machine to themselves must not exist
 //! (they would already be flaky under the harness's own threads); a
@@ -83,10 +83,10 @@ fn package_name(id: &str) -> Option<String> {
     id.split_whitespace().next().map(str::to_string)
 }
 
-/// The order binaries start in: perpend-lab's first (long, CPU-bound),
-/// then the others as cargo listed them.
+/// The order binaries start in: perpend-lab's and perpend-calib's first
+/// (long, CPU-bound), then the others as cargo listed them.
 pub fn schedule(mut bins: Vec<TestBin>) -> VecDeque<TestBin> {
-    bins.sort_by_key(|b| b.package != "perpend-lab");
+    bins.sort_by_key(|b| !matches!(b.package.as_str(), "perpend-lab" | "perpend-calib"));
     bins.into()
 }
 

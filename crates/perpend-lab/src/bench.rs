@@ -18,7 +18,7 @@
 //! poses, LM and EKF, over repeated runs.
 //!
 //! **curvature** — micro-plane against the curved model on spheres and
-//! cylinders, and the alignment loop: [`crate::curvature`].
+//! cylinders, and the alignment loop: [`perpend_calib::curvature`].
 //!
 //! **ident** — how the identifiability and the calibrated normal error
 //! depend on the calibration pose spread (tilt range about x and y,
@@ -39,12 +39,12 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use serde::Serialize;
 
-use crate::calibrate::{angle_deg, residual_rms};
-use crate::exchange::PoseTable;
-use crate::sim::{
+use perpend_calib::calibrate::{angle_deg, residual_rms};
+use perpend_calib::sim::{
     paper_head, readings, simulate, Dataset, Moment, PoseSpread, SimConfig, SimHead,
     PAPER_STANDOFF_RANGE_MM, PAPER_TILT_RANGE_DEG,
 };
+use perpend_formats::exchange::PoseTable;
 
 /// Arguments of `perpend bench`.
 #[derive(clap::Args, Debug)]
@@ -74,13 +74,13 @@ pub enum Bench {
     /// record (`bench diagnose` is).
     DiagnoseSelf(crate::diagnose::bench::Args),
     /// Planned (D-optimal) against random calibration poses, 8-100 poses.
-    Plan(crate::plan::BenchArgs),
+    Plan(perpend_calib::plan::BenchArgs),
     /// Curved skins (issue 14): micro-plane against the sphere/cylinder
     /// model and the noise floor, and the alignment loop.
-    Curvature(crate::curvature::Args),
+    Curvature(perpend_calib::curvature::Args),
     /// Frame errors of the cell (issue 36): normal error with and without
     /// reversal about the spindle axis, against the floor.
-    Frames(crate::frames::bench::Args),
+    Frames(perpend_calib::frames::bench::Args),
 }
 
 /// Arguments of `perpend bench accuracy`.
@@ -284,7 +284,7 @@ pub fn accuracy(cfg: &AccuracyConfig) -> Result<AccuracyErrors> {
     let mut out = AccuracyErrors::default();
     let nominal = head4(&head.nominal)?;
     let truth = head4(&head.truth)?;
-    let bar = crate::progress::Progress::new(cfg.seeds.len() as u64, "accuracy: seeds");
+    let bar = perpend_formats::progress::Progress::new(cfg.seeds.len() as u64, "accuracy: seeds");
     for &seed in &cfg.seeds {
         bar.inc();
         let mut rng = StdRng::seed_from_u64(seed);
@@ -428,7 +428,7 @@ fn run_accuracy(a: &AccuracyArgs) -> Result<()> {
         let v = serde_json::json!({ "before": b, "ekf": e, "lsq": l, "floor": f });
         println!(
             "{}",
-            crate::schema::to_json(crate::schema::BENCH_ACCURACY, &v)?
+            perpend_formats::schema::to_json(perpend_formats::schema::BENCH_ACCURACY, &v)?
         );
         if !errs.ekf_diverged.is_empty() {
             eprintln!("note: {diverged}");
@@ -542,7 +542,7 @@ fn run_speed(a: &SpeedArgs) -> Result<()> {
     if a.json {
         println!(
             "{}",
-            crate::schema::to_json(crate::schema::BENCH_SPEED, &r)?
+            perpend_formats::schema::to_json(perpend_formats::schema::BENCH_SPEED, &r)?
         );
     } else {
         println!(
@@ -717,9 +717,9 @@ pub fn run(a: &Args) -> Result<()> {
         Bench::Ident(x) => run_ident(x),
         Bench::Diagnose(x) => crate::diagnose::blind::run(x),
         Bench::DiagnoseSelf(x) => crate::diagnose::bench::run(x),
-        Bench::Plan(x) => crate::plan::run_bench(x),
-        Bench::Curvature(x) => crate::curvature::run(x),
-        Bench::Frames(x) => crate::frames::bench::run(x),
+        Bench::Plan(x) => perpend_calib::plan::run_bench(x),
+        Bench::Curvature(x) => perpend_calib::curvature::run(x),
+        Bench::Frames(x) => perpend_calib::frames::bench::run(x),
     }
 }
 

@@ -33,11 +33,12 @@ use std::sync::Mutex;
 use anyhow::{anyhow, bail, Result};
 use serde::Serialize;
 
-use super::candidates::{Effect, Refs};
-use super::cv::{cross_validate, Folds};
 use super::scenario::{generate, write, Hidden, Scenario};
-use super::{diagnose, stats, Settings};
-use crate::exchange::{read_poses, read_sensors};
+use super::{diagnose, Settings};
+use perpend_calib::candidates::{Effect, Refs};
+use perpend_calib::cv::{cross_validate, Folds};
+use perpend_calib::stats;
+use perpend_formats::exchange::{read_poses, read_sensors};
 
 /// Arguments of `perpend bench diagnose-self`.
 #[derive(clap::Args, Debug, Clone)]
@@ -192,7 +193,8 @@ pub fn scenarios(a: &Args) -> Vec<Scenario> {
 pub fn run_all(sc: &[Scenario], settings: &Settings, jobs: usize) -> Result<Vec<Record>> {
     let next = AtomicUsize::new(0);
     let out: Mutex<Vec<(usize, Result<Record>)>> = Mutex::new(Vec::with_capacity(sc.len()));
-    let bar = crate::progress::Progress::new(sc.len() as u64, "bench diagnose-self: runs");
+    let bar =
+        perpend_formats::progress::Progress::new(sc.len() as u64, "bench diagnose-self: runs");
     std::thread::scope(|scope| {
         for _ in 0..jobs.max(1) {
             scope.spawn(|| loop {
@@ -575,7 +577,7 @@ pub fn run(a: &Args) -> Result<()> {
     if a.json {
         println!(
             "{}",
-            crate::schema::to_json(crate::schema::BENCH_DIAGNOSE_SELF, &s)?
+            perpend_formats::schema::to_json(perpend_formats::schema::BENCH_DIAGNOSE_SELF, &s)?
         );
         return Ok(());
     }

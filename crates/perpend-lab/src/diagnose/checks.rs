@@ -17,15 +17,15 @@
 //! decision simulated. Limits: the flags are only as good as the
 //! simulated spread (as many draws as the decision ran).
 
-use super::candidates::Effect;
 use super::decision::{named, Decided};
 use super::expect::{Analysis, Expectation, Spread};
 use super::fits::Fitted;
-use super::lags;
 use super::load::Loaded;
-use super::noise::{self, NoiseEstimate};
-use super::stats;
-use crate::exchange::PoseTable;
+use perpend_calib::candidates::Effect;
+use perpend_calib::lags;
+use perpend_calib::noise::{self, NoiseEstimate};
+use perpend_calib::stats;
+use perpend_formats::exchange::PoseTable;
 
 /// A comparison of a measured statistic with its simulated expectation.
 #[derive(Debug, Clone, PartialEq)]
@@ -176,7 +176,9 @@ fn noise_warnings(est: &NoiseEstimate, effect: Effect) -> Vec<String> {
         for (i, (&d, &e)) in decl.iter().zip(&est.reading_mm).enumerate() {
             let who = format!("sensor {}", i + 1);
             let how = "estimated from the run";
-            w.extend(crate::plausible::sigma_warning(&who, d, e, how, true));
+            w.extend(perpend_formats::plausible::sigma_warning(
+                &who, d, e, how, true,
+            ));
         }
     }
     w
@@ -198,7 +200,7 @@ fn time_warning(poses: &PoseTable, named: &[Effect]) -> Option<String> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::sim::{paper_head, simulate, SimConfig, TempProfile};
+    use perpend_calib::sim::{paper_head, simulate, SimConfig, TempProfile};
     use rand::SeedableRng;
 
     fn run(swing_c: f64) -> PoseTable {

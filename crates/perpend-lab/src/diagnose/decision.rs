@@ -1,6 +1,6 @@
 //! Stages 4 and 5 of `perpend diagnose`, held-out scores against their
 //! nulls and the decision: the noise estimated from the full model's
-//! residuals ([`super::noise`]), the effect-free re-simulations at that
+//! residuals ([`perpend_calib::noise`]), the effect-free re-simulations at that
 //! noise ([`super::expect`]), the calibrated decision ([`super::select`]),
 //! then the forward selection of further effects on top of the first
 //! ([`Step`], at most [`MAX_EFFECTS`]).
@@ -13,19 +13,19 @@
 use anyhow::{anyhow, bail, Result};
 use perpend_core::head::Sensor;
 
-use super::candidates::available_models;
-use super::candidates::{self, Effect, Refs, SensorFit};
-use super::cv;
 use super::direction::{self, DirectionTest, NullPlan};
 use super::expect::{analyse, expect, Analysis, Expectation, NoiseModel, Plan};
 use super::fits::{implausible_fits, Fitted};
-use super::lags;
 use super::load::Loaded;
 use super::nested::{self, Nested, NestedPlan};
-use super::noise::{self, NoiseEstimate};
 use super::select::{self, decide, Decision};
 use super::settings::{draws_for, Settings};
-use crate::exchange::PoseTable;
+use perpend_calib::candidates::available_models;
+use perpend_calib::candidates::{self, Effect, Refs, SensorFit};
+use perpend_calib::cv;
+use perpend_calib::lags;
+use perpend_calib::noise::{self, NoiseEstimate};
+use perpend_formats::exchange::PoseTable;
 
 /// Most effects named together.
 pub const MAX_EFFECTS: usize = 3;

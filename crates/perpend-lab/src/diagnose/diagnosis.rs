@@ -7,13 +7,13 @@
 //! computation of its own but the names of the effects and their time
 //! constants, read from the decision and the loaded run.
 
-use super::candidates::Effect;
 use super::checks::Checks;
 use super::decision::{named, Decided};
 use super::fits::Fitted;
 use super::limits::Limits;
 use super::load::Loaded;
 use super::scores::Scores;
+use perpend_calib::candidates::Effect;
 
 /// Everything a diagnosis found: the output of each stage, in the order
 /// the data move. The report, the plots, `--json` and `--out` read it;
@@ -21,7 +21,7 @@ use super::scores::Scores;
 #[derive(Debug, Clone)]
 pub struct Diagnosis {
     /// Stage 1, read and check: the head, the poses kept (re-timed with
-    /// the time constants of [`super::lags`]), the outliers left out, the
+    /// the time constants of [`perpend_calib::lags`]), the outliers left out, the
     /// folds, the term references and the candidates skipped with the
     /// reason.
     pub run: Loaded,

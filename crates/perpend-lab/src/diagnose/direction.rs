@@ -39,11 +39,11 @@ use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
 
-use super::candidates::{fit, Effect, Refs};
 use super::expect::{null_draw, NoiseModel, Spread};
-use super::noise::residuals_of;
-use super::stats::{self, t_tail, P_MIN};
-use crate::exchange::PoseTable;
+use perpend_calib::candidates::{fit, Effect, Refs};
+use perpend_calib::noise::residuals_of;
+use perpend_calib::stats::{self, t_tail, P_MIN};
+use perpend_formats::exchange::PoseTable;
 
 /// Effect-free re-simulations behind the null of `T` (the diagnosis's own
 /// draws first, the same seed sequence continued).
@@ -389,7 +389,9 @@ mod tests {
         let mut mv = vec![None];
         for k in 1..d.len() {
             let s = if d[k] >= d[k - 1] { 1.0 } else { -1.0 };
-            resid.push(Some(0.01 * crate::sim::gauss(&mut rng) + f(d[k]) - h * s));
+            resid.push(Some(
+                0.01 * perpend_calib::sim::gauss(&mut rng) + f(d[k]) - h * s,
+            ));
             mv.push(Some((d[k], s)));
         }
         (resid, mv)
@@ -424,7 +426,7 @@ mod tests {
 
     #[test]
     fn order_is_time_then_increasing_pose_numbers_else_unknown() {
-        use crate::exchange::PoseRow;
+        use perpend_formats::exchange::PoseRow;
         let row = |pose: i64, t: Option<f64>| PoseRow {
             line: 0,
             pose,

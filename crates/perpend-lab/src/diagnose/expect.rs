@@ -21,11 +21,11 @@ use perpend_core::model::distance;
 use perpend_core::normal::Method;
 use rand::rngs::StdRng;
 
-use super::candidates::{fit, Effect, Refs, SensorFit};
-use super::cv::{cross_validate, normal_errors, CvResult, Folds};
-use super::stats;
-use crate::exchange::{PoseRow, PoseTable};
-use crate::sim::{gauss, Tracker};
+use perpend_calib::candidates::{fit, Effect, Refs, SensorFit};
+use perpend_calib::cv::{cross_validate, normal_errors, CvResult, Folds};
+use perpend_calib::sim::{gauss, Tracker};
+use perpend_calib::stats;
+use perpend_formats::exchange::{PoseRow, PoseTable};
 
 /// The measurement noise the expectation assumes.
 #[derive(Debug, Clone, PartialEq)]
@@ -125,7 +125,7 @@ pub struct Analysis {
     /// of [`super::select`].
     pub normals: Vec<(Effect, Vec<Option<f64>>)>,
     /// Structure z of each model's held-out residuals along each axis of
-    /// [`super::noise::AXES`] (keys from the base fit's geometry).
+    /// [`perpend_calib::noise::AXES`] (keys from the base fit's geometry).
     pub structure: Vec<(Effect, Vec<Option<f64>>)>,
 }
 
@@ -156,10 +156,10 @@ impl Analysis {
     }
 
     /// The paired normal-error comparison of candidate `e` with the base
-    /// model ([`super::cv::paired_normals`]), when both were computed.
-    pub fn normal_gain_of(&self, e: Effect) -> Option<super::cv::NormalGain> {
+    /// model ([`perpend_calib::cv::paired_normals`]), when both were computed.
+    pub fn normal_gain_of(&self, e: Effect) -> Option<perpend_calib::cv::NormalGain> {
         let b = self.normals_of(Effect::None)?;
-        Some(super::cv::paired_normals(b, self.normals_of(e)?))
+        Some(perpend_calib::cv::paired_normals(b, self.normals_of(e)?))
     }
 
     /// Structure z per axis of model `e`'s held-out residuals.
@@ -241,7 +241,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         })
         .collect::<Result<_, _>>()?;
     let ns = plan.nominal.len();
-    let insample = super::noise::residuals_of(&base_fit, poses);
+    let insample = perpend_calib::noise::residuals_of(&base_fit, poses);
     let per_sensor: Vec<Vec<Option<f64>>> = (0..ns)
         .map(|i| insample.iter().map(|r| r[i]).collect())
         .collect();
@@ -278,7 +278,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         .filter_map(|(e, r)| {
             Some((
                 *e,
-                super::noise::structure(&geom, poses, &sources, &r.as_ref().ok()?.resid),
+                perpend_calib::noise::structure(&geom, poses, &sources, &r.as_ref().ok()?.resid),
             ))
         })
         .collect();
@@ -296,7 +296,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
 }
 
 /// The channel each sensor's carry-over reads, as the crosstalk candidate
-/// chose it on this table ([`super::candidates::sources`]; empty without
+/// chose it on this table ([`perpend_calib::candidates::sources`]; empty without
 /// that candidate: the previous channel in sensor order).
 fn carry_sources(cv: &[(Effect, Result<CvResult, String>)]) -> Vec<usize> {
     cv.iter()
@@ -374,7 +374,7 @@ pub struct Expectation {
     /// Signed-rank z of the same per-pose gains on effect-free data.
     pub rank_z: Vec<(Effect, Spread)>,
     /// Paired z of each candidate's held-out normal-error reduction over
-    /// the base model on effect-free data ([`super::cv::paired_normals`]:
+    /// the base model on effect-free data ([`perpend_calib::cv::paired_normals`]:
     /// the normals against the planes as the simulated tracker reports
     /// them, like the measured run's).
     pub normal_z: Vec<(Effect, Spread)>,
@@ -473,7 +473,7 @@ fn structure_spreads(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Vec
     plan.models
         .iter()
         .map(|&e| {
-            let per_axis = (0..=super::noise::STEP_AXIS)
+            let per_axis = (0..=perpend_calib::noise::STEP_AXIS)
                 .map(|x| {
                     let v: Vec<f64> = analyses
                         .iter()
@@ -530,8 +530,8 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
         runs_z: Spread::of(&runs),
         r2,
         normal_err_deg: Spread::of(&nerr),
-        gain_z: null_of(&|b, c| super::cv::paired(b, c).1),
-        rank_z: null_of(&super::cv::paired_rank),
+        gain_z: null_of(&|b, c| perpend_calib::cv::paired(b, c).1),
+        rank_z: null_of(&perpend_calib::cv::paired_rank),
         // the draws where both models measured normals
         normal_z: per_candidate(analyses, plan, &|a, e| {
             a.normal_gain_of(e).filter(|g| g.poses > 0).map(|g| g.z)
@@ -544,7 +544,7 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::sim::{paper_head, simulate, SimConfig};
+    use perpend_calib::sim::{paper_head, simulate, SimConfig};
     use rand::SeedableRng;
 
     #[test]

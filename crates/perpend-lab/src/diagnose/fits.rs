@@ -1,8 +1,8 @@
 //! Stages 2 and 3 of `perpend diagnose`, nominal fit and candidate fits:
 //! the paper's model and every candidate the run allows, each
 //! cross-validated by pose on the measured run ([`super::expect::analyse`],
-//! [`super::cv`]), and the candidates whose fit on all poses leaves the
-//! physical bounds ([`super::candidates::plausible`]).
+//! [`perpend_calib::cv`]), and the candidates whose fit on all poses leaves the
+//! physical bounds ([`perpend_calib::candidates::plausible`]).
 //!
 //! Input: the [`Plan`] of the loaded run; output: the measured
 //! [`Analysis`], the models fitted and those that failed. Reads stage 1
@@ -13,11 +13,11 @@ use anyhow::{anyhow, bail, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
 
-use super::candidates::{self, Effect, Refs};
 use super::expect::{analyse, Analysis, Plan};
 use super::load::{reading_span, Loaded, Skipped};
 use super::settings::Settings;
-use crate::exchange::PoseTable;
+use perpend_calib::candidates::{self, Effect, Refs};
+use perpend_formats::exchange::PoseTable;
 
 /// Stage "nominal fit → candidates": every model cross-validated on the
 /// measured run ([`analyse`]); returns the analysis, the models that could

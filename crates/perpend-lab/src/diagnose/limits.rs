@@ -38,17 +38,19 @@
 
 use perpend_core::head::Sensor;
 
-use super::candidates::{regressor, Effect, Refs};
-use super::cv::{cross_validate, normal_errors, paired, paired_normals, paired_rank, CvResult};
 use super::decision::Decided;
 use super::expect::{null_draw, null_table, NoiseModel};
 use super::fits::Fitted;
-use super::lags;
 use super::load::{reading_span, Loaded};
 use super::select::Verdict;
 use super::settings::Settings;
-use super::stats;
-use crate::exchange::PoseTable;
+use perpend_calib::candidates::{regressor, Effect, Refs};
+use perpend_calib::cv::{
+    cross_validate, normal_errors, paired, paired_normals, paired_rank, CvResult,
+};
+use perpend_calib::lags;
+use perpend_calib::stats;
+use perpend_formats::exchange::PoseTable;
 
 /// Detected share a pass needs.
 pub const POWER: f64 = 0.9;
@@ -242,13 +244,13 @@ fn search(
     (a, None)
 }
 
-/// The candidate's physical bound ([`super::candidates::plausible`]) in
+/// The candidate's physical bound ([`perpend_calib::candidates::plausible`]) in
 /// the amplitude's units.
 fn bound(e: Effect) -> f64 {
     match e {
         Effect::Gain | Effect::Thermal => 0.1,
         Effect::Nonlinearity | Effect::LinearityTable => 1.0,
-        Effect::Incidence => super::candidates::INCIDENCE_BOUND_MM,
+        Effect::Incidence => perpend_calib::candidates::INCIDENCE_BOUND_MM,
         Effect::Crosstalk => 0.45,
         Effect::Drift => 5.0 / 3600.0,
         Effect::None | Effect::Unexplained => 0.0,

@@ -1,7 +1,7 @@
 //! Stage 1 of `perpend diagnose`, read and check: the nominal head of the
 //! sensor table, the poses that disagree with every model left out
-//! ([`super::noise::reject`]), the rest re-timed with the time constants
-//! chosen on them ([`super::lags`]), the folds ([`super::folds`]) and the
+//! ([`perpend_calib::noise::reject`]), the rest re-timed with the time constants
+//! chosen on them ([`perpend_calib::lags`]), the folds ([`perpend_calib::folds`]) and the
 //! models the run's columns allow ([`available_models`]).
 //!
 //! Input: the tables and [`Settings`]; output: `Loaded`. Reads no later
@@ -12,13 +12,13 @@ use anyhow::{anyhow, bail, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::head::Sensor;
 
-use super::candidates::{available, available_models, Effect, Refs};
 use super::expect::Plan;
-use super::folds::{folds_for, Folds};
-use super::lags;
-use super::noise::{self, Outlier};
 use super::settings::Settings;
-use crate::exchange::{PoseTable, SensorTable};
+use perpend_calib::candidates::{available, available_models, Effect, Refs};
+use perpend_calib::folds::{folds_for, Folds};
+use perpend_calib::lags;
+use perpend_calib::noise::{self, Outlier};
+use perpend_formats::exchange::{PoseTable, SensorTable};
 
 /// The run as the diagnosis sees it (stage "load → bad poses"): the
 /// nominal head, the poses kept (re-timed), the folds and the models the

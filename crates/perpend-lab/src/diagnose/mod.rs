@@ -41,7 +41,7 @@
 //! the readers (stage 8) take without refitting: the text ([`report`]),
 //! the plots ([`plot`]), `--json` ([`Diagnosis::json`]) and `--out`
 //! ([`param_file`]: the named model with its extension coefficients and
-//! 1σ, as the parameter JSON of [`crate::paramfile`], and the calibration
+//! 1σ, as the parameter JSON of [`perpend_formats::paramfile`], and the calibration
 //! record). The toolbox the stages share: [`stats`], [`folds`],
 //! [`settings`], [`candidates`], [`cv`], [`moments`], [`noise`], [`lags`],
 //! [`expect`], [`select`], [`nested`], [`direction`].
@@ -78,21 +78,21 @@ pub mod study;
 use anyhow::{anyhow, bail, Context as _, Result};
 use serde::{Deserialize, Serialize};
 
-use crate::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
-use crate::paramfile::ParamFile;
-pub use candidates::available_models;
-use candidates::{Effect, SensorFit};
 use checks::compare;
 pub use checks::{Check, Checks};
 use decision::decide_run;
 pub use decision::{Step, MAX_EFFECTS};
 pub use diagnosis::Diagnosis;
 use fits::fit;
-pub use folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
 use limits::limits;
 pub use load::declared_sigma;
 use load::load;
 pub(crate) use load::reading_span;
+pub use perpend_calib::candidates::available_models;
+use perpend_calib::candidates::{Effect, SensorFit};
+pub use perpend_calib::folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
+use perpend_formats::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
+use perpend_formats::paramfile::ParamFile;
 use scores::scores;
 pub use scores::Perf;
 pub use settings::{
@@ -415,7 +415,7 @@ impl Diagnosis {
     }
 }
 
-pub use lags::CONFOUNDED_R;
+pub use perpend_calib::lags::CONFOUNDED_R;
 
 /// The fit `f` (of several effects) reduced to the coefficients and 1σ of
 /// `e`'s own terms (columns in the extension's term order).
@@ -536,9 +536,9 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
     let table = read_sensors(&a.sensors)?;
     let poses = read_poses(&a.poses, Some(table.len()))?;
     let file = a.poses.display().to_string();
-    let (poses, left, total) = crate::plausible::check_run(&file, &table, poses)?;
+    let (poses, left, total) = perpend_formats::plausible::check_run(&file, &table, poses)?;
     let mut d = diagnose(&table, &poses, &settings)?;
-    let mut first = crate::plausible::left_out_lines(&file, &left, total);
+    let mut first = perpend_formats::plausible::left_out_lines(&file, &left, total);
     first.append(&mut d.checked.warnings);
     d.checked.warnings = first;
     if let Some(dir) = &a.plot {
@@ -548,7 +548,7 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
     let mut record = None;
     if let Some(out) = &a.out {
         let file = param_file(&d)?;
-        let previous = crate::record::Previous::of(out)?;
+        let previous = perpend_calib::record::Previous::of(out)?;
         file.write(out)?;
         record = Some(write_record(a, &d, &file, previous, out)?);
     }
@@ -556,7 +556,7 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
         writeln!(
             out,
             "{}",
-            crate::schema::to_json(crate::schema::DIAGNOSE, &d.json())?
+            perpend_formats::schema::to_json(perpend_formats::schema::DIAGNOSE, &d.json())?
         )?;
     } else {
         write!(
@@ -582,7 +582,7 @@ pub fn run_to(a: &Args, out: &mut dyn std::io::Write) -> Result<()> {
     Ok(())
 }
 
-/// Writes the calibration record beside `out` ([`crate::record`]): the
+/// Writes the calibration record beside `out` ([`perpend_calib::record`]): the
 /// stored model's held-out normal errors of the diagnosis'
 /// cross-validation are its verification.
 ///
@@ -592,10 +592,10 @@ fn write_record(
     a: &Args,
     d: &Diagnosis,
     file: &ParamFile,
-    previous: Option<crate::record::Previous>,
+    previous: Option<perpend_calib::record::Previous>,
     out: &std::path::Path,
 ) -> Result<std::path::PathBuf> {
-    use crate::record::{PoseError, Record, Verification, KIND_CROSS_VALIDATED};
+    use perpend_calib::record::{PoseError, Record, Verification, KIND_CROSS_VALIDATED};
     let errs = d
         .run
         .poses
@@ -628,7 +628,7 @@ fn write_record(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::sim::{paper_head, simulate, SimConfig};
+    use perpend_calib::sim::{paper_head, simulate, SimConfig};
     use rand::SeedableRng;
 
     /// A run below 100 poses is cross-validated with 10 folds (at most half
@@ -638,7 +638,8 @@ mod tests {
     #[test]
     fn runs_take_ten_folds_or_half_their_poses_below_100() {
         let head = paper_head().unwrap();
-        let table = crate::exchange::SensorTable::from_sensors(&head.nominal, head.sigma_mm);
+        let table =
+            perpend_formats::exchange::SensorTable::from_sensors(&head.nominal, head.sigma_mm);
         let run_of = |n: usize| {
             let mut cfg = SimConfig::paper();
             cfg.poses = n;

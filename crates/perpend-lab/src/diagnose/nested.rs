@@ -11,7 +11,7 @@
 //! resolves (a tied thermal of half the visible noise beside a drift:
 //! paired z 1.5-2.3 against thresholds near 3, where the in-sample
 //! statistic below is 5-8 null spreads out). On a run that separates
-//! the two ([`super::lags::separable`]) the partner is judged like a nested
+//! the two ([`perpend_calib::lags::separable`]) the partner is judged like a nested
 //! model (the F statistic's numerator, summed over the sensors):
 //!
 //! `T = Σᵢ (RSSᵢ(before) − RSSᵢ(before + c)) / (RSSᵢ(before + c)/νᵢ)`
@@ -35,10 +35,10 @@
 use perpend_core::calib::{LsqConfig, Regressors};
 use perpend_core::head::Sensor;
 
-use super::candidates::{fit, Effect, Refs};
 use super::expect::{null_draw, NoiseModel, Spread};
-use super::stats::t_tail;
-use crate::exchange::PoseTable;
+use perpend_calib::candidates::{fit, Effect, Refs};
+use perpend_calib::stats::t_tail;
+use perpend_formats::exchange::PoseTable;
 
 /// Effect-free re-simulations behind the null of `T`.
 pub const NULL_DRAWS: usize = 48;
@@ -104,7 +104,7 @@ fn stat(plan: &NestedPlan<'_>, poses: &PoseTable, added: &[Effect]) -> Option<f6
     for (i, s) in plan.nominal.iter().enumerate() {
         let before = fit(s, i, poses, plan.refs.terms(Effect::None, i), plan.lsq).ok()?;
         let after = fit(s, i, poses, after_refs.terms(*c, i), plan.lsq).ok()?;
-        let rss = |f: &super::candidates::SensorFit| f.rms * f.rms * f.used as f64;
+        let rss = |f: &perpend_calib::candidates::SensorFit| f.rms * f.rms * f.used as f64;
         let nu = after.used.saturating_sub(5 + after.terms.count()).max(1) as f64;
         let scale = rss(&after) / nu;
         if scale > 0.0 {

@@ -18,9 +18,9 @@ use std::path::Path;
 use anyhow::{anyhow, Result};
 use plotters::prelude::*;
 
-use super::candidates::{regressor, Effect};
-use super::cv::CvResult;
 use super::diagnosis::Diagnosis;
+use perpend_calib::candidates::{regressor, Effect};
+use perpend_calib::cv::CvResult;
 
 const COLOURS: [RGBColor; 8] = [
     RGBColor(31, 119, 180),
@@ -315,7 +315,7 @@ pub fn normal_errors(d: &Diagnosis, path: &Path) -> Result<()> {
         series.push(("extended model", &he, &ext, COLOURS[1]));
     }
     for (j, (name, h, v, c)) in series.into_iter().enumerate() {
-        let mean = super::stats::mean(v);
+        let mean = perpend_calib::stats::mean(v);
         chart
             .draw_series(h.iter().enumerate().map(|(b, &n)| {
                 let x0 = b as f64 * w;

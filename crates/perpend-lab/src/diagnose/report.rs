@@ -10,11 +10,11 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use super::candidates::Effect;
 use super::checks::Check;
 use super::diagnosis::Diagnosis;
 use super::settings::Settings;
-use super::stats;
+use perpend_calib::candidates::Effect;
+use perpend_calib::stats;
 
 /// Plain-language statements of what the simulation gets wrong.
 pub fn statements(d: &Diagnosis) -> Vec<String> {
@@ -244,12 +244,12 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
     for r in &d.decided.decision.reasons {
         let _ = writeln!(o, "  {r}");
     }
-    if let Some(r) = super::lags::inseparable(&d.run.poses, &d.effects()) {
+    if let Some(r) = perpend_calib::lags::inseparable(&d.run.poses, &d.effects()) {
         let _ = writeln!(
             o,
             "  inseparable: thermal and drift are the same pattern on this run (temperature against time r = {r:.2}): {} is the better fit, not the proven cause; {} would separate them",
             time_like(&d.effects()),
-            super::lags::SEPARATED_BY
+            perpend_calib::lags::SEPARATED_BY
         );
     }
     let _ = writeln!(o, "  {}", d.decided.direction.line());
@@ -464,7 +464,7 @@ fn gain_section(o: &mut String, d: &Diagnosis) {
 /// The noise lines of the report: estimated against declared, the
 /// tracker, the poses left out.
 fn noise_lines(d: &Diagnosis, s: &Settings) -> Vec<String> {
-    use super::noise::Source;
+    use perpend_calib::noise::Source;
     let e = &d.decided.estimate;
     let um = |v: &[f64]| {
         v.iter()
@@ -557,7 +557,7 @@ fn reconcile(d: &Diagnosis) -> Vec<String> {
 /// A fitted extension in units a metrology engineer reads: gain in %,
 /// linearity as µm at the run's range ends, incidence in µm at 30°,
 /// carry-over in % (and the sensor it comes from), thermal in µm/°C, drift in µm/min.
-pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> String {
+pub fn physical(e: Effect, f: &perpend_calib::candidates::SensorFit, span: f64) -> String {
     let x = &f.sensor.ext;
     let sd = |j: usize| f.sigma.get(j).copied().unwrap_or(0.0);
     let inc30 = 1.0 / (30f64.to_radians().cos()) - 1.0;
@@ -597,7 +597,7 @@ pub fn physical(e: Effect, f: &super::candidates::SensorFit, span: f64) -> Strin
                     .join(", ")
             )
         }
-        Effect::Incidence => super::candidates::incidence_words(x, sd(0), inc30),
+        Effect::Incidence => perpend_calib::candidates::incidence_words(x, sd(0), inc30),
         Effect::Crosstalk => format!(
             "carry-over {:+.2} % ± {:.2} % from sensor {}",
             100.0 * x.crosstalk,

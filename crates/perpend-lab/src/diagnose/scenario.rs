@@ -5,7 +5,7 @@
 //! A [`Scenario`] fixes everything about a run: the seed, the hidden
 //! effect (none, one of the catalogue, or the out-of-catalogue
 //! [`Ripple`]), its magnitude, the pose count and the reading noise. The
-//! run itself comes from the simulator ([`crate::sim::simulate`]): a random
+//! run itself comes from the simulator ([`perpend_calib::sim::simulate`]): a random
 //! head (the paper's error sizes), poses spread like a robot cell's
 //! calibration (±10° about both axes, ±5 mm standoff), the paper's tracker
 //! and reading noise σ, time stamps every 6 s and a head temperature that
@@ -39,12 +39,12 @@ use perpend_core::model::distance;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use super::candidates::{fit, predict, Effect as DiagEffect, Refs};
-use crate::exchange::write_dataset;
-use crate::sim::{
+use perpend_calib::candidates::{fit, predict, Effect as DiagEffect, Refs};
+use perpend_calib::sim::{
     plane_from_tilts, random_head, simulate, Dataset, Effect as SimEffect, ExtensionEffect,
     PoseSpread, PoseTruth, SimConfig, SimHead, TempProfile, Tracker,
 };
+use perpend_formats::exchange::write_dataset;
 
 /// The effect hidden in a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -224,7 +224,7 @@ impl SimEffect for AdcCrosstalk {
         let v: Vec<Option<f64>> = readings
             .iter()
             .map(|r| {
-                let e = self.sigma * crate::sim::gauss(rng);
+                let e = self.sigma * perpend_calib::sim::gauss(rng);
                 r.map(|d| d + e)
             })
             .collect();
@@ -414,7 +414,7 @@ pub fn visible_rms(
             }
         }
     }
-    Ok(super::stats::rms(&res))
+    Ok(perpend_calib::stats::rms(&res))
 }
 
 /// Simulates the scenario.

@@ -1,6 +1,6 @@
 //! Stage 6 of `perpend diagnose`, held-out scores of the verdict: the
 //! paper's model's and the named model's held-out residual RMS and
-//! held-out normal errors ([`super::cv::normal_errors`]), what the report
+//! held-out normal errors ([`perpend_calib::cv::normal_errors`]), what the report
 //! states as the gain.
 //!
 //! Input: the verdict (the effect and the forward selection's steps), the
@@ -11,13 +11,13 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::candidates::Effect;
-use super::cv::normal_errors;
 use super::decision::Step;
 use super::expect::Analysis;
 use super::load::Loaded;
 use super::settings::Settings;
-use super::stats;
+use perpend_calib::candidates::Effect;
+use perpend_calib::cv::normal_errors;
+use perpend_calib::stats;
 
 /// Held-out performance of a model.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

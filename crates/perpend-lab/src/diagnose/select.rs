@@ -19,7 +19,7 @@
 //!    effect);
 //! 2. the held-out mean square error drops by at least `ε = 2 %` of the
 //!    simulated floor's; and
-//! 3. its coefficients are physically plausible ([`super::candidates`]).
+//! 3. its coefficients are physically plausible ([`perpend_calib::candidates`]).
 //!
 //! Among those the one with the lowest held-out error wins, unless one with
 //! fewer parameters is within one standard error of it (parsimony).
@@ -27,7 +27,7 @@
 //! **Normal cost.** What an effect costs is the calibrated normal, and a
 //! small residual pattern can tilt it: for every candidate the held-out
 //! normal errors of the base model and of the candidate (same folds,
-//! [`super::cv::normal_errors`]) are paired per pose,
+//! [`perpend_calib::cv::normal_errors`]) are paired per pose,
 //! `N_k = e_base(k) − e_c(k)`, and the mean reduction is tested with its
 //! paired z (`mean(N)/(sd(N)/√K)`), against the same statistic on the
 //! effect-free re-simulations at the same level `α/m`: its predictive
@@ -55,7 +55,7 @@
 //! `p` the one-sided p of `z` against its null's predictive spread.
 //!
 //! **Structure.** The residuals of a model that captures the run are
-//! white along every axis of [`super::noise::AXES`]; the structure z of a
+//! white along every axis of [`perpend_calib::noise::AXES`]; the structure z of a
 //! model's held-out residuals is compared with the base model's on the
 //! re-simulations (Bonferroni over the axes at `α`). The verdict:
 //!
@@ -101,10 +101,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::candidates::Effect;
-use super::cv::{paired, paired_rank, CvResult, NormalGain, BASE_PARAMS};
 use super::expect::{Analysis, Expectation, Spread};
-use super::stats;
+use perpend_calib::candidates::Effect;
+use perpend_calib::cv::{paired, paired_rank, CvResult, NormalGain, BASE_PARAMS};
+use perpend_calib::stats;
 
 /// Share of the base model's held-out excess mean square over the floor a
 /// winner must remove to be named although its residuals keep some
@@ -301,7 +301,7 @@ pub fn structured(
 ) -> Vec<(usize, f64, f64)> {
     let z = measured.structure_of(e).unwrap_or(&[]);
     let nulls = exp.structure_of(e);
-    let z = &z[..z.len().min(super::noise::AXES.len())];
+    let z = &z[..z.len().min(perpend_calib::noise::AXES.len())];
     let axes = z.iter().filter(|x| x.is_some()).count().max(1);
     let z_star = stats::normal_quantile(1.0 - alpha / axes as f64);
     z.iter()
@@ -545,7 +545,12 @@ fn choose<'a>(
 fn axis_list(flags: &[(usize, f64, f64)]) -> String {
     flags
         .iter()
-        .map(|(x, z, t)| format!("{} (z = {z:.1} > {t:.1})", super::noise::axis_name(*x)))
+        .map(|(x, z, t)| {
+            format!(
+                "{} (z = {z:.1} > {t:.1})",
+                perpend_calib::noise::axis_name(*x)
+            )
+        })
         .collect::<Vec<_>>()
         .join(", ")
 }
@@ -619,7 +624,7 @@ fn judge_winner(
 
 /// The carry-over test of a named incidence (module docs, "Carry-over"):
 /// the structure z of `e`'s held-out residuals along the step from the
-/// channel converted before ([`super::noise::STEP_AXIS`]) beyond the same
+/// channel converted before ([`perpend_calib::noise::STEP_AXIS`]) beyond the same
 /// statistic on the effect-free re-simulations, one test at `alpha`.
 /// `None` unless `e` is incidence and the crosstalk candidate was analysed
 /// beside it (a forward step on top of a named carry-over has none).
@@ -632,7 +637,7 @@ fn carry_over_left(
     if e != Effect::Incidence || measured.cv_of(Effect::Crosstalk).is_none() {
         return None;
     }
-    let x = super::noise::STEP_AXIS;
+    let x = perpend_calib::noise::STEP_AXIS;
     let z = measured.structure_of(e)?.get(x).copied().flatten()?;
     let null = exp.structure_of(e).get(x).copied()?;
     let thr = structure_threshold(stats::normal_quantile(1.0 - alpha), &null);
@@ -751,10 +756,10 @@ fn axes_seen(measured: &Analysis, e: Effect) -> String {
         .structure_of(e)
         .unwrap_or(&[])
         .iter()
-        .take(super::noise::AXES.len())
+        .take(perpend_calib::noise::AXES.len())
         .enumerate()
         .filter(|(_, z)| z.is_some())
-        .map(|(x, _)| super::noise::AXES[x])
+        .map(|(x, _)| perpend_calib::noise::AXES[x])
         .collect::<Vec<_>>()
         .join(", ")
 }
@@ -817,7 +822,7 @@ mod tests {
                 .map(|&(e, _)| {
                     (
                         e,
-                        vec![spread(0.0, 1.0); crate::diagnose::noise::STEP_AXIS + 1],
+                        vec![spread(0.0, 1.0); perpend_calib::noise::STEP_AXIS + 1],
                     )
                 })
                 .collect(),
@@ -843,20 +848,20 @@ mod tests {
     /// every sensor; the gain's count stays 5 + 1 per sensor.
     #[test]
     fn incidence_counts_the_parameters_of_its_forms() {
-        use crate::diagnose::candidates::{IncidenceForm, Refs};
-        use crate::diagnose::cv::{cross_validate, Folds};
+        use perpend_calib::candidates::{IncidenceForm, Refs};
+        use perpend_calib::cv::{cross_validate, Folds};
         use perpend_core::calib::LsqConfig;
         use perpend_core::ext::Extension;
         use rand::SeedableRng;
         // The paper's head, 60 poses tilted over ±15° about both axes (as
         // perpend-calib's candidates tests build it).
-        let head = crate::sim::paper_head().unwrap();
-        let mut cfg = crate::sim::SimConfig::paper();
+        let head = perpend_calib::sim::paper_head().unwrap();
+        let mut cfg = perpend_calib::sim::SimConfig::paper();
         cfg.poses = 60;
-        cfg.spread = crate::sim::PoseSpread {
+        cfg.spread = perpend_calib::sim::PoseSpread {
             tilt_x_range_deg: 15.0,
             tilt_y_range_deg: 15.0,
-            ..crate::sim::PoseSpread::cell(crate::sim::PAPER_STANDOFF_MM)
+            ..perpend_calib::sim::PoseSpread::cell(perpend_calib::sim::PAPER_STANDOFF_MM)
         };
         let ext = [0.3f64, 2.0, -2.6, -1.0]
             .iter()
@@ -865,9 +870,9 @@ mod tests {
                 ..Extension::identity()
             })
             .collect();
-        let effect = crate::sim::ExtensionEffect { ext };
+        let effect = perpend_calib::sim::ExtensionEffect { ext };
         let mut rng = rand::rngs::StdRng::seed_from_u64(5);
-        let run = crate::sim::simulate(&head, &cfg, &[&effect], &mut rng)
+        let run = perpend_calib::sim::simulate(&head, &cfg, &[&effect], &mut rng)
             .unwrap()
             .poses;
         let (lsq, refs) = (LsqConfig::default(), Refs::of(&run));
@@ -1067,8 +1072,8 @@ mod tests {
     fn an_incidence_that_leaves_a_carry_over_is_unexplained() {
         let floor = 0.01;
         let step = |z: f64| {
-            let mut v = vec![Some(0.0); crate::diagnose::noise::STEP_AXIS + 1];
-            v[crate::diagnose::noise::STEP_AXIS] = Some(z);
+            let mut v = vec![Some(0.0); perpend_calib::noise::STEP_AXIS + 1];
+            v[perpend_calib::noise::STEP_AXIS] = Some(z);
             v
         };
         let run = |winner: Effect, z: f64, with_crosstalk: bool| {

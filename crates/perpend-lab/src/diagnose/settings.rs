@@ -1,7 +1,7 @@
 //! Stage 0 of `perpend diagnose`: the options ([`Args`] from the command
 //! line, [`Settings`] for the library) and the sizes chosen from the run
 //! (draws of the effect-free re-simulations, [`draws_for`]; folds in
-//! [`super::folds`]).
+//! [`perpend_calib::folds`]).
 //!
 //! Every later stage reads [`Settings`]; this module reads no stage.
 //! Limits: only the thresholds of the decision are set here ([`Rule`]);
@@ -13,7 +13,7 @@ use anyhow::{bail, Result};
 use perpend_core::calib::LsqConfig;
 use perpend_core::normal::Method;
 
-use crate::sim::Tracker;
+use perpend_calib::sim::Tracker;
 
 /// Decision thresholds.
 #[derive(Debug, Clone, Copy, PartialEq)]

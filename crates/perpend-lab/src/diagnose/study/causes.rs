@@ -17,7 +17,7 @@
 
 pub use super::model::name;
 use super::model::Cause;
-use crate::diagnose::candidates::Effect;
+use perpend_calib::candidates::Effect;
 
 /// Assumed measuring range of the laser sensors [mm] (converts the
 /// front end's %-of-range figures).

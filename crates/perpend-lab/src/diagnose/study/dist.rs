@@ -18,7 +18,7 @@
 use serde::Serialize;
 
 use super::model::Stat3;
-use crate::diagnose::stats;
+use perpend_calib::stats;
 
 /// A statistic's simulated distribution against the measured value.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

@@ -155,7 +155,7 @@ pub fn block(setup: &Setup, c: &Conditions, seeds: &[u64], table: (Stat3, Stat3)
         diverged: out.len() - ekf.len(),
         before: row_versus(&before, table.0),
         ekf: row_versus(&ekf, table.1),
-        floor_mean: crate::diagnose::stats::quantile(&floor, 0.5),
+        floor_mean: perpend_calib::stats::quantile(&floor, 0.5),
     })
 }
 
@@ -294,7 +294,7 @@ pub fn paper_study(plan: Plan) -> Result<PaperStudy> {
     let t4 = (TABLE4_BEFORE, TABLE4_EKF);
     let table4 = block(&sim, &paper_conditions(), &main, t4)?;
     let cells = causes::STANDOFF_MM.len() * causes::ROBOT_DEG.len() + 2 * scenario_cells();
-    let bar = crate::progress::Progress::new(cells as u64, "study paper: conditions");
+    let bar = perpend_formats::progress::Progress::new(cells as u64, "study paper: conditions");
     let r0 = reference();
     let mut standoff_robot = Vec::new();
     for s in causes::STANDOFF_MM {
@@ -346,7 +346,7 @@ fn scenario(
     exp: &Setup,
     r: &Conditions,
     (main, grid): (&[u64], &[u64]),
-    bar: &crate::progress::Progress,
+    bar: &perpend_formats::progress::Progress,
 ) -> Result<Scenario> {
     let table8 = block(exp, r, main, T8)?;
     let mut zeta_xi = Vec::new();
@@ -388,7 +388,7 @@ fn cause_scans(
     exp: &Setup,
     r: &Conditions,
     grid: &[u64],
-    bar: &crate::progress::Progress,
+    bar: &perpend_formats::progress::Progress,
 ) -> Result<Vec<CauseScan>> {
     let mut scans = Vec::new();
     for cause in causes::CANDIDATES {
@@ -410,7 +410,7 @@ fn cause_scans(
 
 /// The combinations tried, each cause at its upper bound.
 fn combination_sets() -> Vec<(&'static str, Vec<Cause>)> {
-    use crate::diagnose::candidates::Effect as E;
+    use perpend_calib::candidates::Effect as E;
     // The table is another form of the linearity error, not another cause.
     let sensor: Vec<Cause> = E::CATALOG
         .iter()
@@ -504,7 +504,10 @@ pub fn run(a: &Args) -> Result<()> {
             std::fs::write(&p.out, &md)
                 .with_context(|| format!("cannot write {}", p.out.display()))?;
             if p.json {
-                println!("{}", crate::schema::to_json(crate::schema::STUDY, &st)?);
+                println!(
+                    "{}",
+                    perpend_formats::schema::to_json(perpend_formats::schema::STUDY, &st)?
+                );
             } else {
                 print!("{md}");
                 println!("\nwrote {}", p.out.display());

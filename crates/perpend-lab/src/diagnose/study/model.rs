@@ -39,14 +39,14 @@ use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
 use crate::bench::ekf_accepted;
-use crate::diagnose::candidates::Effect;
-use crate::diagnose::cv::measure_normal;
 use crate::diagnose::scenario::{AdcCrosstalk, Ripple};
-use crate::diagnose::stats;
-use crate::sim::{
+use perpend_calib::candidates::Effect;
+use perpend_calib::cv::measure_normal;
+use perpend_calib::sim::{
     experiment_head, gauss, paper_head, plane_from_tilts, readings, simulate, Effect as SimEffect,
     ExtensionEffect, Moment, PoseSpread, PoseTruth, SimConfig, SimHead, TempProfile, Tracker,
 };
+use perpend_calib::stats;
 
 /// A candidate cause of the gap between simulation and experiment.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -452,7 +452,7 @@ fn error_vec(n_meas: &Vector3<f64>, truth: &Plane<f64>) -> [f64; 2] {
 
 /// Rotates each recorded plane of `data` about the TCS origin by a
 /// Gaussian angle (1σ `sd_deg` about x and y): the per-pose TCS error.
-fn tcs_error(poses: &mut crate::exchange::PoseTable, sd_deg: f64, seed: u64) {
+fn tcs_error(poses: &mut perpend_formats::exchange::PoseTable, sd_deg: f64, seed: u64) {
     if sd_deg <= 0.0 {
         return;
     }

@@ -7,7 +7,7 @@ use super::causes::{self, NUISANCES};
 use super::dist::{verdict, Versus};
 use super::model::Setup;
 use super::{Block, PaperStudy, Ranked, Scenario, TABLE8_BEFORE};
-use crate::sim::PoseSpread;
+use perpend_calib::sim::PoseSpread;
 
 /// Smallest two-sided probability `n` seeds can state for one statistic.
 fn floor(n: usize) -> f64 {
