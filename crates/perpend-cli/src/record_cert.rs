@@ -20,8 +20,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context as _, Result};
-use perpend_lab::conformity::{Decision, Verdict};
-use perpend_lab::record::Record;
+use perpend_calib::record::Record;
+use perpend_formats::conformity::{Decision, Verdict};
 
 use crate::record_fmt::{deg, esc, geometry, opt_deg, sigma, value};
 
@@ -55,18 +55,18 @@ pub fn refusal(r: &Record) -> Option<String> {
     }
     let outcome = r.outcome_words();
     Some(match r.outcome.as_deref() {
-        Some(perpend_lab::record::OUTCOME_APPLIED) if r.decision.is_some() => {
+        Some(perpend_calib::record::OUTCOME_APPLIED) if r.decision.is_some() => {
             "no cell configuration named the reference standard (the tracker's serial, \
              calibration due date and traceability, who calibrated and who approves): run \
              with --config"
                 .into()
         }
-        Some(perpend_lab::record::OUTCOME_APPLIED) => format!(
+        Some(perpend_calib::record::OUTCOME_APPLIED) => format!(
             "the calibration was applied but its verification was not decided against a \
              tolerance (outcome {outcome}, verification {})",
             r.verification.kind
         ),
-        Some(perpend_lab::record::OUTCOME_COMPUTED) => "the parameters were computed from \
+        Some(perpend_calib::record::OUTCOME_COMPUTED) => "the parameters were computed from \
              files and not applied to a board and verified there (perpend cell run does both)"
             .into(),
         _ => format!("the calibration is not on the board: outcome {outcome}"),
@@ -208,7 +208,7 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
         }
         None => {
             let why = match r.outcome.as_deref() {
-                Some(perpend_lab::record::OUTCOME_COMPUTED) | None => {
+                Some(perpend_calib::record::OUTCOME_COMPUTED) | None => {
                     "the parameters were not verified on a board against a tolerance"
                 }
                 _ => "the run stopped before the calibration was verified on the board",
@@ -263,7 +263,7 @@ fn doc_item(r: &Record, h: &mut String) {
             |[a, b]| format!("{a} to {b} (parameters fitted {})", r.utc),
         );
     row(h, "date of calibration (UTC)", &performed);
-    row(h, "date of issue (UTC)", &perpend_lab::record::utc_now());
+    row(h, "date of issue (UTC)", &perpend_calib::record::utc_now());
     row(h, "tool", &r.tool_version);
     row(
         h,
@@ -377,7 +377,7 @@ fn doc_events(r: &Record, h: &mut String) {
 
 fn doc_approval(r: &Record, h: &mut String) {
     let c = r.certification.as_ref();
-    let who = |f: fn(&perpend_lab::record::Certification) -> &String| {
+    let who = |f: fn(&perpend_calib::record::Certification) -> &String| {
         c.map_or(String::new(), |c| esc(f(c)))
     };
     let _ = write!(
@@ -510,7 +510,7 @@ fn cert_decision_table(d: &Decision, lower: bool, h: &mut String) {
 
 /// Per-pose errors with their expanded uncertainty against the tolerance
 /// line (inline SVG).
-fn bars_svg(v: &perpend_lab::record::Verification, d: Option<&Decision>) -> String {
+fn bars_svg(v: &perpend_calib::record::Verification, d: Option<&Decision>) -> String {
     let (w, ht, m) = (640.0, 220.0, 40.0);
     let tol = d.map_or(f64::NAN, |d| d.tolerance_deg);
     let big_u = |k: usize| {
