@@ -77,6 +77,7 @@ use perpend_board::rxfilter::{self, RxSet};
 use perpend_board::storage::{Boot, EccGuard, SeqStore};
 use perpend_board::txq::{TxQueue, TX_QUEUE_LEN};
 use perpend_core::params::{Acquisition, Bitrate};
+use static_cell::StaticCell;
 use {defmt_rtt as _, panic_probe as _};
 
 use acq_ctl::SCAN;
@@ -115,9 +116,17 @@ fn start_can(
     cc.into_normal_mode()
 }
 
+/// The application as the board builds it.
+type BoardApp = App<SeqStore<EccGuard<flash::BoardFlash>>, update::BoardDfu>;
+
+/// Where the application lives: built in place by [`App::init`] (≈ 11 KiB
+/// that would otherwise pass through the main task's frame, issue 50
+/// item 6).
+static APP: StaticCell<BoardApp> = StaticCell::new();
+
 /// The firmware's state between events.
 struct Fw {
-    app: App<SeqStore<EccGuard<flash::BoardFlash>>, update::BoardDfu>,
+    app: &'static mut BoardApp,
     txq: TxQueue<TX_QUEUE_LEN>,
     can_tx: FdcanTx<'static>,
     props: can::Properties,
@@ -424,7 +433,7 @@ fn setup() -> Fw {
     // 0x1018 sub 4: the 96-bit unique ID folded to 32 bits.
     let serial = perpend_can::config::serial_from_uid(&embassy_stm32::uid::uid());
     info!("serial number {=u32:#010x}", serial);
-    let mut app = App::with_program(store, serial, update::program(flash_ok));
+    let app = App::init(APP.uninit(), store, serial, update::program(flash_ok));
     app.report_reset(reset);
     app.report_option_bytes(board::optr());
     let policy = board::rom_loader_policy();

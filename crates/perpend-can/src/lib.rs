@@ -201,7 +201,7 @@ pub use config::{
     Acquisition, Communication, Defaults, Identity, Measurement, SensorCalibration, SurfaceModel,
     TransferFunction,
 };
-pub use device::{Device, Events, NmtState, Request, IMAGE_LEN};
+pub use device::{Device, Events, NmtState, Objects, Request, IMAGE_LEN};
 pub use error::Error;
 pub use frame::Frame;
 pub use sdo::SdoAbort;
