@@ -74,10 +74,10 @@ use perpend_board::busmon::{BusEvent, BusMonitor, RxBudget};
 use perpend_board::health::{self, LoopTimer};
 use perpend_board::pipeline::Sample;
 use perpend_board::rxfilter::{self, RxSet};
-use perpend_board::storage::{Boot, EccGuard, SeqStore};
+use perpend_board::storage::{Boot, EccGuard, SeqStore, BUF_LEN};
 use perpend_board::txq::{TxQueue, TX_QUEUE_LEN};
 use perpend_core::params::{Acquisition, Bitrate};
-use static_cell::StaticCell;
+use static_cell::{ConstStaticCell, StaticCell};
 use {defmt_rtt as _, panic_probe as _};
 
 use acq_ctl::SCAN;
@@ -117,7 +117,15 @@ fn start_can(
 }
 
 /// The application as the board builds it.
-type BoardApp = App<SeqStore<EccGuard<flash::BoardFlash>>, update::BoardDfu>;
+type BoardApp = App<BoardStore, update::BoardDfu>;
+
+/// The parameter storage: its item buffer is a static
+/// ([`SeqStore::with_buffer`]), so that the store is moved into the app
+/// without 2 KiB passing through `setup`'s frame (twice, as built).
+type BoardStore = SeqStore<EccGuard<flash::BoardFlash>, &'static mut [u8; BUF_LEN]>;
+
+/// The storage's item buffer.
+static STORE_BUF: ConstStaticCell<[u8; BUF_LEN]> = ConstStaticCell::new([0; BUF_LEN]);
 
 /// Where the application lives: built in place by [`App::init`] (≈ 11 KiB
 /// that would otherwise pass through the main task's frame, issue 50
@@ -395,7 +403,10 @@ impl Fw {
 /// ADC1 scanning the four `inputs` and the temperature sensor on TIM3's
 /// TRGO into the DMA ring (started by [`acq_ctl::restart`]).
 /// Brings up the peripherals and the application (a plain function, so
-/// that its locals do not take room in the main task's future).
+/// that its locals do not take room in the main task's future; not
+/// inlined, so that they do not take room in the main task's frame either:
+/// that frame stays on the stack while the loop runs).
+#[inline(never)]
 fn setup() -> Fw {
     let p = embassy_stm32::init(board::config());
     info!("perpend-fw {}", env!("CARGO_PKG_VERSION"));
@@ -426,7 +437,7 @@ fn setup() -> Fw {
     // Parameters and the CANopen device.
     flash::enable_pvd();
     let flash = EccGuard::new(flash::BoardFlash::new(p.FLASH, flash_ok));
-    let store = match SeqStore::new(flash, flash::STORAGE) {
+    let store = match SeqStore::with_buffer(flash, flash::STORAGE, STORE_BUF.take()) {
         Ok(s) => s,
         Err(_) => defmt::panic!("storage range is not a valid map range"),
     };

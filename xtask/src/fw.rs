@@ -283,6 +283,7 @@ pub fn size(args: &[String]) -> Result<()> {
                     "static stack depth {total} B > budget {DEPTH_BUDGET} B"
                 ));
             }
+            println!("deepest thread path: {}", path_frames(&r, &r.thread.path));
             let top: Vec<String> = r
                 .frames
                 .iter()
@@ -346,6 +347,15 @@ pub fn size(args: &[String]) -> Result<()> {
     } else {
         Err(format!("over budget: {}", over.join(", ")))
     }
+}
+
+/// `a 8 B > b 276 B > …`: a path with each function's own frame.
+fn path_frames(r: &stack::Report, path: &[String]) -> String {
+    let frame = |n: &String| r.frames.iter().find(|f| &f.0 == n).map_or(0, |f| f.1);
+    path.iter()
+        .map(|n| format!("{} {} B", short(n), frame(n)))
+        .collect::<Vec<_>>()
+        .join(" > ")
 }
 
 /// A demangled name without its hash and generic noise, for one line.

@@ -404,13 +404,23 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     /// static): neither the app (≈ 11 KiB) nor its device (≈ 4.8 KiB)
     /// passes through a stack frame (issue 50 item 6). Returns the app.
     pub fn init(slot: &mut MaybeUninit<Self>, store: S, serial: u32, program: P) -> &mut Self {
+        let app = Self::place(slot, store, serial, program);
+        app.boot_load(serial);
+        app
+    }
+
+    /// The factory state of [`App::init`], field by field. Not inlined:
+    /// its temporaries (defaults, pipeline) leave the stack before the
+    /// stored item is loaded.
+    #[inline(never)]
+    fn place(slot: &mut MaybeUninit<Self>, store: S, serial: u32, program: P) -> &mut Self {
         let factory = Params::factory();
         let a = slot.as_mut_ptr();
         // SAFETY: every field of `App` is written once through a raw
         // pointer into `slot` before `assume_init_mut`; the device is
         // built in place by `Device::init`. `app_fields` lists the fields
         // and stops compiling when one is added.
-        let app = unsafe {
+        unsafe {
             Device::init(
                 &mut *addr_of_mut!((*a).dev).cast::<MaybeUninit<Device>>(),
                 factory.can.node_id,
@@ -448,9 +458,7 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
             addr_of_mut!((*a).confirm).write(crate::confirm::BootConfirm::new());
             addr_of_mut!((*a).update_restart).write(false);
             slot.assume_init_mut()
-        };
-        app.boot_load(serial);
-        app
+        }
     }
 
     /// Loads the stored item over the factory state [`App::init`] built

@@ -2205,6 +2205,7 @@ impl Device {
     /// # Errors
     /// [`Error::ImageLength`], [`Error::ImageLayout`], [`Error::Value`];
     /// the device is unchanged.
+    #[inline(never)] // its copy of the values stays out of the caller's frame
     pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
         let mut next = self.core.values;
         self.image_values(img, &mut next)?;
