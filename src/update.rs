@@ -18,9 +18,9 @@
 //! Limits: not run on silicon.
 
 use perpend_board::dfu::{DfuProgram, DFU_PAGE};
-use static_cell::ConstStaticCell;
 use perpend_board::image::{SIGNATURE_LEN, TRAILER_LEN};
 use perpend_board::program::{build_version, trailer_identification};
+use static_cell::ConstStaticCell;
 
 use crate::flash::{Region, DFU, STATE};
 

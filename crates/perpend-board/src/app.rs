@@ -68,10 +68,10 @@
 //! after [`TX_EMCY_QUIET_US`] without drops: once per congestion episode,
 //! however long it lasts (0x2008 counts every frame).
 
-use perpend_can::od::Group;
-use perpend_can::status::{emcy, error_register};
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
+use perpend_can::od::Group;
+use perpend_can::status::{emcy, error_register};
 
 use perpend_can::{
     Acquisition as OdAcquisition, Defaults, Device, Events, Frame, Measurement, Objects, Request,
