@@ -76,6 +76,51 @@ const FLASH_RANGE: std::ops::Range<u64> = 0x0800_0000..0x0810_0000;
 const RAM_RANGE: std::ops::Range<u64> = 0x2000_0000..0x2010_0000;
 /// Repetitions per section in the bench program (`REPS` there).
 const BENCH_REPS: u64 = 16;
+/// Limit of the App's update + SYNC in every configuration the bench runs
+/// (the worst of them) [instructions]: `mcu-bench` fails above it
+/// (issue 50 item 8; docs/firmware.md "Budget and speed").
+const APP_SAMPLE_LIMIT: u64 = 6_000;
+/// Each App update section and the SYNC section of the same App.
+const APP_PAIRS: [(&str, &str); 6] = [
+    ("app_update_insns", "app_sync_insns"),
+    ("app_update_table_insns", "app_sync_table_insns"),
+    ("app_update_lag_insns", "app_sync_lag_insns"),
+    ("app_update_lag_commit_insns", "app_sync_lag_insns"),
+    ("app_update_table_lag_insns", "app_sync_table_lag_insns"),
+    ("app_update_table_lag_commit_insns", "app_sync_table_lag_insns"),
+];
+
+/// The App update + SYNC of the plain configuration and the worst over
+/// [`APP_PAIRS`] (with the name of its update section).
+///
+/// # Errors
+/// A section is missing from `r`.
+pub fn app_sample_cost(r: &BTreeMap<&str, u64>) -> Result<(u64, u64, &'static str)> {
+    let get = |k: &str| r.get(k).copied().ok_or(format!("mcu-bench: no {k}"));
+    let plain = get(APP_PAIRS[0].0)? + get(APP_PAIRS[0].1)?;
+    let mut worst = (0, "");
+    for (u, s) in APP_PAIRS {
+        let n = get(u)? + get(s)?;
+        if n > worst.0 {
+            worst = (n, u);
+        }
+    }
+    Ok((plain, worst.0, worst.1))
+}
+
+/// Fails when the worst App update + SYNC is above `limit`.
+///
+/// # Errors
+/// Over the limit, or a section missing.
+pub fn check_app_sample(r: &BTreeMap<&str, u64>, limit: u64) -> Result<(u64, u64)> {
+    let (plain, worst, which) = app_sample_cost(r)?;
+    if worst > limit {
+        return Err(format!(
+            "mcu-bench: App update + SYNC {worst} instructions ({which} + its SYNC) > the limit {limit}"
+        ));
+    }
+    Ok((plain, worst))
+}
 
 type Result<T> = std::result::Result<T, String>;
 
@@ -621,6 +666,12 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     r.insert("app_sync_table_lag_insns", per(s[30]));
     r.insert("app_update_table_lag_commit_insns", per(s[32]));
     r.insert("reps", BENCH_REPS);
+    let checked = check_app_sample(&r, APP_SAMPLE_LIMIT);
+    if let Ok((plain, worst)) = &checked {
+        r.insert("app_update_sync_insns", *plain);
+        r.insert("app_update_sync_worst_insns", *worst);
+        r.insert("app_update_sync_limit_insns", APP_SAMPLE_LIMIT);
+    }
     if json {
         println!(
             "{}",
@@ -631,7 +682,7 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
             println!("{k:>20}: {v}");
         }
     }
-    Ok(())
+    checked.map(|_| ())
 }
 
 #[cfg(test)]
@@ -736,6 +787,37 @@ garbage line
         r.frames[0] = frame("store_now", 9_296, false);
         let f = stack_budget_failures(&r, 8192, 4096, 16384);
         assert!(f[0].contains(">= the 8192 B MPU guard"), "{f:?}");
+    }
+
+    /// The bench fails when the worst App update + SYNC is above the
+    /// limit: the sections measured before issue 50's speed-up (6,041
+    /// with tables, the lag and its commit) fail the old limit of 6,000.
+    #[test]
+    fn app_sample_limit_fails_above_it() {
+        let mut r = BTreeMap::new();
+        for (k, v) in [
+            ("app_update_insns", 3230),
+            ("app_sync_insns", 2321),
+            ("app_update_table_insns", 3570),
+            ("app_sync_table_insns", 2321),
+            ("app_update_lag_insns", 3336),
+            ("app_update_lag_commit_insns", 3372),
+            ("app_sync_lag_insns", 2321),
+            ("app_update_table_lag_insns", 3685),
+            ("app_update_table_lag_commit_insns", 3720),
+            ("app_sync_table_lag_insns", 2321),
+        ] {
+            r.insert(k, v);
+        }
+        assert_eq!(
+            app_sample_cost(&r).unwrap(),
+            (5551, 6041, "app_update_table_lag_commit_insns")
+        );
+        let e = check_app_sample(&r, 6000).unwrap_err();
+        assert!(e.contains("6041") && e.contains("6000"), "{e}");
+        assert_eq!(check_app_sample(&r, 6041).unwrap(), (5551, 6041));
+        r.remove("app_sync_lag_insns");
+        assert!(check_app_sample(&r, 10_000).is_err(), "a missing section fails");
     }
 
     #[test]
