@@ -87,7 +87,10 @@ const APP_PAIRS: [(&str, &str); 6] = [
     ("app_update_lag_insns", "app_sync_lag_insns"),
     ("app_update_lag_commit_insns", "app_sync_lag_insns"),
     ("app_update_table_lag_insns", "app_sync_table_lag_insns"),
-    ("app_update_table_lag_commit_insns", "app_sync_table_lag_insns"),
+    (
+        "app_update_table_lag_commit_insns",
+        "app_sync_table_lag_insns",
+    ),
 ];
 
 /// The App update + SYNC of the plain configuration and the worst over
@@ -817,7 +820,10 @@ garbage line
         assert!(e.contains("6041") && e.contains("6000"), "{e}");
         assert_eq!(check_app_sample(&r, 6041).unwrap(), (5551, 6041));
         r.remove("app_sync_lag_insns");
-        assert!(check_app_sample(&r, 10_000).is_err(), "a missing section fails");
+        assert!(
+            check_app_sample(&r, 10_000).is_err(),
+            "a missing section fails"
+        );
     }
 
     #[test]

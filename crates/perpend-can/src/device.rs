@@ -261,6 +261,48 @@ pub fn image_as_layout(img: &[u8; IMAGE_LEN], layout: u8, out: &mut [u8; IMAGE_L
     q
 }
 
+/// A TPDO mapping resolved to value slots: what [`Core::tpdo_frame`] needs
+/// of the dictionary, found once for the mapping words `words` (sub 0..=8
+/// of 0x1A0x; resolving is a function of them alone).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct PdoMap {
+    words: [u32; MAX_MAPPED + 1],
+    /// Mapped entries.
+    n: u8,
+    /// Payload bytes; 0: the mapping is empty or unusable (nothing sent).
+    len: u8,
+    slots: [u16; MAX_MAPPED],
+    bits: [u8; MAX_MAPPED],
+}
+
+impl PdoMap {
+    /// The slots of `words` (as [`Core::map_target`] checks them: a
+    /// mapping with an unmappable entry, or longer than 8 bytes, is
+    /// unusable).
+    fn resolve(words: [u32; MAX_MAPPED + 1]) -> Self {
+        let mut m = PdoMap {
+            words,
+            ..PdoMap::default()
+        };
+        let n = (words[0] as usize).min(MAX_MAPPED);
+        let mut len = 0usize;
+        for (i, &w) in words[1..=n].iter().enumerate() {
+            let Ok((s, bits)) = Core::map_target(w) else {
+                return m;
+            };
+            len += usize::from(bits) / 8;
+            if len > 8 {
+                return m;
+            }
+            m.slots[i] = s as u16;
+            m.bits[i] = bits;
+        }
+        m.n = n as u8;
+        m.len = len as u8;
+        m
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 struct TpdoRt {
     sync_count: u8,
@@ -291,6 +333,8 @@ struct Core {
     /// division a second, not one a poll).
     uptime_next_us: u64,
     tpdo: [TpdoRt; TPDOS],
+    /// The TPDO mappings resolved (a cache of the dictionary lookups).
+    pdo_maps: [PdoMap; TPDOS],
     active: [(u16, u8); MAX_ACTIVE_ERRORS],
     n_active: usize,
     /// Codes beyond `active`: the bucket and the lost ones.
@@ -328,6 +372,7 @@ fn core_fields(c: Core) {
         hb_restart: _,
         uptime_next_us: _,
         tpdo: _,
+        pdo_maps: _,
         active: _,
         n_active: _,
         overflow: _,
@@ -722,29 +767,33 @@ impl Core {
     /// empty (sub 0 = 0: an empty PDO is never sent).
     /// (Hot path of every SYNC: the mapping's subs 0..=8 are consecutive
     /// slots, read directly.)
-    fn tpdo_frame(&self, k: usize) -> Option<Frame> {
-        let base = slot(0x1A00 + k as u16, 0)?;
-        let map = self.values.get(base..=base + MAX_MAPPED)?;
-        let n = (map[0] as usize).min(MAX_MAPPED);
-        if n == 0 {
+    /// The mapping words are resolved to value slots once per mapping
+    /// ([`PdoMap`], keyed by the words themselves: no dictionary lookup on
+    /// a SYNC while the mapping stays, issue 50 item 8).
+    fn tpdo_frame(&mut self, k: usize) -> Option<Frame> {
+        let base = *TPDO_MAP.get(k)?;
+        let words: [u32; MAX_MAPPED + 1] =
+            self.values.get(base..=base + MAX_MAPPED)?.try_into().ok()?;
+        let cached = self.pdo_maps.get_mut(k)?;
+        if cached.words != words {
+            *cached = PdoMap::resolve(words);
+        }
+        let m = *cached;
+        if m.len == 0 {
             return None;
         }
         // The payload little-endian in one u64 (no byte copies).
         let mut acc = 0u64;
-        let mut len = 0usize;
-        for &m in &map[1..=n] {
-            let (s, bits) = Self::map_target(m).ok()?;
-            let bytes = bits as usize / 8;
-            if len + bytes > 8 {
-                return None;
-            }
+        let mut shift = 0u32;
+        for i in 0..usize::from(m.n) {
+            let bits = u32::from(m.bits[i]);
             let mask = (1u64 << bits) - 1;
-            acc |= (u64::from(*self.values.get(s)?) & mask) << (8 * len);
-            len += bytes;
+            acc |= (u64::from(*self.values.get(usize::from(m.slots[i]))?) & mask) << shift;
+            shift += 8 * (bits / 8);
         }
         let data = acc.to_le_bytes();
-        let id = (self.get(0x1800 + k as u16, 1) & 0x7FF) as u16;
-        Some(Frame::new(id, &data[..len]))
+        let id = (self.at(TPDO_COB[k]) & 0x7FF) as u16;
+        Some(Frame::new(id, &data[..usize::from(m.len)]))
     }
 
     /// The deadband (0x2009) of a mapped REAL32 object, if it has one.
@@ -1488,6 +1537,7 @@ impl Device {
             addr_of_mut!((*c).hb_restart).write(true);
             addr_of_mut!((*c).uptime_next_us).write(0);
             addr_of_mut!((*c).tpdo).write([TpdoRt::default(); TPDOS]);
+            addr_of_mut!((*c).pdo_maps).write([PdoMap::default(); TPDOS]);
             addr_of_mut!((*c).active).write([(0, 0); MAX_ACTIVE_ERRORS]);
             addr_of_mut!((*c).n_active).write(0);
             addr_of_mut!((*c).overflow).write(Overflow::default());
@@ -2228,7 +2278,7 @@ mod lss_glue;
 
 #[path = "device_sync.rs"]
 mod sync;
-use sync::{HbMonitor, SyncRt, TPDO_COB, TPDO_TYPE};
+use sync::{HbMonitor, SyncRt, TPDO_COB, TPDO_MAP, TPDO_TYPE};
 pub use sync::{EMCY_HEARTBEAT, EMCY_PDO_LENGTH, EMCY_SYNC_LENGTH};
 
 #[cfg(test)]

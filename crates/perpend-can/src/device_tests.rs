@@ -1974,7 +1974,7 @@ fn staged_objects_are_those_of_a_device_that_loaded_the_image() {
     assert_eq!(staged.acquisition().period_us, 4000);
     // A non-configured node (0xFF) keeps the active node-id, as a load
     // does.
-    let mut d = Device::new(crate::lss::UNCONFIGURED, &Defaults::nominal());
+    let d = Device::new(crate::lss::UNCONFIGURED, &Defaults::nominal());
     d.persistent_image(&mut img);
     let staged = d.staged_objects(&img, &mut buf).unwrap();
     let mut copy = d.clone();
@@ -2016,4 +2016,27 @@ fn a_device_built_in_place_or_reinitialised_is_a_new_one() {
     assert_eq!(bus.dev.sdo, new.sdo);
     assert_eq!(bus.dev.lss, new.lss);
     assert_eq!(bus.dev.config_generation(), new.config_generation());
+}
+
+/// The resolved mapping a SYNC uses follows a remap made after TPDOs were
+/// sent (the cache of issue 50 item 8 is keyed by the mapping words).
+#[test]
+fn a_remap_after_sending_is_followed() {
+    let mut b = Bus::new();
+    b.nmt(0x01, 0);
+    b.dev.set_measurement(&sample());
+    let before = b.sync();
+    assert_eq!(before[0].id, 0x190);
+    assert_eq!(before[0].len, 8);
+    b.nmt(0x80, 0);
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    b.download(0x1A00, 0, &[0]).unwrap();
+    b.write_u32(0x1A00, 1, od::mapping(0x2004, 1, 32)).unwrap();
+    b.download(0x1A00, 0, &[1]).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0190).unwrap();
+    b.nmt(0x01, 0);
+    let after = b.sync();
+    assert_eq!(after[0].id, 0x190);
+    assert_eq!(after[0].len, 4);
+    assert_eq!(after[0].payload(), &40.0f32.to_le_bytes());
 }
