@@ -279,11 +279,13 @@ impl PdoMap {
     /// The slots of `words` (as [`Core::map_target`] checks them: a
     /// mapping with an unmappable entry, or longer than 8 bytes, is
     /// unusable).
-    fn resolve(words: [u32; MAX_MAPPED + 1]) -> Self {
-        let mut m = PdoMap {
-            words,
-            ..PdoMap::default()
-        };
+    #[cold]
+    fn resolve(words: &[u32]) -> Self {
+        let mut m = PdoMap::default();
+        for (w, &v) in m.words.iter_mut().zip(words) {
+            *w = v;
+        }
+        let words = m.words;
         let n = (words[0] as usize).min(MAX_MAPPED);
         let mut len = 0usize;
         for (i, &w) in words[1..=n].iter().enumerate() {
@@ -772,27 +774,32 @@ impl Core {
     /// a SYNC while the mapping stays, issue 50 item 8).
     fn tpdo_frame(&mut self, k: usize) -> Option<Frame> {
         let base = *TPDO_MAP.get(k)?;
-        let words: [u32; MAX_MAPPED + 1] =
-            self.values.get(base..=base + MAX_MAPPED)?.try_into().ok()?;
+        let words = self.values.get(base..=base + MAX_MAPPED)?;
         let cached = self.pdo_maps.get_mut(k)?;
-        if cached.words != words {
+        // Word by word, OR-reduced: an equality test of the arrays became
+        // a byte-wise `memcmp` (≈ 250 instructions a TPDO).
+        let mut diff = 0u32;
+        for (a, b) in cached.words.iter().zip(words) {
+            diff |= a ^ b;
+        }
+        if diff != 0 {
             *cached = PdoMap::resolve(words);
         }
-        let m = *cached;
+        let m = &*cached;
         if m.len == 0 {
             return None;
         }
         // The payload little-endian in one u64 (no byte copies).
         let mut acc = 0u64;
         let mut shift = 0u32;
-        for i in 0..usize::from(m.n) {
-            let bits = u32::from(m.bits[i]);
+        for (&s, &bits) in m.slots.iter().zip(&m.bits).take(usize::from(m.n)) {
+            let bits = u32::from(bits);
             let mask = (1u64 << bits) - 1;
-            acc |= (u64::from(*self.values.get(usize::from(m.slots[i]))?) & mask) << shift;
+            acc |= (u64::from(*self.values.get(usize::from(s))?) & mask) << shift;
             shift += 8 * (bits / 8);
         }
         let data = acc.to_le_bytes();
-        let id = (self.at(TPDO_COB[k]) & 0x7FF) as u16;
+        let id = (self.values.get(TPDO_COB[k]).copied().unwrap_or(0) & 0x7FF) as u16;
         Some(Frame::new(id, &data[..usize::from(m.len)]))
     }
 
