@@ -873,6 +873,20 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     }
 
     fn update_emcy(&mut self, status: u32) {
+        // The usual sample (issue 50 item 8: ≈ 150 instructions): no
+        // condition holds and no EMCY is active, so nothing is raised,
+        // cleared or counted.
+        let sensors_ok = (0..4).all(|i| {
+            let n = sensor_nibble(status, i);
+            n & (SENSOR_OPEN_LOOP | SENSOR_OVERCURRENT) == 0 && n & SENSOR_VALID != 0
+        });
+        if sensors_ok
+            && status & (NO_PLANE | CONFIG_INVALID) == 0
+            && !self.boot_bad
+            && !self.dev.any_emcy_active()
+        {
+            return;
+        }
         // by reference: iterating the array by value copied all of it
         // (100 B, about 100 instructions per sample)
         let conds = conditions(status, self.boot_bad);

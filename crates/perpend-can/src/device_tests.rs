@@ -2040,3 +2040,13 @@ fn a_remap_after_sending_is_followed() {
     assert_eq!(after[0].len, 4);
     assert_eq!(after[0].payload(), &40.0f32.to_le_bytes());
 }
+
+#[test]
+fn any_emcy_active_follows_raise_and_clear() {
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    assert!(!d.any_emcy_active());
+    d.signal_emcy(0x2111, error_register::CURRENT, [1, 0, 0, 0, 0]);
+    assert!(d.any_emcy_active());
+    d.clear_emcy(0x2111);
+    assert!(!d.any_emcy_active());
+}
