@@ -783,10 +783,12 @@ impl Core {
         let base = *TPDO_MAP.get(k)?;
         let words = self.values.get(base..=base + MAX_MAPPED)?;
         let cached = self.pdo_maps.get_mut(k)?;
-        // Word by word, OR-reduced: an equality test of the arrays became
+        // The count and the mapped words (resolving reads no others),
+        // word by word, OR-reduced: an equality test of the arrays became
         // a byte-wise `memcmp` (≈ 250 instructions a TPDO).
+        let n = (words[0] as usize).min(MAX_MAPPED);
         let mut diff = 0u32;
-        for (a, b) in cached.words.iter().zip(words) {
+        for (a, b) in cached.words.iter().zip(words).take(n + 1) {
             diff |= a ^ b;
         }
         if diff != 0 {
