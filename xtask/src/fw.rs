@@ -76,10 +76,15 @@ const FLASH_RANGE: std::ops::Range<u64> = 0x0800_0000..0x0810_0000;
 const RAM_RANGE: std::ops::Range<u64> = 0x2000_0000..0x2010_0000;
 /// Repetitions per section in the bench program (`REPS` there).
 const BENCH_REPS: u64 = 16;
-/// Limit of the App's update + SYNC in every configuration the bench runs
-/// (the worst of them) [instructions]: `mcu-bench` fails above it
-/// (issue 50 item 8; docs/firmware.md "Budget and speed").
-const APP_SAMPLE_LIMIT: u64 = 6_000;
+/// Limit of the App's update + SYNC of the plain configuration (plane
+/// model, no table, no lag) [instructions]: issue 50 item 8's goal;
+/// `mcu-bench` fails above it (docs/firmware.md "Budget and speed").
+const APP_SAMPLE_LIMIT: u64 = 4_000;
+/// Limit of the worst App update + SYNC over every configuration the
+/// bench runs (linearity tables, thermal lag and its commit)
+/// [instructions]: what issue 50's work reached (4,342), not the goal of
+/// 4,000; `mcu-bench` fails above it.
+const APP_SAMPLE_WORST_LIMIT: u64 = 4_350;
 /// Each App update section and the SYNC section of the same App.
 const APP_PAIRS: [(&str, &str); 6] = [
     ("app_update_insns", "app_sync_insns"),
@@ -111,15 +116,25 @@ pub fn app_sample_cost(r: &BTreeMap<&str, u64>) -> Result<(u64, u64, &'static st
     Ok((plain, worst.0, worst.1))
 }
 
-/// Fails when the worst App update + SYNC is above `limit`.
+/// Fails when the plain App update + SYNC is above `limit` or the worst
+/// above `worst_limit`.
 ///
 /// # Errors
-/// Over the limit, or a section missing.
-pub fn check_app_sample(r: &BTreeMap<&str, u64>, limit: u64) -> Result<(u64, u64)> {
+/// Over a limit, or a section missing.
+pub fn check_app_sample(
+    r: &BTreeMap<&str, u64>,
+    limit: u64,
+    worst_limit: u64,
+) -> Result<(u64, u64)> {
     let (plain, worst, which) = app_sample_cost(r)?;
-    if worst > limit {
+    if plain > limit {
         return Err(format!(
-            "mcu-bench: App update + SYNC {worst} instructions ({which} + its SYNC) > the limit {limit}"
+            "mcu-bench: App update + SYNC {plain} instructions > the limit {limit}"
+        ));
+    }
+    if worst > worst_limit {
+        return Err(format!(
+            "mcu-bench: App update + SYNC {worst} instructions ({which} + its SYNC) > the limit {worst_limit}"
         ));
     }
     Ok((plain, worst))
@@ -669,11 +684,12 @@ pub fn mcu_bench(args: &[String]) -> Result<()> {
     r.insert("app_sync_table_lag_insns", per(s[30]));
     r.insert("app_update_table_lag_commit_insns", per(s[32]));
     r.insert("reps", BENCH_REPS);
-    let checked = check_app_sample(&r, APP_SAMPLE_LIMIT);
-    if let Ok((plain, worst)) = &checked {
-        r.insert("app_update_sync_insns", *plain);
-        r.insert("app_update_sync_worst_insns", *worst);
+    let checked = check_app_sample(&r, APP_SAMPLE_LIMIT, APP_SAMPLE_WORST_LIMIT);
+    if let Ok((plain, worst, _)) = app_sample_cost(&r) {
+        r.insert("app_update_sync_insns", plain);
+        r.insert("app_update_sync_worst_insns", worst);
         r.insert("app_update_sync_limit_insns", APP_SAMPLE_LIMIT);
+        r.insert("app_update_sync_worst_limit_insns", APP_SAMPLE_WORST_LIMIT);
     }
     if json {
         println!(
@@ -816,12 +832,14 @@ garbage line
             app_sample_cost(&r).unwrap(),
             (5551, 6041, "app_update_table_lag_commit_insns")
         );
-        let e = check_app_sample(&r, 6000).unwrap_err();
+        let e = check_app_sample(&r, 6000, 6000).unwrap_err();
         assert!(e.contains("6041") && e.contains("6000"), "{e}");
-        assert_eq!(check_app_sample(&r, 6041).unwrap(), (5551, 6041));
+        assert_eq!(check_app_sample(&r, 6000, 6041).unwrap(), (5551, 6041));
+        let e = check_app_sample(&r, APP_SAMPLE_LIMIT, APP_SAMPLE_WORST_LIMIT).unwrap_err();
+        assert!(e.contains("5551") && e.contains("4000"), "{e}");
         r.remove("app_sync_lag_insns");
         assert!(
-            check_app_sample(&r, 10_000).is_err(),
+            check_app_sample(&r, 10_000, 10_000).is_err(),
             "a missing section fails"
         );
     }
