@@ -59,6 +59,7 @@ mod flash;
 mod update;
 
 use defmt::{info, warn};
+use defmt_rtt as _;
 use embassy_executor::Spawner;
 use embassy_futures::select::{select3, Either3};
 use embassy_stm32::adc::{AdcChannel, RingBufferedAdc};
@@ -71,14 +72,13 @@ use embassy_time::{Duration, Instant, Ticker};
 use perpend_board::app::App;
 use perpend_board::bittiming;
 use perpend_board::busmon::{BusEvent, BusMonitor, RxBudget};
-use perpend_board::health::{self, LoopTimer};
+use perpend_board::health::{self, HealthError, LoopTimer, ResetCause};
 use perpend_board::pipeline::Sample;
 use perpend_board::rxfilter::{self, RxSet};
 use perpend_board::storage::{Boot, EccGuard, SeqStore, BUF_LEN};
 use perpend_board::txq::{TxQueue, TX_QUEUE_LEN};
 use perpend_core::params::{Acquisition, Bitrate};
 use static_cell::{ConstStaticCell, StaticCell};
-use {defmt_rtt as _, panic_probe as _};
 
 use acq_ctl::SCAN;
 use can_tx::FdcanTx;
@@ -101,6 +101,43 @@ fn led_pattern(status: u32, now_ms: u64) -> bool {
     } else {
         true
     }
+}
+
+/// The reset cause for the log (a `&str`, not `Debug2Format`: no
+/// `core::fmt` in the image, issue 50 item 7).
+fn reset_cause_name(c: ResetCause) -> &'static str {
+    match c {
+        ResetCause::PowerOn => "power-on",
+        ResetCause::IndependentWatchdog => "independent watchdog",
+        ResetCause::WindowWatchdog => "window watchdog",
+        ResetCause::Software => "software",
+        ResetCause::OptionLoad => "option byte loading",
+        ResetCause::LowPower => "illegal low-power entry",
+        ResetCause::Pin => "NRST pin",
+        ResetCause::Unknown => "unknown",
+    }
+}
+
+/// The flash layout error for the log.
+fn flash_error_name(e: HealthError) -> &'static str {
+    match e {
+        HealthError::SingleBank => "single-bank (DBANK = 0)",
+        HealthError::FlashTooSmall(_) => "too small",
+    }
+}
+
+/// Panics: the location through defmt, then a fault (`udf`, as
+/// panic-probe does, which a probe reports). The message is not printed:
+/// formatting it would link `core::fmt` (≈ 3.7 KB, issue 50 item 7);
+/// `defmt::panic!` logs its own message before it panics.
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    cortex_m::interrupt::disable();
+    match info.location() {
+        Some(l) => defmt::error!("panicked at {=str}:{=u32}", l.file(), l.line()),
+        None => defmt::error!("panicked"),
+    }
+    cortex_m::asm::udf()
 }
 
 /// FDCAN1 on PA11/PA12, classic CAN at `b` with the explicit bit timing,
@@ -297,8 +334,8 @@ impl Fw {
         match self.app.confirm_boot(acked) {
             Some(Ok(())) => info!("image confirmed (embassy-boot mark_booted)"),
             Some(Err(e)) => warn!(
-                "image not confirmed ({}): the bootloader reverts it at the next reset",
-                defmt::Debug2Format(&e)
+                "image not confirmed (0x1F57 status {=u32:#x}): the bootloader reverts it at the next reset",
+                e.flash_status()
             ),
             None => {}
         }
@@ -412,8 +449,8 @@ fn setup() -> Fw {
     info!("perpend-fw {}", env!("CARGO_PKG_VERSION"));
     let reset = board::take_reset_flags();
     info!(
-        "reset cause {} (RCC_CSR flags {=u8:#04x})",
-        defmt::Debug2Format(&reset.cause()),
+        "reset cause {=str} (RCC_CSR flags {=u8:#04x})",
+        reset_cause_name(reset.cause()),
         reset.0
     );
     board::freeze_iwdg_in_debug();
@@ -423,8 +460,8 @@ fn setup() -> Fw {
         Ok(()) => true,
         Err(e) => {
             defmt::error!(
-                "flash layout {} (DBANK {}, {} KiB): parameter storage disabled, factory defaults",
-                defmt::Debug2Format(&e),
+                "flash layout {=str} (DBANK {}, {} KiB): parameter storage disabled, factory defaults",
+                flash_error_name(e),
                 embassy_stm32::pac::FLASH.optr().read().dbank(),
                 board::flash_size_kib()
             );

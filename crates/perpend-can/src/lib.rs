@@ -187,6 +187,8 @@
 
 pub mod config;
 pub mod device;
+/// The EDS needs the objects' names (feature `names`).
+#[cfg(feature = "names")]
 pub mod eds;
 pub mod error;
 pub mod frame;
