@@ -55,6 +55,9 @@ use object::{Object, ObjectSection, ObjectSymbol};
 /// Flash budget of the firmware image [bytes]: the ACTIVE partition
 /// (`src/memory.x` FLASH, docs/firmware.md "Field update: memory layout").
 pub const FLASH_BUDGET: u64 = 220 * 1024;
+/// Issue 50's goal for the image [bytes]: printed with the gap, not yet
+/// enforced (139,032 B reached; docs/firmware.md "Budget and speed").
+const FLASH_GOAL: u64 = 128 * 1024;
 /// Flash budget of the bootloader [bytes]: its 32 KiB region, public key
 /// included (`boot/memory.x`).
 pub const BOOT_FLASH_BUDGET: u64 = 32 * 1024;
@@ -318,6 +321,15 @@ pub fn size(args: &[String]) -> Result<()> {
         pct(ram, RAM_BUDGET),
         RAM_BUDGET / 1024
     );
+    if flash > FLASH_GOAL {
+        println!(
+            "flash goal {} KiB (issue 50): {} B over, not met (not enforced)",
+            FLASH_GOAL / 1024,
+            flash - FLASH_GOAL
+        );
+    } else {
+        println!("flash goal {} KiB (issue 50): met", FLASH_GOAL / 1024);
+    }
     let (top, bottom) = stack_symbols(&data)?;
     let stack = top.saturating_sub(bottom);
     println!(
