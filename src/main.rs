@@ -59,6 +59,7 @@ mod flash;
 mod update;
 
 use defmt::{info, warn};
+use defmt_rtt as _;
 use embassy_executor::Spawner;
 use embassy_futures::select::{select3, Either3};
 use embassy_stm32::adc::{AdcChannel, RingBufferedAdc};
@@ -71,13 +72,13 @@ use embassy_time::{Duration, Instant, Ticker};
 use perpend_board::app::App;
 use perpend_board::bittiming;
 use perpend_board::busmon::{BusEvent, BusMonitor, RxBudget};
-use perpend_board::health::{self, LoopTimer};
+use perpend_board::health::{self, HealthError, LoopTimer, ResetCause};
 use perpend_board::pipeline::Sample;
 use perpend_board::rxfilter::{self, RxSet};
-use perpend_board::storage::{Boot, EccGuard, SeqStore};
+use perpend_board::storage::{Boot, EccGuard, SeqStore, BUF_LEN};
 use perpend_board::txq::{TxQueue, TX_QUEUE_LEN};
 use perpend_core::params::{Acquisition, Bitrate};
-use {defmt_rtt as _, panic_probe as _};
+use static_cell::{ConstStaticCell, StaticCell};
 
 use acq_ctl::SCAN;
 use can_tx::FdcanTx;
@@ -102,6 +103,43 @@ fn led_pattern(status: u32, now_ms: u64) -> bool {
     }
 }
 
+/// The reset cause for the log (a `&str`, not `Debug2Format`: no
+/// `core::fmt` in the image, issue 50 item 7).
+fn reset_cause_name(c: ResetCause) -> &'static str {
+    match c {
+        ResetCause::PowerOn => "power-on",
+        ResetCause::IndependentWatchdog => "independent watchdog",
+        ResetCause::WindowWatchdog => "window watchdog",
+        ResetCause::Software => "software",
+        ResetCause::OptionLoad => "option byte loading",
+        ResetCause::LowPower => "illegal low-power entry",
+        ResetCause::Pin => "NRST pin",
+        ResetCause::Unknown => "unknown",
+    }
+}
+
+/// The flash layout error for the log.
+fn flash_error_name(e: HealthError) -> &'static str {
+    match e {
+        HealthError::SingleBank => "single-bank (DBANK = 0)",
+        HealthError::FlashTooSmall(_) => "too small",
+    }
+}
+
+/// Panics: the location through defmt, then a fault (`udf`, as
+/// panic-probe does, which a probe reports). The message is not printed:
+/// formatting it would link `core::fmt` (≈ 3.7 KB, issue 50 item 7);
+/// `defmt::panic!` logs its own message before it panics.
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    cortex_m::interrupt::disable();
+    match info.location() {
+        Some(l) => defmt::error!("panicked at {=str}:{=u32}", l.file(), l.line()),
+        None => defmt::error!("panicked"),
+    }
+    cortex_m::asm::udf()
+}
+
 /// FDCAN1 on PA11/PA12, classic CAN at `b` with the explicit bit timing,
 /// Tx queue mode (lowest identifier first).
 fn start_can(
@@ -115,9 +153,25 @@ fn start_can(
     cc.into_normal_mode()
 }
 
+/// The application as the board builds it.
+type BoardApp = App<BoardStore, update::BoardDfu>;
+
+/// The parameter storage: its item buffer is a static
+/// ([`SeqStore::with_buffer`]), so that the store is moved into the app
+/// without 2 KiB passing through `setup`'s frame (twice, as built).
+type BoardStore = SeqStore<EccGuard<flash::BoardFlash>, &'static mut [u8; BUF_LEN]>;
+
+/// The storage's item buffer.
+static STORE_BUF: ConstStaticCell<[u8; BUF_LEN]> = ConstStaticCell::new([0; BUF_LEN]);
+
+/// Where the application lives: built in place by [`App::init`] (≈ 11 KiB
+/// that would otherwise pass through the main task's frame, issue 50
+/// item 6).
+static APP: StaticCell<BoardApp> = StaticCell::new();
+
 /// The firmware's state between events.
 struct Fw {
-    app: App<SeqStore<EccGuard<flash::BoardFlash>>, update::BoardDfu>,
+    app: &'static mut BoardApp,
     txq: TxQueue<TX_QUEUE_LEN>,
     can_tx: FdcanTx<'static>,
     props: can::Properties,
@@ -280,8 +334,8 @@ impl Fw {
         match self.app.confirm_boot(acked) {
             Some(Ok(())) => info!("image confirmed (embassy-boot mark_booted)"),
             Some(Err(e)) => warn!(
-                "image not confirmed ({}): the bootloader reverts it at the next reset",
-                defmt::Debug2Format(&e)
+                "image not confirmed (0x1F57 status {=u32:#x}): the bootloader reverts it at the next reset",
+                e.flash_status()
             ),
             None => {}
         }
@@ -386,14 +440,17 @@ impl Fw {
 /// ADC1 scanning the four `inputs` and the temperature sensor on TIM3's
 /// TRGO into the DMA ring (started by [`acq_ctl::restart`]).
 /// Brings up the peripherals and the application (a plain function, so
-/// that its locals do not take room in the main task's future).
+/// that its locals do not take room in the main task's future; not
+/// inlined, so that they do not take room in the main task's frame either:
+/// that frame stays on the stack while the loop runs).
+#[inline(never)]
 fn setup() -> Fw {
     let p = embassy_stm32::init(board::config());
     info!("perpend-fw {}", env!("CARGO_PKG_VERSION"));
     let reset = board::take_reset_flags();
     info!(
-        "reset cause {} (RCC_CSR flags {=u8:#04x})",
-        defmt::Debug2Format(&reset.cause()),
+        "reset cause {=str} (RCC_CSR flags {=u8:#04x})",
+        reset_cause_name(reset.cause()),
         reset.0
     );
     board::freeze_iwdg_in_debug();
@@ -403,8 +460,8 @@ fn setup() -> Fw {
         Ok(()) => true,
         Err(e) => {
             defmt::error!(
-                "flash layout {} (DBANK {}, {} KiB): parameter storage disabled, factory defaults",
-                defmt::Debug2Format(&e),
+                "flash layout {=str} (DBANK {}, {} KiB): parameter storage disabled, factory defaults",
+                flash_error_name(e),
                 embassy_stm32::pac::FLASH.optr().read().dbank(),
                 board::flash_size_kib()
             );
@@ -417,14 +474,14 @@ fn setup() -> Fw {
     // Parameters and the CANopen device.
     flash::enable_pvd();
     let flash = EccGuard::new(flash::BoardFlash::new(p.FLASH, flash_ok));
-    let store = match SeqStore::new(flash, flash::STORAGE) {
+    let store = match SeqStore::with_buffer(flash, flash::STORAGE, STORE_BUF.take()) {
         Ok(s) => s,
         Err(_) => defmt::panic!("storage range is not a valid map range"),
     };
     // 0x1018 sub 4: the 96-bit unique ID folded to 32 bits.
     let serial = perpend_can::config::serial_from_uid(&embassy_stm32::uid::uid());
     info!("serial number {=u32:#010x}", serial);
-    let mut app = App::with_program(store, serial, update::program(flash_ok));
+    let app = App::init(APP.uninit(), store, serial, update::program(flash_ok));
     app.report_reset(reset);
     app.report_option_bytes(board::optr());
     let policy = board::rom_loader_policy();

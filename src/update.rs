@@ -17,9 +17,10 @@
 //!
 //! Limits: not run on silicon.
 
-use perpend_board::dfu::DfuProgram;
+use perpend_board::dfu::{DfuProgram, DFU_PAGE};
 use perpend_board::image::{SIGNATURE_LEN, TRAILER_LEN};
 use perpend_board::program::{build_version, trailer_identification};
+use static_cell::ConstStaticCell;
 
 use crate::flash::{Region, DFU, STATE};
 
@@ -31,14 +32,22 @@ pub const ACTIVE_LEN: u32 = 220 * 1024;
 const KEY_ADDR: u32 = 0x0800_7FE0;
 
 /// The program store of this board.
-pub type BoardDfu = DfuProgram<Region, Region>;
+pub type BoardDfu = DfuProgram<'static, Region, Region>;
+
+/// The program store's page buffer (a static: 2 KiB the store would
+/// otherwise carry through `setup`'s frame, issue 50 item 6).
+/// Zero here (`.bss`, not 2 KiB of initial values in flash): the store
+/// fills it with 0xFF.
+static PAGE: ConstStaticCell<[u8; DFU_PAGE]> = ConstStaticCell::new([0; DFU_PAGE]);
 
 /// The store over the DFU and STATE partitions; `enabled` = the flash
 /// layout check at boot passed (otherwise every flash access is refused).
+/// Called once (the page buffer is taken).
 pub fn program(enabled: bool) -> BoardDfu {
     DfuProgram::new(
         Region::new(DFU, enabled),
         Region::new(STATE, enabled),
+        PAGE.take(),
         ACTIVE_LEN,
         public_key(),
         identification(),

@@ -68,10 +68,13 @@
 //! after [`TX_EMCY_QUIET_US`] without drops: once per congestion episode,
 //! however long it lasts (0x2008 counts every frame).
 
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
 use perpend_can::od::Group;
 use perpend_can::status::{emcy, error_register};
+
 use perpend_can::{
-    Acquisition as OdAcquisition, Defaults, Device, Events, Frame, Measurement, Request,
+    Acquisition as OdAcquisition, Defaults, Device, Events, Frame, Measurement, Objects, Request,
     SensorCalibration, TransferFunction, IMAGE_LEN,
 };
 use perpend_core::normal::Method;
@@ -164,6 +167,15 @@ fn transfer_from_od(t: &TransferFunction, extra: &Transfer) -> Result<Transfer, 
 /// rate, a period shorter than one ADC scan at the oversampling
 /// ([`crate::scan`]), or any error of [`Params::validate`].
 pub fn params_from_device(dev: &Device, extra: &Params) -> Result<Params, Error> {
+    params_from_objects(&dev.objects(), extra)
+}
+
+/// [`params_from_device`] of a set of objects (a device's, or those a
+/// stored image would leave: [`Device::staged_objects`]).
+///
+/// # Errors
+/// As [`params_from_device`].
+pub fn params_from_objects(dev: &Objects<'_>, extra: &Params) -> Result<Params, Error> {
     let mut p = *extra;
     for i in 0..4 {
         let c = dev
@@ -324,6 +336,44 @@ pub struct App<S: ParamStore, P: crate::program::ProgramStore = crate::program::
     update_restart: bool,
 }
 
+/// Every field of [`App`]: a field added to it stops this from compiling
+/// until [`App::init`] (which builds the app in place, field by field)
+/// writes it too.
+#[allow(dead_code)]
+fn app_fields<S: ParamStore, P: crate::program::ProgramStore>(a: App<S, P>) {
+    let App {
+        dev: _,
+        pipe: _,
+        store: _,
+        extra: _,
+        boot: _,
+        read_faults: _,
+        temp_c: _,
+        lag: _,
+        bootloader: _,
+        rom_loader: _,
+        boot_bad: _,
+        next_extra: _,
+        cfg_gen: _,
+        quiet: _,
+        acq_changed: _,
+        can_changed: _,
+        last: _,
+        stores: _,
+        tx_dropped: _,
+        tx_last_drop_us: _,
+        capture: _,
+        sync_scan: _,
+        comm_error: _,
+        recovering: _,
+        locked: _,
+        program: _,
+        program_state: _,
+        confirm: _,
+        update_restart: _,
+    } = a;
+}
+
 impl<S: ParamStore> App<S> {
     /// Boots with serial number 0 (tests; the firmware and the virtual
     /// board use [`App::with_serial`]).
@@ -343,81 +393,131 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     /// `serial` (the firmware passes [`perpend_can::config::serial_from_uid`]
     /// of the MCU's unique ID), and the pipeline; `program` is the store
     /// of the field update (0x1F50..0x1F57).
-    pub fn with_program(mut store: S, serial: u32, program: P) -> Self {
+    pub fn with_program(store: S, serial: u32, program: P) -> Self {
+        let mut slot = MaybeUninit::uninit();
+        Self::init(&mut slot, store, serial, program);
+        // SAFETY: `init` wrote every field.
+        unsafe { slot.assume_init() }
+    }
+
+    /// [`App::with_program`] built in place in `slot` (the firmware's
+    /// static): neither the app (≈ 11 KiB) nor its device (≈ 4.8 KiB)
+    /// passes through a stack frame (issue 50 item 6). Returns the app.
+    pub fn init(slot: &mut MaybeUninit<Self>, store: S, serial: u32, program: P) -> &mut Self {
+        let app = Self::place(slot, store, serial, program);
+        app.boot_load(serial);
+        app
+    }
+
+    /// The factory state of [`App::init`], field by field. Not inlined:
+    /// its temporaries (defaults, pipeline) leave the stack before the
+    /// stored item is loaded.
+    #[inline(never)]
+    fn place(slot: &mut MaybeUninit<Self>, store: S, serial: u32, program: P) -> &mut Self {
         let factory = Params::factory();
-        let defaults = defaults_for(&factory).with_serial(serial);
-        let mut image = [0u8; IMAGE_LEN];
-        let (stored, mut boot, n) = load_with_tail(&mut store, &mut image);
-        let read_faults = store.take_read_faults();
-        let mut dev = Device::new(factory.can.node_id, &defaults);
-        let mut extra = factory;
-        if boot == Boot::Stored {
-            match image.get(..n).map(|img| dev.load_image(img)) {
-                Some(Ok(())) => extra = stored,
-                _ => {
-                    dev = Device::new(factory.can.node_id, &defaults);
-                    boot = Boot::Rejected(Error::Decode("device image"));
-                }
-            }
-        }
-        let boot_bad = matches!(boot, Boot::Rejected(_) | Boot::Unreadable(_)) || read_faults > 0;
-        let mut app = Self {
-            pipe: Pipeline::new(factory, false),
-            cfg_gen: dev.config_generation(),
-            dev,
-            store,
-            extra,
-            boot,
-            boot_bad,
-            read_faults,
-            temp_c: None,
-            lag: crate::thermal::ThermalLag::new(),
-            bootloader: false,
-            rom_loader: crate::bootctl::RomLoaderPolicy {
+        let a = slot.as_mut_ptr();
+        // SAFETY: every field of `App` is written once through a raw
+        // pointer into `slot` before `assume_init_mut`; the device is
+        // built in place by `Device::init`. `app_fields` lists the fields
+        // and stops compiling when one is added.
+        unsafe {
+            Device::init(
+                &mut *addr_of_mut!((*a).dev).cast::<MaybeUninit<Device>>(),
+                factory.can.node_id,
+                &defaults_for(&factory).with_serial(serial),
+            );
+            addr_of_mut!((*a).pipe).write(Pipeline::new(factory, false));
+            addr_of_mut!((*a).store).write(store);
+            addr_of_mut!((*a).extra).write(factory);
+            addr_of_mut!((*a).boot).write(Boot::Missing);
+            addr_of_mut!((*a).read_faults).write(0);
+            addr_of_mut!((*a).temp_c).write(None);
+            addr_of_mut!((*a).lag).write(crate::thermal::ThermalLag::new());
+            addr_of_mut!((*a).bootloader).write(false);
+            addr_of_mut!((*a).rom_loader).write(crate::bootctl::RomLoaderPolicy {
                 test_key: true,
                 provisioned: false,
-            },
-            next_extra: extra,
-            quiet: [0; CONDS],
-            acq_changed: false,
-            can_changed: false,
-            last: Output::default(),
-            stores: 0,
-            tx_dropped: 0,
-            tx_last_drop_us: None,
-            capture: None,
-            sync_scan: false,
-            comm_error: false,
-            locked: false,
-            recovering: false,
-            program,
-            program_state: crate::program::ProgramState::default(),
-            confirm: crate::confirm::BootConfirm::new(),
-            update_restart: false,
-        };
+            });
+            addr_of_mut!((*a).boot_bad).write(false);
+            addr_of_mut!((*a).next_extra).write(factory);
+            addr_of_mut!((*a).cfg_gen).write(0);
+            addr_of_mut!((*a).quiet).write([0; CONDS]);
+            addr_of_mut!((*a).acq_changed).write(false);
+            addr_of_mut!((*a).can_changed).write(false);
+            addr_of_mut!((*a).last).write(Output::default());
+            addr_of_mut!((*a).stores).write(0);
+            addr_of_mut!((*a).tx_dropped).write(0);
+            addr_of_mut!((*a).tx_last_drop_us).write(None);
+            addr_of_mut!((*a).capture).write(None);
+            addr_of_mut!((*a).sync_scan).write(false);
+            addr_of_mut!((*a).comm_error).write(false);
+            addr_of_mut!((*a).recovering).write(false);
+            addr_of_mut!((*a).locked).write(false);
+            addr_of_mut!((*a).program).write(program);
+            addr_of_mut!((*a).program_state).write(crate::program::ProgramState::default());
+            addr_of_mut!((*a).confirm).write(crate::confirm::BootConfirm::new());
+            addr_of_mut!((*a).update_restart).write(false);
+            slot.assume_init_mut()
+        }
+    }
+
+    /// Loads the stored item over the factory state [`App::init`] built
+    /// (factory defaults if it is missing or bad), then the boot's
+    /// confirmation, program and EMCY state.
+    fn boot_load(&mut self, serial: u32) {
+        let (boot, read_faults) = self.load_stored(serial);
+        self.boot = boot;
+        self.read_faults = read_faults;
+        self.boot_bad = matches!(boot, Boot::Rejected(_) | Boot::Unreadable(_)) || read_faults > 0;
+        self.cfg_gen = self.dev.config_generation();
         // Only a record that actually loaded (or none stored) counts: an
         // image that rejects the stored calibration is reverted.
-        if crate::confirm::storage_ok(&app.boot) {
-            app.confirm.storage_loaded();
+        if crate::confirm::storage_ok(&self.boot) {
+            self.confirm.storage_loaded();
         }
-        let trial = app.program.on_trial();
-        app.confirm.set_trial(trial);
-        app.program_state = crate::program::ProgramState::of(&app.program);
-        crate::program::publish(&app.program_state, &mut app.dev);
-        app.reload();
+        let trial = self.program.on_trial();
+        self.confirm.set_trial(trial);
+        self.program_state = crate::program::ProgramState::of(&self.program);
+        crate::program::publish(&self.program_state, &mut self.dev);
+        self.reload();
         // Nothing to drain: the events of the boot itself are handled.
-        app.dev.take_events();
-        app.acq_changed = false;
-        if app.boot_bad {
+        self.dev.take_events();
+        self.acq_changed = false;
+        if self.boot_bad {
             let mut data = [0; 5];
             if read_faults > 0 {
                 data[0] = 1;
                 data[1..].copy_from_slice(&read_faults.to_le_bytes());
             }
-            app.dev
+            self.dev
                 .signal_emcy(emcy::DATA_SET, error_register::GENERIC, data);
         }
-        app
+    }
+
+    /// The stored record and device image into `extra`, `next_extra` and
+    /// the device (both or neither); returns where the boot parameters
+    /// came from and the unreadable flash words met. Not inlined: its
+    /// image buffer and record stay out of the caller's frame.
+    #[inline(never)]
+    fn load_stored(&mut self, serial: u32) -> (Boot, u32) {
+        let mut image = [0u8; IMAGE_LEN];
+        let (stored, mut boot, n) = load_with_tail(&mut self.store, &mut image);
+        let read_faults = self.store.take_read_faults();
+        if boot == Boot::Stored {
+            match image.get(..n).map(|img| self.dev.load_image(img)) {
+                Some(Ok(())) => {
+                    self.extra = stored;
+                    self.next_extra = stored;
+                }
+                _ => {
+                    let factory = Params::factory();
+                    let defaults = defaults_for(&factory).with_serial(serial);
+                    self.dev.reinit(factory.can.node_id, &defaults);
+                    boot = Boot::Rejected(Error::Decode("device image"));
+                }
+            }
+        }
+        (boot, read_faults)
     }
 
     /// Rebuilds the pipeline from the dictionary.
@@ -773,6 +873,20 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     }
 
     fn update_emcy(&mut self, status: u32) {
+        // The usual sample (issue 50 item 8: ≈ 150 instructions): no
+        // condition holds and no EMCY is active, so nothing is raised,
+        // cleared or counted.
+        let sensors_ok = (0..4).all(|i| {
+            let n = sensor_nibble(status, i);
+            n & (SENSOR_OPEN_LOOP | SENSOR_OVERCURRENT) == 0 && n & SENSOR_VALID != 0
+        });
+        if sensors_ok
+            && status & (NO_PLANE | CONFIG_INVALID) == 0
+            && !self.boot_bad
+            && !self.dev.any_emcy_active()
+        {
+            return;
+        }
         // by reference: iterating the array by value copied all of it
         // (100 B, about 100 instructions per sample)
         let conds = conditions(status, self.boot_bad);
@@ -898,16 +1012,17 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     }
 }
 
-/// The record a store writes: the parameters of a copy of `dev` with
-/// `image` loaded, the settings without an object from `base`. Not
-/// inlined: the device copy (≈ 4 KiB) stays in this frame, apart from the
-/// store's item buffer (one frame held both, 9,304 B, more than the 8 KiB
-/// stack guard: issue 50 item 6).
+/// The record a store writes: the parameters of the objects `dev` would
+/// hold with `image` loaded ([`Device::staged_objects`]: their values,
+/// ≈ 1.4 KiB, not a copy of the device, ≈ 4.8 KiB), the settings without
+/// an object from `base`. Not inlined: the values stay in this frame,
+/// apart from the store's item buffer (one frame held a device copy and
+/// the buffer, 9,304 B, more than the 8 KiB stack guard: issue 50 item 6).
 #[inline(never)]
 fn staged_params(dev: &Device, image: &[u8; IMAGE_LEN], base: &Params) -> Option<Params> {
-    let mut staged = dev.clone();
-    staged.load_image(image).ok()?;
-    params_from_device(&staged, base).ok()
+    let mut values = [0u32; perpend_can::od::ENTRIES];
+    let staged = dev.staged_objects(image, &mut values).ok()?;
+    params_from_objects(&staged, base).ok()
 }
 
 /// EMCY code of a store refused for low supply voltage (CiA 301 0x3220

@@ -29,12 +29,14 @@ pub const DFU_PAGE: usize = 2048;
 /// Largest STATE write size supported (the G4 writes 8 bytes).
 const ALIGN: usize = 8;
 
-/// The DFU and STATE partitions with embassy-boot's updater over them.
-pub struct DfuProgram<DFU, STATE> {
+/// The DFU and STATE partitions with embassy-boot's updater over them;
+/// the page buffer is lent (the firmware's is a static: the store is
+/// small enough to be moved, issue 50 item 6).
+pub struct DfuProgram<'p, DFU, STATE> {
     dfu: DFU,
     state: STATE,
     aligned: [u8; ALIGN],
-    page: [u8; DFU_PAGE],
+    page: &'p mut [u8; DFU_PAGE],
     /// Bytes received of the current download.
     received: u32,
     /// The whole download is in flash (`finish`).
@@ -44,21 +46,29 @@ pub struct DfuProgram<DFU, STATE> {
     active: u32,
 }
 
-impl<DFU: NorFlash, STATE: NorFlash> DfuProgram<DFU, STATE> {
+impl<'p, DFU: NorFlash, STATE: NorFlash> DfuProgram<'p, DFU, STATE> {
     /// A store over `dfu` and `state` accepting images of up to `capacity`
     /// bytes (the ACTIVE partition), verified against `key`; `active` is
-    /// the 0x1F56 of the running image.
-    pub fn new(dfu: DFU, state: STATE, capacity: u32, key: [u8; 32], active: u32) -> Self {
+    /// the 0x1F56 of the running image; `page` is its page buffer.
+    pub fn new(
+        dfu: DFU,
+        state: STATE,
+        page: &'p mut [u8; DFU_PAGE],
+        capacity: u32,
+        key: [u8; 32],
+        active: u32,
+    ) -> Self {
         const {
             assert!(STATE::WRITE_SIZE <= ALIGN);
             assert!(DFU_PAGE.is_multiple_of(DFU::ERASE_SIZE));
             assert!(DFU_PAGE.is_multiple_of(DFU::WRITE_SIZE));
         }
+        page.fill(0xFF);
         Self {
             dfu,
             state,
             aligned: [0; ALIGN],
-            page: [0xFF; DFU_PAGE],
+            page,
             received: 0,
             finished: false,
             capacity,
@@ -121,12 +131,12 @@ fn updater_error(e: FirmwareUpdaterError) -> ProgramError {
     }
 }
 
-impl<DFU: NorFlash, STATE: NorFlash> ProgramStore for DfuProgram<DFU, STATE> {
+impl<DFU: NorFlash, STATE: NorFlash> ProgramStore for DfuProgram<'_, DFU, STATE> {
     fn write(&mut self, offset: u32, data: &[u8]) -> Result<(), ProgramError> {
         if offset == 0 {
             self.received = 0;
             self.finished = false;
-            self.page = [0xFF; DFU_PAGE];
+            self.page.fill(0xFF);
             if self.boot_state()? == State::Swap {
                 // On trial or marked: only a confirmed image writes DFU.
                 return Err(ProgramError::Refused);

@@ -20,7 +20,7 @@ use embedded_storage::nor_flash::{
 };
 use sha2::{Digest, Sha256};
 
-use crate::dfu::DfuProgram;
+use crate::dfu::{DfuProgram, DFU_PAGE};
 use crate::image;
 use crate::program::{ProgramError, ProgramStore};
 
@@ -220,11 +220,12 @@ fn part(nor: &RefCell<Nor>, at: usize, len: usize) -> Part<'_> {
 }
 
 /// The application's store on the fake.
-fn store(nor: &RefCell<Nor>) -> DfuProgram<Part<'_>, Part<'_>> {
+fn store(nor: &RefCell<Nor>) -> DfuProgram<'static, Part<'_>, Part<'_>> {
     let key = image::public_key(&image::TEST_SEED);
     DfuProgram::new(
         part(nor, DFU_AT, DFU_LEN),
         part(nor, STATE_AT, STATE_LEN),
+        Box::leak(Box::new([0xFF; DFU_PAGE])),
         ACTIVE_LEN as u32,
         key,
         1,

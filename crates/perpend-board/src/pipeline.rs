@@ -39,7 +39,7 @@ use perpend_core::normal::{measure_with, prepare};
 use perpend_core::params::Params;
 use perpend_core::surface::{self, Shape};
 
-use crate::acq::{convert, median, Channel, Class, Conversion};
+use crate::acq::{common_changes, convert, Channel, Class, Conversion};
 use crate::status::{
     sensor_bits, CONFIG_INVALID, DEGRADED, NO_PLANE, RESIDUAL_HIGH, SENSOR_STUCK, SENSOR_VALID,
     UNCALIBRATED,
@@ -203,6 +203,7 @@ impl Pipeline {
                 None
             }
         });
+        let common = common_changes(&deltas);
         let mut readings: [Option<f32>; CHANNELS] = [None; CHANNELS];
         for i in 0..CHANNELS {
             let c = &conv[i];
@@ -212,17 +213,7 @@ impl Pipeline {
                 out.status |= sensor_bits(i, c.class.bit());
                 continue;
             }
-            let excess = deltas[i].map(|d| {
-                let mut others = [0.0f32; CHANNELS];
-                let mut k = 0;
-                for (j, dj) in deltas.iter().enumerate() {
-                    if let (true, Some(v)) = (j != i, dj) {
-                        others[k] = *v;
-                        k += 1;
-                    }
-                }
-                d - median(&mut others[..k]).unwrap_or(0.0)
-            });
+            let excess = deltas[i].zip(common[i]).map(|(d, m)| d - m);
             let stuck = ch.stuck(s.counts[i], &p.acq);
             let jumped = ch.jump(c.mm, excess, &p.acq);
             if stuck {

@@ -324,10 +324,13 @@ impl<F: FlashHealth> FlashHealth for EccGuard<F> {
     }
 }
 
-/// [`ParamStore`] over any `NorFlash` through `sequential-storage`'s map.
-pub struct SeqStore<F: NorFlash> {
+/// [`ParamStore`] over any `NorFlash` through `sequential-storage`'s map;
+/// `B` is its item buffer: its own (the default) or a lent one
+/// ([`SeqStore::with_buffer`]; the firmware's is a static, so that the
+/// store is small enough to be moved: issue 50 item 6).
+pub struct SeqStore<F: NorFlash, B: AsMut<[u8]> = [u8; BUF_LEN]> {
     map: MapStorage<u8, F, Cache<Uncached, Uncached, Uncached, u8>>,
-    buf: [u8; BUF_LEN],
+    buf: B,
     /// Next page to erase of a running recovery.
     recovery: Option<u32>,
 }
@@ -351,6 +354,25 @@ impl<F: NorFlash> SeqStore<F> {
             buf: [0; BUF_LEN],
             recovery: None,
         }
+    }
+}
+
+impl<F: NorFlash, B: AsMut<[u8]>> SeqStore<F, B> {
+    /// [`SeqStore::new`] with the item buffer `buf` (at least
+    /// [`BUF_LEN`] bytes, else [`StoreError::TooBig`]).
+    ///
+    /// # Errors
+    /// As [`SeqStore::new`]; a buffer shorter than [`BUF_LEN`].
+    pub fn with_buffer(flash: F, range: Range<u32>, mut buf: B) -> Result<Self, StoreError> {
+        let cfg = MapConfig::try_new(range).map_err(|_| StoreError::TooBig)?;
+        if buf.as_mut().len() < BUF_LEN {
+            return Err(StoreError::TooBig);
+        }
+        Ok(Self {
+            map: MapStorage::new(flash, cfg, Cache::new_uncached()),
+            buf,
+            recovery: None,
+        })
     }
 
     /// The flash (tests: inspect a fake flash).
@@ -406,13 +428,13 @@ impl<F: NorFlash> SeqStore<F> {
     }
 }
 
-impl<F: NorFlash + FlashHealth> ParamStore for SeqStore<F> {
+impl<F: NorFlash + FlashHealth, B: AsMut<[u8]>> ParamStore for SeqStore<F, B> {
     fn take_read_faults(&mut self) -> u32 {
         self.map.flash().take_read_faults()
     }
 
     fn load(&mut self, out: &mut [u8]) -> Result<Option<usize>, StoreError> {
-        let item: Option<&[u8]> = block_on(self.map.fetch_item(&mut self.buf, &PARAMS_KEY))?;
+        let item: Option<&[u8]> = block_on(self.map.fetch_item(self.buf.as_mut(), &PARAMS_KEY))?;
         match item {
             None => Ok(None),
             Some(v) => {
@@ -434,7 +456,7 @@ impl<F: NorFlash + FlashHealth> ParamStore for SeqStore<F> {
         if !self.map.flash().supply_ok() {
             return Err(StoreError::LowSupply);
         }
-        let r = block_on(self.map.store_item(&mut self.buf, &PARAMS_KEY, &record));
+        let r = block_on(self.map.store_item(self.buf.as_mut(), &PARAMS_KEY, &record));
         match r.map_err(StoreError::from) {
             // The crate could not repair the range: nothing in it is
             // readable anyway, so start afresh, one page per step (four
@@ -474,6 +496,7 @@ pub fn load<S: ParamStore + ?Sized>(store: &mut S) -> (Params, Boot) {
 /// [`save_with_tail`]) into `tail`; returns their number (0 unless
 /// [`Boot::Stored`]). A tail longer than `tail` is [`Boot::Rejected`] with
 /// [`perpend_core::Error::BufferTooSmall`].
+#[inline(never)] // its 2 KiB buffer stays out of the caller's frame
 pub fn load_with_tail<S: ParamStore + ?Sized>(
     store: &mut S,
     tail: &mut [u8],
@@ -936,6 +959,25 @@ mod tests {
         // survives a "reboot": a new store over the same flash
         let mut s2 = host_store(s.into_flash());
         assert_eq!(load(&mut s2), (params(1), Boot::Stored));
+    }
+
+    /// A store over a lent buffer (the firmware's static) reads and
+    /// writes what one with its own buffer does; a short buffer is
+    /// refused.
+    #[test]
+    fn a_lent_buffer_stores_as_an_own_one() {
+        let range = 0..(4 * PAGE) as u32;
+        let mut buf = [0u8; BUF_LEN];
+        let mut s = SeqStore::with_buffer(HostFlash::new(), range.clone(), &mut buf).unwrap();
+        assert_eq!(load(&mut s).1, Boot::Missing);
+        save(&mut s, &params(3)).unwrap();
+        let mut own = host_store(s.into_flash());
+        assert_eq!(load(&mut own), (params(3), Boot::Stored));
+        let mut short = [0u8; BUF_LEN - 1];
+        assert!(matches!(
+            SeqStore::with_buffer(HostFlash::new(), range, &mut short[..]),
+            Err(StoreError::TooBig)
+        ));
     }
 
     #[test]

@@ -350,6 +350,15 @@ pub struct Certification {
     /// written before it was kept.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub performed_utc: Option<[String; 2]>,
+    /// The planes were measured by a simulated tracker on a virtual
+    /// board (`--robot sim:`): its certificate says so on every page and
+    /// is no certificate of a real head.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub simulated: bool,
+    /// When the certificate was first issued (ISO 8601 UTC); a later
+    /// `record cert` prints a copy that says so.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub issued_utc: Option<String>,
 }
 
 /// The calibration record.
@@ -568,11 +577,33 @@ impl Record {
         self.outcome.as_deref() == Some(OUTCOME_APPLIED)
             && self.verification.kind == KIND_FRESH
             && self.verification.is_verified()
-            && self.decision.is_some()
+            && self
+                .decision
+                .as_ref()
+                .is_some_and(|d| d.verdict == crate::conformity::Verdict::Pass)
+            && self.frame_beyond_tolerance().is_none()
             && self
                 .certification
                 .as_ref()
                 .is_some_and(|c| c.config.is_some())
+    }
+
+    /// A significant frame error of the reference (a tracker tilt) larger
+    /// than the decision's tolerance, in words: the tracker's planes the
+    /// verification rests on are then off by more than what it decides.
+    pub fn frame_beyond_tolerance(&self) -> Option<String> {
+        let tol = self.decision.as_ref()?.tolerance_deg;
+        self.frames.as_ref()?.errors.iter().find_map(|e| {
+            let (v, sd) = (e.value?, e.sigma.unwrap_or(0.0));
+            let deg = (v.abs() * 1e-6).to_degrees();
+            (e.significant && e.unit == "µrad" && deg > tol).then(|| {
+                format!(
+                    "{} = {v:.0} ± {sd:.0} µrad ({deg:.4}°) is beyond the tolerance {tol}°: \
+                     the reference is mis-registered; re-register the tracker and run again",
+                    e.name
+                )
+            })
+        })
     }
 
     /// The outcome in words, for people.

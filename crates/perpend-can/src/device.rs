@@ -13,6 +13,9 @@
 //! Limits: one SDO server, four TPDOs, one RPDO (fixed mapping), no node
 //! guarding / RTR, no SYNC producer, no TIME, fixed SYNC COB-ID 0x80.
 
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
+
 use perpend_core::head::Sensor;
 use perpend_core::params::Params;
 
@@ -258,6 +261,57 @@ pub fn image_as_layout(img: &[u8; IMAGE_LEN], layout: u8, out: &mut [u8; IMAGE_L
     q
 }
 
+/// A TPDO mapping resolved to value slots: what [`Core::tpdo_frame`] needs
+/// of the dictionary, found once for the mapping words `words` (sub 0..=8
+/// of 0x1A0x; resolving is a function of them alone).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct PdoMap {
+    words: [u32; MAX_MAPPED + 1],
+    /// Mapped entries.
+    n: u8,
+    /// Payload bytes; 0: the mapping is empty or unusable (nothing sent).
+    len: u8,
+    slots: [u16; MAX_MAPPED],
+    /// The mapped length's mask of each value.
+    masks: [u32; MAX_MAPPED],
+    /// Where each value starts in the payload \[bits\].
+    shifts: [u8; MAX_MAPPED],
+}
+
+impl PdoMap {
+    /// The slots of `words` (as [`Core::map_target`] checks them: a
+    /// mapping with an unmappable entry, or longer than 8 bytes, is
+    /// unusable).
+    #[cold]
+    fn resolve(words: &[u32]) -> Self {
+        let mut m = PdoMap::default();
+        for (w, &v) in m.words.iter_mut().zip(words) {
+            *w = v;
+        }
+        let words = m.words;
+        let n = (words[0] as usize).min(MAX_MAPPED);
+        let mut len = 0usize;
+        for (i, &w) in words[1..=n].iter().enumerate() {
+            let Ok((s, bits)) = Core::map_target(w) else {
+                return m;
+            };
+            let at = len;
+            len += usize::from(bits) / 8;
+            if len > 8 {
+                return m;
+            }
+            m.slots[i] = s as u16;
+            m.masks[i] = u32::MAX
+                .checked_shr(32u32.saturating_sub(u32::from(bits)))
+                .unwrap_or(0);
+            m.shifts[i] = 8 * at as u8;
+        }
+        m.n = n as u8;
+        m.len = len as u8;
+        m
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 struct TpdoRt {
     sync_count: u8,
@@ -288,6 +342,8 @@ struct Core {
     /// division a second, not one a poll).
     uptime_next_us: u64,
     tpdo: [TpdoRt; TPDOS],
+    /// The TPDO mappings resolved (a cache of the dictionary lookups).
+    pdo_maps: [PdoMap; TPDOS],
     active: [(u16, u8); MAX_ACTIVE_ERRORS],
     n_active: usize,
     /// Codes beyond `active`: the bucket and the lost ones.
@@ -309,6 +365,38 @@ struct Core {
     rom_loader_locked: bool,
 }
 
+/// Every field of [`Core`]: a field added to it stops this from compiling
+/// until it is written by [`Device::init`] too (which builds a `Core` in
+/// place, field by field).
+#[allow(dead_code)]
+fn core_fields(c: Core) {
+    let Core {
+        defaults: _,
+        node_id: _,
+        values: _,
+        boot: _,
+        state: _,
+        unlocked: _,
+        hb_next: _,
+        hb_restart: _,
+        uptime_next_us: _,
+        tpdo: _,
+        pdo_maps: _,
+        active: _,
+        n_active: _,
+        overflow: _,
+        emcy_queue: _,
+        emcy_len: _,
+        emcy_last_tx: _,
+        request: _,
+        events: _,
+        config_gen: _,
+        syncs: _,
+        hb_cons: _,
+        rom_loader_locked: _,
+    } = c;
+}
+
 /// A CANopen device (CiA 301 subset) holding the perpend object
 /// dictionary. See the crate documentation for the behaviour contract.
 #[derive(Debug, Clone)]
@@ -317,6 +405,86 @@ pub struct Device {
     sdo: SdoServer,
     /// LSS slave (`device_lss.rs`).
     lss: lss_glue::LssRt,
+}
+
+/// The calibration and configuration objects of a set of object values:
+/// the device's own ([`Device::objects`]) or those a stored image would
+/// leave ([`Device::staged_objects`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Objects<'a> {
+    values: &'a [u32; ENTRIES],
+    node_id: u8,
+}
+
+impl Objects<'_> {
+    fn get(&self, index: u16, sub: u8) -> u32 {
+        slot(index, sub).map_or(0, |s| self.values[s])
+    }
+
+    fn get_f32(&self, index: u16, sub: u8) -> f32 {
+        f32::from_bits(self.get(index, sub))
+    }
+
+    /// The node-id active with these values.
+    pub fn node_id(&self) -> u8 {
+        self.node_id
+    }
+
+    /// Calibration of sensor `i` (0-based; `None` beyond 3): 0x2101 + i.
+    pub fn calibration(&self, i: usize) -> Option<SensorCalibration> {
+        if i >= 4 {
+            return None;
+        }
+        let idx = 0x2101 + i as u16;
+        let a: [f32; CAL_VALUES] = core::array::from_fn(|k| self.get_f32(idx, k as u8 + 1));
+        Some(SensorCalibration::from_array(&a))
+    }
+
+    /// Transfer function of sensor `i` (0-based): 0x2201 + i.
+    pub fn transfer(&self, i: usize) -> Option<TransferFunction> {
+        if i >= 4 {
+            return None;
+        }
+        let idx = 0x2201 + i as u16;
+        Some(TransferFunction {
+            kind: self.get(idx, 1) as u8,
+            scale: self.get_f32(idx, 2),
+            mm_at_low: self.get_f32(idx, 3),
+            mm_at_high: self.get_f32(idx, 4),
+        })
+    }
+
+    /// Surface model 0x2310 (issue 14).
+    pub fn surface(&self) -> SurfaceModel {
+        SurfaceModel {
+            model: self.get(0x2310, 1) as u8,
+            radius_mm: self.get_f32(0x2310, 2),
+            axis: core::array::from_fn(|k| self.get_f32(0x2310, k as u8 + 3)),
+        }
+    }
+
+    /// The head's thermal time constant 0x2105 \[s\] (0 = no lag).
+    pub fn thermal_tau_s(&self) -> f32 {
+        self.get_f32(0x2105, 0)
+    }
+
+    /// Acquisition settings 0x2300.
+    pub fn acquisition(&self) -> Acquisition {
+        Acquisition {
+            period_us: self.get(0x2300, 1),
+            oversampling: self.get(0x2300, 2) as u16,
+            method: self.get(0x2300, 3) as u8,
+            residual_limit_mm: self.get_f32(0x2300, 4),
+        }
+    }
+
+    /// Communication settings 0x2400 as configured.
+    pub fn communication(&self) -> Communication {
+        Communication {
+            node_id: self.get(0x2400, 1) as u8,
+            bit_rate_kbps: self.get(0x2400, 2) as u16,
+        }
+    }
 }
 
 /// Whether the linearity table held in subs 16..23 of a sensor calibration
@@ -608,29 +776,43 @@ impl Core {
     /// empty (sub 0 = 0: an empty PDO is never sent).
     /// (Hot path of every SYNC: the mapping's subs 0..=8 are consecutive
     /// slots, read directly.)
-    fn tpdo_frame(&self, k: usize) -> Option<Frame> {
-        let base = slot(0x1A00 + k as u16, 0)?;
-        let map = self.values.get(base..=base + MAX_MAPPED)?;
-        let n = (map[0] as usize).min(MAX_MAPPED);
-        if n == 0 {
+    /// The mapping words are resolved to value slots once per mapping
+    /// ([`PdoMap`], keyed by the words themselves: no dictionary lookup on
+    /// a SYNC while the mapping stays, issue 50 item 8).
+    fn tpdo_frame(&mut self, k: usize) -> Option<Frame> {
+        let base = *TPDO_MAP.get(k)?;
+        let words = self.values.get(base..=base + MAX_MAPPED)?;
+        let cached = self.pdo_maps.get_mut(k)?;
+        // The count and the mapped words (resolving reads no others),
+        // word by word, OR-reduced: an equality test of the arrays became
+        // a byte-wise `memcmp` (≈ 250 instructions a TPDO).
+        let n = (words[0] as usize).min(MAX_MAPPED);
+        let mut diff = 0u32;
+        for (a, b) in cached.words.iter().zip(words).take(n + 1) {
+            diff |= a ^ b;
+        }
+        if diff != 0 {
+            *cached = PdoMap::resolve(words);
+        }
+        let m = &*cached;
+        if m.len == 0 {
             return None;
         }
-        // The payload little-endian in one u64 (no byte copies).
+        // The payload little-endian in one u64, each value masked and
+        // shifted as resolved; the frame built as it is (no copy of a
+        // slice of it: a `memcpy` call).
         let mut acc = 0u64;
-        let mut len = 0usize;
-        for &m in &map[1..=n] {
-            let (s, bits) = Self::map_target(m).ok()?;
-            let bytes = bits as usize / 8;
-            if len + bytes > 8 {
-                return None;
-            }
-            let mask = (1u64 << bits) - 1;
-            acc |= (u64::from(*self.values.get(s)?) & mask) << (8 * len);
-            len += bytes;
+        for i in 0..usize::from(m.n).min(MAX_MAPPED) {
+            let v = self.values.get(usize::from(m.slots[i])).copied()? & m.masks[i];
+            acc |= u64::from(v) << m.shifts[i];
         }
-        let data = acc.to_le_bytes();
-        let id = (self.get(0x1800 + k as u16, 1) & 0x7FF) as u16;
-        Some(Frame::new(id, &data[..len]))
+        let id = (self.values.get(TPDO_COB[k]).copied().unwrap_or(0) & 0x7FF) as u16;
+        Some(Frame {
+            id,
+            rtr: false,
+            len: m.len,
+            data: acc.to_le_bytes(),
+        })
     }
 
     /// The deadband (0x2009) of a mapped REAL32 object, if it has one.
@@ -1324,6 +1506,31 @@ impl Device {
     /// application may call [`Device::load_image`] before the first
     /// [`Device::poll`], which sends the boot-up message.
     pub fn new(node_id: u8, defaults: &Defaults) -> Self {
+        let mut slot = MaybeUninit::uninit();
+        Device::init(&mut slot, node_id, defaults);
+        // SAFETY: `init` wrote every field.
+        unsafe { slot.assume_init() }
+    }
+
+    /// Makes this device what [`Device::new`] with these arguments makes,
+    /// in place (no device-sized temporary on the stack).
+    pub fn reinit(&mut self, node_id: u8, defaults: &Defaults) {
+        const { assert!(!core::mem::needs_drop::<Device>()) };
+        // SAFETY: `MaybeUninit<Device>` has the layout of `Device`;
+        // `init` writes a complete, valid device, and the old one needs
+        // no drop (asserted above).
+        let slot = unsafe { &mut *(self as *mut Device).cast::<MaybeUninit<Device>>() };
+        Device::init(slot, node_id, defaults);
+    }
+
+    /// [`Device::new`] built in place in `slot` (a static, for the
+    /// firmware): no copy of the device (≈ 4.8 KiB) passes through a stack
+    /// frame (issue 50 item 6). Returns the device.
+    pub fn init<'a>(
+        slot: &'a mut MaybeUninit<Device>,
+        node_id: u8,
+        defaults: &Defaults,
+    ) -> &'a mut Device {
         // 0xFF: a non-configured node (CiA 305), waiting for LSS.
         let unconfigured = node_id == crate::lss::UNCONFIGURED;
         let node_id = if (1..=127).contains(&node_id) {
@@ -1331,42 +1538,51 @@ impl Device {
         } else {
             1
         };
-        let mut core = Core {
-            defaults: *defaults,
-            node_id,
-            values: [0; ENTRIES],
-            boot: [0; ENTRIES],
-            state: NmtState::Initialising,
-            unlocked: false,
-            hb_next: None,
-            hb_restart: true,
-            uptime_next_us: 0,
-            tpdo: [TpdoRt::default(); TPDOS],
-            active: [(0, 0); MAX_ACTIVE_ERRORS],
-            n_active: 0,
-            overflow: Overflow::default(),
-            emcy_queue: [[0; 8]; EMCY_QUEUE],
-            emcy_len: 0,
-            emcy_last_tx: None,
-            request: None,
-            events: 0,
-            config_gen: 0,
-            syncs: SyncRt::default(),
-            hb_cons: [HbMonitor::default(); HB_CONSUMERS],
-            rom_loader_locked: false,
-        };
+        let d = slot.as_mut_ptr();
+        // SAFETY: every field of `Device`, of its `Core` and of its
+        // `SdoServer` is written once through a raw pointer into `slot`
+        // (never read before); the arrays are zeroed in place (all-zero
+        // is a valid `[u32; N]` / `[u8; N]`). `Core`'s fields are listed
+        // in `core_fields`, which stops compiling when one is added.
+        unsafe {
+            let c = addr_of_mut!((*d).core);
+            addr_of_mut!((*c).defaults).write(*defaults);
+            addr_of_mut!((*c).node_id).write(node_id);
+            addr_of_mut!((*c).values).write_bytes(0, 1);
+            addr_of_mut!((*c).boot).write_bytes(0, 1);
+            addr_of_mut!((*c).state).write(NmtState::Initialising);
+            addr_of_mut!((*c).unlocked).write(false);
+            addr_of_mut!((*c).hb_next).write(None);
+            addr_of_mut!((*c).hb_restart).write(true);
+            addr_of_mut!((*c).uptime_next_us).write(0);
+            addr_of_mut!((*c).tpdo).write([TpdoRt::default(); TPDOS]);
+            addr_of_mut!((*c).pdo_maps).write([PdoMap::default(); TPDOS]);
+            addr_of_mut!((*c).active).write([(0, 0); MAX_ACTIVE_ERRORS]);
+            addr_of_mut!((*c).n_active).write(0);
+            addr_of_mut!((*c).overflow).write(Overflow::default());
+            addr_of_mut!((*c).emcy_queue).write([[0; 8]; EMCY_QUEUE]);
+            addr_of_mut!((*c).emcy_len).write(0);
+            addr_of_mut!((*c).emcy_last_tx).write(None);
+            addr_of_mut!((*c).request).write(None);
+            addr_of_mut!((*c).events).write(0);
+            addr_of_mut!((*c).config_gen).write(0);
+            addr_of_mut!((*c).syncs).write(SyncRt::default());
+            addr_of_mut!((*c).hb_cons).write([HbMonitor::default(); HB_CONSUMERS]);
+            addr_of_mut!((*c).rom_loader_locked).write(false);
+            SdoServer::init(addr_of_mut!((*d).sdo), defaults.sdo_timeout_us);
+            addr_of_mut!((*d).lss).write(lss_glue::LssRt::default());
+        }
+        // SAFETY: initialised above.
+        let dev = unsafe { slot.assume_init_mut() };
+        let core = &mut dev.core;
         for (s, _, e) in od::entries() {
             core.values[s] = core.init_value(e, node_id);
         }
         if unconfigured {
             core.set(0x2400, 1, u32::from(crate::lss::UNCONFIGURED));
         }
-        core.boot = core.values;
-        Self {
-            sdo: SdoServer::new(defaults.sdo_timeout_us),
-            core,
-            lss: lss_glue::LssRt::default(),
-        }
+        core.boot.copy_from_slice(&core.values);
+        dev
     }
 
     // ------------------------------------------------------------------
@@ -1557,19 +1773,34 @@ impl Device {
     /// deadbands of 0x2009): type 0 is sent at the next SYNC, 254/255 at the
     /// next poll after the inhibit time.
     pub fn set_measurement(&mut self, m: &Measurement) {
+        // Compile-time slots (a lookup each cost ≈ 15 instructions a
+        // sample, issue 50 item 8).
+        const NORMAL: usize = od::slot_of(0x2001, 1);
+        const ANGLES: usize = od::slot_of(0x2002, 1);
+        const ATTITUDE: usize = od::slot_of(0x2003, 1);
+        const DISTANCES: usize = od::slot_of(0x2004, 1);
+        const STATUS: usize = od::slot_of(0x2005, 0);
+        const RMS: usize = od::slot_of(0x2006, 0);
+        const COUNTER: usize = od::slot_of(0x2007, 0);
         let c = &mut self.core;
-        c.set_run(0x2001, 1, &m.normal.map(f32::to_bits));
-        c.set_run(
-            0x2002,
-            1,
-            &[m.theta1_deg, m.theta2_deg, m.theta_deg].map(f32::to_bits),
-        );
-        c.set_run(0x2003, 1, &[m.pitch_deg, m.yaw_deg].map(f32::to_bits));
-        c.set_run(0x2004, 1, &m.distances_mm.map(f32::to_bits));
-        c.set(0x2005, 0, m.status);
-        c.set(0x2006, 0, m.rms_mm.to_bits());
-        let n = c.get(0x2007, 0).wrapping_add(1);
-        c.set(0x2007, 0, n);
+        let mut put = |s: usize, v: &[f32]| {
+            if let Some(dst) = c.values.get_mut(s..s + v.len()) {
+                for (d, x) in dst.iter_mut().zip(v) {
+                    *d = x.to_bits();
+                }
+            }
+        };
+        put(NORMAL, &m.normal);
+        put(ANGLES, &[m.theta1_deg, m.theta2_deg, m.theta_deg]);
+        put(ATTITUDE, &[m.pitch_deg, m.yaw_deg]);
+        put(DISTANCES, &m.distances_mm);
+        put(RMS, &[m.rms_mm]);
+        if let Some(v) = c.values.get_mut(STATUS) {
+            *v = m.status;
+        }
+        if let Some(v) = c.values.get_mut(COUNTER) {
+            *v = v.wrapping_add(1);
+        }
         c.mark_changed_tpdos();
     }
 
@@ -1680,61 +1911,43 @@ impl Device {
     // ------------------------------------------------------------------
     // Application side: calibration and configuration
 
+    /// The calibration and configuration objects as they are now.
+    pub fn objects(&self) -> Objects<'_> {
+        Objects {
+            values: &self.core.values,
+            node_id: self.core.node_id,
+        }
+    }
+
     /// Calibration of sensor `i` (0-based; `None` beyond 3): 0x2101 + i.
     pub fn calibration(&self, i: usize) -> Option<SensorCalibration> {
-        if i >= 4 {
-            return None;
-        }
-        let idx = 0x2101 + i as u16;
-        let a: [f32; CAL_VALUES] = core::array::from_fn(|k| self.core.get_f32(idx, k as u8 + 1));
-        Some(SensorCalibration::from_array(&a))
+        self.objects().calibration(i)
     }
 
     /// Transfer function of sensor `i` (0-based): 0x2201 + i.
     pub fn transfer(&self, i: usize) -> Option<TransferFunction> {
-        if i >= 4 {
-            return None;
-        }
-        let idx = 0x2201 + i as u16;
-        Some(TransferFunction {
-            kind: self.core.get(idx, 1) as u8,
-            scale: self.core.get_f32(idx, 2),
-            mm_at_low: self.core.get_f32(idx, 3),
-            mm_at_high: self.core.get_f32(idx, 4),
-        })
+        self.objects().transfer(i)
     }
 
     /// Surface model 0x2310 (issue 14).
     pub fn surface(&self) -> SurfaceModel {
-        SurfaceModel {
-            model: self.core.get(0x2310, 1) as u8,
-            radius_mm: self.core.get_f32(0x2310, 2),
-            axis: core::array::from_fn(|k| self.core.get_f32(0x2310, k as u8 + 3)),
-        }
+        self.objects().surface()
     }
 
     /// The head's thermal time constant 0x2105 \[s\] (0 = no lag).
     pub fn thermal_tau_s(&self) -> f32 {
-        self.core.get_f32(0x2105, 0)
+        self.objects().thermal_tau_s()
     }
 
     /// Acquisition settings 0x2300.
     pub fn acquisition(&self) -> Acquisition {
-        Acquisition {
-            period_us: self.core.get(0x2300, 1),
-            oversampling: self.core.get(0x2300, 2) as u16,
-            method: self.core.get(0x2300, 3) as u8,
-            residual_limit_mm: self.core.get_f32(0x2300, 4),
-        }
+        self.objects().acquisition()
     }
 
     /// Communication settings 0x2400 as configured (they become active at
     /// the next reset; the active node-id is [`Device::node_id`]).
     pub fn communication(&self) -> Communication {
-        Communication {
-            node_id: self.core.get(0x2400, 1) as u8,
-            bit_rate_kbps: self.core.get(0x2400, 2) as u16,
-        }
+        self.objects().communication()
     }
 
     /// Whether the calibration objects still hold the defaults' head
@@ -1806,6 +2019,12 @@ impl Device {
     #[inline]
     pub fn emcy_active(&self, code: u16) -> bool {
         self.core.is_active(code)
+    }
+
+    /// Whether any emergency is active (recorded, or in the overflow
+    /// bucket).
+    pub fn any_emcy_active(&self) -> bool {
+        self.core.n_active != 0 || self.core.overflow != Overflow::default()
     }
 
     /// Error register 0x1001.
@@ -1975,18 +2194,10 @@ impl Device {
         }
     }
 
-    /// Loads a stored image (normally before the first poll): every value
-    /// is checked against its object's rules first; on success the values
-    /// become both current and power-on values and a node-id stored in
-    /// 0x2400 becomes active. An image of layout 1 ([`IMAGE_LEN_V1`]
-    /// bytes, written before issue 16) or 2 ([`IMAGE_LEN_V2`], before the
-    /// surface model 0x2310) loads too: the entries added since keep their
-    /// current values.
-    ///
-    /// # Errors
-    /// [`Error::ImageLength`], [`Error::ImageLayout`], [`Error::Value`];
-    /// the device is unchanged.
-    pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
+    /// Checks `img` as [`Device::load_image`] does and overlays the
+    /// values it holds on `next` (the entries an older layout lacks keep
+    /// what `next` holds).
+    fn image_values(&self, img: &[u8], next: &mut [u32; ENTRIES]) -> Result<(), Error> {
         let layout = match img.len() {
             IMAGE_LEN => od::LAYOUT,
             IMAGE_LEN_V7 => 7,
@@ -2023,7 +2234,6 @@ impl Device {
                 p += 4;
             }
         }
-        let mut next = self.core.values;
         let mut p = 8;
         for (s, _, e) in od::entries() {
             if held(e) {
@@ -2031,7 +2241,7 @@ impl Device {
                 p += 4;
             }
         }
-        tables_ok(&next)?;
+        tables_ok(next)?;
         for k in 0..TPDOS {
             let base = od::find(0x1A00 + k as u16, 0).map(|(s, _)| s).unwrap_or(0);
             let n = next[base] as usize;
@@ -2043,6 +2253,52 @@ impl Device {
                 });
             }
         }
+        Ok(())
+    }
+
+    /// The calibration and configuration objects as they would be after
+    /// [`Device::load_image`] of `img`, held in `buf`; the device is
+    /// unchanged. How the board derives the record it stores from the
+    /// image it stores without a copy of the device (≈ 4.8 KiB of stack,
+    /// issue 50 item 6): `buf` is a quarter of that.
+    ///
+    /// # Errors
+    /// As [`Device::load_image`].
+    pub fn staged_objects<'a>(
+        &self,
+        img: &[u8],
+        buf: &'a mut [u32; ENTRIES],
+    ) -> Result<Objects<'a>, Error> {
+        buf.copy_from_slice(&self.core.values);
+        self.image_values(img, buf)?;
+        // The node-id `load_image` makes active (`Core::apply_node_id`).
+        let configured = slot(0x2400, 1).map_or(0, |s| buf[s]);
+        let node_id = if (1..=127).contains(&configured) {
+            configured as u8
+        } else {
+            self.core.node_id
+        };
+        Ok(Objects {
+            values: buf,
+            node_id,
+        })
+    }
+
+    /// Loads a stored image (normally before the first poll): every value
+    /// is checked against its object's rules first; on success the values
+    /// become both current and power-on values and a node-id stored in
+    /// 0x2400 becomes active. An image of layout 1 ([`IMAGE_LEN_V1`]
+    /// bytes, written before issue 16) or 2 ([`IMAGE_LEN_V2`], before the
+    /// surface model 0x2310) loads too: the entries added since keep their
+    /// current values.
+    ///
+    /// # Errors
+    /// [`Error::ImageLength`], [`Error::ImageLayout`], [`Error::Value`];
+    /// the device is unchanged.
+    #[inline(never)] // its copy of the values stays out of the caller's frame
+    pub fn load_image(&mut self, img: &[u8]) -> Result<(), Error> {
+        let mut next = self.core.values;
+        self.image_values(img, &mut next)?;
         for (s, _, e) in od::entries() {
             if e.persist {
                 self.core.values[s] = next[s];
@@ -2062,7 +2318,7 @@ mod lss_glue;
 
 #[path = "device_sync.rs"]
 mod sync;
-use sync::{HbMonitor, SyncRt, TPDO_COB, TPDO_TYPE};
+use sync::{HbMonitor, SyncRt, TPDO_COB, TPDO_MAP, TPDO_TYPE};
 pub use sync::{EMCY_HEARTBEAT, EMCY_PDO_LENGTH, EMCY_SYNC_LENGTH};
 
 #[cfg(test)]

@@ -89,6 +89,12 @@ pub(super) const TPDO_COB: [usize; TPDOS] = [
     slot_of(0x1802, 1),
     slot_of(0x1803, 1),
 ];
+pub(super) const TPDO_MAP: [usize; TPDOS] = [
+    slot_of(0x1A00, 0),
+    slot_of(0x1A01, 0),
+    slot_of(0x1A02, 0),
+    slot_of(0x1A03, 0),
+];
 pub(super) const TPDO_TYPE: [usize; TPDOS] = [
     slot_of(0x1800, 2),
     slot_of(0x1801, 2),

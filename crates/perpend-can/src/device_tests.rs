@@ -1933,3 +1933,120 @@ fn program_download_objects() {
     let r = b.sdo([0xC6, 0x50, 0x1F, 1, 20, 0, 0, 0]).unwrap();
     assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 0x0800_0022);
 }
+
+/// Every object [`Objects`] reads, of two views.
+fn objects_eq(a: &Objects<'_>, b: &Objects<'_>) {
+    for i in 0..4 {
+        assert_eq!(a.calibration(i), b.calibration(i), "0x{:04X}", 0x2101 + i);
+        assert_eq!(a.transfer(i), b.transfer(i), "0x{:04X}", 0x2201 + i);
+    }
+    assert_eq!(a.surface(), b.surface());
+    assert_eq!(a.acquisition(), b.acquisition());
+    assert_eq!(a.communication(), b.communication());
+    assert_eq!(a.thermal_tau_s().to_bits(), b.thermal_tau_s().to_bits());
+    assert_eq!(a.node_id(), b.node_id());
+}
+
+#[test]
+fn staged_objects_are_those_of_a_device_that_loaded_the_image() {
+    // A device whose stored image differs from its current values in
+    // calibration, acquisition and node-id, as a store of the
+    // application group would leave it (issue 50 item 6: the record is
+    // derived from these objects, without a copy of the device).
+    let mut b = Bus::new();
+    b.write_u32(0x2010, 0, od::UNLOCK_SIGNATURE).unwrap();
+    b.write_f32(0x2102, 3, -4.25).unwrap();
+    b.write_u32(0x2300, 1, 4000).unwrap();
+    b.download(0x2400, 1, &[0x22]).unwrap();
+    assert_eq!(b.write_u32(0x1010, 3, od::SAVE_SIGNATURE), Err(0));
+    let mut img = [0u8; IMAGE_LEN];
+    b.dev.persistent_image(&mut img);
+    let mut buf = [0u32; ENTRIES];
+    let staged = b.dev.staged_objects(&img, &mut buf).unwrap();
+    let mut copy = b.dev.clone();
+    copy.load_image(&img).unwrap();
+    objects_eq(&staged, &copy.objects());
+    // The application group is stored, 0x2400 with it: staged, the
+    // configured node-id is the active one; the device itself is
+    // unchanged.
+    assert_eq!(staged.node_id(), 0x22);
+    assert_eq!(b.dev.node_id(), NODE);
+    assert_eq!(staged.acquisition().period_us, 4000);
+    // A non-configured node (0xFF) keeps the active node-id, as a load
+    // does.
+    let d = Device::new(crate::lss::UNCONFIGURED, &Defaults::nominal());
+    d.persistent_image(&mut img);
+    let staged = d.staged_objects(&img, &mut buf).unwrap();
+    let mut copy = d.clone();
+    copy.load_image(&img).unwrap();
+    objects_eq(&staged, &copy.objects());
+    // A bad image is refused as `load_image` refuses it.
+    let mut bad = img;
+    bad[0] ^= 1;
+    assert_eq!(
+        d.staged_objects(&bad, &mut buf).map(|_| ()),
+        copy.load_image(&bad)
+    );
+}
+
+#[test]
+fn a_device_built_in_place_or_reinitialised_is_a_new_one() {
+    let new = Device::new(NODE, &Defaults::nominal());
+    let mut slot = MaybeUninit::uninit();
+    let placed = Device::init(&mut slot, NODE, &Defaults::nominal());
+    let mut a = [0u8; IMAGE_LEN];
+    let mut b = [0u8; IMAGE_LEN];
+    new.persistent_image(&mut a);
+    placed.persistent_image(&mut b);
+    assert_eq!(a, b);
+    assert_eq!(placed.core.values, new.core.values);
+    assert_eq!(placed.core.boot, new.core.boot);
+    assert_eq!(placed.sdo, new.sdo);
+    // A device that booted, was configured and is mid-transfer, reset in
+    // place: the same as a new one (state, values, SDO server).
+    let mut bus = Bus::new();
+    bus.write_u32(0x2300, 1, 9000).unwrap();
+    bus.nmt(0x01, 0);
+    // A segmented upload of the device name (0x1008) left open.
+    bus.sdo([0x40, 0x08, 0x10, 0, 0, 0, 0, 0]);
+    assert_ne!(bus.dev.sdo, new.sdo);
+    bus.dev.reinit(NODE, &Defaults::nominal());
+    assert_eq!(bus.dev.nmt_state(), NmtState::Initialising);
+    assert_eq!(bus.dev.core.values, new.core.values);
+    assert_eq!(bus.dev.sdo, new.sdo);
+    assert_eq!(bus.dev.lss, new.lss);
+    assert_eq!(bus.dev.config_generation(), new.config_generation());
+}
+
+/// The resolved mapping a SYNC uses follows a remap made after TPDOs were
+/// sent (the cache of issue 50 item 8 is keyed by the mapping words).
+#[test]
+fn a_remap_after_sending_is_followed() {
+    let mut b = Bus::new();
+    b.nmt(0x01, 0);
+    b.dev.set_measurement(&sample());
+    let before = b.sync();
+    assert_eq!(before[0].id, 0x190);
+    assert_eq!(before[0].len, 8);
+    b.nmt(0x80, 0);
+    b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+    b.download(0x1A00, 0, &[0]).unwrap();
+    b.write_u32(0x1A00, 1, od::mapping(0x2004, 1, 32)).unwrap();
+    b.download(0x1A00, 0, &[1]).unwrap();
+    b.write_u32(0x1800, 1, 0x4000_0190).unwrap();
+    b.nmt(0x01, 0);
+    let after = b.sync();
+    assert_eq!(after[0].id, 0x190);
+    assert_eq!(after[0].len, 4);
+    assert_eq!(after[0].payload(), &40.0f32.to_le_bytes());
+}
+
+#[test]
+fn any_emcy_active_follows_raise_and_clear() {
+    let mut d = Device::new(NODE, &Defaults::nominal());
+    assert!(!d.any_emcy_active());
+    d.signal_emcy(0x2111, error_register::CURRENT, [1, 0, 0, 0, 0]);
+    assert!(d.any_emcy_active());
+    d.clear_emcy(0x2111);
+    assert!(!d.any_emcy_active());
+}

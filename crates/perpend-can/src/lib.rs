@@ -187,6 +187,8 @@
 
 pub mod config;
 pub mod device;
+/// The EDS needs the objects' names (feature `names`).
+#[cfg(feature = "names")]
 pub mod eds;
 pub mod error;
 pub mod frame;
@@ -201,7 +203,7 @@ pub use config::{
     Acquisition, Communication, Defaults, Identity, Measurement, SensorCalibration, SurfaceModel,
     TransferFunction,
 };
-pub use device::{Device, Events, NmtState, Request, IMAGE_LEN};
+pub use device::{Device, Events, NmtState, Objects, Request, IMAGE_LEN};
 pub use error::Error;
 pub use frame::Frame;
 pub use sdo::SdoAbort;

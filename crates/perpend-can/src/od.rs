@@ -152,7 +152,7 @@ pub enum Init {
 pub struct Entry {
     /// Sub-index.
     pub sub: u8,
-    /// Name (ASCII, as in the EDS).
+    /// Name (ASCII, as in the EDS); "" without the feature `names`.
     pub name: &'static str,
     /// Data type.
     pub ty: DataType,
@@ -179,11 +179,21 @@ pub struct Entry {
     pub init: Init,
 }
 
+/// `name`, or "" in a build without the feature `names` (the firmware:
+/// the names serve only the EDS, ≈ 4 KB of flash, issue 50 item 7).
+const fn named(name: &'static str) -> &'static str {
+    if cfg!(feature = "names") {
+        name
+    } else {
+        ""
+    }
+}
+
 impl Entry {
     const fn new(sub: u8, name: &'static str, ty: DataType, access: Access, class: Class) -> Self {
         Self {
             sub,
-            name,
+            name: named(name),
             ty,
             access,
             class,
@@ -267,7 +277,7 @@ impl Kind {
 pub struct Object {
     /// Index.
     pub index: u16,
-    /// Name (ASCII, as in the EDS).
+    /// Name (ASCII, as in the EDS); "" without the feature `names`.
     pub name: &'static str,
     /// Object code.
     pub kind: Kind,
@@ -281,7 +291,7 @@ use DataType::{Domain, Real32, VisibleString, U16, U32, U8};
 const fn var(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
     Object {
         index,
-        name,
+        name: named(name),
         kind: Kind::Var,
         subs: e,
     }
@@ -289,7 +299,7 @@ const fn var(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
 const fn rec(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
     Object {
         index,
-        name,
+        name: named(name),
         kind: Kind::Record,
         subs: e,
     }
@@ -297,7 +307,7 @@ const fn rec(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
 const fn arr(index: u16, name: &'static str, e: &'static [Entry]) -> Object {
     Object {
         index,
-        name,
+        name: named(name),
         kind: Kind::Array,
         subs: e,
     }

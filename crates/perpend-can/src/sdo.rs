@@ -332,6 +332,36 @@ impl SdoServer {
         }
     }
 
+    /// [`SdoServer::new`] written in place at `dst` (the 889-byte buffer
+    /// zeroed there, not copied through a stack frame).
+    ///
+    /// # Safety
+    /// `dst` is valid for writes and aligned; what it held is overwritten
+    /// without being dropped.
+    pub(crate) unsafe fn init(dst: *mut SdoServer, timeout_us: u64) {
+        // SAFETY: the caller's guarantee; every field is written once
+        // (`SdoServer`'s fields are all listed: the struct literal in
+        // `new` fails to compile when one is added, and so does the
+        // pattern below).
+        unsafe {
+            core::ptr::addr_of_mut!((*dst).transfer).write(Transfer::Idle);
+            core::ptr::addr_of_mut!((*dst).resume).write(Transfer::Idle);
+            core::ptr::addr_of_mut!((*dst).timeout_us).write(timeout_us);
+            core::ptr::addr_of_mut!((*dst).now_us).write(0);
+            core::ptr::addr_of_mut!((*dst).buf).write_bytes(0, 1);
+        }
+        #[allow(dead_code)]
+        fn fields(s: SdoServer) {
+            let SdoServer {
+                transfer: _,
+                resume: _,
+                timeout_us: _,
+                now_us: _,
+                buf: _,
+            } = s;
+        }
+    }
+
     /// The data of the DOMAIN part last handed to the application
     /// ([`Dictionary::write_part`] answered [`Written::Deferred`]): the
     /// first `len` bytes of the transfer buffer.

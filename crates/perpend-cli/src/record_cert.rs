@@ -54,6 +54,35 @@ pub fn refusal(r: &Record) -> Option<String> {
         return None;
     }
     let outcome = r.outcome_words();
+    if r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_APPLIED) {
+        if let Some(why) = r.frame_beyond_tolerance() {
+            return Some(why);
+        }
+        if let Some(d) = r.decision.as_ref().filter(|d| d.verdict != Verdict::Pass) {
+            return Some(format!(
+                "the verification is {} against the tolerance {}°, not PASS{}",
+                d.verdict.word(),
+                d.tolerance_deg,
+                d.decide_by
+                    .as_ref()
+                    .map_or(String::new(), |by| format!(" ({by})"))
+            ));
+        }
+    }
+    if r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_FAILED_UNKNOWN) {
+        return Some(match &r.stamp {
+            Some(s) => format!(
+                "the board's state is unknown (outcome {outcome}): it may hold this calibration, \
+                 stored and stamped {} at {}, or the previous one; read its stamp (perpend node \
+                 info) before use",
+                s.record_hash, s.utc
+            ),
+            None => format!(
+                "the board's state is unknown (outcome {outcome}): read its stamp (perpend node \
+                 info) before use"
+            ),
+        });
+    }
     Some(match r.outcome.as_deref() {
         Some(perpend_calib::record::OUTCOME_APPLIED) if r.decision.is_some() => {
             "no cell configuration named the reference standard (the tracker's serial, \
@@ -119,9 +148,11 @@ fn document(r: &Record, not_cert: Option<&str>) -> String {
     let mut h = String::new();
     let c = r.certification.as_ref();
     let number = c.and_then(|c| c.number.as_deref()).unwrap_or("-");
+    let simulated = c.is_some_and(|c| c.simulated);
+    let sim = if simulated { " (SIMULATION)" } else { "" };
     let title = match not_cert {
-        None => format!("Calibration certificate No. {}", esc(number)),
-        Some(_) => "Calibration report (not a certificate)".into(),
+        None => format!("Calibration certificate No. {}{sim}", esc(number)),
+        Some(_) => format!("Calibration report (not a certificate){sim}"),
     };
     let _ = write!(
         h,
@@ -134,6 +165,13 @@ fn document(r: &Record, not_cert: Option<&str>) -> String {
             h,
             "<p class=\"banner\" id=\"not-a-certificate\">NOT A CERTIFICATE: {}.</p>",
             esc(why)
+        );
+    }
+    if simulated {
+        h.push_str(
+            "<p class=\"banner\" id=\"simulation\">SIMULATION: the datum planes were \
+             measured by a simulated tracker on a virtual board (--robot sim:); no real head \
+             was calibrated and no real reference standard was used.</p>",
         );
     }
     let _ = write!(
@@ -171,18 +209,29 @@ fn document(r: &Record, not_cert: Option<&str>) -> String {
 fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
     let d = r.decision.as_ref();
     let (word, class) = verdict_class(d);
-    let _ =
-        match not_cert {
-            false => write!(h, "<h2 class=\"{class}\" id=\"verdict\">{word}</h2>"),
-            true => {
-                write!(
-            h,
-            "<h2 class=\"open\" id=\"verdict\">Verification decision of a calibration that is \
-             not on the board: {}</h2>",
-            if d.is_some() { word.to_lowercase() } else { "none".into() }
-        )
-            }
-        };
+    let _ = match not_cert {
+        false => write!(h, "<h2 class=\"{class}\" id=\"verdict\">{word}</h2>"),
+        true => {
+            let of = match r.outcome.as_deref() {
+                Some(perpend_lab::record::OUTCOME_APPLIED) => {
+                    "of a calibration on the board, with no certificate"
+                }
+                Some(perpend_lab::record::OUTCOME_FAILED_UNKNOWN) => {
+                    "of a calibration the board may or may not hold"
+                }
+                _ => "of a calibration that is not on the board",
+            };
+            write!(
+                h,
+                "<h2 class=\"open\" id=\"verdict\">Verification decision {of}: {}</h2>",
+                if d.is_some() {
+                    word.to_lowercase()
+                } else {
+                    "none".into()
+                }
+            )
+        }
+    };
     match d {
         Some(d) => {
             let _ = write!(
@@ -263,7 +312,15 @@ fn doc_item(r: &Record, h: &mut String) {
             |[a, b]| format!("{a} to {b} (parameters fitted {})", r.utc),
         );
     row(h, "date of calibration (UTC)", &performed);
-    row(h, "date of issue (UTC)", &perpend_calib::record::utc_now());
+    let now = perpend_lab::record::utc_now();
+    let issued = match r.certification.as_ref().and_then(|c| c.issued_utc.as_ref()) {
+        Some(first) if first != &now => {
+            format!("{first} (this copy printed {now}: a copy of that issue, not a new one)")
+        }
+        Some(first) => first.clone(),
+        None => now,
+    };
+    row(h, "date of issue (UTC)", &issued);
     row(h, "tool", &r.tool_version);
     row(
         h,
@@ -338,6 +395,14 @@ fn doc_reference(r: &Record, h: &mut String) {
 
 fn doc_frames(r: &Record, h: &mut String) {
     let Some(f) = &r.frames else {
+        if r.decision.is_some() {
+            h.push_str(
+                "<h2>Frame errors</h2><p id=\"frames\">Not assessed: the run turned no joint \
+                 about the spindle axis (cell run --reversal), so a tilt of the tracker's frame \
+                 would be absorbed by the calibration and the verification alike (docs/frames.md).\
+                 </p>",
+            );
+        }
         return;
     };
     h.push_str(

@@ -29,7 +29,7 @@ use anyhow::{bail, Context as _, Result};
 use perpend_calib::interim::CheckRecord;
 use perpend_calib::record::{Record, KIND_CROSS_VALIDATED, KIND_EXPECTED_ONLY};
 
-use crate::record_fmt::{deg, epoch_s, esc, geometry, iso, opt_deg};
+use crate::record_fmt::{epoch_s, esc, geometry, iso, opt_deg};
 
 /// A slope is a trend when it exceeds this many of its 1σ.
 pub const TREND_SIGMAS: f64 = 2.0;
@@ -309,7 +309,17 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
         }
         Item::Check(c) => {
             let errors: Vec<f64> = c.decision.poses.iter().map(|p| p.error_deg).collect();
-            ("check", c.verdict.clone(), None, errors, true)
+            // A check of a board whose stamp is not the record's compared
+            // another calibration than the one it names: said with it.
+            let other = c
+                .against
+                .as_ref()
+                .is_some_and(|a| a.stamp.is_some() && a.stamp != c.board_stamp);
+            let verdict = match other {
+                true => format!("{} (board stamp is not the record's)", c.verdict),
+                false => c.verdict.clone(),
+            };
+            ("check", verdict, None, errors, true)
         }
     };
     let store_count = match item {
@@ -341,13 +351,18 @@ fn on_board_or_file(r: &Record) -> bool {
     )
 }
 
-/// Reads `files`, leaving out calibration records a cell record of the
+/// Reads `files`, leaving out a file whose bytes another one already
+/// holds (a copy counts once) and calibration records a cell record of the
 /// same parameter file supersedes.
 fn read_items(files: &[PathBuf]) -> Result<Vec<(PathBuf, Item)>> {
-    let items = files
-        .iter()
-        .map(|f| Ok((f.clone(), Item::read(f)?)))
-        .collect::<Result<Vec<_>>>()?;
+    let mut seen = std::collections::HashSet::new();
+    let mut items = Vec::new();
+    for f in files {
+        let bytes = std::fs::read(f).with_context(|| format!("{}: cannot read", f.display()))?;
+        if seen.insert(perpend_lab::record::sha256_hex(&bytes)) {
+            items.push((f.clone(), Item::read(f)?));
+        }
+    }
     let cell_outputs: Vec<String> = items
         .iter()
         .filter_map(|(_, i)| match i {
@@ -619,7 +634,11 @@ fn panel(h: &History, top: f64) -> String {
         .filter_map(|e| Some((e.t, e.p95_deg?, e.kind == "check")))
         .collect();
     let tmax = pts.iter().map(|p| p.0).fold(1.0, f64::max);
-    let line = h.verification.map(|l| (l.a, l.a + l.b * tmax));
+    // The trend line only where the text names a trend.
+    let line = h
+        .verification
+        .filter(|l| l.resolved())
+        .map(|l| (l.a, l.a + l.b * tmax));
     let ends = line.map_or(0.0, |(a, b)| a.max(b));
     let lows = line.map_or(0.0, |(a, b)| a.min(b));
     let ymax = pts
@@ -676,15 +695,11 @@ fn panel(h: &History, top: f64) -> String {
     }
     let _ = write!(
         s,
-        "<text x=\"{m}\" y=\"{:.1}\" font-size=\"12\">head {}: verified p95 [deg] ({} to {}) \
-         against {}s since {}</text>\
+        "<text x=\"{m}\" y=\"{:.1}\" font-size=\"12\">head {}: verified p95 [deg] since {}</text>\
          <text x=\"{m}\" y=\"{:.1}\" font-size=\"11\">dots: calibrations, squares: checks, \
          dashed: tolerance {} deg</text><text x=\"{m}\" y=\"{:.1}\" font-size=\"11\">{}</text>",
         top + 16.0,
         esc(h.serial.as_deref().unwrap_or("no board")),
-        deg(ymin),
-        deg(ymax),
-        esc(&h.unit),
         esc(h.entries.first().map_or("", |e| e.utc.as_str())),
         top + 30.0,
         esc(&h.tolerance_deg.to_string()),

@@ -267,7 +267,9 @@ fn rendered(cert: &std::path::Path, rec: &serde_json::Value) {
 /// (0.006° per axis), a 0.02° tolerance cannot be resolved: the errors
 /// (about 0.01°) plus U (about 0.013°) straddle it. The run applies the
 /// calibration (far better than before), decides INCONCLUSIVE, says what
-/// would decide it, and the certificate says the same.
+/// would decide it, exits non-zero and writes a report, not a
+/// certificate. A tolerance inside the tracker's own U (0.01°) is refused
+/// before the board is touched.
 #[test]
 fn a_tolerance_the_verification_cannot_resolve_is_inconclusive() {
     let dir = tempfile::tempdir().unwrap();
@@ -289,7 +291,14 @@ fn a_tolerance_the_verification_cannot_resolve_is_inconclusive() {
             .unwrap(),
     );
     let (status, out, err) = common::finish(run, 180);
-    assert!(status.success(), "{out}{err}");
+    assert!(!status.success(), "{out}{err}");
+    assert!(
+        err.contains(
+            "the calibration is applied (not worse than before) but its verification \
+             is INCONCLUSIVE, not PASS: no certificate"
+        ),
+        "{err}"
+    );
     let f = common::cell_json(d, "run");
     assert_eq!(f["outcome"], "applied", "{f}");
     assert_eq!(f["decision"], "INCONCLUSIVE", "{f}");
@@ -308,7 +317,37 @@ fn a_tolerance_the_verification_cannot_resolve_is_inconclusive() {
         serde_json::from_str(&std::fs::read_to_string(d.join("run/record.json")).unwrap()).unwrap();
     assert_eq!(rec["decision"]["verdict"], "INCONCLUSIVE");
     assert_eq!(rec["decision"]["decide_by"], f["decide_by"]);
-    let cert = std::fs::read_to_string(d.join("run/cert.html")).unwrap();
-    assert!(cert.contains("id=\"verdict\">INCONCLUSIVE</h2>"));
-    assert!(cert.contains("What would decide it"));
+    assert!(!d.join("run/cert.html").exists());
+    let report = std::fs::read_to_string(d.join("run/report.html")).unwrap();
+    assert!(report.contains("NOT A CERTIFICATE: the verification is INCONCLUSIVE"));
+    assert!(report.contains("of a calibration on the board, with no certificate: inconclusive"));
+    assert!(report.contains("What would decide it"));
+    assert!(report.contains("SIMULATION: the datum planes were measured by a simulated tracker"));
+    // Inside the tracker's U = 0.0118°: refused before anything changes.
+    let refused = Command::new(BIN)
+        .args(["--quiet", "cell", "run", "--node-id", "16"])
+        .args(["--bus", &format!("tcp:{bus}")])
+        .args(["--robot", &format!("sim:{world}")])
+        .args([
+            "--sensors",
+            "nominal.csv",
+            "--plan",
+            "plan.csv",
+            "--out",
+            "run2",
+        ])
+        .args(["--tolerance-deg", "0.01", "--config", "cell-config.json"])
+        .current_dir(d)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
+    assert!(
+        e.contains("the tolerance 0.01° is within the tracker's own expanded uncertainty"),
+        "{e}"
+    );
+    assert!(
+        !d.join("run2/previous.json").exists(),
+        "the board was touched"
+    );
 }

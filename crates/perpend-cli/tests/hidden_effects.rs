@@ -227,7 +227,10 @@ fn hidden_effects_are_named_from_the_files_alone() {
             continue;
         }
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
-        assert_eq!(keys.len(), 12, "{keys:?}"); // the eleven and `schema`
+        // The eleven and `schema`, and a `none`'s detection limits.
+        let limits = usize::from(d.effect == "none");
+        assert_eq!(keys.len(), 12 + limits, "{keys:?}");
+        assert_eq!(keys.contains(&"detection_limits"), limits == 1, "{keys:?}");
         assert!(d.folds >= 5, "seed {seed}: {} folds", d.folds);
         assert!(
             d.outlier_poses.is_empty(),

@@ -100,7 +100,9 @@ fn applied() -> Record {
         laboratory: Some("Metrology lab, 1 Plant Road, Town".into()),
         customer: None,
         performed_utc: Some(["2026-12-01T09:00:00Z".into(), "2026-12-01T10:05:00Z".into()]),
-        tracker: perpend_calib::cellconfig::paper_tracker("Tracker T1"),
+        simulated: false,
+        issued_utc: Some("2026-12-01T10:06:00Z".into()),
+        tracker: perpend_lab::cellconfig::paper_tracker("Tracker T1"),
         die_temp_c: [Some(31.5), Some(32.0)],
         ambient_c: Some(21.5),
         config: Some(FileHash {
@@ -134,6 +136,10 @@ fn the_certificate_is_well_formed_and_shows_the_records_figures() {
     assert!(html.contains("Metrology lab, 1 Plant Road, Town"));
     assert!(html.contains("none named (in-house)"));
     assert!(html.contains("2026-12-01T09:00:00Z to 2026-12-01T10:05:00Z (parameters fitted"));
+    // Printed again: the first issue's date, said to be a copy of it.
+    assert!(html.contains("2026-12-01T10:06:00Z (this copy printed"));
+    assert!(html.contains("Not assessed: the run turned no joint"));
+    assert!(!html.contains("SIMULATION"));
     let v = &r.verification;
     for x in [v.mean_deg, v.p95_deg, v.max_deg] {
         assert!(html.contains(&format!("<td>{}</td>", deg(x.unwrap()))));

@@ -55,7 +55,9 @@ pub(super) fn write_record(
         .with_board(&s.serial, &s.firmware)
         .with_previous(Previous::of(&s.previous)?);
     r.outcome = Some(report.outcome.word().into());
-    if report.outcome == Outcome::Applied {
+    // The stamp the run last wrote: on the board when applied, perhaps
+    // still there when the board's state is unknown (said as such).
+    if matches!(report.outcome, Outcome::Applied | Outcome::FailedUnknown) {
         r.stamp = s.stamp.clone();
     }
     if let Some(f) = &report.figures {
@@ -63,13 +65,24 @@ pub(super) fn write_record(
         r.decision = Some(f.decision.clone());
     }
     r.certification = Some(certification(s, &r.utc));
-    if !r.is_certifiable() {
-        if let Some(c) = r.certification.as_mut() {
+    let certifiable = r.is_certifiable();
+    if let Some(c) = r.certification.as_mut() {
+        c.simulated = a.m.simulated();
+        if certifiable {
+            c.issued_utc = Some(perpend_lab::record::utc_now());
+        } else {
             c.number = None;
         }
     }
     if let Some(c) = &report.first_cause {
         r.push_event(&format!("first cause: {c}"));
+    }
+    if let Some(st) = &s.stamp {
+        r.push_event(&format!(
+            "pushed: written, stored (0x1010), reset, read back identical; stamp {} stored {}, \
+             store #{}",
+            st.record_hash, st.utc, st.store_count
+        ));
     }
     r.push_event(&format!(
         "perpend cell run: {}: {}",
@@ -113,7 +126,9 @@ fn certification(s: &Session<'_>, utc: &str) -> perpend_calib::record::Certifica
         die_temp_c: s.die_temp_c,
         ambient_c: cfg.and_then(|c| c.0.ambient_c),
         config: cfg.map(|c| c.1.clone()),
-        performed_utc: Some([s.started_utc.clone(), perpend_calib::record::utc_now()]),
+        performed_utc: Some([s.started_utc.clone(), perpend_lab::record::utc_now()]),
+        simulated: false,
+        issued_utc: None,
     }
 }
 

@@ -182,7 +182,25 @@ pub(super) fn run_and_report(x: &RunArgs) -> Result<()> {
         );
     }
     println!("cell: {}: {}", report.outcome.word(), report.reason);
+    // --keep-worse: the operator chose to keep what is not shown good.
+    let undecided = report
+        .figures
+        .as_ref()
+        .map(|f| &f.decision)
+        .filter(|d| d.verdict != perpend_lab::conformity::Verdict::Pass && !x.keep_worse);
     match report.outcome {
+        // Applied (not worse than before) but not shown in tolerance: no
+        // certificate, and a script reading the exit code must not take
+        // it for a pass.
+        Outcome::Applied if undecided.is_some() => Err(anyhow!(
+            "the calibration is applied (not worse than before) but its verification is {}, \
+             not PASS: no certificate ({}); {}",
+            undecided.map_or("", |d| d.verdict.word()),
+            json.with_file_name("report.html").display(),
+            undecided
+                .and_then(|d| d.decide_by.clone())
+                .unwrap_or_else(|| "see the decision in record.json".into())
+        )),
         Outcome::Applied => Ok(()),
         Outcome::Reverted | Outcome::FailedRestored | Outcome::FailedUnknown => {
             let mut msg = report.first_cause.clone().unwrap_or_default();
