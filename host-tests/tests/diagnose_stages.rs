@@ -1,7 +1,7 @@
 //! `perpend diagnose` is one pass through stages in the order the data
 //! move, each entered once (issue 35).
 //!
-//! [`ORDER`] declares the files of the pass (`crates/perpend-lab/src/
+//! [`ORDER`] declares the files of the pass (`crates/perpend-diagnosis/src/
 //! diagnose/`) in the order a reader takes them: the toolbox first (the
 //! modules several stages call: the settings, the effect-free
 //! re-simulations, the calibrated decision; the statistics, folds, the
@@ -44,7 +44,7 @@ use std::collections::BTreeSet;
 use std::path::Path;
 
 /// The folder of the pass, relative to the workspace root.
-const DIR: &str = "crates/perpend-lab/src/diagnose/";
+const DIR: &str = "crates/perpend-diagnosis/src/diagnose/";
 
 /// What a file of the pass is.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -13,7 +13,7 @@
 //! normal of the pose's plane as given in the file.
 //!
 //! [`paired_normals`] compares two models' held-out normal errors pose by
-//! pose (the normal-cost test of `perpend_lab::diagnose::select`).
+//! pose (the normal-cost test of `perpend_diagnosis::diagnose::select`).
 //!
 //! Limits: a pose is predicted only by the fold that holds it out, so each
 //! reading gets exactly one held-out residual; poses with fewer than three

@@ -196,7 +196,7 @@ pub fn separable(poses: &PoseTable) -> bool {
 }
 
 /// What separates thermal from drift, in words (the report and
-/// `perpend_lab::diagnose::InseparableJson`).
+/// `perpend_diagnosis::diagnose::InseparableJson`).
 pub const SEPARATED_BY: &str =
     "a run continued past the warm-up's plateau, a run started warm (soaked), or a cool-down";
 

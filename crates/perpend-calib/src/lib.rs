@@ -1,5 +1,5 @@
 //! The calibration side of the host tool, as a library, above
-//! `perpend-formats` and below the diagnosis (`perpend-lab`): the
+//! `perpend-formats` and below the diagnosis (`perpend-diagnosis`): the
 //! simulator ([`sim`]), the calibration driver ([`calibrate`]) with the
 //! robust statistics every calibration runs and the diagnosis shares (the
 //! candidate models and their fits [`candidates`], outliers and the noise

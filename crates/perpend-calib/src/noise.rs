@@ -588,7 +588,7 @@ pub const AXES: [&str; 4] = [
 /// The index, after [`AXES`], of the structure z along the step from the
 /// channel converted before (the carry-over's regressor): computed for
 /// every model, but read only by the carry-over test of a named incidence
-/// (`perpend_lab::diagnose::select`, "Carry-over"), not by the structure test.
+/// (`perpend_diagnosis::diagnose::select`, "Carry-over"), not by the structure test.
 pub const STEP_AXIS: usize = AXES.len();
 
 /// The name of axis `x` of [`structure`]'s output.

@@ -580,7 +580,7 @@ impl Record {
             && self
                 .decision
                 .as_ref()
-                .is_some_and(|d| d.verdict == crate::conformity::Verdict::Pass)
+                .is_some_and(|d| d.verdict == perpend_formats::conformity::Verdict::Pass)
             && self.frame_beyond_tolerance().is_none()
             && self
                 .certification

@@ -4,7 +4,7 @@
 use clap::{Parser, Subcommand};
 use perpend_calib::{calibrate, measure, sim};
 use perpend_cli::{board, cell, demo, eds, node, record};
-use perpend_lab::{bench, diagnose};
+use perpend_diagnosis::{bench, diagnose};
 
 /// The conventions every command's output follows.
 const CONVENTIONS: &str = "\

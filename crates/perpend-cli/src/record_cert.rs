@@ -54,7 +54,7 @@ pub fn refusal(r: &Record) -> Option<String> {
         return None;
     }
     let outcome = r.outcome_words();
-    if r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_APPLIED) {
+    if r.outcome.as_deref() == Some(perpend_calib::record::OUTCOME_APPLIED) {
         if let Some(why) = r.frame_beyond_tolerance() {
             return Some(why);
         }
@@ -69,7 +69,7 @@ pub fn refusal(r: &Record) -> Option<String> {
             ));
         }
     }
-    if r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_FAILED_UNKNOWN) {
+    if r.outcome.as_deref() == Some(perpend_calib::record::OUTCOME_FAILED_UNKNOWN) {
         return Some(match &r.stamp {
             Some(s) => format!(
                 "the board's state is unknown (outcome {outcome}): it may hold this calibration, \
@@ -213,10 +213,10 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
         false => write!(h, "<h2 class=\"{class}\" id=\"verdict\">{word}</h2>"),
         true => {
             let of = match r.outcome.as_deref() {
-                Some(perpend_lab::record::OUTCOME_APPLIED) => {
+                Some(perpend_calib::record::OUTCOME_APPLIED) => {
                     "of a calibration on the board, with no certificate"
                 }
-                Some(perpend_lab::record::OUTCOME_FAILED_UNKNOWN) => {
+                Some(perpend_calib::record::OUTCOME_FAILED_UNKNOWN) => {
                     "of a calibration the board may or may not hold"
                 }
                 _ => "of a calibration that is not on the board",
@@ -312,7 +312,7 @@ fn doc_item(r: &Record, h: &mut String) {
             |[a, b]| format!("{a} to {b} (parameters fitted {})", r.utc),
         );
     row(h, "date of calibration (UTC)", &performed);
-    let now = perpend_lab::record::utc_now();
+    let now = perpend_calib::record::utc_now();
     let issued = match r.certification.as_ref().and_then(|c| c.issued_utc.as_ref()) {
         Some(first) if first != &now => {
             format!("{first} (this copy printed {now}: a copy of that issue, not a new one)")

@@ -359,7 +359,7 @@ fn read_items(files: &[PathBuf]) -> Result<Vec<(PathBuf, Item)>> {
     let mut items = Vec::new();
     for f in files {
         let bytes = std::fs::read(f).with_context(|| format!("{}: cannot read", f.display()))?;
-        if seen.insert(perpend_lab::record::sha256_hex(&bytes)) {
+        if seen.insert(perpend_calib::record::sha256_hex(&bytes)) {
             items.push((f.clone(), Item::read(f)?));
         }
     }

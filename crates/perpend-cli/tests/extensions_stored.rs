@@ -8,9 +8,9 @@
 use perpend_calib::candidates::{fit, line_angle_deg, Effect, Refs};
 use perpend_core::calib::{LsqConfig, Poses};
 use perpend_core::normal::{measure, Method};
+use perpend_diagnosis::diagnose::scenario::{generate, Hidden, Scenario};
 use perpend_formats::exchange::PoseTable;
 use perpend_formats::paramfile::{ParamFile, SensorParams};
-use perpend_lab::diagnose::scenario::{generate, Hidden, Scenario};
 
 fn split(p: &PoseTable, at: usize) -> (PoseTable, PoseTable) {
     let a = PoseTable {

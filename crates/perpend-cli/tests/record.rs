@@ -102,7 +102,7 @@ fn applied() -> Record {
         performed_utc: Some(["2026-12-01T09:00:00Z".into(), "2026-12-01T10:05:00Z".into()]),
         simulated: false,
         issued_utc: Some("2026-12-01T10:06:00Z".into()),
-        tracker: perpend_lab::cellconfig::paper_tracker("Tracker T1"),
+        tracker: perpend_calib::cellconfig::paper_tracker("Tracker T1"),
         die_temp_c: [Some(31.5), Some(32.0)],
         ambient_c: Some(21.5),
         config: Some(FileHash {

@@ -6,7 +6,7 @@
 //! output shares ([`schema`]), the conformity decision against a stated
 //! tolerance ([`conformity`]) and the terminal progress bar of the long
 //! commands ([`progress`]). It computes no calibration and no diagnosis:
-//! `perpend-calib` and `perpend-lab` (the diagnosis) build on it, never the
+//! `perpend-calib` and `perpend-diagnosis` (the diagnosis) build on it, never the
 //! reverse.
 #![deny(missing_docs)]
 

@@ -69,7 +69,7 @@ pub(super) fn write_record(
     if let Some(c) = r.certification.as_mut() {
         c.simulated = a.m.simulated();
         if certifiable {
-            c.issued_utc = Some(perpend_lab::record::utc_now());
+            c.issued_utc = Some(perpend_calib::record::utc_now());
         } else {
             c.number = None;
         }
@@ -126,7 +126,7 @@ fn certification(s: &Session<'_>, utc: &str) -> perpend_calib::record::Certifica
         die_temp_c: s.die_temp_c,
         ambient_c: cfg.and_then(|c| c.0.ambient_c),
         config: cfg.map(|c| c.1.clone()),
-        performed_utc: Some([s.started_utc.clone(), perpend_lab::record::utc_now()]),
+        performed_utc: Some([s.started_utc.clone(), perpend_calib::record::utc_now()]),
         simulated: false,
         issued_utc: None,
     }

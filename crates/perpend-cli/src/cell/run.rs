@@ -187,7 +187,7 @@ pub(super) fn run_and_report(x: &RunArgs) -> Result<()> {
         .figures
         .as_ref()
         .map(|f| &f.decision)
-        .filter(|d| d.verdict != perpend_lab::conformity::Verdict::Pass && !x.keep_worse);
+        .filter(|d| d.verdict != perpend_formats::conformity::Verdict::Pass && !x.keep_worse);
     match report.outcome {
         // Applied (not worse than before) but not shown in tolerance: no
         // certificate, and a script reading the exit code must not take

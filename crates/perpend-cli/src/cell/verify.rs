@@ -201,9 +201,12 @@ impl Reference {
                     .into(),
             ),
         };
-        let u =
-            perpend_lab::conformity::tracker_u_rad(tracker.xi_mm, tracker.points, tracker.patch_mm)
-                .ok_or_else(|| anyhow!("the tracker's figures give no uncertainty"))?;
+        let u = perpend_formats::conformity::tracker_u_rad(
+            tracker.xi_mm,
+            tracker.points,
+            tracker.patch_mm,
+        )
+        .ok_or_else(|| anyhow!("the tracker's figures give no uncertainty"))?;
         // At zero error a pose passes only when its U (at least the
         // tracker's 2u) is inside the tolerance: below that no run decides.
         if 2.0 * u.to_degrees() >= tolerance_deg {

@@ -54,8 +54,6 @@
 //!
 //! Everything is seeded: the same files and options give the same report.
 
-pub use perpend_calib::{candidates, cv, folds, lags, moments, noise, stats};
-
 pub mod bench;
 pub mod blind;
 pub mod checks;
@@ -88,9 +86,9 @@ use limits::limits;
 pub use load::declared_sigma;
 use load::load;
 pub(crate) use load::reading_span;
-pub use perpend_calib::candidates::available_models;
 use perpend_calib::candidates::{Effect, SensorFit};
-pub use perpend_calib::folds::{folds_for, Folds, FOLDS, LARGE_RUN, MIN_FOLDS};
+use perpend_calib::folds::folds_for;
+use perpend_calib::{candidates, lags, noise};
 use perpend_formats::exchange::{read_poses, read_sensors, PoseTable, SensorTable};
 use perpend_formats::paramfile::ParamFile;
 use scores::scores;
@@ -414,8 +412,6 @@ impl Diagnosis {
         }
     }
 }
-
-pub use perpend_calib::lags::CONFOUNDED_R;
 
 /// The fit `f` (of several effects) reduced to the coefficients and 1σ of
 /// `e`'s own terms (columns in the extension's term order).

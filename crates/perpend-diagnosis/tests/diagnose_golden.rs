@@ -9,7 +9,7 @@
 //! without declared noise) and `sim/*` by `perpend simulate` (the
 //! crate's own test runs: the 40-pose seed-3 run of `json_schema.rs`, a
 //! timed warm-up with missing readings). Every case runs through
-//! [`perpend_lab::diagnose::run_to`], the entry point of the command, with
+//! [`perpend_diagnosis::diagnose::run_to`], the entry point of the command, with
 //! default options, twice: the text report with `--out` (the report, the
 //! parameter file and the calibration record written beside it), then
 //! `--json`. Each output is compared byte for byte with
@@ -23,7 +23,7 @@
 //!   (`utc`, `events`) and `tool_version`, the directory again as `$OUT`.
 //!
 //! Regenerate (only when an output is meant to change, and say so in the
-//! commit): `PERPEND_BLESS=1 cargo test -p perpend-lab --test
+//! commit): `PERPEND_BLESS=1 cargo test -p perpend-diagnosis --test
 //! diagnose_golden`. The diagnosis is seeded and single-threaded, and
 //! serde_json writes floats round-trip exact, so a run is reproducible
 //! byte for byte on one platform; the whole test takes about 20 s of CPU
@@ -37,7 +37,7 @@ use clap::Parser;
 #[derive(Parser)]
 struct Diag {
     #[command(flatten)]
-    a: perpend_lab::diagnose::Args,
+    a: perpend_diagnosis::diagnose::Args,
 }
 
 /// The case directory, relative to the crate (the paths appear in the
@@ -58,7 +58,7 @@ fn run(dir: &Path, draws: Option<&str>, extra: &[&str]) -> String {
     }
     let a = Diag::parse_from(argv).a;
     let mut buf = Vec::new();
-    perpend_lab::diagnose::run_to(&a, &mut buf).unwrap();
+    perpend_diagnosis::diagnose::run_to(&a, &mut buf).unwrap();
     String::from_utf8(buf).unwrap()
 }
 
@@ -69,7 +69,7 @@ fn outputs(dir: &Path, draws: Option<&str>) -> Vec<(&'static str, String)> {
     let text = run(dir, draws, &["--out", out.to_str().unwrap()]);
     let text = text.replace(tmp.path().to_str().unwrap(), "$OUT");
     let params = std::fs::read_to_string(&out).unwrap();
-    let record = std::fs::read_to_string(perpend_lab::record::record_path(&out)).unwrap();
+    let record = std::fs::read_to_string(perpend_calib::record::record_path(&out)).unwrap();
     let mut record: serde_json::Value = serde_json::from_str(&record).unwrap();
     if let Some(m) = record.as_object_mut() {
         for k in ["utc", "events", "tool_version"] {

@@ -9,25 +9,25 @@ use std::collections::BTreeSet;
 use std::path::Path;
 
 use clap::Parser;
-use perpend_lab::schema;
+use perpend_formats::schema;
 use serde_json::Value;
 
 #[derive(Parser)]
 struct Sim {
     #[command(flatten)]
-    a: perpend_lab::sim::Args,
+    a: perpend_calib::sim::Args,
 }
 
 #[derive(Parser)]
 struct Diag {
     #[command(flatten)]
-    a: perpend_lab::diagnose::Args,
+    a: perpend_diagnosis::diagnose::Args,
 }
 
 #[derive(Parser)]
 struct Meas {
     #[command(flatten)]
-    a: perpend_lab::measure::Args,
+    a: perpend_calib::measure::Args,
 }
 
 /// The ```json blocks of docs/json.md, by their `schema`.
@@ -95,7 +95,7 @@ fn check(schema: &str, text: &str) {
 fn simulate(dir: &Path) {
     let out = dir.to_str().unwrap();
     let a = Sim::parse_from(["s", "--out", out, "--poses", "40", "--seed", "3"]).a;
-    perpend_lab::sim::run(&a).unwrap();
+    perpend_calib::sim::run(&a).unwrap();
 }
 
 #[test]
@@ -107,17 +107,17 @@ fn diagnose_and_measure_json_match_the_doc() {
     let (s, p) = (s.to_str().unwrap(), p.to_str().unwrap());
     let a = Diag::parse_from(["d", "--sensors", s, "--poses", p, "--json", "--draws", "8"]).a;
     let mut buf = Vec::new();
-    perpend_lab::diagnose::run_to(&a, &mut buf).unwrap();
+    perpend_diagnosis::diagnose::run_to(&a, &mut buf).unwrap();
     check(schema::DIAGNOSE, &String::from_utf8(buf).unwrap());
     let a = Meas::parse_from(["m", "--sensors", s, "--poses", p, "--json"]).a;
     let mut buf = Vec::new();
-    perpend_lab::measure::run_to(&a, &mut buf).unwrap();
+    perpend_calib::measure::run_to(&a, &mut buf).unwrap();
     check(schema::MEASURE, &String::from_utf8(buf).unwrap());
 }
 
 #[test]
 fn bench_speed_json_matches_the_doc() {
-    let r = perpend_lab::bench::speed(1).unwrap();
+    let r = perpend_diagnosis::bench::speed(1).unwrap();
     check(
         schema::BENCH_SPEED,
         &schema::to_json(schema::BENCH_SPEED, &r).unwrap(),

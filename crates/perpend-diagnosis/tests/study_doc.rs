@@ -7,7 +7,7 @@
 
 use std::path::PathBuf;
 
-use perpend_lab::diagnose::study::{markdown, paper_study, Plan};
+use perpend_diagnosis::diagnose::study::{markdown, paper_study, Plan};
 
 fn doc_path() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../docs/sim-vs-measured.md")

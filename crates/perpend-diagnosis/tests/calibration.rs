@@ -4,13 +4,13 @@
 
 use std::path::Path;
 
-use perpend_lab::bench::{accuracy, AccuracyConfig, Stats};
-use perpend_lab::calibrate::{self, angle_deg, EkfPreset, Method, Model};
-use perpend_lab::exchange::{read_poses, read_sensors, write_dataset};
-use perpend_lab::paramfile::ParamFile;
-use perpend_lab::sim::{
+use perpend_calib::calibrate::{self, angle_deg, EkfPreset, Method, Model};
+use perpend_calib::sim::{
     paper_head, plane_from_tilts, simulate, HeadKind, PoseSpread, SimConfig, Tracker,
 };
+use perpend_diagnosis::bench::{accuracy, AccuracyConfig, Stats};
+use perpend_formats::exchange::{read_poses, read_sensors, write_dataset};
+use perpend_formats::paramfile::ParamFile;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
@@ -205,7 +205,7 @@ fn parameter_file_rejects_malformed_files() {
 fn simulate_command_writes_readable_files() {
     let dir = tempfile::tempdir().unwrap();
     for head in [HeadKind::Paper, HeadKind::Experiment, HeadKind::Random] {
-        let a = perpend_lab::sim::Args {
+        let a = perpend_calib::sim::Args {
             out: dir.path().to_path_buf(),
             head,
             seed: 9,
@@ -226,7 +226,7 @@ fn simulate_command_writes_readable_files() {
             temp_rate: 0.01,
             truth: Some(dir.path().join("truth.json")),
         };
-        perpend_lab::sim::run(&a).unwrap();
+        perpend_calib::sim::run(&a).unwrap();
         let s = read_sensors(&dir.path().join("sensors.csv")).unwrap();
         let p = read_poses(&dir.path().join("poses.csv"), Some(s.len())).unwrap();
         assert_eq!(p.rows.len(), 30);
@@ -272,8 +272,8 @@ fn tracker_without_noise_is_exact() {
 /// stay within 3σ of zero.
 #[test]
 fn calibrate_model_gain_stores_the_coefficient() {
+    use perpend_calib::sim::{random_head, ExtensionEffect};
     use perpend_core::ext::Extension;
-    use perpend_lab::sim::{random_head, ExtensionEffect};
     let dir = tempfile::tempdir().unwrap();
     let mut rng = StdRng::seed_from_u64(11);
     let head = random_head(&mut rng, 1.0, 0.05).unwrap();
@@ -327,12 +327,12 @@ fn calibrate_model_gain_stores_the_coefficient() {
 /// error counts) to within what the seed count resolves.
 #[test]
 fn expected_accuracy_matches_the_actual_calibration_error() {
+    use perpend_calib::accuracy::{base_refit, expected_normal_error};
     use perpend_core::calib::Poses;
     use perpend_core::ext::Context;
     use perpend_core::head::Head4;
     use perpend_core::model::distance;
     use perpend_core::normal::{plane, Method as NormalMethod};
-    use perpend_lab::accuracy::{base_refit, expected_normal_error};
 
     let head = paper_head().unwrap();
     let (mut predicted, mut actual) = (Vec::new(), Vec::new());
@@ -342,7 +342,7 @@ fn expected_accuracy_matches_the_actual_calibration_error() {
         let nominal = data.sensors.sensors().unwrap();
         let refit = base_refit(&nominal);
         let all: Vec<usize> = (0..data.poses.len()).collect();
-        let sub = perpend_lab::diagnose::candidates::Subset {
+        let sub = perpend_calib::candidates::Subset {
             all: &data.poses,
             idx: &all,
         };
@@ -387,9 +387,9 @@ fn expected_accuracy_matches_the_actual_calibration_error() {
 /// 0.18 mm off along every beam.
 #[test]
 fn drift_is_folded_into_the_zero_points_at_the_end_of_the_run() {
+    use perpend_calib::sim::ExtensionEffect;
     use perpend_core::ext::Extension;
     use perpend_core::head::Head;
-    use perpend_lab::sim::ExtensionEffect;
 
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
@@ -485,7 +485,7 @@ fn fold_errors(
 }
 
 /// The paper's head on 60 poses 30 s apart (reading noise 2 µm), effect free.
-fn timed_run(seed: u64) -> (perpend_lab::sim::SimHead, perpend_lab::sim::Dataset) {
+fn timed_run(seed: u64) -> (perpend_calib::sim::SimHead, perpend_calib::sim::Dataset) {
     let head = paper_head().unwrap();
     let cfg = SimConfig {
         poses: 60,

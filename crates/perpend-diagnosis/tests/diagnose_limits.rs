@@ -16,9 +16,9 @@
 //! on the independent generator by `host-tests/blind/limits_check.py`.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use perpend_lab::diagnose::limits::Limit;
-use perpend_lab::diagnose::{diagnose, Diagnosis, Settings};
-use perpend_lab::sim::{paper_head, simulate, Dataset, SimConfig};
+use perpend_calib::sim::{paper_head, simulate, Dataset, SimConfig};
+use perpend_diagnosis::diagnose::limits::Limit;
+use perpend_diagnosis::diagnose::{diagnose, Diagnosis, Settings};
 use rand::SeedableRng;
 
 /// A 40-pose paper run, a pose every 30 s, no temperature column, reading

@@ -8,11 +8,11 @@ quick; the incidence run is larger: 6x, 60 poses, 15 deg, and still named
 `none` on main at 7b3a831, one of issue 35's misses).
 Run once from the repository root:
 
-    python3 crates/perpend-lab/tests/golden/cases.py
+    python3 crates/perpend-diagnosis/tests/golden/cases.py
 
-It rewrites crates/perpend-lab/tests/golden/blind/<name>/{case.json,sensors.csv,poses.csv}
+It rewrites crates/perpend-diagnosis/tests/golden/blind/<name>/{case.json,sensors.csv,poses.csv}
 (truth.json is dropped: the test never reads it). Then bless the outputs:
-PERPEND_BLESS=1 cargo test -p perpend-lab --test diagnose_golden.
+PERPEND_BLESS=1 cargo test -p perpend-diagnosis --test diagnose_golden.
 """
 
 import json

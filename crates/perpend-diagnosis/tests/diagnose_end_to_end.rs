@@ -4,9 +4,9 @@
 //! file of the pass (`host-tests/tests/diagnose_stages.rs`).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use perpend_lab::diagnose::candidates::Effect;
-use perpend_lab::diagnose::diagnose;
-use perpend_lab::sim::{add_sine_linearity, paper_head, simulate, Dataset, SimConfig, SimHead};
+use perpend_calib::candidates::Effect;
+use perpend_calib::sim::{add_sine_linearity, paper_head, simulate, Dataset, SimConfig, SimHead};
+use perpend_diagnosis::diagnose::diagnose;
 use rand::SeedableRng;
 
 /// A simulated run of the paper's head: `poses` poses, seed `seed`.

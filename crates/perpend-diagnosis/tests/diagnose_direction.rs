@@ -5,10 +5,10 @@
 //! tested and the report says so.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+use perpend_calib::sim::{paper_head, simulate, Dataset, SimConfig};
 use perpend_core::model::distance;
-use perpend_lab::diagnose::direction::DirectionTest;
-use perpend_lab::diagnose::{diagnose, Diagnosis};
-use perpend_lab::sim::{paper_head, simulate, Dataset, SimConfig};
+use perpend_diagnosis::diagnose::direction::DirectionTest;
+use perpend_diagnosis::diagnose::{diagnose, Diagnosis};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 

@@ -12,8 +12,8 @@
 //! moves them; re-tune `DRIFT_MM` then (the scan in the constant's docs).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use perpend_lab::diagnose::{diagnose, Diagnosis};
-use perpend_lab::sim::{paper_head, simulate, Dataset, SimConfig};
+use perpend_calib::sim::{paper_head, simulate, Dataset, SimConfig};
+use perpend_diagnosis::diagnose::{diagnose, Diagnosis};
 use rand::SeedableRng;
 
 /// A 60-pose paper run (ζ = 10 µm, the paper's tracker, a pose every

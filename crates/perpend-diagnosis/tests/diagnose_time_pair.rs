@@ -7,11 +7,11 @@
 //! (`host-tests/tests/diagnose_stages.rs`).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use perpend_lab::diagnose::candidates::Effect;
-use perpend_lab::diagnose::lags::{separable, CONFOUNDED_R};
-use perpend_lab::diagnose::{diagnose, Settings};
-use perpend_lab::exchange::{PoseTable, SensorTable};
-use perpend_lab::sim::timed_paper_run;
+use perpend_calib::candidates::Effect;
+use perpend_calib::lags::{separable, CONFOUNDED_R};
+use perpend_calib::sim::timed_paper_run;
+use perpend_diagnosis::diagnose::{diagnose, Settings};
+use perpend_formats::exchange::{PoseTable, SensorTable};
 
 /// A simulated run (paper head, 60 poses 30 s apart) with a linear
 /// drift `A_i·t/t_end` and a reading tied to a head temperature that
