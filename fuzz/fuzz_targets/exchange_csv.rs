@@ -3,7 +3,7 @@
 //! never panic; a table they accept holds only finite numbers.
 #![no_main]
 use libfuzzer_sys::fuzz_target;
-use perpend_lab::exchange::{parse_poses, parse_sensors};
+use perpend_formats::exchange::{parse_poses, parse_sensors};
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(t) = parse_sensors(data, "sensors.csv") {

@@ -7,12 +7,12 @@
 //! well-formed.
 #![no_main]
 use libfuzzer_sys::fuzz_target;
+use perpend_calib::cellconfig::CellConfig;
+use perpend_calib::interim::CheckRecord;
+use perpend_calib::record::Record;
 use perpend_cli::bus::slcan::{parse_line, Line};
 use perpend_cli::bus::BusSpec;
-use perpend_lab::cellconfig::CellConfig;
-use perpend_lab::exchange::parse_readings;
-use perpend_lab::interim::CheckRecord;
-use perpend_lab::record::Record;
+use perpend_formats::exchange::parse_readings;
 
 fuzz_target!(|data: &[u8]| {
     for line in data.split(|b| *b == b'\r') {

@@ -3,7 +3,7 @@
 //! sensors.
 #![no_main]
 use libfuzzer_sys::fuzz_target;
-use perpend_lab::paramfile::ParamFile;
+use perpend_formats::paramfile::ParamFile;
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(text) = std::str::from_utf8(data) {

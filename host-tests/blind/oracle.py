@@ -27,7 +27,7 @@ statistic, the form drawn as for an effect, the amplitudes zero) and CI
 checks that its rejection rate there stays near the level.
 
 The level is the diagnosis's per-candidate level: the family alpha = 0.01
-of `perpend diagnose` (crates/perpend-lab/src/diagnose/settings.rs)
+of `perpend diagnose` (crates/perpend-diagnosis/src/diagnose/settings.rs)
 over its m candidates (Bonferroni, select.rs), m = 7 in this build
 (`candidate_level`). Only the standard library is used; imports gen only.
 """

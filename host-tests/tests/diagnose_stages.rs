@@ -1,11 +1,13 @@
 //! `perpend diagnose` is one pass through stages in the order the data
 //! move, each entered once (issue 35).
 //!
-//! [`ORDER`] declares the files of the pass (`crates/perpend-lab/src/
+//! [`ORDER`] declares the files of the pass (`crates/perpend-diagnosis/src/
 //! diagnose/`) in the order a reader takes them: the toolbox first (the
-//! modules several stages call: statistics, folds, the candidates' fits,
-//! cross-validation, noise, the effect-free re-simulations, the
-//! calibrated decision), then the stages in the order the readings reach
+//! modules several stages call: the settings, the effect-free
+//! re-simulations, the calibrated decision; the statistics, folds, the
+//! candidates' fits, cross-validation, noise and lags the calibration
+//! shares are in `crates/perpend-calib/src/`, below the pass, issue 48),
+//! then the stages in the order the readings reach
 //! them, then the diagnosis they fill, the report and the pass itself
 //! (`mod.rs`). Four checks, each shown to fail on a synthetic case:
 //!
@@ -42,7 +44,7 @@ use std::collections::BTreeSet;
 use std::path::Path;
 
 /// The folder of the pass, relative to the workspace root.
-const DIR: &str = "crates/perpend-lab/src/diagnose/";
+const DIR: &str = "crates/perpend-diagnosis/src/diagnose/";
 
 /// What a file of the pass is.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -61,15 +63,8 @@ enum Role {
 
 /// The files of the pass in the order a reader takes them: each imports
 /// only files above it.
-const ORDER: [(&str, Role); 22] = [
-    ("stats.rs", Role::Toolbox),
-    ("folds.rs", Role::Toolbox),
+const ORDER: [(&str, Role); 15] = [
     ("settings.rs", Role::Toolbox),
-    ("candidates.rs", Role::Toolbox),
-    ("cv.rs", Role::Toolbox),
-    ("moments.rs", Role::Toolbox),
-    ("noise.rs", Role::Toolbox),
-    ("lags.rs", Role::Toolbox),
     ("expect.rs", Role::Toolbox),
     ("select.rs", Role::Toolbox),
     ("nested.rs", Role::Toolbox),

@@ -99,7 +99,7 @@ const FUZZ_TARGETS: &[&str] = &[
 
 /// The reader targets, which start from the corpus of bad files of
 /// `host-tests/corpus/readers/` (each a case with the message it must give,
-/// `crates/perpend-lab/tests/corpus_readers.rs`).
+/// `crates/perpend-formats/tests/corpus_readers.rs`).
 const READER_TARGETS: &[&str] = &["exchange_csv", "param_json", "host_inputs"];
 
 /// The corpus directories of target `t`: its own (`fuzz/corpus/<t>`, where

@@ -10,8 +10,8 @@
 //! them and names their executables; each then runs in its package's
 //! directory (as cargo does), its output kept whole and printed when it
 //! ends (`Running …` then the harness's lines, so `test result:` lines
-//! count as before). Binaries of perpend-lab (long, CPU-bound) start
-//! first. `PERPEND_BIN` names the `perpend` binary the test build made
+//! count as before). Binaries of perpend-diagnosis and perpend-calib (long,
+//! CPU-bound) start first. `PERPEND_BIN` names the `perpend` binary the test build made
 //! (for perpend-cli's integration tests), so tests that run it elsewhere
 //! need not build it again with other features. Limits: tests that need a machine to themselves must not exist
 //! (they would already be flaky under the harness's own threads); a
@@ -70,9 +70,9 @@ pub fn parse_artifacts(json_lines: &str) -> Vec<TestBin> {
         .collect()
 }
 
-/// `perpend-lab` from a package id: `path+file:///…/dir#name@0.1.0` (the
-/// name after `#` when the directory differs), `…/perpend-lab#0.1.0`, or
-/// the older `perpend-lab 0.1.0 (path+file://…)`.
+/// `perpend-diagnosis` from a package id: `path+file:///…/dir#name@0.1.0` (the
+/// name after `#` when the directory differs), `…/perpend-diagnosis#0.1.0`, or
+/// the older `perpend-diagnosis 0.1.0 (path+file://…)`.
 fn package_name(id: &str) -> Option<String> {
     if let Some((path, frag)) = id.rsplit_once('#') {
         if let Some((name, _)) = frag.split_once('@') {
@@ -83,10 +83,10 @@ fn package_name(id: &str) -> Option<String> {
     id.split_whitespace().next().map(str::to_string)
 }
 
-/// The order binaries start in: perpend-lab's first (long, CPU-bound),
-/// then the others as cargo listed them.
+/// The order binaries start in: perpend-diagnosis's and perpend-calib's first
+/// (long, CPU-bound), then the others as cargo listed them.
 pub fn schedule(mut bins: Vec<TestBin>) -> VecDeque<TestBin> {
-    bins.sort_by_key(|b| b.package != "perpend-lab");
+    bins.sort_by_key(|b| !matches!(b.package.as_str(), "perpend-diagnosis" | "perpend-calib"));
     bins.into()
 }
 
@@ -210,7 +210,7 @@ mod tests {
 
     #[test]
     fn test_binaries_are_found_in_cargo_messages() {
-        let lines = r#"{"reason":"compiler-artifact","package_id":"path+file:///w/crates/perpend-lab#0.1.0","manifest_path":"/w/crates/perpend-lab/Cargo.toml","target":{"kind":["test"],"name":"study_doc","src_path":"/w/crates/perpend-lab/tests/study_doc.rs"},"profile":{"test":true},"executable":"/w/target/debug/deps/study_doc-1"}
+        let lines = r#"{"reason":"compiler-artifact","package_id":"path+file:///w/crates/perpend-diagnosis#0.1.0","manifest_path":"/w/crates/perpend-diagnosis/Cargo.toml","target":{"kind":["test"],"name":"study_doc","src_path":"/w/crates/perpend-diagnosis/tests/study_doc.rs"},"profile":{"test":true},"executable":"/w/target/debug/deps/study_doc-1"}
 {"reason":"compiler-artifact","package_id":"path+file:///w/crates/perpend-cli#perpend-cli@0.1.0","manifest_path":"/w/crates/perpend-cli/Cargo.toml","target":{"kind":["lib"],"name":"perpend_cli","src_path":"/w/crates/perpend-cli/src/lib.rs"},"profile":{"test":true},"executable":"/w/target/debug/deps/perpend_cli-2"}
 {"reason":"compiler-artifact","package_id":"registry+https://github.com/rust-lang/crates.io-index#serde@1.0.0","manifest_path":"/r/serde/Cargo.toml","target":{"kind":["lib"],"name":"serde","src_path":"/r/serde/src/lib.rs"},"profile":{"test":false},"executable":null}
 {"reason":"build-finished","success":true}
@@ -218,8 +218,8 @@ not json"#;
         let bins = parse_artifacts(lines);
         assert_eq!(bins.len(), 2);
         assert_eq!(bins[0].label, "tests/study_doc.rs");
-        assert_eq!(bins[0].package, "perpend-lab");
-        assert_eq!(bins[0].dir, PathBuf::from("/w/crates/perpend-lab"));
+        assert_eq!(bins[0].package, "perpend-diagnosis");
+        assert_eq!(bins[0].dir, PathBuf::from("/w/crates/perpend-diagnosis"));
         assert_eq!(bins[1].label, "unittests src/lib.rs");
         assert_eq!(bins[1].package, "perpend-cli");
         assert_eq!(
@@ -231,7 +231,10 @@ not json"#;
             Some("serde")
         );
         let q = schedule(vec![bins[1].clone(), bins[0].clone()]);
-        assert_eq!(q[0].package, "perpend-lab", "perpend-lab starts first");
+        assert_eq!(
+            q[0].package, "perpend-diagnosis",
+            "perpend-diagnosis starts first"
+        );
     }
 
     #[test]

@@ -804,7 +804,7 @@ impl<S: ParamStore, P: crate::program::ProgramStore> App<S, P> {
     /// dictionary and updates the EMCY state. No time reaches the
     /// corrections: drift is a nuisance of the calibration run, folded into
     /// the zero points at its end and never extrapolated (issue 11 item 8,
-    /// `perpend_lab::paramfile::SensorParams::fold_drift`); a stored drift
+    /// `perpend_formats::paramfile::SensorParams::fold_drift`); a stored drift
     /// coefficient is not applied. The corrections get the die temperature
     /// through the head's thermal time constant (0x2105,
     /// [`crate::thermal::ThermalLag`], stepped on `now_us`; τ = 0: the

@@ -1,7 +1,7 @@
 //! The `perpend` binary as a library: the commands that are not analysis
 //! (the demo, the virtual board, the CAN buses and the CANopen master of
 //! `perpend node`), so that host tests drive the same code as the command
-//! line. The analysis commands live in `perpend-lab`.
+//! line. The analysis commands live in `perpend-diagnosis`.
 #![deny(missing_docs)]
 
 pub mod board;

@@ -2,8 +2,9 @@
 //! diagnose what the model misses, benchmark, and run a virtual board.
 
 use clap::{Parser, Subcommand};
+use perpend_calib::{calibrate, measure, sim};
 use perpend_cli::{board, cell, demo, eds, node, record};
-use perpend_lab::{bench, calibrate, diagnose, measure, sim};
+use perpend_diagnosis::{bench, diagnose};
 
 /// The conventions every command's output follows.
 const CONVENTIONS: &str = "\
@@ -24,7 +25,7 @@ Files (CSV, header names in any order, `#` comments, empty or NaN = missing; doc
                plane_rms_mm [mm], plane_points";
 
 #[derive(Parser)]
-#[command(name = "perpend", version = perpend_lab::record::VERSION, about, long_about = None, after_help = CONVENTIONS)]
+#[command(name = "perpend", version = perpend_calib::record::VERSION, about, long_about = None, after_help = CONVENTIONS)]
 struct Cli {
     /// No progress bars or progress lines (drawn on stderr, and only on a terminal).
     #[arg(long, global = true)]
@@ -49,7 +50,7 @@ enum Cmd {
     #[command(after_help = FILES)]
     Measure(measure::Args),
     /// Plan the fewest datum-plane poses that calibrate a head (D-optimal), with the expected accuracy.
-    Plan(perpend_lab::plan::Args),
+    Plan(perpend_calib::plan::Args),
     /// Studies: `study paper` puts the paper's simulation beside its experiment.
     Study(diagnose::study::Args),
     /// Benchmarks: the paper's simulation (accuracy), calibration speed, identifiability study.
@@ -73,14 +74,14 @@ enum Cmd {
 fn main() -> std::process::ExitCode {
     perpend_cli::pipe::install();
     let cli = Cli::parse();
-    perpend_lab::progress::set_quiet(cli.quiet);
+    perpend_formats::progress::set_quiet(cli.quiet);
     let res = match cli.cmd {
         Cmd::Demo(a) => demo::run(&a),
         Cmd::Simulate(a) => sim::run(&a),
         Cmd::Calibrate(a) => calibrate::run(&a),
         Cmd::Diagnose(a) => diagnose::run(&a),
         Cmd::Measure(a) => measure::run(&a),
-        Cmd::Plan(a) => perpend_lab::plan::run(&a),
+        Cmd::Plan(a) => perpend_calib::plan::run(&a),
         Cmd::Study(a) => diagnose::study::run(&a),
         Cmd::Bench(a) => bench::run(&a),
         Cmd::Board(a) => board::run(&a),
@@ -111,7 +112,7 @@ fn main() -> std::process::ExitCode {
 fn error_json(e: &anyhow::Error) -> String {
     let at = e
         .chain()
-        .find_map(|c| c.downcast_ref::<perpend_lab::exchange::ExchangeError>());
+        .find_map(|c| c.downcast_ref::<perpend_formats::exchange::ExchangeError>());
     let v = serde_json::json!({
         "error": format!("{e:#}"),
         "file": at.map(|x| x.file.clone()),

@@ -6,7 +6,7 @@
 //! Drawn only when stderr is a terminal and `--quiet` is not given
 //! ([`shown`]), so pipes, logs and tests get nothing; cleared when the
 //! step ends (the [`Ticker`] is dropped). Counted work with a known end
-//! uses `perpend_lab::progress::Progress` (a bar) instead.
+//! uses `perpend_formats::progress::Progress` (a bar) instead.
 
 use std::io::{IsTerminal, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -43,7 +43,7 @@ impl Ticker {
         let stop = Arc::new(AtomicBool::new(false));
         let note = Arc::new(Mutex::new(String::new()));
         let on = shown(
-            perpend_lab::progress::quiet(),
+            perpend_formats::progress::quiet(),
             std::io::stderr().is_terminal(),
         );
         let thread = on.then(|| {

@@ -1,5 +1,5 @@
 //! `perpend record`: read calibration and check records
-//! (`perpend.record/2` and `/1`, `perpend.check/1`; [`perpend_lab::record`],
+//! (`perpend.record/2` and `/1`, `perpend.check/1`; [`perpend_calib::record`],
 //! docs/record.md) for people.
 //!
 //! - `record show FILE`: the record in words, its outcome first, then the
@@ -22,7 +22,7 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use anyhow::{bail, Context as _, Result};
-use perpend_lab::record::{sha256_hex, Record};
+use perpend_calib::record::{sha256_hex, Record};
 
 pub use crate::record_cert::{cert_html, report_html, write_document};
 pub use crate::record_fmt::{deg, esc, iso, sigma, value};
@@ -152,7 +152,7 @@ pub fn show_text(r: &Record) -> String {
     if let Some(d) = &r.decision {
         let line = decision_line(d);
         let _ = match r.outcome.as_deref() {
-            Some(perpend_lab::record::OUTCOME_APPLIED) => writeln!(o, "{line}"),
+            Some(perpend_calib::record::OUTCOME_APPLIED) => writeln!(o, "{line}"),
             _ => writeln!(
                 o,
                 "{} (of a calibration that is not on the board)",
@@ -212,7 +212,7 @@ pub fn show_text(r: &Record) -> String {
     show_dropped(r, &mut o);
     show_verification(r, &mut o);
     if let Some(f) = &r.frames {
-        for l in perpend_lab::frames::report::lines(f) {
+        for l in perpend_calib::frames::report::lines(f) {
             let _ = writeln!(o, "{l}");
         }
     }
@@ -234,7 +234,7 @@ pub fn show_text(r: &Record) -> String {
 }
 
 /// The decision in one line with its figures.
-fn decision_line(d: &perpend_lab::conformity::Decision) -> String {
+fn decision_line(d: &perpend_formats::conformity::Decision) -> String {
     let mut s = format!(
         "decision: {} against the tolerance {}° at {} fresh poses, largest expanded uncertainty \
          {}° (k = 2; tracker {}° per axis: {})",
@@ -294,7 +294,7 @@ fn show_verification(r: &Record, o: &mut String) {
         opt_deg(v.expected_p95_deg),
         opt_deg(v.before_mean_deg)
     );
-    let applied = r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_APPLIED);
+    let applied = r.outcome.as_deref() == Some(perpend_calib::record::OUTCOME_APPLIED);
     if let Some(d) = &r.decision {
         for p in &d.poses {
             // No PASS in words about a calibration that is not on the board.
@@ -414,7 +414,7 @@ fn run_find(a: &FindArgs) -> Result<()> {
 }
 
 fn run_history(a: &HistoryArgs) -> Result<()> {
-    perpend_lab::cellconfig::check_tolerance(a.tolerance_deg).context("--tolerance-deg")?;
+    perpend_calib::cellconfig::check_tolerance(a.tolerance_deg).context("--tolerance-deg")?;
     let files = find_records(&a.dirs)?;
     let h = history(&files, a.serial.as_deref(), a.tolerance_deg)?;
     if let Some(p) = &a.plot {
@@ -438,5 +438,5 @@ fn run_history(a: &HistoryArgs) -> Result<()> {
 
 /// The record path beside a parameter file (re-exported for the cell run).
 pub fn beside(params: &std::path::Path) -> PathBuf {
-    perpend_lab::record::record_path(params)
+    perpend_calib::record::record_path(params)
 }

@@ -20,8 +20,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context as _, Result};
-use perpend_lab::conformity::{Decision, Verdict};
-use perpend_lab::record::Record;
+use perpend_calib::record::Record;
+use perpend_formats::conformity::{Decision, Verdict};
 
 use crate::record_fmt::{deg, esc, geometry, opt_deg, sigma, value};
 
@@ -54,7 +54,7 @@ pub fn refusal(r: &Record) -> Option<String> {
         return None;
     }
     let outcome = r.outcome_words();
-    if r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_APPLIED) {
+    if r.outcome.as_deref() == Some(perpend_calib::record::OUTCOME_APPLIED) {
         if let Some(why) = r.frame_beyond_tolerance() {
             return Some(why);
         }
@@ -69,7 +69,7 @@ pub fn refusal(r: &Record) -> Option<String> {
             ));
         }
     }
-    if r.outcome.as_deref() == Some(perpend_lab::record::OUTCOME_FAILED_UNKNOWN) {
+    if r.outcome.as_deref() == Some(perpend_calib::record::OUTCOME_FAILED_UNKNOWN) {
         return Some(match &r.stamp {
             Some(s) => format!(
                 "the board's state is unknown (outcome {outcome}): it may hold this calibration, \
@@ -84,18 +84,18 @@ pub fn refusal(r: &Record) -> Option<String> {
         });
     }
     Some(match r.outcome.as_deref() {
-        Some(perpend_lab::record::OUTCOME_APPLIED) if r.decision.is_some() => {
+        Some(perpend_calib::record::OUTCOME_APPLIED) if r.decision.is_some() => {
             "no cell configuration named the reference standard (the tracker's serial, \
              calibration due date and traceability, who calibrated and who approves): run \
              with --config"
                 .into()
         }
-        Some(perpend_lab::record::OUTCOME_APPLIED) => format!(
+        Some(perpend_calib::record::OUTCOME_APPLIED) => format!(
             "the calibration was applied but its verification was not decided against a \
              tolerance (outcome {outcome}, verification {})",
             r.verification.kind
         ),
-        Some(perpend_lab::record::OUTCOME_COMPUTED) => "the parameters were computed from \
+        Some(perpend_calib::record::OUTCOME_COMPUTED) => "the parameters were computed from \
              files and not applied to a board and verified there (perpend cell run does both)"
             .into(),
         _ => format!("the calibration is not on the board: outcome {outcome}"),
@@ -213,10 +213,10 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
         false => write!(h, "<h2 class=\"{class}\" id=\"verdict\">{word}</h2>"),
         true => {
             let of = match r.outcome.as_deref() {
-                Some(perpend_lab::record::OUTCOME_APPLIED) => {
+                Some(perpend_calib::record::OUTCOME_APPLIED) => {
                     "of a calibration on the board, with no certificate"
                 }
-                Some(perpend_lab::record::OUTCOME_FAILED_UNKNOWN) => {
+                Some(perpend_calib::record::OUTCOME_FAILED_UNKNOWN) => {
                     "of a calibration the board may or may not hold"
                 }
                 _ => "of a calibration that is not on the board",
@@ -257,7 +257,7 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
         }
         None => {
             let why = match r.outcome.as_deref() {
-                Some(perpend_lab::record::OUTCOME_COMPUTED) | None => {
+                Some(perpend_calib::record::OUTCOME_COMPUTED) | None => {
                     "the parameters were not verified on a board against a tolerance"
                 }
                 _ => "the run stopped before the calibration was verified on the board",
@@ -312,7 +312,7 @@ fn doc_item(r: &Record, h: &mut String) {
             |[a, b]| format!("{a} to {b} (parameters fitted {})", r.utc),
         );
     row(h, "date of calibration (UTC)", &performed);
-    let now = perpend_lab::record::utc_now();
+    let now = perpend_calib::record::utc_now();
     let issued = match r.certification.as_ref().and_then(|c| c.issued_utc.as_ref()) {
         Some(first) if first != &now => {
             format!("{first} (this copy printed {now}: a copy of that issue, not a new one)")
@@ -442,7 +442,7 @@ fn doc_events(r: &Record, h: &mut String) {
 
 fn doc_approval(r: &Record, h: &mut String) {
     let c = r.certification.as_ref();
-    let who = |f: fn(&perpend_lab::record::Certification) -> &String| {
+    let who = |f: fn(&perpend_calib::record::Certification) -> &String| {
         c.map_or(String::new(), |c| esc(f(c)))
     };
     let _ = write!(
@@ -575,7 +575,7 @@ fn cert_decision_table(d: &Decision, lower: bool, h: &mut String) {
 
 /// Per-pose errors with their expanded uncertainty against the tolerance
 /// line (inline SVG).
-fn bars_svg(v: &perpend_lab::record::Verification, d: Option<&Decision>) -> String {
+fn bars_svg(v: &perpend_calib::record::Verification, d: Option<&Decision>) -> String {
     let (w, ht, m) = (640.0, 220.0, 40.0);
     let tol = d.map_or(f64::NAN, |d| d.tolerance_deg);
     let big_u = |k: usize| {

@@ -33,7 +33,7 @@ pub fn opt_deg(x: Option<f64>) -> String {
 
 /// The six geometry parameters of a sensor: (name, value, 1σ, direction?).
 pub fn geometry(
-    p: &perpend_lab::paramfile::SensorParams,
+    p: &perpend_formats::paramfile::SensorParams,
 ) -> Vec<(&'static str, f64, Option<f64>, bool)> {
     let s = p.sigma.as_ref();
     let names = ["x [mm]", "y [mm]", "z [mm]", "m", "n", "q"];
@@ -87,7 +87,7 @@ pub fn iso(s: f64) -> String {
 
 /// The stamp the board carried before, in words (`record find` leads to
 /// the record that set it).
-pub fn replaced_stamp(p: &perpend_lab::record::Previous) -> String {
+pub fn replaced_stamp(p: &perpend_calib::record::Previous) -> String {
     p.board_stamp.as_ref().map_or_else(
         || "the board carried no stamp".to_string(),
         |s| {

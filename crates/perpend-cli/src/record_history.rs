@@ -26,8 +26,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context as _, Result};
-use perpend_lab::interim::CheckRecord;
-use perpend_lab::record::{Record, KIND_CROSS_VALIDATED, KIND_EXPECTED_ONLY};
+use perpend_calib::interim::CheckRecord;
+use perpend_calib::record::{Record, KIND_CROSS_VALIDATED, KIND_EXPECTED_ONLY};
 
 use crate::record_fmt::{epoch_s, esc, geometry, iso, opt_deg};
 
@@ -334,7 +334,7 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
         utc: item.utc().to_string(),
         t,
         before_deg: before,
-        p95_deg: perpend_lab::record::p95(&errors),
+        p95_deg: perpend_calib::record::p95(&errors),
         p95_sigma_deg: p95_sigma(&errors),
         fresh,
     }
@@ -344,7 +344,7 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
 /// its board, or computed from files (no board involved). A reverted or
 /// failed run's parameters never were.
 fn on_board_or_file(r: &Record) -> bool {
-    use perpend_lab::record::{OUTCOME_APPLIED, OUTCOME_COMPUTED};
+    use perpend_calib::record::{OUTCOME_APPLIED, OUTCOME_COMPUTED};
     matches!(
         r.outcome.as_deref(),
         None | Some(OUTCOME_APPLIED | OUTCOME_COMPUTED)
@@ -359,7 +359,7 @@ fn read_items(files: &[PathBuf]) -> Result<Vec<(PathBuf, Item)>> {
     let mut items = Vec::new();
     for f in files {
         let bytes = std::fs::read(f).with_context(|| format!("{}: cannot read", f.display()))?;
-        if seen.insert(perpend_lab::record::sha256_hex(&bytes)) {
+        if seen.insert(perpend_calib::record::sha256_hex(&bytes)) {
             items.push((f.clone(), Item::read(f)?));
         }
     }

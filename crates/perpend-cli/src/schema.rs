@@ -45,7 +45,7 @@ pub fn tagged(schema: &str, v: &Value) -> String {
         other => other,
     };
     // Serialising a `Value` cannot fail.
-    perpend_lab::schema::to_json(schema, body).unwrap_or_default()
+    perpend_formats::schema::to_json(schema, body).unwrap_or_default()
 }
 
 /// [`tagged`] for a file a person reads too: the object `v` indented, its

@@ -140,8 +140,9 @@ fn a_cell_calibration_reaches_the_floor_over_the_bus() {
     let info: serde_json::Value =
         serde_json::from_str(&common::ok(&[&link[..], &["info", "--json"]].concat(), d)).unwrap();
     let stamp = &info["calibration_stamp"];
-    let rec_hash =
-        perpend_lab::record::sha256_hex(&std::fs::read(d.join("run/params.record.json")).unwrap());
+    let rec_hash = perpend_calib::record::sha256_hex(
+        &std::fs::read(d.join("run/params.record.json")).unwrap(),
+    );
     assert_eq!(
         stamp["record_hash"].as_str().unwrap(),
         &rec_hash[..8],

@@ -5,12 +5,12 @@
 //! held-out poses better than the paper's model.
 #![allow(clippy::unwrap_used)]
 
+use perpend_calib::candidates::{fit, line_angle_deg, Effect, Refs};
 use perpend_core::calib::{LsqConfig, Poses};
 use perpend_core::normal::{measure, Method};
-use perpend_lab::diagnose::candidates::{fit, line_angle_deg, Effect, Refs};
-use perpend_lab::diagnose::scenario::{generate, Hidden, Scenario};
-use perpend_lab::exchange::PoseTable;
-use perpend_lab::paramfile::{ParamFile, SensorParams};
+use perpend_diagnosis::diagnose::scenario::{generate, Hidden, Scenario};
+use perpend_formats::exchange::PoseTable;
+use perpend_formats::paramfile::{ParamFile, SensorParams};
 
 fn split(p: &PoseTable, at: usize) -> (PoseTable, PoseTable) {
     let a = PoseTable {
@@ -141,7 +141,7 @@ fn diagnose_out_stores_the_named_extension() {
     let g = generate(&sc).unwrap();
     let (train, test) = split(&g.data.poses, 80);
     let dir = tempfile::tempdir().unwrap();
-    perpend_lab::exchange::write_dataset(dir.path(), &g.data.sensors, &train, &[]).unwrap();
+    perpend_formats::exchange::write_dataset(dir.path(), &g.data.sensors, &train, &[]).unwrap();
     let s = dir.path().join("sensors.csv");
     let p = dir.path().join("poses.csv");
     let ext_json = dir.path().join("ext.json");
@@ -200,17 +200,17 @@ fn diagnose_out_stores_the_named_extension() {
 /// cubic (whose misfit, inside the run, costs the normal little).
 #[test]
 fn calibrate_stores_a_linearity_table_that_measures_better() {
-    use perpend_lab::sim::{paper_head, simulate, SimConfig};
+    use perpend_calib::sim::{paper_head, simulate, SimConfig};
     use rand::SeedableRng;
     let head = paper_head().unwrap();
     let mut cfg = SimConfig::paper();
     cfg.poses = 150;
     let mut rng = rand::rngs::StdRng::seed_from_u64(21);
     let mut data = simulate(&head, &cfg, &[], &mut rng).unwrap();
-    perpend_lab::sim::add_sine_linearity(&mut data.poses, &[0.06, -0.05, 0.055, -0.06]);
+    perpend_calib::sim::add_sine_linearity(&mut data.poses, &[0.06, -0.05, 0.055, -0.06]);
     let (train, test) = split(&data.poses, 100);
     let dir = tempfile::tempdir().unwrap();
-    perpend_lab::exchange::write_dataset(dir.path(), &data.sensors, &train, &[]).unwrap();
+    perpend_formats::exchange::write_dataset(dir.path(), &data.sensors, &train, &[]).unwrap();
     let (s, p) = (dir.path().join("sensors.csv"), dir.path().join("poses.csv"));
     let calibrate = |model: &str| {
         let out_json = dir.path().join(format!("{model}.json"));

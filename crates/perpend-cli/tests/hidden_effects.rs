@@ -23,8 +23,8 @@
 use std::path::Path;
 use std::process::Command;
 
-use perpend_lab::diagnose::scenario::{generate, write, Hidden, Scenario};
-use perpend_lab::diagnose::DiagnoseJson;
+use perpend_diagnosis::diagnose::scenario::{generate, write, Hidden, Scenario};
+use perpend_diagnosis::diagnose::DiagnoseJson;
 
 fn perpend(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_perpend"))

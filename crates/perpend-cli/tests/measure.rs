@@ -10,14 +10,14 @@ use std::path::Path;
 use std::process::Command;
 
 use nalgebra::Vector3;
+use perpend_calib::sim::{curved_readings, simulate, tian_style_head, PoseSpread, SimConfig};
 use perpend_core::calib::{fit_sensor_base, LsqConfig};
 use perpend_core::ext::Context;
 use perpend_core::head::Head4;
 use perpend_core::normal::Method;
 use perpend_core::surface::{measure, CurvedSurface, Shape};
-use perpend_lab::exchange::{write_sensors, SensorTable};
-use perpend_lab::paramfile::{ParamFile, SensorParams};
-use perpend_lab::sim::{curved_readings, simulate, tian_style_head, PoseSpread, SimConfig};
+use perpend_formats::exchange::{write_sensors, SensorTable};
+use perpend_formats::paramfile::{ParamFile, SensorParams};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
@@ -31,7 +31,7 @@ fn perpend(args: &[&str]) -> std::process::Output {
 /// A calibrated Tian-style head (with a thermal extension on sensor 2, so
 /// the row's temperature reaches the corrections) written as sensors.csv
 /// and params.json.
-fn write_head(dir: &Path, rng: &mut StdRng) -> (perpend_lab::sim::SimHead, Head4<f64>) {
+fn write_head(dir: &Path, rng: &mut StdRng) -> (perpend_calib::sim::SimHead, Head4<f64>) {
     let head = tian_style_head(rng, 1.0, 0.02).unwrap();
     let cfg = SimConfig {
         spread: PoseSpread::cell(60.0),
@@ -63,7 +63,7 @@ fn write_head(dir: &Path, rng: &mut StdRng) -> (perpend_lab::sim::SimHead, Head4
 /// row has two readings only.
 fn write_readings(
     path: &Path,
-    head: &perpend_lab::sim::SimHead,
+    head: &perpend_calib::sim::SimHead,
     surfaces: &[CurvedSurface<f64>],
     rng: &mut StdRng,
 ) -> Vec<[Option<f64>; 4]> {

@@ -14,7 +14,7 @@ mod support;
 
 use perpend_cli::node::params::record_hash;
 use perpend_core::params::Params;
-use perpend_lab::paramfile::{ParamFile, TransferParams, TRANSFER_CURRENT};
+use perpend_formats::paramfile::{ParamFile, TransferParams, TRANSFER_CURRENT};
 use support::{failed, ok, text, VirtualBus};
 
 const NODE: &str = "16";
@@ -306,7 +306,7 @@ fn capture_appends_rows_in_the_exchange_format() {
         let out = ok(&b.node(&args));
         assert!(out.contains("4 of 4 readings"), "{out}");
     }
-    let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+    let t = perpend_formats::exchange::read_poses(&p, Some(4)).unwrap();
     assert_eq!(t.rows.len(), 2);
     let r = &t.rows[1];
     assert!(r.readings.iter().all(|x| x.is_some_and(|d| d > 0.0)));
@@ -339,7 +339,7 @@ fn capture_records_the_board_temperature() {
         "--samples",
         "4",
     ]));
-    let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+    let t = perpend_formats::exchange::read_poses(&p, Some(4)).unwrap();
     let temp = t.rows[0].temp_c.unwrap();
     assert!((temp - 31.5).abs() < 1e-3, "{temp}");
 }
@@ -367,7 +367,7 @@ fn capture_with_a_faulted_sensor_keeps_the_row_and_warns() {
         err.contains("warning: sensor 2: 5 of 5 samples not valid (open loop"),
         "{err}"
     );
-    let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+    let t = perpend_formats::exchange::read_poses(&p, Some(4)).unwrap();
     assert_eq!(t.rows[0].readings[1], None);
     assert!(t.rows[0].readings[0].is_some());
 }

@@ -7,13 +7,13 @@
 //! calibrations.
 #![allow(clippy::unwrap_used, missing_docs)]
 
-use perpend_cli::record::{cert_html, deg, history, report_html, sigma, value, TREND_SIGMAS};
-use perpend_lab::conformity::{decide, Measured};
-use perpend_lab::record::{
+use perpend_calib::record::{
     BoardStamp, Certification, FileHash, PoseError, Record, Verification, KIND_FRESH,
     OUTCOME_APPLIED, OUTCOME_COMPUTED, OUTCOME_FAILED_RESTORED, OUTCOME_FAILED_UNKNOWN,
     OUTCOME_REVERTED,
 };
+use perpend_cli::record::{cert_html, deg, history, report_html, sigma, value, TREND_SIGMAS};
+use perpend_formats::conformity::{decide, Measured};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 fn example() -> Record {
@@ -102,7 +102,7 @@ fn applied() -> Record {
         performed_utc: Some(["2026-12-01T09:00:00Z".into(), "2026-12-01T10:05:00Z".into()]),
         simulated: false,
         issued_utc: Some("2026-12-01T10:06:00Z".into()),
-        tracker: perpend_lab::cellconfig::paper_tracker("Tracker T1"),
+        tracker: perpend_calib::cellconfig::paper_tracker("Tracker T1"),
         die_temp_c: [Some(31.5), Some(32.0)],
         ambient_c: Some(21.5),
         config: Some(FileHash {
@@ -374,12 +374,12 @@ fn a_stamp_leads_to_its_run_and_to_the_run_that_replaced_it() {
     let mut later = applied();
     later.utc = "2026-12-08T10:00:00Z".into();
     later.stamp.as_mut().unwrap().record_hash = "11223344".into();
-    later.previous = Some(perpend_lab::record::Previous {
+    later.previous = Some(perpend_calib::record::Previous {
         params_sha256: "2".repeat(64),
         record_hash: None,
         record_file_sha256: None,
         record_utc: None,
-        board_stamp: Some(perpend_lab::paramfile::CalibrationStamp {
+        board_stamp: Some(perpend_formats::paramfile::CalibrationStamp {
             record_hash: stamp.record_hash.clone(),
             utc: stamp.utc.clone(),
             utc_s: 1_796_119_200,
@@ -427,6 +427,6 @@ fn the_version_is_the_records_version() {
         .unwrap();
     assert!(out.status.success());
     let v = String::from_utf8(out.stdout).unwrap();
-    assert_eq!(v.trim(), perpend_lab::record::tool_version());
+    assert_eq!(v.trim(), perpend_calib::record::tool_version());
     assert!(v.contains(" ("), "{v}");
 }

@@ -102,7 +102,7 @@ fn a_signed_image_goes_on_and_the_calibration_stays() {
     assert_eq!(rec["image"]["bytes"], bytes.len());
     assert_eq!(
         rec["image"]["sha256"],
-        perpend_lab::record::sha256_hex(&bytes)
+        perpend_calib::record::sha256_hex(&bytes)
     );
     assert_eq!(rec["image"]["version"], "9.8.7");
     assert!(

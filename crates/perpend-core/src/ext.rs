@@ -30,7 +30,7 @@
 //! Drift is for estimation only: the host passes the time since the start
 //! of the calibration run so that a drifting head does not bias the zero
 //! point and beam; the parameters handed to the board are referred to the
-//! run's end with drift 0 (`perpend_lab::paramfile::SensorParams::fold_drift`)
+//! run's end with drift 0 (`perpend_formats::paramfile::SensorParams::fold_drift`)
 //! and the board and `perpend measure` pass no time, so a drift is never
 //! extrapolated past the run.
 //!
@@ -38,7 +38,7 @@
 //! head thermometer's, or, where the head has a thermal time constant,
 //! that reading through the first-order lag of the sensor bodies
 //! ([`crate::lag`]; the board's `perpend_board::thermal`, the host's
-//! `perpend_lab::diagnose::lags` and `perpend measure`). The lag is state
+//! `perpend_calib::lags` and `perpend measure`). The lag is state
 //! over time, so it lives with the caller, not in these coefficients.
 //!
 //! ## Incidence

@@ -3,7 +3,7 @@
 only): each case is a file the readers must refuse (or, for `run-left` and
 `readings-left`, accept with a reading left out), with the message it must
 produce (file, line, cause). `cases.tsv` columns: file, reader, the texts
-the message must contain (several joined by `&&`). Readers (crates/perpend-lab/tests/corpus_readers.rs):
+the message must contain (several joined by `&&`). Readers (crates/perpend-formats/tests/corpus_readers.rs):
 sensors, poses, readings (4 sensors), params, run (poses.csv checked against
 head.csv: plausibility), run-left (a reading left out: first warning lines),
 readings-left (a readings file against head.csv).

@@ -298,7 +298,7 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
     let plane = parse_plane(&a.plane)?;
     let head = match &a.sensors {
         Some(p) => {
-            let t = perpend_lab::exchange::read_sensors(p)?;
+            let t = perpend_formats::exchange::read_sensors(p)?;
             Some(head4(t.sensors()?, &p.display().to_string())?)
         }
         None => None,
@@ -306,7 +306,7 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
     let mut thermal_tau_s = 0.0;
     let calibration = match &a.params {
         Some(p) => {
-            let f = perpend_lab::paramfile::ParamFile::read(p)?;
+            let f = perpend_formats::paramfile::ParamFile::read(p)?;
             thermal_tau_s = f.thermal_tau_s;
             Some(head4(f.sensors()?, &p.display().to_string())?)
         }
@@ -314,7 +314,7 @@ pub fn build(a: &Args) -> Result<VirtualBoard> {
     };
     let truth = match &a.truth {
         Some(p) => {
-            let t = perpend_lab::exchange::read_sensors(p)?;
+            let t = perpend_formats::exchange::read_sensors(p)?;
             head4(t.sensors()?, &p.display().to_string())?
         }
         None => calibration
@@ -405,7 +405,7 @@ pub fn run(a: &Args) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use perpend_lab::exchange::{write_sensors, SensorTable};
+    use perpend_formats::exchange::{write_sensors, SensorTable};
 
     fn args() -> Args {
         Args {

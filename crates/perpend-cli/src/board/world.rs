@@ -21,7 +21,7 @@
 //! Frame errors (`perpend board --tracker-tilt-deg`, `--tcp-tilt-deg`,
 //! `--tcp-offset-mm`, issue 36): the planes of both commands are what the
 //! cell computes through its nominal frames; the head sees them through the
-//! true ones ([`perpend_lab::frames::true_plane`]: the tracker tilt turns
+//! true ones ([`perpend_calib::frames::true_plane`]: the tracker tilt turns
 //! against the head with the joint, the TCP error is fixed to the flange).
 //!
 //! Limits: the plane jumps (no motion in between); the client should let
@@ -32,7 +32,7 @@ use std::io::{ErrorKind, Read, Write};
 use std::net::{TcpListener, TcpStream};
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_lab::frames::{true_plane, FramePose, Frames};
+use perpend_calib::frames::{true_plane, FramePose, Frames};
 
 use super::node::VirtualBoard;
 use crate::demo::parse_plane;
@@ -206,7 +206,7 @@ pub fn frames_of(tracker_deg: Pair, tcp_deg: Pair, offset_mm: Pair) -> Result<Fr
             );
         }
     }
-    Ok(perpend_lab::frames::frames_deg(
+    Ok(perpend_calib::frames::frames_deg(
         tracker_deg.0,
         tcp_deg.0,
         offset_mm.0,

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{anyhow, Result};
-use perpend_lab::plan::PlannedPose;
+use perpend_calib::plan::PlannedPose;
 
 use super::robot::{abcd, check_cancel, Robot};
 use super::session::Session;

@@ -3,9 +3,9 @@
 //! a few fresh poses inside the plan's reach exactly as the cell run
 //! verifies ([`super::verify`]), decided against the tolerance with
 //! the verification's own expanded uncertainty
-//! ([`perpend_lab::conformity`]) and compared with the last calibration
+//! ([`perpend_formats::conformity`]) and compared with the last calibration
 //! record's fresh-pose mean; a `perpend.check/1` record
-//! ([`perpend_lab::interim`]) is written for `perpend record history`.
+//! ([`perpend_calib::interim`]) is written for `perpend record history`.
 //!
 //! The answer: `in tolerance`, `inconclusive` (with the samples that
 //! would decide it) or `recalibrate now`. A board whose serial is not the
@@ -20,8 +20,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_lab::interim::{self, Against, CheckRecord};
-use perpend_lab::record::{utc_now, FileHash, Record};
+use perpend_calib::interim::{self, Against, CheckRecord};
+use perpend_calib::record::{utc_now, FileHash, Record};
 
 use super::robot::{ManualCheck, Robot};
 use super::verify::{fresh_poses, read_plan, verify, write_csv, Reference};
@@ -115,7 +115,7 @@ pub fn run_check(a: &CheckArgs, cancel: &AtomicBool) -> Result<CheckRecord> {
     // Without a configuration, the tracker the record names (and its
     // uncertainty) stands, not a default.
     if let (None, Some(c)) = (&a.m.config, last.certification.as_ref()) {
-        if let Some(u) = perpend_lab::conformity::tracker_u_rad(
+        if let Some(u) = perpend_formats::conformity::tracker_u_rad(
             c.tracker.xi_mm,
             c.tracker.points,
             c.tracker.patch_mm,
@@ -227,7 +227,7 @@ fn record(
     Ok(CheckRecord {
         schema: interim::SCHEMA.into(),
         utc: utc_now(),
-        tool_version: perpend_lab::record::tool_version(),
+        tool_version: perpend_calib::record::tool_version(),
         head_serial: serial,
         firmware,
         board_stamp,
@@ -254,7 +254,7 @@ pub fn run_and_report(a: &CheckArgs, cancel: &AtomicBool) -> Result<()> {
     for e in &r.events {
         println!("check: {}", e.split_once(' ').map_or(e.as_str(), |x| x.1));
     }
-    if r.verdict == interim::verdict_words(perpend_lab::conformity::Verdict::Fail) {
+    if r.verdict == interim::verdict_words(perpend_formats::conformity::Verdict::Fail) {
         bail!(
             "{}: recalibrate now (perpend cell run); the record is {}",
             r.reason,

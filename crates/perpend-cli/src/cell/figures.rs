@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use perpend_core::head::Head4;
-use perpend_lab::conformity::Decision;
+use perpend_formats::conformity::Decision;
 
 use super::args::RunArgs;
 use super::fit::Fit;
@@ -76,7 +76,7 @@ impl Figures {
 
 /// The pooled reading noise of the captures [mm, 1σ], 0 if none recorded.
 fn pooled_sigma(poses: &Path) -> Result<f64> {
-    let t = perpend_lab::exchange::read_poses(poses, None)?;
+    let t = perpend_formats::exchange::read_poses(poses, None)?;
     let sd: Vec<f64> = t
         .rows
         .iter()
@@ -92,14 +92,14 @@ fn pooled_sigma(poses: &Path) -> Result<f64> {
 fn floor_head(a: &RunArgs, params: &Path) -> Result<(Head4<f64>, String)> {
     match &a.truth {
         Some(p) => {
-            let t = perpend_lab::exchange::read_sensors(p)?;
+            let t = perpend_formats::exchange::read_sensors(p)?;
             Ok((
                 head4(t.sensors()?, &p.display().to_string())?,
                 "truth".into(),
             ))
         }
         None => {
-            let f = perpend_lab::paramfile::ParamFile::read(params)?;
+            let f = perpend_formats::paramfile::ParamFile::read(params)?;
             let what = params.display().to_string();
             Ok((head4(f.sensors()?, &what)?, "calibrated".into()))
         }

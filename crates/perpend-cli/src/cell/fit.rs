@@ -1,7 +1,7 @@
 //! Step 2b of a cell run: the calibration from the captured poses
 //! (`perpend calibrate`: least squares, the paper's model, into
 //! `DIR/params.json`) and its expected normal error from its own
-//! parameter uncertainty ([`perpend_lab::accuracy`]).
+//! parameter uncertainty ([`perpend_calib::accuracy`]).
 
 use std::path::{Path, PathBuf};
 
@@ -49,7 +49,7 @@ pub fn run(sensors: &Path, poses: &Path, out: &Path, tolerance_deg: f64) -> Resu
 
 /// Calibrates `poses` from the nominal head into `params`.
 fn calibrate(sensors: &Path, poses: &Path, params: &Path) -> Result<()> {
-    use perpend_lab::calibrate as cal;
+    use perpend_calib::calibrate as cal;
     cal::run(&cal::Args {
         sensors: sensors.to_path_buf(),
         poses: poses.to_path_buf(),
@@ -67,15 +67,15 @@ fn calibrate(sensors: &Path, poses: &Path, params: &Path) -> Result<()> {
 }
 
 /// The calibration's expected normal error [deg RMS] over the captured
-/// poses: the bootstrap of `perpend calibrate` ([`perpend_lab::accuracy`],
+/// poses: the bootstrap of `perpend calibrate` ([`perpend_calib::accuracy`],
 /// the paper's model refitted from the nominal head).
 fn expected_deg(sensors: &Path, poses: &Path, params: &Path) -> Result<(f64, f64)> {
-    use perpend_lab::accuracy::{base_refit, expected_normal_error};
-    let nominal = perpend_lab::exchange::read_sensors(sensors)?
+    use perpend_calib::accuracy::{base_refit, expected_normal_error};
+    let nominal = perpend_formats::exchange::read_sensors(sensors)?
         .sensors()
         .map_err(|e| anyhow!("{}: {e}", sensors.display()))?;
-    let table = perpend_lab::exchange::read_poses(poses, Some(nominal.len()))?;
-    let fitted = perpend_lab::paramfile::ParamFile::read(params)?.sensors()?;
+    let table = perpend_formats::exchange::read_poses(poses, Some(nominal.len()))?;
+    let fitted = perpend_formats::paramfile::ParamFile::read(params)?.sensors()?;
     let e = expected_normal_error(&fitted, &table, &base_refit(&nominal), 100, 1)
         .context("the calibration's expected normal error")?;
     Ok((e.rms_deg, e.p95_deg))

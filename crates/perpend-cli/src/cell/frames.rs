@@ -4,12 +4,12 @@
 //!
 //! From the run's `poses.csv` (the tracker's planes in the taught TCS and
 //! the readings) and the plan's joint angles (by pose number) it runs
-//! [`perpend_lab::frames::estimate`], writes the joint head's geometry into
+//! [`perpend_calib::frames::estimate`], writes the joint head's geometry into
 //! `params.json` (what the board gets), and reports each identifiable frame
 //! error as estimate ± 1σ in µrad / µm whatever its precision, whether it
 //! is significant (beyond 2σ) and resolved (1σ ≤ half the calibration's
 //! expected normal error), and the warnings of
-//! [`perpend_lab::frames::report`] against that error; the head is
+//! [`perpend_calib::frames::report`] against that error; the head is
 //! corrected for what is significant or resolved; the estimates go into
 //! the record (`frames`).
 //!
@@ -21,9 +21,9 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context as _, Result};
+use perpend_calib::frames::report::{summarise, FrameEstimates};
+use perpend_calib::frames::{estimate, true_plane, FrameFit, FramePose, Frames, Tolerance};
 use perpend_core::geometry::Plane;
-use perpend_lab::frames::report::{summarise, FrameEstimates};
-use perpend_lab::frames::{estimate, true_plane, FrameFit, FramePose, Frames, Tolerance};
 
 /// Arguments of `perpend frames`.
 #[derive(clap::Args, Debug)]
@@ -67,7 +67,7 @@ pub fn run(a: &Args) -> Result<()> {
         );
         return Ok(());
     }
-    for l in perpend_lab::frames::report::lines(&summary) {
+    for l in perpend_calib::frames::report::lines(&summary) {
         println!("{l}");
     }
     println!("residual RMS of the joint fit: {:.4} mm", fit.rms_mm);
@@ -120,10 +120,10 @@ pub fn estimate_run(
     joints: &HashMap<i64, f64>,
     expected_deg: f64,
 ) -> Result<(FrameFit, FrameEstimates)> {
-    let nominal = perpend_lab::exchange::read_sensors(sensors)?
+    let nominal = perpend_formats::exchange::read_sensors(sensors)?
         .sensors()
         .map_err(|e| anyhow!("{}: {e}", sensors.display()))?;
-    let table = perpend_lab::exchange::read_poses(poses, Some(nominal.len()))?;
+    let table = perpend_formats::exchange::read_poses(poses, Some(nominal.len()))?;
     let mut fp = Vec::new();
     let mut readings = Vec::new();
     let mut used = Vec::new();
@@ -151,7 +151,7 @@ pub fn estimate_run(
 /// # Errors
 /// Unreadable parameter file, a sensor count that differs, I/O.
 pub fn apply_head(params: &Path, fit: &FrameFit) -> Result<()> {
-    let mut f = perpend_lab::paramfile::ParamFile::read(params)?;
+    let mut f = perpend_formats::paramfile::ParamFile::read(params)?;
     if f.sensors.len() != fit.head.len() {
         bail!(
             "{}: {} sensors, the frame estimate has {}",
@@ -256,7 +256,7 @@ pub fn after_calibration(
         expected_deg,
     )?;
     apply_head(&out.join("params.json"), &fit)?;
-    for l in perpend_lab::frames::report::lines(&summary) {
+    for l in perpend_calib::frames::report::lines(&summary) {
         println!("cell: {l}");
     }
     let path = out.join("frames.json");
@@ -273,10 +273,10 @@ pub fn after_calibration(
 /// # Errors
 /// Unreadable files.
 pub fn into_record(
-    r: perpend_lab::record::Record,
+    r: perpend_calib::record::Record,
     out: &Path,
     params: &Path,
-) -> Result<perpend_lab::record::Record> {
+) -> Result<perpend_calib::record::Record> {
     let path = out.join("frames.json");
     if !path.exists() {
         return Ok(r);
@@ -286,8 +286,8 @@ pub fn into_record(
     let f: FrameEstimates = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a frame report", path.display()))?;
     let mut r = r.with_frames(f);
-    r.parameters = perpend_lab::paramfile::ParamFile::read(params)?.sensors;
-    r.output = Some(perpend_lab::record::FileHash::of(params)?);
+    r.parameters = perpend_formats::paramfile::ParamFile::read(params)?.sensors;
+    r.output = Some(perpend_calib::record::FileHash::of(params)?);
     Ok(r)
 }
 
@@ -295,10 +295,10 @@ pub fn into_record(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use perpend_lab::exchange::{write_poses, write_sensors, PoseRow, PoseTable, SensorTable};
-    use perpend_lab::frames::plan::write_reversal;
-    use perpend_lab::frames::{add_noise, frames_deg, readings};
-    use perpend_lab::plan::PlannedPose;
+    use perpend_calib::frames::plan::write_reversal;
+    use perpend_calib::frames::{add_noise, frames_deg, readings};
+    use perpend_calib::plan::PlannedPose;
+    use perpend_formats::exchange::{write_poses, write_sensors, PoseRow, PoseTable, SensorTable};
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
 
@@ -306,7 +306,7 @@ mod tests {
     /// the true head under `frames`, 4 µm noise.
     fn run_files(dir: &Path, frames: &Frames, seed: u64) -> (HashMap<i64, f64>, FrameFit) {
         let mut rng = StdRng::seed_from_u64(seed);
-        let head = perpend_lab::sim::random_head(&mut rng, 1.0, 0.03).unwrap();
+        let head = perpend_calib::sim::random_head(&mut rng, 1.0, 0.03).unwrap();
         let base: Vec<PlannedPose> = (0..24)
             .map(|_| PlannedPose {
                 tilt_x_deg: rng.gen_range(-10.0..10.0),
@@ -317,7 +317,7 @@ mod tests {
         let plan = dir.join("plan.csv");
         write_reversal(&plan, &base, 4).unwrap();
         let joints = read_joints(&plan).unwrap();
-        let turned = perpend_lab::frames::plan::turned(&base, 4).unwrap();
+        let turned = perpend_calib::frames::plan::turned(&base, 4).unwrap();
         let fp: Vec<FramePose> = turned
             .iter()
             .map(|t| FramePose::seen(&t.pose.plane(), t.joint_deg.to_radians()))
@@ -375,7 +375,7 @@ mod tests {
         let tracker = Plane::from_abcd(0.0, 0.1, -1.0, 35.0).unwrap();
         let c = corrected(&tracker, 90.0, &fit.frames);
         let truth = corrected(&tracker, 90.0, &f);
-        assert!(perpend_lab::calibrate::angle_deg(&c.n, &truth.n) < 0.005);
+        assert!(perpend_calib::calibrate::angle_deg(&c.n, &truth.n) < 0.005);
     }
 
     #[test]

@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-use perpend_lab::conformity::Verdict;
+use perpend_formats::conformity::Verdict;
 
 use super::figures::Figures;
 use super::session::{PushStage, Session};
@@ -26,7 +26,7 @@ pub enum Outcome {
 impl Outcome {
     /// The word in cell.json and the record.
     pub fn word(self) -> &'static str {
-        use perpend_lab::record as r;
+        use perpend_calib::record as r;
         match self {
             Outcome::Applied => r::OUTCOME_APPLIED,
             Outcome::Reverted => r::OUTCOME_REVERTED,
@@ -65,10 +65,10 @@ impl Report {
             None => serde_json::json!({ "before_deg": self.before_deg }),
         };
         if let Some(o) = v.as_object_mut() {
-            o.insert("utc".into(), perpend_lab::record::utc_now().into());
+            o.insert("utc".into(), perpend_calib::record::utc_now().into());
             o.insert(
                 "tool_version".into(),
-                perpend_lab::record::tool_version().into(),
+                perpend_calib::record::tool_version().into(),
             );
             o.insert("outcome".into(), self.outcome.word().into());
             o.insert("reason".into(), self.reason.clone().into());
@@ -94,7 +94,7 @@ pub(super) fn paired_change(f: &Figures) -> Option<(f64, f64)> {
             Some(p.error_deg - (*f.before_per_pose_deg.get(k)?)?)
         })
         .collect();
-    perpend_lab::interim::mean_u(&d)
+    perpend_calib::interim::mean_u(&d)
 }
 
 /// Why the new calibration is not applied, if it is not: the after error

@@ -23,7 +23,7 @@
 //!    `DIR/poses.csv`; a boot-up message of the node in between stops the
 //!    run: a reset board's poses are not trusted), **calibrate** (`perpend
 //!    calibrate`, least squares, the paper's model, into `DIR/params.json`,
-//!    with its expected normal error: [`perpend_lab::accuracy`]), **push**
+//!    with its expected normal error: [`perpend_calib::accuracy`]), **push**
 //!    it (`perpend node push --preop`: write, verify, store, reset, verify,
 //!    lock);
 //! 3. **after**: the same fresh poses again, on the freshly reset board;
@@ -32,7 +32,7 @@
 //!    for a simulation; without it the calibrated head stands in for it)
 //!    with the reading noise the captures measured (pooled `s_mm`), fitted
 //!    like the board fits them and compared with the same tracker planes;
-//! 5. the **decision** (issue 45, [`perpend_lab::conformity`]): at every
+//! 5. the **decision** (issue 45, [`perpend_formats::conformity`]): at every
 //!    fresh pose the error of the board's averaged normal against the
 //!    tolerance (`--tolerance-deg`, else the `--config` file's, else 0.05°)
 //!    with its expanded uncertainty (k = 2, from the tracker's plane
@@ -130,14 +130,14 @@ pub struct SimHeadArgs {
 
 /// Writes nominal.csv and truth.csv of the paper's head (Chen Table 2).
 fn sim_head(a: &SimHeadArgs) -> Result<()> {
-    let h = perpend_lab::sim::paper_head()?;
+    let h = perpend_calib::sim::paper_head()?;
     std::fs::create_dir_all(&a.out)?;
     for (name, s) in [("nominal.csv", &h.nominal), ("truth.csv", &h.truth)] {
         let path = a.out.join(name);
-        let table = perpend_lab::exchange::SensorTable::from_sensors(s, h.sigma_mm);
+        let table = perpend_formats::exchange::SensorTable::from_sensors(s, h.sigma_mm);
         let mut f = std::fs::File::create(&path)
             .with_context(|| format!("{}: cannot create", path.display()))?;
-        perpend_lab::exchange::write_sensors(&mut f, &table, &[])?;
+        perpend_formats::exchange::write_sensors(&mut f, &table, &[])?;
         println!("cell: wrote {}", path.display());
     }
     Ok(())

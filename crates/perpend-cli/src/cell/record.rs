@@ -27,7 +27,7 @@ pub(super) fn write_record(
     s: &Session<'_>,
     report: &Report,
 ) -> Result<Option<PathBuf>> {
-    use perpend_lab::record::{self as rec, FileHash, Previous, Record};
+    use perpend_calib::record::{self as rec, FileHash, Previous, Record};
     let params = a.out.join("params.json");
     if !params.exists() {
         return Ok(None);
@@ -36,7 +36,7 @@ pub(super) fn write_record(
     let mut r = if beside.exists() {
         Record::read(&beside)?
     } else {
-        let file = perpend_lab::paramfile::ParamFile::read(&params)?;
+        let file = perpend_formats::paramfile::ParamFile::read(&params)?;
         Record::new(&[&a.sensors, &a.out.join("poses.csv")], &file)?
     };
     let csv = a.out.join("verify.csv");
@@ -69,7 +69,7 @@ pub(super) fn write_record(
     if let Some(c) = r.certification.as_mut() {
         c.simulated = a.m.simulated();
         if certifiable {
-            c.issued_utc = Some(perpend_lab::record::utc_now());
+            c.issued_utc = Some(perpend_calib::record::utc_now());
         } else {
             c.number = None;
         }
@@ -103,16 +103,16 @@ pub(super) fn write_record(
 
 /// The certificate's fields of this run: the configuration's (or what
 /// stands for it), the number, the die temperatures.
-fn certification(s: &Session<'_>, utc: &str) -> perpend_lab::record::Certification {
+fn certification(s: &Session<'_>, utc: &str) -> perpend_calib::record::Certification {
     let cfg = s.reference.config.as_ref();
-    let given = |f: fn(&perpend_lab::cellconfig::CellConfig) -> &String| {
+    let given = |f: fn(&perpend_calib::cellconfig::CellConfig) -> &String| {
         cfg.map_or_else(
             || "not given (no --config)".to_string(),
             |c| f(&c.0).clone(),
         )
     };
     let stamp: String = utc.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
-    perpend_lab::record::Certification {
+    perpend_calib::record::Certification {
         number: Some(format!(
             "PPD-{}-{stamp}",
             s.serial.trim_start_matches("0x").to_uppercase()
@@ -126,7 +126,7 @@ fn certification(s: &Session<'_>, utc: &str) -> perpend_lab::record::Certificati
         die_temp_c: s.die_temp_c,
         ambient_c: cfg.and_then(|c| c.0.ambient_c),
         config: cfg.map(|c| c.1.clone()),
-        performed_utc: Some([s.started_utc.clone(), perpend_lab::record::utc_now()]),
+        performed_utc: Some([s.started_utc.clone(), perpend_calib::record::utc_now()]),
         simulated: false,
         issued_utc: None,
     }
@@ -134,8 +134,8 @@ fn certification(s: &Session<'_>, utc: &str) -> perpend_lab::record::Certificati
 
 /// The after pass as the record's verification: each fresh pose's error,
 /// against the calibration's expected error, with the before figure.
-fn fresh_verification(f: &Figures, a: &RunArgs) -> perpend_lab::record::Verification {
-    use perpend_lab::record::{PoseError, Verification, KIND_FRESH};
+fn fresh_verification(f: &Figures, a: &RunArgs) -> perpend_calib::record::Verification {
+    use perpend_calib::record::{PoseError, Verification, KIND_FRESH};
     let poses = f
         .decision
         .poses

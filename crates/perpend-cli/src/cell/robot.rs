@@ -19,16 +19,16 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context as _, Result};
+use perpend_calib::plan::PlannedPose;
+use perpend_calib::sim::Tracker;
 use perpend_core::geometry::Plane;
 use perpend_core::head::Sensor;
-use perpend_lab::plan::PlannedPose;
-use perpend_lab::sim::Tracker;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
 /// Angle [deg] between two normals, whatever their sign.
 pub fn normal_error(a: &nalgebra::Vector3<f64>, b: &nalgebra::Vector3<f64>) -> f64 {
-    let e = perpend_lab::calibrate::angle_deg(a, b);
+    let e = perpend_calib::calibrate::angle_deg(a, b);
     e.min(180.0 - e)
 }
 
@@ -51,7 +51,7 @@ impl ManualCheck {
     ///
     /// # Errors
     /// A file whose sensors do not read.
-    pub fn from_params(f: &perpend_lab::paramfile::ParamFile) -> Result<Self> {
+    pub fn from_params(f: &perpend_formats::paramfile::ParamFile) -> Result<Self> {
         Ok(Self {
             sensors: f.sensors()?,
             ranges: f
@@ -428,7 +428,7 @@ mod tests {
     /// `1,2,3,4`, a plane far from the planned pose.
     #[test]
     fn typed_planes_are_checked_like_captures_and_against_the_plan() {
-        let head = perpend_lab::sim::paper_head().unwrap();
+        let head = perpend_calib::sim::paper_head().unwrap();
         let check = ManualCheck {
             sensors: head.nominal.clone(),
             ranges: vec![Some((20.0, 80.0)); 4],

@@ -10,7 +10,7 @@ use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_lab::plan::PlannedPose;
+use perpend_calib::plan::PlannedPose;
 
 use super::args::RunArgs;
 use super::figures::{self, Figures};
@@ -91,7 +91,7 @@ pub fn run_cell(a: &RunArgs, cancel: &AtomicBool) -> Result<Report> {
     let mut node = Node::connect(&a.link)?;
     node.hello()?;
     let mut s = Session::begin(node, a, cancel, reference)?;
-    if let Ok(f) = perpend_lab::paramfile::ParamFile::read(&s.previous) {
+    if let Ok(f) = perpend_formats::paramfile::ParamFile::read(&s.previous) {
         robot.check_manual(ManualCheck::from_params(&f)?);
     }
     let mut report = match steps(&mut s, &mut robot, &plan, started) {
@@ -145,9 +145,9 @@ pub(super) fn run_and_report(x: &RunArgs) -> Result<()> {
             // Nothing was changed on the board.
             if x.out.is_dir() {
                 let v = serde_json::json!({
-                    "utc": perpend_lab::record::utc_now(),
-                    "tool_version": perpend_lab::record::tool_version(),
-                    "outcome": perpend_lab::record::OUTCOME_FAILED_RESTORED,
+                    "utc": perpend_calib::record::utc_now(),
+                    "tool_version": perpend_calib::record::tool_version(),
+                    "outcome": perpend_calib::record::OUTCOME_FAILED_RESTORED,
                     "reason": "the run stopped before it changed anything on the board",
                     "first_cause": format!("{e:#}"),
                     "restored": [],
@@ -187,7 +187,7 @@ pub(super) fn run_and_report(x: &RunArgs) -> Result<()> {
         .figures
         .as_ref()
         .map(|f| &f.decision)
-        .filter(|d| d.verdict != perpend_lab::conformity::Verdict::Pass && !x.keep_worse);
+        .filter(|d| d.verdict != perpend_formats::conformity::Verdict::Pass && !x.keep_worse);
     match report.outcome {
         // Applied (not worse than before) but not shown in tolerance: no
         // certificate, and a script reading the exit code must not take

@@ -10,8 +10,8 @@ use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use perpend_lab::plan::PlannedPose;
-use perpend_lab::record::BoardStamp;
+use perpend_calib::plan::PlannedPose;
+use perpend_calib::record::BoardStamp;
 
 use super::args::RunArgs;
 use super::robot::Robot;
@@ -82,7 +82,7 @@ impl<'a> Session<'a> {
         cancel: &'a AtomicBool,
         reference: Reference,
     ) -> Result<Self> {
-        let started_utc = perpend_lab::record::utc_now();
+        let started_utc = perpend_calib::record::utc_now();
         let heartbeat_ms = node.heartbeat_ms()?;
         let nmt = node.state(heartbeat_ms)?;
         let residual = node.client.read_f32(node.id, 0x2300, 4)?;
@@ -197,7 +197,7 @@ impl<'a> Session<'a> {
             preop: true,
             record: None,
         };
-        let stamped = perpend_lab::record::record_path(params);
+        let stamped = perpend_calib::record::record_path(params);
         let report = params::push(&mut self.node, &push, self.cancel).map_err(|e| {
             // What push says the board is left with is superseded by the
             // restore: its cause comes first.
@@ -214,7 +214,7 @@ impl<'a> Session<'a> {
         if let (Some(st), true) = (&report.stamp, stamped.exists()) {
             self.stamp = Some(BoardStamp {
                 record_hash: format!("{:08x}", st.record_hash),
-                stamped_record: perpend_lab::record::FileHash::of(&stamped)?,
+                stamped_record: perpend_calib::record::FileHash::of(&stamped)?,
                 utc: crate::record::iso(f64::from(st.utc_s)),
                 store_count: st.store_count,
             });

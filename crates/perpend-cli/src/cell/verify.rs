@@ -9,7 +9,7 @@
 //! the tracker's plane normal, and the **readings' standard uncertainty**
 //! per axis is the scatter of the sample normals about their mean (in the
 //! mean's tangent plane) over √samples: what
-//! [`perpend_lab::conformity`] decides with. Averaging before the angle
+//! [`perpend_formats::conformity`] decides with. Averaging before the angle
 //! keeps the reading noise out of the error's expectation (the mean of
 //! per-sample angles is biased by about 1.25σ however many samples).
 //!
@@ -28,14 +28,14 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context as _, Result};
 use nalgebra::Vector3;
+use perpend_calib::plan::PlannedPose;
+use perpend_calib::sim::gauss;
 use perpend_core::ext::Context;
 use perpend_core::geometry::tangent_basis;
 use perpend_core::head::{Head4, Sensor};
 use perpend_core::model::distance;
 use perpend_core::normal::{plane as fit_plane, Method as FitMethod};
-use perpend_lab::conformity::{Decision, Measured, Verdict};
-use perpend_lab::plan::PlannedPose;
-use perpend_lab::sim::gauss;
+use perpend_formats::conformity::{Decision, Measured, Verdict};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
@@ -155,15 +155,15 @@ pub struct Reference {
     /// Maximum permissible normal error [deg].
     pub tolerance_deg: f64,
     /// The tracker as the record states it.
-    pub tracker: perpend_lab::record::Tracker,
+    pub tracker: perpend_calib::record::Tracker,
     /// Its standard uncertainty per axis of a plane normal [deg].
     pub tracker_u_deg: f64,
     /// Where that figure comes from, in words.
     pub source: String,
     /// The cell configuration read, with its hash.
     pub config: Option<(
-        perpend_lab::cellconfig::CellConfig,
-        perpend_lab::record::FileHash,
+        perpend_calib::cellconfig::CellConfig,
+        perpend_calib::record::FileHash,
     )>,
 }
 
@@ -175,7 +175,7 @@ impl Reference {
     /// # Errors
     /// A configuration or tolerance refused by physics.
     pub fn new(config: Option<&Path>, tolerance: Option<f64>, simulated: bool) -> Result<Self> {
-        use perpend_lab::cellconfig::{self as cc, CellConfig};
+        use perpend_calib::cellconfig::{self as cc, CellConfig};
         let config = config.map(CellConfig::read).transpose()?;
         let tolerance_deg = tolerance
             .or(config.as_ref().map(|c| c.0.tolerance_deg))
@@ -201,9 +201,12 @@ impl Reference {
                     .into(),
             ),
         };
-        let u =
-            perpend_lab::conformity::tracker_u_rad(tracker.xi_mm, tracker.points, tracker.patch_mm)
-                .ok_or_else(|| anyhow!("the tracker's figures give no uncertainty"))?;
+        let u = perpend_formats::conformity::tracker_u_rad(
+            tracker.xi_mm,
+            tracker.points,
+            tracker.patch_mm,
+        )
+        .ok_or_else(|| anyhow!("the tracker's figures give no uncertainty"))?;
         // At zero error a pose passes only when its U (at least the
         // tracker's 2u) is inside the tolerance: below that no run decides.
         if 2.0 * u.to_degrees() >= tolerance_deg {
@@ -225,8 +228,8 @@ impl Reference {
     }
 
     /// The simulated tracker that measures like this one.
-    pub fn sim_tracker(&self) -> perpend_lab::sim::Tracker {
-        perpend_lab::sim::Tracker {
+    pub fn sim_tracker(&self) -> perpend_calib::sim::Tracker {
+        perpend_calib::sim::Tracker {
             xi_mm: self.tracker.xi_mm,
             points: self.tracker.points,
             patch_mm: self.tracker.patch_mm,
@@ -234,8 +237,8 @@ impl Reference {
     }
 
     /// The decision of `v` against this reference.
-    pub fn decide(&self, v: &Verified) -> perpend_lab::conformity::Decision {
-        perpend_lab::conformity::decide(
+    pub fn decide(&self, v: &Verified) -> perpend_formats::conformity::Decision {
+        perpend_formats::conformity::decide(
             &v.measured(),
             self.tolerance_deg,
             self.tracker_u_deg,
@@ -279,7 +282,7 @@ impl Verified {
         e.iter().sum::<f64>() / e.len().max(1) as f64
     }
 
-    /// The poses with a plane, as [`perpend_lab::conformity`] takes them.
+    /// The poses with a plane, as [`perpend_formats::conformity`] takes them.
     pub fn measured(&self) -> Vec<Measured> {
         self.poses
             .iter()
@@ -709,6 +712,6 @@ mod tests {
             assert!((-4.0..=4.0).contains(&q.tilt_y_deg));
             assert!((26.0..=30.0).contains(&q.standoff_mm));
         }
-        assert!(Robot::open("robot", 1, perpend_lab::sim::Tracker::paper()).is_err());
+        assert!(Robot::open("robot", 1, perpend_calib::sim::Tracker::paper()).is_err());
     }
 }

@@ -43,7 +43,7 @@ use perpend_can::status::{self, SENSOR_VALID};
 use perpend_core::geometry::Plane;
 use perpend_core::head::Sensor;
 use perpend_core::model::distance;
-use perpend_lab::progress::Progress;
+use perpend_formats::progress::Progress;
 
 use super::{words, Node};
 
@@ -601,7 +601,7 @@ mod tests {
         let mut cells2 = cells.clone();
         cells2.insert("pose".into(), "2".into());
         write_row(&p, Some(&ex), 4, &cells2, 0.0, &mut warn).unwrap();
-        let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+        let t = perpend_formats::exchange::read_poses(&p, Some(4)).unwrap();
         assert_eq!(t.rows.len(), 2);
         assert_eq!(t.rows[0].temp_c, None);
         assert_eq!(t.rows[0].readings[1], None);
@@ -629,7 +629,7 @@ mod tests {
         let mut warn = Vec::new();
         let cells = row_cells(&a, [0.0, 0.0, 1.0, -40.0], &acq, Some(0.0), &mut warn);
         write_row(&p, None, 4, &cells, 1000.0, &mut warn).unwrap();
-        let t = perpend_lab::exchange::read_poses(&p, Some(4)).unwrap();
+        let t = perpend_formats::exchange::read_poses(&p, Some(4)).unwrap();
         assert_eq!(t.rows[0].temp_c, Some(31.5));
         // a sample without it leaves the column empty
         let acq2 = Acquired {

@@ -56,11 +56,11 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use anyhow::{anyhow, bail, Context as _, Result};
 use perpend_can::config::{CAL_SUB_COEFFS, CAL_SUB_KNOTS, CAL_SUB_SPOT, CAL_VALUES};
 use perpend_can::od::{self, Limits, SAVE_SIGNATURE, UNLOCK_SIGNATURE};
-use perpend_lab::paramfile::{
+use perpend_formats::paramfile::{
     CalibrationStamp, ExtParams, ParamFile, SensorParams, TableParams, TransferParams,
     TRANSFER_CURRENT, TRANSFER_VOLTAGE,
 };
-use perpend_lab::progress::Progress;
+use perpend_formats::progress::Progress;
 use sha2::{Digest as _, Sha256};
 
 use super::Node;
@@ -641,7 +641,7 @@ fn abandon(node: &mut Node) -> String {
 
 /// `perpend node push`: [`push_with_record`] stamping the hash of
 /// `--record`, else of the record beside the file
-/// ([`perpend_lab::record::record_path`]) when there is one, else of the
+/// ([`perpend_calib::record::record_path`]) when there is one, else of the
 /// file itself. A file `pull` wrote and no record puts its stamp back
 /// (`calibration_stamp`, or none): pushing a board's own calibration back
 /// (the cell run's revert) restores what it carried.
@@ -649,7 +649,7 @@ fn abandon(node: &mut Node) -> String {
 /// # Errors
 /// As [`push_with_record`].
 pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushReport> {
-    let beside = perpend_lab::record::record_path(&a.file);
+    let beside = perpend_calib::record::record_path(&a.file);
     let record = match (&a.record, beside.exists()) {
         (Some(r), _) => Some(r.clone()),
         (None, true) => Some(beside),
@@ -667,7 +667,7 @@ pub fn push(node: &mut Node, a: &PushArgs, cancel: &AtomicBool) -> Result<PushRe
 /// # Errors
 /// The file or the record cannot be read or written; client errors.
 fn write_push_record(node: &mut Node, file: &Path) -> Result<Option<PathBuf>> {
-    use perpend_lab::record::{Record, Verification};
+    use perpend_calib::record::{Record, Verification};
     let f = ParamFile::read(file)?;
     if f.method == "board" {
         return Ok(None);

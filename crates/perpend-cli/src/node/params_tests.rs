@@ -10,7 +10,7 @@ use std::time::Duration;
 use perpend_can::Frame;
 use perpend_core::geometry::Plane;
 use perpend_core::params::Params;
-use perpend_lab::paramfile::{ParamFile, TableParams, TransferParams, TRANSFER_CURRENT};
+use perpend_formats::paramfile::{ParamFile, TableParams, TransferParams, TRANSFER_CURRENT};
 
 use super::{plan, pull, push, push_with_record, read_stamp, record_hash, PushArgs};
 use crate::board::node::{BoardConfig, VirtualBoard};
@@ -416,7 +416,7 @@ fn push_stamps_the_calibration_and_pull_reads_the_stamp() {
     let rep = push(&mut r.node, &args(path.clone()), &r.cancel).unwrap();
     let st = rep.stamp.unwrap();
     // no record beside the file: one is written, and stamps the board
-    let rec = perpend_lab::record::record_path(&path);
+    let rec = perpend_calib::record::record_path(&path);
     assert_eq!(st.record_hash, record_hash(&std::fs::read(&rec).unwrap()));
     assert!((t0..t0 + 60).contains(&st.utc_s), "{st:?}");
     assert_eq!(st.store_count, 1);

@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use perpend_board::image::Identity;
-use perpend_lab::record::{sha256_hex, tool_version, utc_now};
+use perpend_calib::record::{sha256_hex, tool_version, utc_now};
 use serde::Serialize;
 
 /// `major.minor.patch (#xx)` of a 0x1F56 identification.

@@ -74,7 +74,7 @@ pub struct Spread {
     pub rs: f64,
 }
 
-/// The paper reproduction's spread (Table 1 orientation, see perpend-lab's
+/// The paper reproduction's spread (Table 1 orientation, see perpend-diagnosis's
 /// `PoseSpread::paper`).
 pub const PAPER: Spread = Spread {
     cx: 17.888,
