@@ -237,11 +237,12 @@ pub fn show_text(r: &Record) -> String {
 fn decision_line(d: &perpend_formats::conformity::Decision) -> String {
     let mut s = format!(
         "decision: {} against the tolerance {}° at {} fresh poses, largest expanded uncertainty \
-         {}° (k = 2; tracker {}° per axis: {})",
+         {}° (k ≤ {:.2} from each pose's degrees of freedom; tracker {}° per axis: {})",
         d.verdict.word(),
         d.tolerance_deg,
         d.poses.len(),
         deg(d.max_expanded_deg),
+        d.k,
         deg(d.tracker_u_deg),
         d.tracker_u_source
     );
@@ -304,10 +305,11 @@ fn show_verification(r: &Record, o: &mut String) {
             };
             let _ = writeln!(
                 o,
-                "  pose {}: {} ± {} deg (U, k = 2; {} samples): {word}",
+                "  pose {}: {} ± {} deg (U, k = {:.2}; {} samples): {word}",
                 p.pose,
                 deg(p.error_deg),
                 deg(p.expanded_deg),
+                p.k,
                 p.samples
             );
         }

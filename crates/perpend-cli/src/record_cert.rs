@@ -10,7 +10,7 @@
 //! it), who calibrated, where and when, the reference standard (the
 //! tracker, its serial, calibration due date and traceability), the
 //! environment, the method, the results per pose with their expanded
-//! uncertainty (k = 2), the decision rule and the statement of
+//! uncertainty (k from each pose's degrees of freedom), the decision rule and the statement of
 //! conformity, the frame errors and what was done with them, the files
 //! and their SHA-256, and an approval block. Every other record (a failed,
 //! reverted or file-only calibration) gets a **report** with the same
@@ -237,12 +237,14 @@ fn doc_conformity(r: &Record, not_cert: bool, h: &mut String) {
             let _ = write!(
                 h,
                 "<p>Tolerance (maximum permissible normal error at every verified pose): \
-                 <b>{}°</b>. Largest expanded uncertainty U = {}° (k = 2: about 95 % \
-                 coverage of the error along its own direction, which decides near the \
-                 tolerance). Decision rule: {}. The tracker's standard uncertainty per axis \
-                 of a plane normal: {}° ({}).</p>",
+                 <b>{}°</b>. Largest expanded uncertainty U = {}° (U = k·u, k for about \
+                 95 % coverage of the error along its own direction, which decides near the \
+                 tolerance: 2 with many samples, Student's t at the pose's Welch–Satterthwaite \
+                 degrees of freedom with few; largest k here {:.2}). Decision rule: {}. The \
+                 tracker's standard uncertainty per axis of a plane normal: {}° ({}).</p>",
                 esc(&d.tolerance_deg.to_string()),
                 deg(d.max_expanded_deg),
+                d.k,
                 esc(&d.rule),
                 deg(d.tracker_u_deg),
                 esc(&d.tracker_u_source)
@@ -551,16 +553,19 @@ fn cert_verification(r: &Record, not_cert: bool, h: &mut String) {
 fn cert_decision_table(d: &Decision, lower: bool, h: &mut String) {
     h.push_str(
         "<table><tr><th>pose</th><th>normal error [deg]</th><th>u (readings) [deg]</th>\
-         <th>u (combined) [deg]</th><th>U, k = 2 [deg]</th><th>samples</th><th>verdict</th></tr>",
+         <th>u (combined) [deg]</th><th>k</th><th>U = k·u [deg]</th><th>samples</th>\
+         <th>verdict</th></tr>",
     );
     for p in &d.poses {
         let _ = write!(
             h,
-            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{}</td><td>{}</td>\
+             <td>{}</td></tr>",
             p.pose,
             deg(p.error_deg),
             deg(p.readings_u_deg),
             deg(p.u_deg),
+            p.k,
             deg(p.expanded_deg),
             p.samples,
             if lower {
@@ -633,7 +638,7 @@ fn bars_svg(v: &perpend_calib::record::Verification, d: Option<&Decision>) -> St
         );
     }
     let whiskers = if d.is_some() {
-        "; whiskers: ± U (k = 2)"
+        "; whiskers: ± U (k·u)"
     } else {
         ""
     };

@@ -240,11 +240,12 @@ fn rendered(cert: &std::path::Path, rec: &serde_json::Value) {
     );
     for p in d["poses"].as_array().unwrap() {
         let row = format!(
-            "{}\t{}\t{}\t{}\t{}\t{}\t{}",
+            "{}\t{}\t{}\t{}\t{:.2}\t{}\t{}\t{}",
             p["pose"],
             deg(&p["error_deg"]),
             deg(&p["readings_u_deg"]),
             deg(&p["u_deg"]),
+            p["k"].as_f64().unwrap(),
             deg(&p["expanded_deg"]),
             p["samples"],
             p["verdict"].as_str().unwrap()

@@ -146,11 +146,13 @@ fn the_certificate_is_well_formed_and_shows_the_records_figures() {
     }
     for p in &d.poses {
         let row = format!(
-            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{}</td><td>{}</td>\
+             <td>{}</td></tr>",
             p.pose,
             deg(p.error_deg),
             deg(p.readings_u_deg),
             deg(p.u_deg),
+            p.k,
             deg(p.expanded_deg),
             p.samples,
             p.verdict.word()

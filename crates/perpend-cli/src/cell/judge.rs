@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-use perpend_formats::conformity::Verdict;
+use perpend_formats::conformity::{coverage_factor, Verdict};
 
 use super::figures::Figures;
 use super::session::{PushStage, Session};
@@ -83,7 +83,9 @@ impl Report {
 }
 
 /// The mean of after − before over the fresh poses with both, and its
-/// standard uncertainty (the paired differences' scatter / √n).
+/// expanded uncertainty: the paired differences' scatter / √n times the
+/// coverage factor of their n − 1 degrees of freedom (Student's t for
+/// 95.45 %, JCGM 100:2008 Table G.2: 2.43 for 8 poses, 2 for many).
 pub(super) fn paired_change(f: &Figures) -> Option<(f64, f64)> {
     let d: Vec<f64> = f
         .decision
@@ -94,21 +96,20 @@ pub(super) fn paired_change(f: &Figures) -> Option<(f64, f64)> {
             Some(p.error_deg - (*f.before_per_pose_deg.get(k)?)?)
         })
         .collect();
-    perpend_calib::interim::mean_u(&d)
+    let k = coverage_factor(d.len().saturating_sub(1) as f64);
+    perpend_calib::interim::mean_u(&d).map(|(m, u)| (m, k * u))
 }
 
 /// Why the new calibration is not applied, if it is not: the after error
-/// worse than the before error beyond the uncertainty of their difference
-/// (k = 2, paired over the same fresh poses), or the decision FAIL.
+/// worse than the before error beyond the expanded uncertainty of their
+/// difference (paired over the same fresh poses), or the decision FAIL.
 pub(super) fn worse(f: &Figures) -> Option<String> {
     let change = paired_change(f);
-    if let Some((diff, u)) = change.filter(|(d, u)| *d > 2.0 * u) {
+    if let Some((diff, big_u)) = change.filter(|(d, big_u)| d > big_u) {
         Some(format!(
             "after {:.4}° is worse than before {:.4}° (mean over the fresh poses; the \
-             difference {diff:+.4}° exceeds its expanded uncertainty {:.4}°, k = 2)",
-            f.after_deg,
-            f.before_deg,
-            2.0 * u
+             difference {diff:+.4}° exceeds its expanded uncertainty {big_u:.4}°)",
+            f.after_deg, f.before_deg,
         ))
     } else if f.decision.verdict == Verdict::Fail {
         Some(decision_words(&f.decision))
@@ -130,9 +131,8 @@ pub(super) fn judge(s: &mut Session<'_>, f: Figures) -> Report {
                 decision_words(&f.decision),
                 f.after_deg,
                 f.before_deg,
-                paired_change(&f).map_or(String::new(), |(d, u)| format!(
-                    ", change {d:+.4}° ± {:.4}° (k = 2)",
-                    2.0 * u
+                paired_change(&f).map_or(String::new(), |(d, big_u)| format!(
+                    ", change {d:+.4}° ± {big_u:.4}° (U)"
                 ))
             ),
             None,

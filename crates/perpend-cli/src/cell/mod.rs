@@ -35,8 +35,8 @@
 //! 5. the **decision** (issue 45, [`perpend_formats::conformity`]): at every
 //!    fresh pose the error of the board's averaged normal against the
 //!    tolerance (`--tolerance-deg`, else the `--config` file's, else 0.05°)
-//!    with its expanded uncertainty (k = 2, from the tracker's plane
-//!    uncertainty and the pose's own reading scatter): PASS, FAIL or
+//!    with its expanded uncertainty (from the tracker's plane uncertainty
+//!    and the pose's own reading scatter; k from its degrees of freedom): PASS, FAIL or
 //!    INCONCLUSIVE with what would decide it. The new calibration is
 //!    applied unless the decision is FAIL or the after error is worse than
 //!    the before error; then `previous.json` is pushed back (the same

@@ -577,12 +577,13 @@ pub fn decision_words(d: &Decision) -> String {
     match d.verdict {
         Verdict::Pass => format!(
             "PASS: at every one of {} fresh poses the normal error plus its expanded uncertainty \
-             (k = 2) is within the tolerance {}° (largest: pose {}, {:.4}° + {:.4}°)",
+             is within the tolerance {}° (largest: pose {}, {:.4}° + {:.4}°, k = {:.2})",
             d.poses.len(),
             d.tolerance_deg,
             w.pose,
             w.error_deg,
-            w.expanded_deg
+            w.expanded_deg,
+            w.k
         ),
         Verdict::Fail => {
             let f = d
@@ -592,8 +593,8 @@ pub fn decision_words(d: &Decision) -> String {
                 .unwrap_or(w);
             format!(
                 "FAIL: at pose {} the normal error {:.4}° minus its expanded uncertainty {:.4}° \
-                 (k = 2) exceeds the tolerance {}°",
-                f.pose, f.error_deg, f.expanded_deg, d.tolerance_deg
+                 (k = {:.2}) exceeds the tolerance {}°",
+                f.pose, f.error_deg, f.expanded_deg, f.k, d.tolerance_deg
             )
         }
         Verdict::Inconclusive => format!(
