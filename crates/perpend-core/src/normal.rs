@@ -184,21 +184,33 @@ fn chen4<T: Real>(s: &[Vector3<T>; 4]) -> Result<Vector3<T>> {
 /// below the smallest eigenvalue this is one step of inverse iteration: the
 /// adjugate is `Σ_k (Π_{j≠k} (λ_j − λ)) v_k v_kᵀ`, dominated by the
 /// smallest eigenvalue's eigenvector.
+///
+/// The column is chosen by the adjugate's diagonal, `|A_kk|` largest (for
+/// the dominant term `A ≈ w·v·vᵀ`, `A_kk = w·v_k²` and the length of column
+/// `k` is `|w|·|v_k|`: the same column as the longest), and only that cross
+/// product is formed: three 2×2 minors instead of three cross products
+/// and their lengths (≈ 30 instructions a call on the board, `cargo xtask
+/// mcu-bench`).
 fn null_direction<T: Real>(m: &Matrix3<T>, lambda: T) -> Result<Vector3<T>> {
-    let a = m - Matrix3::identity() * lambda;
+    // M − λI on the diagonal only (`m − I·λ` multiplies and subtracts the
+    // six zeros too: the compiler may not drop `0·λ`, NaN for an infinite λ).
+    let mut a = *m;
+    for k in 0..3 {
+        a[(k, k)] -= lambda;
+    }
     let r0 = a.row(0).transpose();
     let r1 = a.row(1).transpose();
     let r2 = a.row(2).transpose();
-    let c01 = r0.cross(&r1);
-    let c02 = r0.cross(&r2);
-    let c12 = r1.cross(&r2);
-    let (n01, n02, n12) = (c01.norm_squared(), c02.norm_squared(), c12.norm_squared());
-    let best = if n01 >= n02 && n01 >= n12 {
-        c01
-    } else if n02 >= n12 {
-        c02
+    // |A_22|, |A_11|, |A_00|: the diagonal entries of r0×r1, r0×r2, r1×r2.
+    let d01 = (a[(0, 0)] * a[(1, 1)] - a[(0, 1)] * a[(1, 0)]).abs();
+    let d02 = (a[(0, 0)] * a[(2, 2)] - a[(0, 2)] * a[(2, 0)]).abs();
+    let d12 = (a[(1, 1)] * a[(2, 2)] - a[(1, 2)] * a[(2, 1)]).abs();
+    let best = if d01 >= d02 && d01 >= d12 {
+        r0.cross(&r1)
+    } else if d02 >= d12 {
+        r0.cross(&r2)
     } else {
-        c12
+        r1.cross(&r2)
     };
     crate::geometry::unit(best, "plane normal").map_err(|_| Error::DegenerateSpots)
 }
@@ -237,11 +249,19 @@ fn refined_enough<T: Real>(lambda: T, s: T, c2: T) -> bool {
 /// ratio of the spot pattern) when the points are nearly coplanar; the
 /// spots are degenerate when it is below the tolerance.
 fn tls<T: Real>(pts: &[Vector3<T>], centroid: &Vector3<T>) -> Result<(Vector3<T>, T)> {
-    let mut m = Matrix3::zeros();
+    // The six distinct sums of the symmetric scatter matrix.
+    let (mut xx, mut xy, mut xz) = (T::zero(), T::zero(), T::zero());
+    let (mut yy, mut yz, mut zz) = (T::zero(), T::zero(), T::zero());
     for p in pts {
         let q = p - centroid;
-        m += q * q.transpose();
+        xx += q.x * q.x;
+        xy += q.x * q.y;
+        xz += q.x * q.z;
+        yy += q.y * q.y;
+        yz += q.y * q.z;
+        zz += q.z * q.z;
     }
+    let m = Matrix3::new(xx, xy, xz, xy, yy, yz, xz, yz, zz);
     let s = m.trace();
     let c2 = m[(0, 0)] * m[(1, 1)] - m[(0, 1)] * m[(0, 1)] + m[(0, 0)] * m[(2, 2)]
         - m[(0, 2)] * m[(0, 2)]
