@@ -212,6 +212,16 @@ fn now_us() -> u64 {
     Instant::now().as_micros()
 }
 
+/// Where the App's frames go: the transmit queue. One closure type for
+/// `App::handle` and `App::poll`: each type their `impl FnMut(Frame)` is
+/// called with is one more copy of the device's send paths in flash
+/// (`cargo xtask size`, issue 50 item 7).
+fn to_queue(q: &mut TxQueue<TX_QUEUE_LEN>) -> impl FnMut(perpend_can::Frame) + '_ {
+    move |o| {
+        q.push(o);
+    }
+}
+
 impl Fw {
     /// One ADC scan through the pipeline.
     fn on_scan(&mut self, scan: &[u16; SCAN]) {
@@ -245,10 +255,7 @@ impl Fw {
 
     /// A received frame to the application.
     fn on_frame(&mut self, f: &perpend_can::Frame) {
-        let q = &mut self.txq;
-        self.app.handle(f, now_us(), &mut |o| {
-            q.push(o);
-        });
+        self.app.handle(f, now_us(), &mut to_queue(&mut self.txq));
     }
 
     /// Reprograms the acceptance filters when what the node listens to
@@ -298,10 +305,7 @@ impl Fw {
         self.update_filters();
         self.ticks = self.ticks.wrapping_add(1);
         self.health_due |= self.ticks.is_multiple_of(1000);
-        let q = &mut self.txq;
-        self.app.poll(now_us(), &mut |o| {
-            q.push(o);
-        });
+        self.app.poll(now_us(), &mut to_queue(&mut self.txq));
         self.check_bus_off();
         self.confirm_boot();
         if self.app.trial_expired(now_us()) {

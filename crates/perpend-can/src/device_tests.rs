@@ -526,6 +526,57 @@ fn tpdo_remap_and_cyclic_type() {
     assert_eq!(f[0].len, 8);
 }
 
+/// Values of 8 and 32 bits at every byte offset the mapping gives them
+/// (a 32-bit value from offset 3 straddles the payload's halves): the
+/// payload holds each value little-endian at its offset and zeros past
+/// the mapped length.
+#[test]
+fn tpdo_payload_of_mixed_lengths() {
+    let mut b = Bus::new();
+    assert!(b.dev.signal_emcy(
+        status::emcy::sensor_current(1),
+        status::error_register::CURRENT,
+        [1, 0, 0, 0, 0]
+    ));
+    let pdo = |b: &mut Bus, map: &[(u16, u8, u8)]| {
+        b.write_u32(0x1800, 1, 0x8000_0190).unwrap();
+        b.download(0x1A00, 0, &[0]).unwrap();
+        for (i, &(index, sub, bits)) in map.iter().enumerate() {
+            b.write_u32(0x1A00, i as u8 + 1, od::mapping(index, sub, bits))
+                .unwrap();
+        }
+        b.download(0x1A00, 0, &[map.len() as u8]).unwrap();
+        b.write_u32(0x1800, 1, 0x4000_0190).unwrap();
+        b.download(0x1800, 2, &[1]).unwrap();
+        b.nmt(0x01, 0);
+        b.dev.set_measurement(&sample());
+        let f = b.sync().into_iter().find(|f| f.id == 0x190).unwrap();
+        b.nmt(0x80, 0);
+        f
+    };
+    let er = b.read32(0x1001, 0) as u8;
+    assert_ne!(er, 0, "the error register is set");
+    let d = 40.0f32.to_le_bytes();
+    let f = pdo(&mut b, &[(0x1001, 0, 8), (0x2004, 1, 32), (0x1001, 0, 8)]);
+    assert_eq!(f.len, 6);
+    assert_eq!(f.data, [er, d[0], d[1], d[2], d[3], er, 0, 0]);
+    let f = pdo(
+        &mut b,
+        &[
+            (0x1001, 0, 8),
+            (0x1001, 0, 8),
+            (0x1001, 0, 8),
+            (0x2004, 1, 32),
+        ],
+    );
+    assert_eq!(f.len, 7);
+    assert_eq!(f.data, [er, er, er, d[0], d[1], d[2], d[3], 0]);
+    let f = pdo(&mut b, &[(0x2004, 1, 32), (0x2005, 0, 32)]);
+    assert_eq!(f.len, 8);
+    assert_eq!(f.data[..4], d);
+    assert_eq!(f.data[4..], 0x1111u32.to_le_bytes());
+}
+
 #[test]
 fn event_driven_tpdo_with_inhibit_and_timer() {
     let mut b = Bus::new();
