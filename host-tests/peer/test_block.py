@@ -79,7 +79,7 @@ def test_lost_sub_block_tails_are_resent(board):
     0.3 s wait, and python-canopen's block client resends from the ackseq.
     Tails of non-final sub-blocks only: canopen 2.4.1 cannot resend a lost
     last segment (its `_retransmit` writes again after the stream is done
-    and raises RuntimeError); `perpend node update` can (tests/update.rs)."""
+    and raises RuntimeError); `perpend node update` can (tests/cli/update.rs)."""
     assert board.node.sdo.RESPONSE_TIMEOUT == pytest.approx(0.3)
     size = 20000
     block_download(board.node, image(size))

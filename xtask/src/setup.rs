@@ -9,7 +9,7 @@
 //!   own virtual environment);
 //! * `qemu-system-arm` (instruction counts on an emulated Cortex-M4F);
 //! * `chromium` (headless: the calibration certificate as a browser
-//!   renders it, `crates/perpend-cli/tests/cell.rs`);
+//!   renders it, `crates/perpend-cli/tests/cli/cell.rs`);
 //! * `flip-link` (the firmware's linker, `.cargo/config.toml`), installed
 //!   with `cargo install` at [`FLIP_LINK_VERSION`] when missing;
 //! * a nightly toolchain (the fuzz smoke; skipped only with `--no-fuzz`).

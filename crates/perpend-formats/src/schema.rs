@@ -2,7 +2,7 @@
 //! `"perpend.<kind>/<version>"`, always the first key, so that a reader
 //! can tell the shape (and refuse one it does not know) before reading
 //! the rest. The shapes, with an example each: `docs/json.md` (checked
-//! against real output by `tests/json_schema.rs`). The version goes up
+//! against real output by `tests/diagnosis/json_schema.rs`). The version goes up
 //! when a key changes meaning or goes away; adding a key keeps it.
 
 use serde::Serialize;

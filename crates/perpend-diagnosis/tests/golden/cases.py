@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Writes the blind runs of the diagnosis golden test (tests/diagnose_golden.rs).
+"""Writes the blind runs of the diagnosis golden test (tests/diagnosis/diagnose_golden.rs).
 
 Each case is one run of the independent generator host-tests/blind/gen.py
 (its CASE.json parameters as score.py's `make_case` builds them, base regime,
@@ -12,7 +12,7 @@ Run once from the repository root:
 
 It rewrites crates/perpend-diagnosis/tests/golden/blind/<name>/{case.json,sensors.csv,poses.csv}
 (truth.json is dropped: the test never reads it). Then bless the outputs:
-PERPEND_BLESS=1 cargo test -p perpend-diagnosis --test diagnose_golden.
+PERPEND_BLESS=1 cargo test -p perpend-diagnosis --test diagnosis diagnose_golden.
 """
 
 import json

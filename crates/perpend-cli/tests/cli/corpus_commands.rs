@@ -2,7 +2,7 @@
 //! (issue 31, item 6). The format is in that directory's README.md.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-mod support;
+use crate::support;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -12,7 +12,7 @@
 //! reading stays inside the board's 20-80 mm range.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-mod common;
+use crate::common;
 
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};

@@ -5,7 +5,7 @@
 //! item 5).
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-mod support;
+use crate::support;
 
 use std::collections::BTreeSet;
 use std::process::Command;
@@ -13,7 +13,7 @@ use std::process::Command;
 use serde_json::Value;
 use support::{VirtualBus, BIN};
 
-const DOC: &str = include_str!("../../../docs/json-node.md");
+const DOC: &str = include_str!("../../../../docs/json-node.md");
 
 /// (command line, example) of each `<!-- run: … -->` + ```json block.
 fn examples() -> Vec<(String, String)> {

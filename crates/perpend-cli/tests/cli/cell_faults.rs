@@ -8,7 +8,7 @@
 //! and samples: a few seconds each.
 #![allow(clippy::unwrap_used, clippy::panic)]
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader, Write as _};
 use std::net::TcpStream;

@@ -11,7 +11,7 @@
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-mod support;
+use crate::support;
 
 use support::{text, VirtualBus, BIN};
 

@@ -9,7 +9,7 @@
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-mod support;
+use crate::support;
 
 use support::{failed, ok, VirtualBus};
 
@@ -53,7 +53,7 @@ fn json(o: &Output) -> serde_json::Value {
     serde_json::from_str(ok(o).trim()).unwrap()
 }
 
-const COMMITTED: &str = include_str!("../../../perpend.eds");
+const COMMITTED: &str = include_str!("../../../../perpend.eds");
 
 #[test]
 fn perpend_eds_prints_the_committed_file() {

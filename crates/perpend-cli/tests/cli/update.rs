@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-mod support;
+use crate::support;
 
 use perpend_board::image::{sign, version, TEST_SEED};
 use perpend_cli::board::update::DFU_BYTES;
