@@ -31,9 +31,6 @@ pub use crate::record_history::{
     find_records, fit_line, history, history_svg, history_text, History, Item, Line, TREND_SIGMAS,
 };
 
-/// Default tolerance of `record history` [deg].
-pub const TOLERANCE_DEG: f64 = 0.05;
-
 /// Arguments of `perpend record`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -88,9 +85,11 @@ pub struct HistoryArgs {
     /// Only the head with this serial (`0xb143eae7` or `b143eae7`).
     #[arg(long)]
     pub serial: Option<String>,
-    /// Tolerance on the verified p95 for the trend's date [deg].
-    #[arg(long, default_value_t = TOLERANCE_DEG)]
-    pub tolerance_deg: f64,
+    /// Tolerance on the verified p95 for the trend's date [deg] (default:
+    /// the latest record's own tolerance, else 0.05). Each record is
+    /// listed with the tolerance it was decided against.
+    #[arg(long)]
+    pub tolerance_deg: Option<f64>,
     /// Write a plot of the verified p95 against time (SVG, a panel per head).
     #[arg(long)]
     pub plot: Option<PathBuf>,
@@ -416,7 +415,9 @@ fn run_find(a: &FindArgs) -> Result<()> {
 }
 
 fn run_history(a: &HistoryArgs) -> Result<()> {
-    perpend_calib::cellconfig::check_tolerance(a.tolerance_deg).context("--tolerance-deg")?;
+    if let Some(t) = a.tolerance_deg {
+        perpend_calib::cellconfig::check_tolerance(t).context("--tolerance-deg")?;
+    }
     let files = find_records(&a.dirs)?;
     let h = history(&files, a.serial.as_deref(), a.tolerance_deg)?;
     if let Some(p) = &a.plot {

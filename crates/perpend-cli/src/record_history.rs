@@ -31,6 +31,10 @@ use perpend_calib::record::{Record, KIND_CROSS_VALIDATED, KIND_EXPECTED_ONLY};
 
 use crate::record_fmt::{epoch_s, esc, geometry, iso, opt_deg};
 
+/// Tolerance of the trend's date when neither `--tolerance-deg` nor any
+/// record names one [deg].
+pub const DEFAULT_TOLERANCE_DEG: f64 = 0.05;
+
 /// A slope is a trend when it exceeds this many of its 1σ.
 pub const TREND_SIGMAS: f64 = 2.0;
 
@@ -215,6 +219,9 @@ pub struct Entry {
     /// The board's store count after the push (applied cell
     /// calibrations: the stamp's sub 3).
     pub store_count: Option<u32>,
+    /// The tolerance this record was decided against [deg] (`null`: none
+    /// was decided).
+    pub tolerance_deg: Option<f64>,
 }
 
 /// A parameter's trend.
@@ -235,8 +242,11 @@ pub struct ParamTrend {
 pub struct History {
     /// Head serial (`null`: records without a board).
     pub serial: Option<String>,
-    /// Tolerance [deg].
+    /// Tolerance of the trend's date [deg].
     pub tolerance_deg: f64,
+    /// Where it comes from: `--tolerance-deg`, the latest record's own,
+    /// or the default.
+    pub tolerance_source: String,
     /// The time unit of `t` and of every slope: `minute`, `hour`, `day`
     /// or `week`.
     pub unit: String,
@@ -326,8 +336,13 @@ fn entry(file: &Path, item: &Item, t: f64) -> Entry {
         Item::Calibration(r) => r.stamp.as_ref().map(|s| s.store_count),
         Item::Check(_) => None,
     };
+    let tolerance_deg = match item {
+        Item::Calibration(r) => r.decision.as_ref().map(|d| d.tolerance_deg),
+        Item::Check(c) => Some(c.decision.tolerance_deg),
+    };
     Entry {
         store_count,
+        tolerance_deg,
         file: file.display().to_string(),
         kind: kind.into(),
         outcome,
@@ -388,7 +403,7 @@ fn read_items(files: &[PathBuf]) -> Result<Vec<(PathBuf, Item)>> {
 ///
 /// # Errors
 /// A malformed record (naming it), no record, none of `serial`.
-pub fn history(files: &[PathBuf], serial: Option<&str>, tol: f64) -> Result<Vec<History>> {
+pub fn history(files: &[PathBuf], serial: Option<&str>, tol: Option<f64>) -> Result<Vec<History>> {
     if files.is_empty() {
         bail!("no calibration or check record found (*.record.json, record.json, check.json)");
     }
@@ -420,7 +435,11 @@ pub fn history(files: &[PathBuf], serial: Option<&str>, tol: f64) -> Result<Vec<
         .collect()
 }
 
-fn one_history(items: &[&(PathBuf, Item)], serial: Option<String>, tol: f64) -> Result<History> {
+fn one_history(
+    items: &[&(PathBuf, Item)],
+    serial: Option<String>,
+    tol: Option<f64>,
+) -> Result<History> {
     let mut timed = Vec::with_capacity(items.len());
     for (f, i) in items {
         timed.push((
@@ -445,11 +464,13 @@ fn one_history(items: &[&(PathBuf, Item)], serial: Option<String>, tol: f64) -> 
         })
         .collect();
     let verification = verification_line(&entries);
+    let (tol, tolerance_source) = trend_tolerance(tol, &entries);
     let (verdict, recalibrate_by) = recalibrate(verification, t0, unit, unit_s, &entries, tol);
     Ok(History {
         warnings: store_warnings(&entries),
         serial,
         tolerance_deg: tol,
+        tolerance_source,
         unit: unit.into(),
         parameters: param_trends(&cals),
         entries,
@@ -574,16 +595,36 @@ fn param_trends(sorted: &[(f64, &Record)]) -> Vec<ParamTrend> {
     out
 }
 
+/// The tolerance of the trend's date and where it comes from: the one
+/// given, else the latest record's own, else [`DEFAULT_TOLERANCE_DEG`].
+fn trend_tolerance(given: Option<f64>, entries: &[Entry]) -> (f64, String) {
+    if let Some(t) = given {
+        return (t, "--tolerance-deg".into());
+    }
+    match entries
+        .iter()
+        .rev()
+        .find_map(|e| Some((e.tolerance_deg?, e)))
+    {
+        Some((t, e)) => (t, format!("the latest record's own ({})", e.file)),
+        None => (
+            DEFAULT_TOLERANCE_DEG,
+            "the default: no record decided one".into(),
+        ),
+    }
+}
+
 /// The histories in words, one section per head.
 pub fn history_text(hs: &[History]) -> String {
     let mut o = String::new();
     for h in hs {
         let _ = writeln!(
             o,
-            "history of head {} ({} records), tolerance {} deg on the verified p95",
+            "history of head {} ({} records), tolerance {} deg on the verified p95 ({})",
             h.serial.as_deref().unwrap_or("no board"),
             h.entries.len(),
-            h.tolerance_deg
+            h.tolerance_deg,
+            h.tolerance_source
         );
         for w in &h.warnings {
             let _ = writeln!(o, "  WARNING: {w}");
@@ -591,12 +632,13 @@ pub fn history_text(hs: &[History]) -> String {
         for e in &h.entries {
             let _ = writeln!(
                 o,
-                "  {}  {:<16} {:<28} before {:>8}  p95 {:>8} deg  {}",
+                "  {}  {:<16} {:<28} before {:>8}  p95 {:>8} deg  tolerance {:>6}  {}",
                 e.utc,
                 e.kind,
                 e.outcome,
                 opt_deg(e.before_deg),
                 opt_deg(e.p95_deg),
+                e.tolerance_deg.map_or("-".into(), |t| t.to_string()),
                 e.file
             );
         }

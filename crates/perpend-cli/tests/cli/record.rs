@@ -265,7 +265,7 @@ fn a_known_drift_gives_its_recalibration_date() {
         let dir = tempfile::tempdir().unwrap();
         series(dir.path(), seed, 8, |d| 0.010 + 0.0005 * d);
         let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
-        let h = history(&files, None, 0.05).unwrap().remove(0);
+        let h = history(&files, None, Some(0.05)).unwrap().remove(0);
         assert_eq!(h.unit, "day");
         let l = h.verification.unwrap();
         assert!(l.resolved(), "seed {seed}: {l:?}");
@@ -294,7 +294,7 @@ fn no_drift_says_no_trend_at_2_sigma() {
         let dir = tempfile::tempdir().unwrap();
         series(dir.path(), seed, 12, |_| 0.02);
         let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
-        let h = history(&files, None, 0.05).unwrap().remove(0);
+        let h = history(&files, None, Some(0.05)).unwrap().remove(0);
         if h.verdict.starts_with("no trend") {
             quiet += 1;
         }
@@ -309,7 +309,7 @@ fn each_head_of_a_mix_gets_its_section_and_serials_match_as_typed() {
     let other = example().with_board("0xB143EAE7", "1.0");
     other.write(&dir.path().join("o.record.json")).unwrap();
     let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
-    let hs = history(&files, None, 0.05).unwrap();
+    let hs = history(&files, None, Some(0.05)).unwrap();
     assert_eq!(hs.len(), 2);
     let text = perpend_cli::record::history_text(&hs);
     assert!(
@@ -317,11 +317,14 @@ fn each_head_of_a_mix_gets_its_section_and_serials_match_as_typed() {
         "{text}"
     );
     assert!(text.contains("history of head h-17 (3 records)"), "{text}");
-    let h = history(&files, Some("H-17"), 0.05).unwrap();
+    let h = history(&files, Some("H-17"), Some(0.05)).unwrap();
     assert_eq!((h.len(), h[0].entries.len()), (1, 3));
-    let h = history(&files, Some("b143eae7"), 0.05).unwrap();
+    let h = history(&files, Some("b143eae7"), Some(0.05)).unwrap();
     assert_eq!(h[0].entries.len(), 1);
-    let e = format!("{:#}", history(&files, Some("0x1"), 0.05).unwrap_err());
+    let e = format!(
+        "{:#}",
+        history(&files, Some("0x1"), Some(0.05)).unwrap_err()
+    );
     assert!(e.contains("no record of head 0x1"), "{e}");
     let svg = perpend_cli::record::history_svg(&hs);
     assert!(svg.contains("height=\"600\""), "a panel per head");
@@ -351,7 +354,7 @@ fn a_falling_store_count_is_a_warning_and_the_plot_has_ticks() {
             r.write(&f).unwrap();
         }
         let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
-        let hs = history(&files, None, 0.05).unwrap();
+        let hs = history(&files, None, Some(0.05)).unwrap();
         assert_eq!(!hs[0].warnings.is_empty(), warned, "{counts:?}");
         let text = perpend_cli::record::history_text(&hs);
         assert_eq!(text.contains("WARNING: store count 2 at"), warned, "{text}");
@@ -431,4 +434,36 @@ fn the_version_is_the_records_version() {
     let v = String::from_utf8(out.stdout).unwrap();
     assert_eq!(v.trim(), perpend_calib::record::tool_version());
     assert!(v.contains(" ("), "{v}");
+}
+
+#[test]
+fn history_lists_each_record_s_own_tolerance_and_dates_with_the_latest() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut a = applied();
+    a.utc = "2026-12-01T10:00:00Z".into();
+    a.write(&dir.path().join("a.record.json")).unwrap();
+    let mut b = applied();
+    b.utc = "2026-12-08T10:00:00Z".into();
+    b.decision.as_mut().unwrap().tolerance_deg = 0.03;
+    b.write(&dir.path().join("b.record.json")).unwrap();
+    let files = perpend_cli::record::find_records(&[dir.path().to_path_buf()]).unwrap();
+    let h = history(&files, None, None).unwrap().remove(0);
+    let tols: Vec<Option<f64>> = h.entries.iter().map(|e| e.tolerance_deg).collect();
+    assert_eq!(tols, [Some(0.05), Some(0.03)]);
+    assert_eq!(h.tolerance_deg, 0.03);
+    assert!(
+        h.tolerance_source.contains("latest record"),
+        "{}",
+        h.tolerance_source
+    );
+    let text = perpend_cli::record::history_text(std::slice::from_ref(&h));
+    assert!(text.contains("tolerance   0.05"), "{text}");
+    assert!(text.contains("tolerance   0.03"), "{text}");
+    // Given on the command line, it dates the trend; the entries keep theirs.
+    let h = history(&files, None, Some(0.08)).unwrap().remove(0);
+    assert_eq!(
+        (h.tolerance_deg, h.entries[1].tolerance_deg),
+        (0.08, Some(0.03))
+    );
+    assert_eq!(h.tolerance_source, "--tolerance-deg");
 }

@@ -2,7 +2,6 @@
 //! a module: one link instead of nine). `cargo test -p perpend-diagnosis --test
 //! diagnosis study_doc::` runs one file's tests.
 
-
 mod calibration;
 mod diagnose_direction;
 mod diagnose_end_to_end;
