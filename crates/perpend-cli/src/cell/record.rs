@@ -63,6 +63,10 @@ pub(super) fn write_record(
     if let Some(f) = &report.figures {
         r = r.with_verification(fresh_verification(f, a));
         r.decision = Some(f.decision.clone());
+    } else if report.before_deg.is_some() {
+        // A run that failed after its before pass: what the board was
+        // found at is kept; the after pass did not happen.
+        r.verification.before_mean_deg = report.before_deg;
     }
     r.certification = Some(certification(s, &r.utc));
     let certifiable = r.is_certifiable();

@@ -53,6 +53,13 @@ fn the_bus_dropped_during_the_push_leaves_the_previous_calibration() {
     assert!(restored.contains("previous calibration"), "{f}");
     assert!(f["before_deg"].as_f64().unwrap() > 0.5, "{f}");
     no_certificate(d, "run", "failed, restored");
+    // The before pass was measured: the record and `record show` keep it.
+    let rec: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run/record.json")).unwrap()).unwrap();
+    assert_eq!(
+        rec["verification"]["before_mean_deg"], f["before_deg"],
+        "{rec}"
+    );
 }
 
 /// A run whose calibration is not on the board leaves a record that says
