@@ -105,7 +105,12 @@ fn plausible(
     }
     if let (Some(s), Some(w)) = (standoff(p), standoff(&planned)) {
         for (k, unit) in [(25.4, "inches"), (0.001, "micrometres")] {
-            if (s * k - w).abs() <= MANUAL_STANDOFF_MM && (s - w).abs() > MANUAL_STANDOFF_MM {
+            // In other units when converted it lies near the plan (within
+            // the standoff tolerance, or three times nearer than as typed,
+            // for a pose off its plan): said before any range message.
+            let (as_typed, converted) = ((s - w).abs(), (s * k - w).abs());
+            let near = converted <= MANUAL_STANDOFF_MM || converted * 3.0 < as_typed;
+            if near && as_typed > MANUAL_STANDOFF_MM {
                 return Err(format!(
                     "a plane in {unit}: D = {} is {:.4} mm; type it in mm",
                     p.d,
@@ -448,6 +453,10 @@ mod tests {
             inch.starts_with("a plane in inches: D = -1.1024 is -28.0010 mm"),
             "{inch}"
         );
+        // A pose 5 mm off its plan, typed in inches: still said as inches
+        // first, not as a plane outside the sensors' range.
+        let off = at("0,0,1,-1.3000").unwrap_err();
+        assert!(off.starts_with("a plane in inches"), "{off}");
         let e = at("1,2,3,4").unwrap_err();
         assert!(
             e.contains("measuring range") || e.contains("planned pose"),
