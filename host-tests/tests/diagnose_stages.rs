@@ -61,7 +61,7 @@ enum Role {
 
 /// The files of the pass in the order a reader takes them: each imports
 /// only files above it.
-const ORDER: [(&str, Role); 22] = [
+const ORDER: [(&str, Role); 23] = [
     ("stats.rs", Role::Toolbox),
     ("folds.rs", Role::Toolbox),
     ("settings.rs", Role::Toolbox),
@@ -70,6 +70,7 @@ const ORDER: [(&str, Role); 22] = [
     ("moments.rs", Role::Toolbox),
     ("noise.rs", Role::Toolbox),
     ("lags.rs", Role::Toolbox),
+    ("insample.rs", Role::Toolbox),
     ("expect.rs", Role::Toolbox),
     ("select.rs", Role::Toolbox),
     ("nested.rs", Role::Toolbox),
