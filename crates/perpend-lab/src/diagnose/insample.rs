@@ -37,7 +37,9 @@
 
 use perpend_core::calib::{LsqConfig, Regressors};
 
-use super::candidates::{fit_from, Effect, SensorFit};
+use perpend_core::head::Sensor;
+
+use super::candidates::{fit, fit_from, Effect, Refs, SensorFit};
 use super::cv::{CvResult, BASE_PARAMS};
 use crate::exchange::PoseTable;
 
@@ -83,6 +85,25 @@ pub fn refit(cv: &CvResult, poses: &PoseTable, lsq: &LsqConfig<f64>) -> Vec<Opti
             fit_from(&f.sensor, i, poses, f.terms, f.source, lsq)
                 .ok()
                 .map(|x| Rss::of(&x))
+        })
+        .collect()
+}
+
+/// The paper's model (with [`Refs::extra`]) fitted on all of `poses`,
+/// sensor by sensor; `None` when a sensor cannot be fitted.
+pub fn base_rss(
+    nominal: &[Sensor<f64>],
+    poses: &PoseTable,
+    refs: &Refs,
+    lsq: &LsqConfig<f64>,
+) -> Option<Vec<Rss>> {
+    nominal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            fit(s, i, poses, refs.terms(Effect::None, i), lsq)
+                .ok()
+                .map(|f| Rss::of(&f))
         })
         .collect()
 }

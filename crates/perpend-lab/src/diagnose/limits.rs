@@ -40,14 +40,14 @@
 
 use perpend_core::head::Sensor;
 
-use super::candidates::{fit, regressor, Effect, Refs};
+use super::candidates::{regressor, Effect, Refs};
 use super::cv::{cross_validate, normal_errors, paired_normals, CvResult};
 use super::decision::Decided;
 use super::expect::{null_draw, null_table, NoiseModel};
 use super::fits::Fitted;
 use super::lags;
 use super::load::{reading_span, Loaded};
-use super::insample::{self, Rss};
+use super::insample;
 use super::select::{self, Bar, Shown, Verdict};
 use super::settings::Settings;
 use super::stats;
@@ -391,18 +391,7 @@ fn detected(e: Effect, c: &Ctx<'_>, t: &PoseTable, v: &Verdict) -> Option<(bool,
 /// table `t` ([`super::insample`]); empty when the paper's model cannot
 /// be fitted on it.
 fn nested_of(e: Effect, c: &Ctx<'_>, t: &PoseTable, x: &CvResult) -> Vec<Option<f64>> {
-    let base: Option<Vec<Rss>> = c
-        .l
-        .nominal
-        .iter()
-        .enumerate()
-        .map(|(i, s)| {
-            fit(s, i, t, c.l.refs.terms(Effect::None, i), &c.s.lsq)
-                .ok()
-                .map(|f| Rss::of(&f))
-        })
-        .collect();
-    base.map_or_else(Vec::new, |b| {
+    insample::base_rss(&c.l.nominal, t, &c.l.refs, &c.s.lsq).map_or_else(Vec::new, |b| {
         insample::zs(e, &b, &insample::refit(x, t, &c.s.lsq))
     })
 }
