@@ -63,8 +63,9 @@ enum Role {
 
 /// The files of the pass in the order a reader takes them: each imports
 /// only files above it.
-const ORDER: [(&str, Role); 15] = [
+const ORDER: [(&str, Role); 16] = [
     ("settings.rs", Role::Toolbox),
+    ("insample.rs", Role::Toolbox),
     ("expect.rs", Role::Toolbox),
     ("select.rs", Role::Toolbox),
     ("nested.rs", Role::Toolbox),

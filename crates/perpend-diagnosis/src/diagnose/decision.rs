@@ -284,7 +284,10 @@ fn next_step(
     let Ok((_, noise, expected, d)) = settled else {
         return Ok(None);
     };
-    let held_out = d.winner.filter(|w| d.effect == *w);
+    let held_out = d
+        .winner
+        .filter(|w| d.effect == *w)
+        .filter(|w| nested_on_top(*w, with, l, &measured, &expected, &d, s));
     let nested = match held_out {
         Some(_) => None,
         None => nested_partner(with, l, &r, &measured, &noise, &expected, &d, s),
@@ -314,6 +317,33 @@ fn next_step(
         fits,
         nested,
     }))
+}
+
+/// Whether winner `w` of a forward step may be named on top of `with`:
+/// always when the held-out test named it; when only the nested test did
+/// ([`select`], "Nested test"), after the forms of `with` passed their
+/// lack-of-fit check ([`select::lack_of_fit`]: a settling drift fitted as
+/// a line leaves curvature in time that a thermal term would take), and a
+/// time-like partner of a time-like effect only on a run that separates
+/// them ([`lags::separable`]).
+fn nested_on_top(
+    w: Effect,
+    with: &[Effect],
+    l: &Loaded,
+    measured: &Analysis,
+    expected: &Expectation,
+    d: &Decision,
+    s: &Settings,
+) -> bool {
+    let Some(v) = d.verdicts.iter().find(|v| v.effect == w) else {
+        return false;
+    };
+    if v.residual {
+        return true;
+    }
+    let time_pair = nested::partner(with) == Some(w);
+    select::lack_of_fit(with, measured, expected, s.rule.alpha).is_none()
+        && (!time_pair || lags::separable(&l.poses))
 }
 
 /// The time-like partner of a time-like effect in `with`, named by the

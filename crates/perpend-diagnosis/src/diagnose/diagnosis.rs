@@ -51,6 +51,24 @@ impl Diagnosis {
         named(self.decided.effect, &self.decided.also)
     }
 
+    /// The nested test of effect `e` as it was selected (the first's
+    /// verdict, or the forward step's), when one of its sets passed:
+    /// the sensors it acts on ([`super::select::NestedTest::acts_on`]).
+    pub fn acts_on(&self, e: Effect) -> Option<&super::select::NestedTest> {
+        let first = self
+            .decided
+            .decision
+            .verdicts
+            .iter()
+            .find(|v| v.effect == e && self.decided.decision.winner == Some(e));
+        let step = self.decided.also.iter().find(|st| st.effect == e);
+        step.map(|st| &st.verdict)
+            .or(first)?
+            .nested
+            .as_ref()
+            .filter(|n| n.significant)
+    }
+
     /// The fitted time constant of `e` [s]
     /// ([`super::EffectJson::time_constant_s`]).
     pub fn time_constant(&self, e: Effect) -> Option<f64> {

@@ -21,6 +21,7 @@ use perpend_core::model::distance;
 use perpend_core::normal::Method;
 use rand::rngs::StdRng;
 
+use super::insample::{self, Rss};
 use perpend_calib::candidates::{fit, Effect, Refs, SensorFit};
 use perpend_calib::cv::{cross_validate, normal_errors, CvResult, Folds};
 use perpend_calib::sim::{gauss, Tracker};
@@ -127,6 +128,10 @@ pub struct Analysis {
     /// Structure z of each model's held-out residuals along each axis of
     /// [`perpend_calib::noise::AXES`] (keys from the base fit's geometry).
     pub structure: Vec<(Effect, Vec<Option<f64>>)>,
+    /// Nested in-sample z of each candidate against the base model per
+    /// set of sensors ([`super::insample::zs`]: the head, then each
+    /// sensor alone).
+    pub nested: Vec<(Effect, Vec<Option<f64>>)>,
 }
 
 impl Analysis {
@@ -165,6 +170,14 @@ impl Analysis {
     /// Structure z per axis of model `e`'s held-out residuals.
     pub fn structure_of(&self, e: Effect) -> Option<&[Option<f64>]> {
         self.structure
+            .iter()
+            .find(|(x, _)| *x == e)
+            .map(|(_, v)| v.as_slice())
+    }
+
+    /// Nested in-sample z per set of sensors of candidate `e`.
+    pub fn nested_of(&self, e: Effect) -> Option<&[Option<f64>]> {
+        self.nested
             .iter()
             .find(|(x, _)| *x == e)
             .map(|(_, v)| v.as_slice())
@@ -271,6 +284,7 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         true => candidate_normals(&cv, poses, plan),
         false => Vec::new(),
     };
+    let nested = nested_zs(&cv, &base_fit, poses, plan);
     let geom: Vec<Sensor<f64>> = base_fit.iter().map(|f| f.sensor).collect();
     let sources = carry_sources(&cv);
     let structure = cv
@@ -292,7 +306,28 @@ pub fn analyse(poses: &PoseTable, plan: &Plan<'_>, normals: bool) -> Result<Anal
         base_normal,
         normals,
         structure,
+        nested,
     })
+}
+
+/// The nested in-sample z of every candidate that could be
+/// cross-validated against the base model fitted on all poses
+/// (`base_fit`), per set of sensors ([`super::insample`]).
+fn nested_zs(
+    cv: &[(Effect, Result<CvResult, String>)],
+    base_fit: &[SensorFit],
+    poses: &PoseTable,
+    plan: &Plan<'_>,
+) -> Vec<(Effect, Vec<Option<f64>>)> {
+    let base: Vec<Rss> = base_fit.iter().map(Rss::of).collect();
+    cv.iter()
+        .filter(|(e, _)| *e != Effect::None)
+        .filter_map(|(e, r)| {
+            let c = r.as_ref().ok()?;
+            let cand = insample::refit(c, poses, plan.lsq);
+            Some((*e, insample::zs(*e, &base, &cand)))
+        })
+        .collect()
 }
 
 /// The channel each sensor's carry-over reads, as the crosstalk candidate
@@ -382,6 +417,10 @@ pub struct Expectation {
     /// model that captures the run leaves (cross-validation's own fold
     /// errors are smooth in the geometry, more so with more parameters).
     pub structure: Vec<(Effect, Vec<Spread>)>,
+    /// Nested in-sample z of each candidate per set of sensors
+    /// ([`super::insample`]) on effect-free data: the null of the
+    /// decision's nested test.
+    pub nested_z: Vec<(Effect, Vec<Spread>)>,
 }
 
 impl Expectation {
@@ -411,6 +450,15 @@ impl Expectation {
     /// Null spread of candidate `e`'s normal-error reduction z.
     pub fn normal_z_of(&self, e: Effect) -> Option<Spread> {
         self.normal_z.iter().find(|(x, _)| *x == e).map(|(_, s)| *s)
+    }
+
+    /// Null spreads of candidate `e`'s nested z per set of sensors
+    /// (empty when not simulated).
+    pub fn nested_z_of(&self, e: Effect) -> &[Spread] {
+        self.nested_z
+            .iter()
+            .find(|(x, _)| *x == e)
+            .map_or(&[], |(_, v)| v.as_slice())
     }
 
     /// Null spread of candidate `e`'s signed-rank z.
@@ -537,7 +585,29 @@ fn summarise(analyses: &[Analysis], plan: &Plan<'_>) -> Expectation {
             a.normal_gain_of(e).filter(|g| g.poses > 0).map(|g| g.z)
         }),
         structure: structure_spreads(analyses, plan),
+        nested_z: nested_spreads(analyses, plan),
     }
+}
+
+/// Each candidate's nested z per set of sensors over the draws.
+fn nested_spreads(analyses: &[Analysis], plan: &Plan<'_>) -> Vec<(Effect, Vec<Spread>)> {
+    let sets = insample::sets(plan.nominal.len()).len();
+    plan.models
+        .iter()
+        .filter(|e| **e != Effect::None)
+        .map(|&e| {
+            let per_set = (0..sets)
+                .map(|x| {
+                    let v: Vec<f64> = analyses
+                        .iter()
+                        .filter_map(|a| a.nested_of(e)?.get(x).copied().flatten())
+                        .collect();
+                    Spread::of(&v)
+                })
+                .collect();
+            (e, per_set)
+        })
+        .collect()
 }
 
 #[cfg(test)]

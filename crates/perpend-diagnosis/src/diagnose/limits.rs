@@ -10,9 +10,11 @@
 //! to `n` effect-free re-simulations of the run ([`super::expect::null_draw`]
 //! at the run's noise, seeds after the expectation's), and each is judged
 //! by the decision's own test of that candidate against the paper's
-//! model ([`detected`]: paired held-out z or signed-rank z beyond the
-//! thresholds the run's decision used, the minimum gain over the floor,
-//! or the normal-cost test), on the run's folds and references. A pass at
+//! model ([`detected`], through the one rule the decision uses,
+//! [`super::select::test`]: paired held-out z or signed-rank z beyond the
+//! thresholds the run's decision used with the minimum gain over the
+//! floor, the nested in-sample test against the run's effect-free
+//! spreads, or the normal-cost test), on the run's folds and references. A pass at
 //! `a` is at least ⌈0.9·n⌉ of the `n` draws detected (8 of 8 with the
 //! default `n` = 8), the same draws at every `a` (common random numbers).
 //! The search ([`search`]) walks a grid of steps of 2^¼ from below where
@@ -41,13 +43,12 @@ use perpend_core::head::Sensor;
 use super::decision::Decided;
 use super::expect::{null_draw, null_table, NoiseModel};
 use super::fits::Fitted;
+use super::insample;
 use super::load::{reading_span, Loaded};
-use super::select::Verdict;
+use super::select::{self, Bar, Shown, Verdict};
 use super::settings::Settings;
 use perpend_calib::candidates::{regressor, Effect, Refs};
-use perpend_calib::cv::{
-    cross_validate, normal_errors, paired, paired_normals, paired_rank, CvResult,
-};
+use perpend_calib::cv::{cross_validate, normal_errors, paired_normals, CvResult};
 use perpend_calib::lags;
 use perpend_calib::stats;
 use perpend_formats::exchange::PoseTable;
@@ -107,7 +108,6 @@ struct Ctx<'a> {
     tables: Vec<PoseTable>,
     /// Half-span of each sensor's readings about `d_ref` [mm].
     span: Vec<f64>,
-    floor_ms: f64,
     floor_rms: f64,
     floor_deg: f64,
 }
@@ -131,7 +131,6 @@ pub(super) fn limits(l: &Loaded, f: &Fitted, d: &Decided, s: &Settings) -> Limit
         span: half_spans(&l.poses, &l.refs),
         truth,
         tables,
-        floor_ms: base_exp.mean * base_exp.mean,
         floor_rms: base_exp.mean,
         floor_deg: d.expected.normal_err_deg.mean,
     };
@@ -165,7 +164,6 @@ fn limit_of(e: Effect, c: &Ctx<'_>, f: &Fitted, d: &Decided, sigma: f64) -> Resu
                 .map_or("it could not be cross-validated", |(_, w)| w.as_str());
             format!("not detectable in this run: {why}")
         })?;
-    let null_mean = d.expected.gain_z_of(e).map_or(0.0, |z| z.mean);
     let bound = bound(e);
     let per_unit = visible_per_unit(e, c, bound / 100.0);
     if !(per_unit * bound > 1e-3 * sigma) {
@@ -175,7 +173,7 @@ fn limit_of(e: Effect, c: &Ctx<'_>, f: &Fitted, d: &Decided, sigma: f64) -> Resu
         ));
     }
     let need = ((POWER * c.tables.len() as f64).ceil() as usize).max(1);
-    let pass = |a: f64| evaluate(e, a, c, v, null_mean, need);
+    let pass = |a: f64| evaluate(e, a, c, v, need);
     let (lo, hi) = search(&pass, START * sigma / per_unit, bound, need);
     let Some((h, hp)) = hi else {
         return Err(format!(
@@ -332,7 +330,7 @@ struct Pass {
 
 /// The draws at amplitude `a`, judged one by one ([`detected`]); stops as
 /// soon as `need` detections can no longer be reached.
-fn evaluate(e: Effect, a: f64, c: &Ctx<'_>, v: &Verdict, null_mean: f64, need: usize) -> Pass {
+fn evaluate(e: Effect, a: f64, c: &Ctx<'_>, v: &Verdict, need: usize) -> Pass {
     let n = c.tables.len();
     let mut p = Pass::default();
     for t in &c.tables {
@@ -341,7 +339,7 @@ fn evaluate(e: Effect, a: f64, c: &Ctx<'_>, v: &Verdict, null_mean: f64, need: u
         }
         p.tried += 1;
         let t = inject(e, a, c, t);
-        if let Some((hit, cost, rms)) = detected(e, c, &t, v, null_mean) {
+        if let Some((hit, cost, rms)) = detected(e, c, &t, v) {
             p.hits += usize::from(hit);
             p.cost.push(cost);
             p.rms.push(rms);
@@ -351,26 +349,30 @@ fn evaluate(e: Effect, a: f64, c: &Ctx<'_>, v: &Verdict, null_mean: f64, need: u
 }
 
 /// The decision's test of `e` against the paper's model on table `t`
-/// ([`super::select`], criteria 1-2 and the normal-cost test) with the
-/// thresholds of the run's verdict `v`: whether it passes, the paper's
-/// model's normal-error cost and its held-out RMS over the floor.
-fn detected(
-    e: Effect,
-    c: &Ctx<'_>,
-    t: &PoseTable,
-    v: &Verdict,
-    null_mean: f64,
-) -> Option<(bool, f64, f64)> {
+/// (one rule with the decision: [`super::select::test`], the held-out
+/// test, the nested test and the normal-cost test) with the thresholds of
+/// the run's verdict `v`: whether it passes, the paper's model's
+/// normal-error cost and its held-out RMS over the floor. The injected
+/// form is within its physical bound by construction (the search stops
+/// there), so the bar is taken as plausible.
+fn detected(e: Effect, c: &Ctx<'_>, t: &PoseTable, v: &Verdict) -> Option<(bool, f64, f64)> {
     let b = cv_of(Effect::None, c, t)?;
     let x = cv_of(e, c, t)?;
-    let (gain, z, _) = paired(&b, &x);
-    let z_rank = paired_rank(&b, &x);
-    let significant = z > v.z_threshold || (z_rank > v.rank_threshold && z > null_mean);
-    let residual = significant && gain >= c.s.rule.min_gain * c.floor_ms;
+    let nested = nested_of(e, c, t, &x);
     let nb = normal_errors(&b, t, &c.l.folds, c.s.method);
     let nx = normal_errors(&x, t, &c.l.folds, c.s.method);
     let g = paired_normals(&nb, &nx);
-    let normal = v.normal.is_some_and(|n| g.poses > 0 && g.z > n.threshold);
+    let bar = Bar {
+        plausible: true,
+        ..v.bar.clone()
+    };
+    let shown = Shown {
+        base: &b,
+        cand: &x,
+        nested: &nested,
+        normal_z: (g.poses > 0).then_some(g.z),
+    };
+    let o = select::test(&shown, &bar);
     let base: Vec<f64> = nb.iter().flatten().copied().collect();
     let cost = if c.floor_deg > 0.0 {
         stats::mean(&base) / c.floor_deg
@@ -382,7 +384,16 @@ fn detected(
     } else {
         f64::NAN
     };
-    Some((residual || normal, cost, rms))
+    Some((o.beats_base() || o.normal, cost, rms))
+}
+
+/// The nested z per set of sensors of `e` (cross-validated as `x`) on
+/// table `t` ([`super::insample`]); empty when the paper's model cannot
+/// be fitted on it.
+fn nested_of(e: Effect, c: &Ctx<'_>, t: &PoseTable, x: &CvResult) -> Vec<Option<f64>> {
+    insample::base_rss(&c.l.nominal, t, &c.l.refs, &c.s.lsq).map_or_else(Vec::new, |b| {
+        insample::zs(e, &b, &insample::refit(x, t, &c.s.lsq))
+    })
 }
 
 /// An amplitude of `e` in the units the report gives a named effect

@@ -62,6 +62,7 @@ pub mod diagnosis;
 pub mod direction;
 pub mod expect;
 pub mod fits;
+pub mod insample;
 pub mod limits;
 pub mod load;
 pub mod nested;
@@ -139,6 +140,26 @@ pub struct EffectJson {
     /// ([`lags`]); absent when none was fitted (no lag, linear drift).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub time_constant_s: Option<f64>,
+    /// The sensors (1-based) the effect acts on by the nested in-sample
+    /// test (Holm over the sensors at α/m; every sensor when only the
+    /// head's set passed, `localized` false); absent when that test did
+    /// not pass (named by the held-out test alone).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub acts_on: Option<ActsOnJson>,
+}
+
+/// The sensors an effect acts on, in the JSON output
+/// ([`select::NestedTest`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ActsOnJson {
+    /// Sensors (1-based).
+    pub sensors: Vec<usize>,
+    /// Whether single sensors' tests found them (not the head's alone).
+    pub localized: bool,
+    /// p of the head's set, then of each sensor alone.
+    pub p: Vec<f64>,
+    /// The candidate's level α/m.
+    pub level: f64,
 }
 
 /// The noise the diagnosis worked with, in the JSON output.
@@ -356,6 +377,12 @@ impl Diagnosis {
                 sigma: fits.iter().map(|f| f.sigma.clone()).collect(),
                 physical: fits.iter().map(|f| report::physical(e, f, span)).collect(),
                 time_constant_s: self.time_constant(e),
+                acts_on: self.acts_on(e).map(|n| ActsOnJson {
+                    sensors: n.acts_on.iter().map(|i| i + 1).collect(),
+                    localized: n.localized,
+                    p: n.p.clone(),
+                    level: n.level,
+                }),
             })
             .collect();
         DiagnoseJson {

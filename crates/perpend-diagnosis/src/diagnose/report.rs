@@ -278,6 +278,15 @@ fn verdict_section(o: &mut String, d: &Diagnosis) {
         );
     }
     for e in d.effects() {
+        if let Some(n) = d.acts_on(e) {
+            let _ = writeln!(
+                o,
+                "  {} acts on {} (nested in-sample test: {})",
+                e.name(),
+                super::select::sensor_words(n),
+                super::select::nested_words(n)
+            );
+        }
         match (e, d.time_constant(e)) {
             (Effect::Thermal, Some(tau)) => {
                 let _ = writeln!(
